@@ -1,0 +1,3 @@
+from afmtool.cli.main import main
+
+main()

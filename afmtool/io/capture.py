@@ -1,0 +1,114 @@
+"""Records that describe a capture, and the protocol every reader follows.
+
+A capture is a set of named channels sharing one sample rate, each with
+units, plus a metadata mapping (validated by
+``schemas/capture-metadata.schema.json``).  Readers yield aligned
+:class:`Chunk` blocks so that analyses stream with bounded memory.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Protocol
+
+import numpy as np
+
+__all__ = [
+    "CANONICAL_CHANNELS",
+    "DEFAULT_CHUNK_SAMPLES",
+    "ChannelSpec",
+    "CaptureInfo",
+    "Chunk",
+    "CaptureReader",
+    "CaptureWriter",
+]
+
+#: Channel names every analysis understands.  Other names are allowed.
+CANONICAL_CHANNELS = ("dither", "deflection", "thermal_current", "v_sub", "v_r", "z_piezo")
+
+#: Default number of samples per chunk (2**20, about 2 s at 500 kHz).
+DEFAULT_CHUNK_SAMPLES = 1 << 20
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """One channel: its name and physical units (e.g. ``"nm"``, ``"V"``)."""
+
+    name: str
+    units: str = ""
+
+
+@dataclass(frozen=True)
+class CaptureInfo:
+    """What is known about a capture before its samples are read.
+
+    ``n_samples`` is ``None`` for streams (CSV on stdin) whose length is
+    only known once they have been read to the end.
+    """
+
+    source: str
+    format: str
+    sample_rate_hz: float
+    channels: tuple[ChannelSpec, ...]
+    n_samples: int | None
+    metadata: Mapping = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "metadata", MappingProxyType(dict(self.metadata)))
+
+    @property
+    def channel_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.channels)
+
+    def units(self, name: str) -> str:
+        for spec in self.channels:
+            if spec.name == name:
+                return spec.units
+        raise KeyError(name)
+
+    @property
+    def duration_s(self) -> float | None:
+        return None if self.n_samples is None else self.n_samples / self.sample_rate_hz
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """An aligned block of samples: ``data[name][i]`` is sample ``start + i``."""
+
+    start: int
+    data: Mapping[str, np.ndarray]
+
+    def __len__(self) -> int:
+        return len(next(iter(self.data.values()))) if self.data else 0
+
+    def time_s(self, sample_rate_hz: float) -> np.ndarray:
+        """Sample times in seconds, counted from the first sample of the capture."""
+        return (self.start + np.arange(len(self))) / sample_rate_hz
+
+
+class CaptureReader(Protocol):
+    """A capture opened for reading.  Readers do I/O only; they never estimate."""
+
+    info: CaptureInfo
+
+    def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
+        """Yield aligned blocks of ``channels`` (float64), in order, once."""
+        ...
+
+    def truth(self) -> dict[str, np.ndarray]:
+        """Simulator ground truth (``/truth``), empty when the format has none."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class CaptureWriter(Protocol):
+    """A capture being written block by block; ``close`` finalises it."""
+
+    def write(self, data: Mapping[str, np.ndarray]) -> None: ...
+
+    def write_truth(self, truth: Mapping[str, np.ndarray]) -> None: ...
+
+    def close(self) -> None: ...

@@ -1,0 +1,211 @@
+"""HDF5 captures in the afmtool layout, and foreign HDF5 files by mapping.
+
+Layout::
+
+    /                 attrs: sample_rate_hz (float), metadata (JSON string, optional)
+    /channels/<name>  1-D dataset, attr units
+    /truth/<name>     optional simulator ground truth; analyses never read it
+
+A foreign file is read by naming datasets: ``{"deflection": "/s"}`` plus a
+sample rate.  Files are written without ``libver='latest'`` so that
+``h5dump`` reads everything afmtool writes.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from afmtool.errors import InputError
+from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk
+from afmtool.io.metadata import parse_metadata_json
+
+__all__ = ["Hdf5Reader", "Hdf5Writer"]
+
+_WRITE_CHUNK = 1 << 16
+
+
+def _open_h5(path: Path) -> h5py.File:
+    try:
+        return h5py.File(path, "r")
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except OSError as exc:
+        reason = str(exc).split("(")[0].strip() or "unreadable"
+        raise InputError(f"{path}: not a readable HDF5 file ({reason})") from None
+
+
+def _check_local(path: Path, name: str, dataset: h5py.Dataset) -> None:
+    """Refuse data that lives outside the input file (external or virtual)."""
+    if dataset.is_virtual:
+        raise InputError(f"{path}: dataset {name} is a virtual dataset; refusing data outside the file")
+    if dataset.external:
+        raise InputError(f"{path}: dataset {name} stores its data in external files; refusing")
+
+
+class Hdf5Reader:
+    """Read an HDF5 capture, in afmtool layout or through a channel mapping.
+
+    Parameters
+    ----------
+    path : Path
+        The file; opened read-only.
+    channel_map : mapping of str to str, optional
+        Channel name to dataset path, for foreign files.  Without it the
+        datasets under ``/channels`` are the channels.
+    sample_rate_hz : float, optional
+        Overrides (or supplies) the root attribute ``sample_rate_hz``.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        channel_map: Mapping[str, str] | None = None,
+        sample_rate_hz: float | None = None,
+    ) -> None:
+        self._path = Path(path)
+        self._file = _open_h5(self._path)
+        try:
+            self._datasets = self._find_datasets(channel_map)
+            self.info = self._make_info(sample_rate_hz)
+        except BaseException:
+            self._file.close()
+            raise
+
+    def _find_datasets(self, channel_map: Mapping[str, str] | None) -> dict[str, h5py.Dataset]:
+        path, h5 = self._path, self._file
+        if channel_map:
+            mapping = dict(channel_map)
+        elif "channels" in h5 and isinstance(h5["channels"], h5py.Group):
+            mapping = {name: f"/channels/{name}" for name in h5["channels"]}
+        else:
+            raise InputError(
+                f"{path}: no /channels group; map datasets with --channel NAME=/path/to/dataset"
+            )
+        datasets = {}
+        for name, dataset_path in mapping.items():
+            try:
+                obj = h5.get(dataset_path)
+            except (KeyError, OSError, ValueError):
+                obj = None
+            if not isinstance(obj, h5py.Dataset):
+                raise InputError(f"{path}: no dataset {dataset_path!r} for channel {name!r}")
+            _check_local(path, dataset_path, obj)
+            if obj.ndim != 1 or obj.dtype.kind not in "fiu":
+                raise InputError(f"{path}: dataset {dataset_path} must be 1-D numeric, is {obj.shape} {obj.dtype}")
+            datasets[name] = obj
+        if not datasets:
+            raise InputError(f"{path}: the capture has no channels")
+        lengths = {len(d) for d in datasets.values()}
+        if len(lengths) != 1:
+            raise InputError(f"{path}: channels have different lengths {sorted(lengths)}")
+        return datasets
+
+    def _make_info(self, sample_rate_hz: float | None) -> CaptureInfo:
+        path, attrs = self._path, self._file.attrs
+        if sample_rate_hz is None:
+            if "sample_rate_hz" not in attrs:
+                raise InputError(f"{path}: no sample_rate_hz attribute; give --sample-rate")
+            sample_rate_hz = float(np.asarray(attrs["sample_rate_hz"]).reshape(-1)[0])
+        if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
+            raise InputError(f"{path}: sample rate {sample_rate_hz!r} must be a positive number")
+        metadata = {}
+        if "metadata" in attrs:
+            raw = attrs["metadata"]
+            text = raw.decode() if isinstance(raw, bytes) else str(raw)
+            metadata = parse_metadata_json(text, str(path))
+        channels = tuple(
+            ChannelSpec(name, _decode_attr(d.attrs.get("units", ""))) for name, d in self._datasets.items()
+        )
+        n_samples = len(next(iter(self._datasets.values())))
+        return CaptureInfo(str(path), "hdf5", float(sample_rate_hz), channels, n_samples, metadata)
+
+    def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
+        n = self.info.n_samples
+        for start in range(0, n, block_samples):
+            stop = min(start + block_samples, n)
+            data = {}
+            for name in channels:
+                buffer = np.empty(stop - start, dtype=np.float64)
+                try:
+                    self._datasets[name].read_direct(buffer, np.s_[start:stop])
+                except (OSError, RuntimeError) as exc:
+                    raise InputError(f"{self._path}: cannot read {name} at sample {start} ({exc})") from None
+                data[name] = buffer
+            yield Chunk(start, data)
+
+    def truth(self) -> dict[str, np.ndarray]:
+        group = self._file.get("truth")
+        if not isinstance(group, h5py.Group):
+            return {}
+        return {name: ds[()] for name, ds in group.items() if isinstance(ds, h5py.Dataset)}
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _decode_attr(value) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+class Hdf5Writer:
+    """Write a capture in the afmtool HDF5 layout, block by block.
+
+    Datasets are chunked and resizable so captures of unknown length stream
+    in; ``compression="gzip"`` adds gzip with the shuffle filter.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        sample_rate_hz: float,
+        channels: Sequence[ChannelSpec],
+        metadata: Mapping | None = None,
+        *,
+        dtype: str = "float64",
+        compression: str | None = None,
+    ) -> None:
+        self._file = h5py.File(path, "w")
+        self._file.attrs["sample_rate_hz"] = float(sample_rate_hz)
+        if metadata:
+            self._file.attrs["metadata"] = json.dumps(dict(metadata))
+        group = self._file.create_group("channels")
+        filters = {"compression": "gzip", "shuffle": True} if compression == "gzip" else {}
+        self._filters = filters
+        self._datasets = {}
+        for spec in channels:
+            ds = group.create_dataset(
+                spec.name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(_WRITE_CHUNK,), **filters
+            )
+            ds.attrs["units"] = spec.units
+            self._datasets[spec.name] = ds
+
+    def write(self, data: Mapping[str, np.ndarray]) -> None:
+        for name, ds in self._datasets.items():
+            values = np.asarray(data[name])
+            start = ds.shape[0]
+            ds.resize((start + len(values),))
+            ds[start:] = values
+
+    def write_truth(self, truth: Mapping[str, np.ndarray]) -> None:
+        group = self._file.require_group("truth")
+        for name, values in truth.items():
+            values = np.asarray(values)
+            if values.ndim == 0:
+                group.create_dataset(name, data=values)
+            elif name in group:
+                ds = group[name]
+                start = ds.shape[0]
+                ds.resize((start + len(values),) + ds.shape[1:])
+                ds[start:] = values
+            else:
+                group.create_dataset(
+                    name, data=values, maxshape=(None,) + values.shape[1:], chunks=True, **self._filters
+                )
+
+    def close(self) -> None:
+        self._file.close()

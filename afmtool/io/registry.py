@@ -1,0 +1,133 @@
+"""Open any capture by its path; create a writer for any output format.
+
+Readers are chosen by suffix (a ROS2 bag is a directory holding
+``metadata.yaml``); writers by an explicit format name or the output suffix.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import TextIO
+
+from afmtool.errors import InputError
+from afmtool.io.capture import CaptureReader, CaptureWriter, ChannelSpec
+
+__all__ = ["FORMATS", "open_capture", "create_writer", "format_for_path", "input_format"]
+
+#: Output format names accepted by ``--format`` and ``convert``.
+FORMATS = ("hdf5", "csv", "ros1", "ros2-mcap", "ros2-sqlite3")
+
+_SUFFIX_FORMATS = {
+    ".h5": "hdf5",
+    ".hdf5": "hdf5",
+    ".hdf": "hdf5",
+    ".csv": "csv",
+    ".bag": "ros1",
+    ".mcap": "ros2-mcap",
+    ".db3": "ros2-sqlite3",
+}
+
+
+def input_format(path: Path | str) -> str:
+    """The format of an existing input: by suffix, or a ROS2 bag directory."""
+    if str(path) == "-":
+        return "csv"
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return "ros2"
+        raise InputError(f"{path}: a directory that is not a ROS2 bag (no metadata.yaml)")
+    fmt = _SUFFIX_FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        known = ", ".join(sorted(_SUFFIX_FORMATS))
+        raise InputError(f"{path}: unknown extension {path.suffix or '(none)'!r}; expected one of {known}")
+    if path.stat().st_size == 0:
+        raise InputError(f"{path}: empty file")
+    return "ros2" if fmt.startswith("ros2") else fmt
+
+
+def format_for_path(path: Path | str) -> str:
+    """The output format implied by an output path's suffix."""
+    if str(path) == "-":
+        return "csv"
+    fmt = _SUFFIX_FORMATS.get(Path(path).suffix.lower())
+    if fmt is None:
+        raise InputError(f"{path}: cannot tell the output format from the extension; give --format")
+    return fmt
+
+
+def open_capture(
+    path: Path | str,
+    *,
+    channel_map: Mapping[str, str] | None = None,
+    topic_map: Mapping[str, str] | None = None,
+    sample_rate_hz: float | None = None,
+) -> CaptureReader:
+    """Open a capture for streaming; use as a context manager or call ``close``."""
+    fmt = input_format(path)
+    if fmt == "hdf5":
+        from afmtool.io.hdf5 import Hdf5Reader
+
+        return Hdf5Reader(Path(path), channel_map, sample_rate_hz)
+    if channel_map:
+        raise InputError(f"{path}: --channel maps HDF5 datasets; use --topic for bags")
+    if fmt == "csv":
+        from afmtool.io.csv import CsvReader
+
+        return CsvReader(path, sample_rate_hz)
+    from afmtool.io.rosbag import RosbagReader
+
+    return RosbagReader(Path(path), topic_map, sample_rate_hz)
+
+
+def create_writer(
+    target: Path | TextIO,
+    fmt: str,
+    sample_rate_hz: float,
+    channels: Sequence[ChannelSpec],
+    metadata: Mapping | None = None,
+    *,
+    compression: str | None = None,
+) -> CaptureWriter:
+    """A writer for ``fmt`` at ``target`` (a path, or a text stream for CSV)."""
+    if fmt not in FORMATS:
+        raise InputError(f"format {fmt!r} must be one of {', '.join(FORMATS)}")
+    if fmt == "csv":
+        from afmtool.io.csv import CsvWriter
+
+        if isinstance(target, Path):
+            stream = open(target, "w", encoding="utf-8", newline="")  # noqa: SIM115
+            return _ClosingCsvWriter(CsvWriter(stream, sample_rate_hz, channels, metadata), stream)
+        return CsvWriter(target if target is not None else sys.stdout, sample_rate_hz, channels, metadata)
+    if not isinstance(target, Path):
+        raise InputError(f"format {fmt} cannot be written to a stream; only csv can")
+    if fmt == "hdf5":
+        from afmtool.io.hdf5 import Hdf5Writer
+
+        return Hdf5Writer(target, sample_rate_hz, channels, metadata, compression=compression)
+    from afmtool.io.rosbag import RosbagWriter
+
+    version = "ros1" if fmt == "ros1" else "ros2"
+    storage = "sqlite3" if fmt == "ros2-sqlite3" else "mcap"
+    return RosbagWriter(target, sample_rate_hz, channels, metadata, version=version, storage=storage)
+
+
+class _ClosingCsvWriter:
+    """A CSV writer that owns its file."""
+
+    def __init__(self, writer, stream) -> None:
+        self._writer, self._stream = writer, stream
+
+    def write(self, data) -> None:
+        self._writer.write(data)
+
+    def write_truth(self, truth) -> None:
+        self._writer.write_truth(truth)
+
+    def close(self) -> None:
+        self._writer.close()
+        self._stream.close()
