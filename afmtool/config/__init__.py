@@ -1,1 +1,138 @@
-"""config"""
+"""Parameters: packaged defaults, then the user's TOML file, then flags.
+
+Each command's parameters are one frozen dataclass whose fields carry
+``metadata={"help": ..., "units": ...}``.  That one typed model generates
+the packaged ``defaults.toml`` (``afmtool config init``), validates the
+user's file, and supplies ``--help`` texts, so the three cannot drift.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from afmtool.errors import ConfigError
+
+__all__ = ["field", "load_toml", "resolve", "resolve_from", "section_to_toml", "parameters_dict", "help_for"]
+
+P = TypeVar("P")
+
+
+def field(default: Any, help: str, units: str = "", choices: tuple[str, ...] | None = None):  # noqa: A002
+    """A dataclass field with the help text and units the CLI and TOML show."""
+    return dataclasses.field(default=default, metadata={"help": help, "units": units, "choices": choices})
+
+
+def help_for(cls: type, name: str) -> str:
+    """``--help`` text for parameter ``name`` of ``cls``, with units and default."""
+    f = {f.name: f for f in dataclasses.fields(cls)}[name]
+    units = f" [{f.metadata['units']}]" if f.metadata.get("units") else ""
+    return f"{f.metadata.get('help', '')}{units}"
+
+
+def load_toml(path: Path) -> dict:
+    """Read a user config file; errors become :class:`ConfigError`."""
+    try:
+        with open(path, "rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"--config {path}: no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"--config {path}: not valid TOML ({exc})") from None
+    except OSError as exc:
+        raise ConfigError(f"--config {path}: cannot read ({exc.strerror})") from None
+
+
+def _section(document: Mapping, dotted: str) -> Mapping:
+    node: Any = document
+    for part in dotted.split("."):
+        node = node.get(part, {}) if isinstance(node, Mapping) else {}
+    if not isinstance(node, Mapping):
+        raise ConfigError(f"config section [{dotted}] must be a table")
+    return node
+
+
+def _coerce(cls: type, name: str, kind: Any, value: Any, where: str) -> Any:
+    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if kind is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if kind is bool and isinstance(value, bool):
+        return value
+    if kind is str and isinstance(value, str):
+        choices = {f.name: f for f in dataclasses.fields(cls)}[name].metadata.get("choices")
+        if choices and value not in choices:
+            raise ConfigError(f"{where}{name}={value!r} must be one of {', '.join(choices)}")
+        return value
+    origin = typing.get_origin(kind)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        if value is None:
+            return None
+        for arg in args:
+            try:
+                return _coerce(cls, name, arg, value, where)
+            except ConfigError:
+                continue
+    raise ConfigError(f"{where}{name}={value!r} must be of type {getattr(kind, '__name__', kind)}")
+
+
+def resolve(cls: type[P], *layers: Mapping | None, where: str = "") -> P:
+    """Merge layers (lowest priority first) over ``cls``'s defaults, with validation.
+
+    ``None`` values in a layer mean "not given" (an unset flag).
+    """
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    values: dict[str, Any] = {}
+    for layer in layers:
+        for key, value in (layer or {}).items():
+            if key not in names:
+                raise ConfigError(f"{where}unknown parameter {key!r} (known: {', '.join(sorted(names))})")
+            if value is not None:
+                values[key] = _coerce(cls, key, hints[key], value, where)
+    instance = cls(**values)
+    check = getattr(instance, "validate", None)
+    if callable(check):
+        check()
+    return instance
+
+
+def resolve_from(cls: type[P], section: str, user_config: Mapping | None, flags: Mapping) -> P:
+    """Defaults, then ``[section]`` of the user's config, then flags."""
+    from_file = _section(user_config or {}, section)
+    return resolve(cls, from_file, flags, where=f"[{section}] ")
+
+
+def parameters_dict(instance: Any) -> dict:
+    return dataclasses.asdict(instance)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return str(value)
+
+
+def section_to_toml(section: str, instance: Any, *, comments: bool = True) -> str:
+    """One ``[section]`` table; ``None`` values are written as comments (unset)."""
+    lines = [f"[{section}]"]
+    for f in dataclasses.fields(instance):
+        value = getattr(instance, f.name)
+        if comments and f.metadata.get("help"):
+            units = f" [{f.metadata['units']}]" if f.metadata.get("units") else ""
+            choices = f" (one of: {', '.join(f.metadata['choices'])})" if f.metadata.get("choices") else ""
+            lines.append(f"# {f.metadata['help']}{units}{choices}")
+        lines.append(f"# {f.name} = (unset)" if value is None else f"{f.name} = {_toml_value(value)}")
+    return "\n".join(lines) + "\n"

@@ -11,9 +11,10 @@ from __future__ import annotations
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
-import numpy as np
+if TYPE_CHECKING:  # numpy stays out of CLI start-up (afmtool --help)
+    import numpy as np
 
 __all__ = [
     "CANONICAL_CHANNELS",
@@ -23,6 +24,7 @@ __all__ = [
     "Chunk",
     "CaptureReader",
     "CaptureWriter",
+    "ReaderBase",
 ]
 
 #: Channel names every analysis understands.  Other names are allowed.
@@ -54,6 +56,8 @@ class CaptureInfo:
     channels: tuple[ChannelSpec, ...]
     n_samples: int | None
     metadata: Mapping = field(default_factory=dict)
+    #: Names of simulator ground-truth series stored with the capture.
+    truth_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "metadata", MappingProxyType(dict(self.metadata)))
@@ -85,6 +89,8 @@ class Chunk:
 
     def time_s(self, sample_rate_hz: float) -> np.ndarray:
         """Sample times in seconds, counted from the first sample of the capture."""
+        import numpy as np
+
         return (self.start + np.arange(len(self))) / sample_rate_hz
 
 
@@ -112,3 +118,16 @@ class CaptureWriter(Protocol):
     def write_truth(self, truth: Mapping[str, np.ndarray]) -> None: ...
 
     def close(self) -> None: ...
+
+
+class ReaderBase:
+    """Context-manager support shared by the concrete readers."""
+
+    def close(self) -> None:  # pragma: no cover - overridden
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -27,7 +27,7 @@ from typing import TextIO
 import numpy as np
 
 from afmtool.errors import InputError
-from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk
+from afmtool.io.capture import ReaderBase, CaptureInfo, ChannelSpec, Chunk
 from afmtool.io.metadata import parse_metadata_json
 
 __all__ = ["CsvReader", "CsvWriter", "STDIO"]
@@ -48,7 +48,7 @@ def _parse_comment(line: str, header: dict) -> None:
     header[key] = value
 
 
-class CsvReader:
+class CsvReader(ReaderBase):
     """Read a CSV capture from a file or from standard input (``"-"``)."""
 
     def __init__(self, path: Path | str, sample_rate_hz: float | None = None, *, stream: TextIO | None = None) -> None:

@@ -21,7 +21,7 @@ import h5py
 import numpy as np
 
 from afmtool.errors import InputError
-from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk
+from afmtool.io.capture import ReaderBase, CaptureInfo, ChannelSpec, Chunk
 from afmtool.io.metadata import parse_metadata_json
 
 __all__ = ["Hdf5Reader", "Hdf5Writer"]
@@ -47,7 +47,7 @@ def _check_local(path: Path, name: str, dataset: h5py.Dataset) -> None:
         raise InputError(f"{path}: dataset {name} stores its data in external files; refusing")
 
 
-class Hdf5Reader:
+class Hdf5Reader(ReaderBase):
     """Read an HDF5 capture, in afmtool layout or through a channel mapping.
 
     Parameters
@@ -122,7 +122,9 @@ class Hdf5Reader:
             ChannelSpec(name, _decode_attr(d.attrs.get("units", ""))) for name, d in self._datasets.items()
         )
         n_samples = len(next(iter(self._datasets.values())))
-        return CaptureInfo(str(path), "hdf5", float(sample_rate_hz), channels, n_samples, metadata)
+        truth = self._file.get("truth")
+        truth_names = tuple(truth) if isinstance(truth, h5py.Group) else ()
+        return CaptureInfo(str(path), "hdf5", float(sample_rate_hz), channels, n_samples, metadata, truth_names)
 
     def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
         n = self.info.n_samples
@@ -173,7 +175,7 @@ class Hdf5Writer:
         self._file.attrs["sample_rate_hz"] = float(sample_rate_hz)
         if metadata:
             self._file.attrs["metadata"] = json.dumps(dict(metadata))
-        group = self._file.create_group("channels")
+        group = self._file.create_group("channels", track_order=True)
         filters = {"compression": "gzip", "shuffle": True} if compression == "gzip" else {}
         self._filters = filters
         self._datasets = {}

@@ -1,0 +1,102 @@
+"""``afmtool info`` and ``afmtool convert``."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated, Optional
+
+import typer
+
+from afmtool.cli.common import open_input, output_target
+from afmtool.cli.options import CaptureArg, ChannelOpt, ChunkOpt, JsonOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.progress import progress_bar
+from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES
+
+__all__ = ["register"]
+
+
+def info(
+    capture: CaptureArg,
+    json_output: JsonOpt = False,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+    chunk_samples: ChunkOpt = DEFAULT_CHUNK_SAMPLES,
+    quiet: QuietOpt = False,
+) -> None:
+    """Channels, units, sample rate, length, metadata and min/max/mean/rms per channel.
+
+    Statistics are computed by streaming, so any size of capture works.
+    """
+    from afmtool.analyses.info import summarize
+    from afmtool.report.json_report import dumps, to_jsonable
+
+    with open_input(capture, channel, topic, sample_rate) as reader:
+        with progress_bar("info", reader.info.n_samples, quiet) as update:
+            summary = summarize(reader, chunk_samples, update)
+    if json_output:
+        typer.echo(dumps(to_jsonable(summary)), nl=False)
+        return
+    _print_summary(summary)
+
+
+def _print_summary(summary) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    console.print(f"[bold]{summary.source}[/] ({summary.format})")
+    console.print(
+        f"sample rate {summary.sample_rate_hz:,.6g} Hz, {summary.n_samples:,} samples, {summary.duration_s:.6g} s"
+    )
+    table = Table("channel", "units", "min", "max", "mean", "rms")
+    for c in summary.channels:
+        table.add_row(c.name, c.units, f"{c.min:.6g}", f"{c.max:.6g}", f"{c.mean:.6g}", f"{c.rms:.6g}")
+    console.print(table)
+    if summary.metadata:
+        console.print("metadata: " + json.dumps(summary.metadata), highlight=False, soft_wrap=True)
+    if summary.truth_names:
+        console.print("ground truth: " + ", ".join(summary.truth_names))
+
+
+def convert(
+    source: CaptureArg,
+    output: Annotated[str, typer.Argument(help="Output file (.h5, .csv, .bag, .mcap folder...) or - for CSV on stdout.")],
+    fmt: Annotated[
+        Optional[str],
+        typer.Option("--format", "-f", help="hdf5, csv, ros1, ros2-mcap or ros2-sqlite3 (default: from OUTPUT)."),
+    ] = None,
+    compression: Annotated[
+        Optional[str], typer.Option("--compression", help="HDF5 only: 'gzip' (with shuffle); default none.")
+    ] = None,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+    chunk_samples: ChunkOpt = DEFAULT_CHUNK_SAMPLES,
+    quiet: QuietOpt = False,
+) -> None:
+    """Convert a capture between HDF5, CSV, ROS1 and ROS2 (mcap, sqlite3) bags.
+
+    The output appears only when complete (written to a temp name, then renamed).
+    ROS2 outputs are bag folders; without --format a name ending in .mcap or
+    .db3 picks the storage.
+    """
+    from afmtool.analyses.convert import convert_capture
+    from afmtool.errors import ConfigError
+    from afmtool.io.registry import FORMATS, format_for_path
+
+    fmt = fmt or format_for_path(output)
+    if fmt not in FORMATS:
+        raise ConfigError(f"--format {fmt!r} must be one of {', '.join(FORMATS)}")
+    if compression not in (None, "gzip"):
+        raise ConfigError(f"--compression {compression!r} must be gzip")
+    with open_input(source, channel, topic, sample_rate) as reader:
+        with progress_bar("convert", reader.info.n_samples, quiet) as update, output_target(output, fmt) as target:
+            convert_capture(
+                reader, target, fmt, compression=compression, chunk_samples=chunk_samples, progress=update
+            )
+
+
+def register(app: typer.Typer) -> None:
+    app.command()(info)
+    app.command()(convert)

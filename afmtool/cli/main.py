@@ -1,0 +1,89 @@
+"""The ``afmtool`` command line: thin typer wiring over ``afmtool.analyses``.
+
+Start-up stays fast because nothing heavy (scipy, numba, matplotlib) is
+imported until a command runs.  Errors the user can fix print one line on
+stderr and exit with status 2; unexpected errors exit with status 1.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from typing import Annotated
+
+import click
+import typer
+
+import afmtool
+from afmtool.cli import capture_cmds, config_cmd, simulate_cmd
+from afmtool.errors import AfmtoolError
+
+__all__ = ["app", "main"]
+
+app = typer.Typer(
+    name="afmtool",
+    help="Model-mismatch analysis of high-rate AFM recordings (dither, deflection, thermal current, ...).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"afmtool {afmtool.__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")
+    ] = False,
+) -> None:
+    """afmtool: capture -> chunks -> kernel -> result -> writer."""
+
+
+capture_cmds.register(app)
+simulate_cmd.register(app)
+app.add_typer(config_cmd.app, name="config")
+
+
+def _raise_interrupt(signum, frame):  # noqa: ARG001
+    raise KeyboardInterrupt
+
+
+def _error(message: str, code: int) -> None:
+    first_line = str(message).strip().splitlines()[0] if str(message).strip() else "error"
+    print(f"afmtool: error: {first_line}", file=sys.stderr)
+    sys.exit(code)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point with afmtool's exit-code contract."""
+    # SIGTERM unwinds like Ctrl-C, so staged outputs are cleaned up.
+    signal.signal(signal.SIGTERM, _raise_interrupt)
+    command = typer.main.get_command(app)
+    try:
+        result = command.main(args=argv, prog_name="afmtool", standalone_mode=False)
+    except AfmtoolError as exc:
+        _error(str(exc), 2)
+    except click.UsageError as exc:
+        _error(exc.format_message(), 2)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
+    except (KeyboardInterrupt, click.exceptions.Abort):
+        print("afmtool: interrupted", file=sys.stderr)
+        sys.exit(130)
+    except BrokenPipeError:
+        # A closed downstream pipe (| head) is a normal way to stop reading.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        sys.exit(0)
+    except Exception as exc:  # noqa: BLE001 - the one place unexpected errors are reported
+        if os.environ.get("AFMTOOL_DEBUG"):
+            raise
+        _error(f"internal error ({type(exc).__name__}: {exc}); rerun with AFMTOOL_DEBUG=1 for a traceback", 1)
+    sys.exit(result if isinstance(result, int) else 0)

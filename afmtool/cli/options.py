@@ -1,0 +1,59 @@
+"""Options shared by commands, as ``Annotated`` aliases, and their parsing."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from afmtool.errors import ConfigError
+
+__all__ = [
+    "CaptureArg",
+    "OutOpt",
+    "JsonOpt",
+    "ConfigOpt",
+    "QuietOpt",
+    "ChannelOpt",
+    "TopicOpt",
+    "SampleRateOpt",
+    "ChunkOpt",
+    "parse_mapping",
+]
+
+CaptureArg = Annotated[
+    str, typer.Argument(help="Capture file (.h5, .csv, .bag, ROS2 bag folder), or - for CSV on stdin.")
+]
+OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output folder; created if missing.")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print the report as JSON on stdout.")]
+ConfigOpt = Annotated[
+    Optional[Path],
+    typer.Option("--config", help="TOML parameters; flags override it, it overrides packaged defaults."),
+]
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar or messages on stderr.")]
+ChannelOpt = Annotated[
+    Optional[list[str]],
+    typer.Option("--channel", help="Map a channel to an HDF5 dataset: NAME=/path (repeatable)."),
+]
+TopicOpt = Annotated[
+    Optional[list[str]],
+    typer.Option("--topic", help="Map a channel to a bag topic: NAME=/topic (repeatable)."),
+]
+SampleRateOpt = Annotated[
+    Optional[float], typer.Option("--sample-rate", help="Sample rate in Hz; overrides the file's.", min=0.0)
+]
+ChunkOpt = Annotated[
+    int, typer.Option("--chunk-samples", help="Samples per streamed chunk (memory vs overhead).", min=1)
+]
+
+
+def parse_mapping(items: list[str] | None, option: str) -> dict[str, str]:
+    """``["a=/x", "b=/y"]`` -> ``{"a": "/x", "b": "/y"}``, with a clear error."""
+    mapping: dict[str, str] = {}
+    for item in items or []:
+        name, sep, target = item.partition("=")
+        if not sep or not name.strip() or not target.strip():
+            raise ConfigError(f"{option} {item!r} must look like NAME=VALUE")
+        mapping[name.strip()] = target.strip()
+    return mapping
