@@ -12,8 +12,12 @@ import signal
 import sys
 from typing import Annotated
 
-import click
 import typer
+
+try:  # recent typer vendors its own click
+    from typer._click import exceptions as click_exceptions
+except ImportError:  # pragma: no cover - older typer uses click itself
+    from click import exceptions as click_exceptions
 
 import afmtool
 from afmtool.cli import capture_cmds, config_cmd, simulate_cmd
@@ -70,11 +74,13 @@ def main(argv: list[str] | None = None) -> None:
         result = command.main(args=argv, prog_name="afmtool", standalone_mode=False)
     except AfmtoolError as exc:
         _error(str(exc), 2)
-    except click.UsageError as exc:
+    except click_exceptions.ClickException as exc:
+        if not exc.format_message():  # bare `afmtool`: help was printed already
+            sys.exit(2)
         _error(exc.format_message(), 2)
-    except click.exceptions.Exit as exc:
+    except typer.Exit as exc:
         sys.exit(exc.exit_code)
-    except (KeyboardInterrupt, click.exceptions.Abort):
+    except (KeyboardInterrupt, typer.Abort):
         print("afmtool: interrupted", file=sys.stderr)
         sys.exit(130)
     except BrokenPipeError:
