@@ -1,0 +1,177 @@
+"""Streaming reductions shared by analyses: force-curve bins and scan images.
+
+Both take decimated series chunk by chunk and keep only sums and counts, so
+memory is set by the number of bins or pixels, not by the capture length.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["ScanGeometry", "ImageAccumulator", "ForceCurveAccumulator", "ForceCurveTable"]
+
+
+@dataclass(frozen=True)
+class ScanGeometry:
+    """Raster geometry from capture metadata ``scan`` (see the metadata schema)."""
+
+    lines: int
+    pixels_per_line: int
+    scan_size_m: float
+    line_rate_hz: float
+    trace_retrace: bool = True
+    start_s: float = 0.0
+
+    @classmethod
+    def from_metadata(cls, metadata: Mapping) -> ScanGeometry | None:
+        scan = metadata.get("scan")
+        if not scan:
+            return None
+        return cls(
+            int(scan["lines"]),
+            int(scan["pixels_per_line"]),
+            float(scan["scan_size_m"]),
+            float(scan["line_rate_hz"]),
+            bool(scan.get("trace_retrace", True)),
+            float(scan.get("start_s", 0.0)),
+        )
+
+    def pixel_index(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(direction 0=trace 1=retrace, line, pixel) for each time; line −1 outside the scan.
+
+        Within a line period the trace comes first; the retrace is mapped
+        back onto the same lateral pixels so both images are registered.
+        """
+        line_period = 1.0 / self.line_rate_hz
+        elapsed = t_s - self.start_s
+        line = np.floor(elapsed / line_period).astype(np.int64)
+        fraction = elapsed / line_period - line
+        if self.trace_retrace:
+            retrace = fraction >= 0.5
+            position = np.where(retrace, 2.0 - 2.0 * fraction, 2.0 * fraction)
+        else:
+            retrace = np.zeros(len(t_s), dtype=bool)
+            position = fraction
+        pixel = np.minimum((position * self.pixels_per_line).astype(np.int64), self.pixels_per_line - 1)
+        line = np.where((elapsed >= 0) & (line < self.lines), line, -1)
+        return retrace.astype(np.int64), line, pixel
+
+
+class ImageAccumulator:
+    """Per-pixel means of several quantities, for trace and retrace."""
+
+    def __init__(self, geometry: ScanGeometry, names: tuple[str, ...]) -> None:
+        self.geometry = geometry
+        self.names = names
+        size = 2 * geometry.lines * geometry.pixels_per_line
+        self._sums = {name: np.zeros(size) for name in names}
+        self._counts = {name: np.zeros(size, dtype=np.int64) for name in names}
+
+    def add(self, t_s: np.ndarray, values: Mapping[str, np.ndarray]) -> None:
+        g = self.geometry
+        direction, line, pixel = g.pixel_index(t_s)
+        inside = line >= 0
+        flat = (direction * g.lines + line) * g.pixels_per_line + pixel
+        size = len(self._counts[self.names[0]])
+        for name in self.names:
+            v = np.asarray(values[name])
+            keep = inside & np.isfinite(v)
+            self._sums[name] += np.bincount(flat[keep], weights=v[keep], minlength=size)
+            self._counts[name] += np.bincount(flat[keep], minlength=size)
+
+    def images(self) -> dict[str, np.ndarray]:
+        """``{"f0_hz/trace": (lines, pixels) array, ...}``; NaN where no sample fell.
+
+        Row 0 is the first line scanned; writers that want the top row first
+        flip as their format requires.
+        """
+        g = self.geometry
+        out = {}
+        for name in self.names:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = self._sums[name] / self._counts[name]
+            mean = mean.reshape(2, g.lines, g.pixels_per_line)
+            out[f"{name}/trace"] = mean[0]
+            if g.trace_retrace:
+                out[f"{name}/retrace"] = mean[1]
+        return out
+
+
+@dataclass(frozen=True)
+class ForceCurveTable:
+    """Binned means against z for one direction (approach or retract)."""
+
+    z: np.ndarray
+    count: np.ndarray
+    means: Mapping[str, np.ndarray]
+    sensitivities: Mapping[str, np.ndarray]
+
+
+class ForceCurveAccumulator:
+    """Bin quantities against z with approach and retract kept apart.
+
+    The direction of each sample is the sign of the z change over one
+    decimated step; the first direction seen is called the approach.
+    """
+
+    def __init__(self, z_bin: float, names: tuple[str, ...]) -> None:
+        if not z_bin > 0:
+            raise ValueError(f"{z_bin=} must be > 0")
+        self.z_bin = float(z_bin)
+        self.names = names
+        self._bins: list[dict[int, np.ndarray]] = [{}, {}]  # bin -> [count, sums...]
+        self._approach_sign = 0
+        self._last_z = math.nan
+        self._last_direction = 0
+
+    def add(self, z: np.ndarray, values: Mapping[str, np.ndarray]) -> None:
+        z = np.asarray(z, dtype=np.float64)
+        if len(z) == 0:
+            return
+        previous = np.concatenate([[self._last_z], z[:-1]])
+        step = np.sign(z - previous)
+        step[~np.isfinite(step)] = 0
+        # hold the last direction through flat stretches (forward fill)
+        last_nonzero = np.maximum.accumulate(np.where(step != 0, np.arange(len(step)), -1))
+        direction = np.where(last_nonzero >= 0, step[np.maximum(last_nonzero, 0)], self._last_direction)
+        if self._approach_sign == 0 and np.any(direction != 0):
+            self._approach_sign = int(direction[np.flatnonzero(direction)[0]])
+        self._last_z = float(z[-1])
+        self._last_direction = int(direction[-1])
+        if self._approach_sign == 0:
+            return
+        leg = np.where(direction == self._approach_sign, 0, 1)
+        index = np.floor(z / self.z_bin).astype(np.int64)
+        stacked = np.vstack([np.ones(len(z))] + [np.asarray(values[n], dtype=np.float64) for n in self.names])
+        for which in (0, 1):
+            mask = (leg == which) & (direction != 0) & np.all(np.isfinite(stacked), axis=0)
+            if not mask.any():
+                continue
+            unique, inverse = np.unique(index[mask], return_inverse=True)
+            sums = np.zeros((len(self.names) + 1, len(unique)))
+            for row in range(stacked.shape[0]):
+                sums[row] = np.bincount(inverse, weights=stacked[row, mask], minlength=len(unique))
+            bins = self._bins[which]
+            for k, b in enumerate(unique):
+                if b in bins:
+                    bins[b] += sums[:, k]
+                else:
+                    bins[b] = sums[:, k].copy()
+
+    def tables(self) -> dict[str, ForceCurveTable]:
+        out = {}
+        for which, label in ((0, "approach"), (1, "retract")):
+            bins = self._bins[which]
+            if not bins:
+                continue
+            keys = np.array(sorted(bins))
+            sums = np.array([bins[k] for k in keys]).T
+            z = (keys + 0.5) * self.z_bin
+            means = {name: sums[i + 1] / sums[0] for i, name in enumerate(self.names)}
+            sensitivities = {name: np.gradient(m, z) if len(z) > 1 else np.full(len(z), np.nan) for name, m in means.items()}
+            out[label] = ForceCurveTable(z, sums[0].astype(np.int64), means, sensitivities)
+        return out

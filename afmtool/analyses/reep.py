@@ -1,0 +1,300 @@
+"""``afmtool reep``: equivalent f0′ and Q′ every sample, beside amplitude and phase.
+
+capture → chunks → BCEWRLS kernel (eq. 3.39, θ = [b1, b0], numerator fixed at
+its free-air value, §3.3.3) → f0′, Q′ by eq. 3.48 → decimated series in
+``reep.h5``, force-curve tables and scan images, and a summary for
+``report.json``.  Every filter carries its state across chunks, so the
+output does not depend on the chunk size.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
+from afmtool.analyses.freeair import free_air_from_segment, segment_arrays, split_prefix
+from afmtool.config.params import ReepParams, parse_interval
+from afmtool.errors import ConfigError, InputError
+from afmtool.io.capture import CaptureReader, Chunk
+from afmtool.io.chunks import iter_chunks
+from afmtool.io.results import ResultWriter
+from afmtool.models.free_air import FreeAirModel
+
+__all__ = ["ReepResult", "run_reep", "excitation_lines", "SERIES_UNITS"]
+
+#: Quantities kept per decimated sample, with their units ("" = dimensionless).
+SERIES_UNITS = {
+    "t": "s",
+    "f0_hz": "Hz",
+    "q": "",
+    "b1": "",
+    "b0": "",
+    "sigma2": "deflection units^2",
+    "amplitude": "deflection units",
+    "phase_deg": "deg",
+}
+_IMAGE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
+_CURVE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
+
+
+@dataclass
+class _Summary:
+    """Running sums of the post-warm-up series (mean, std, min, max)."""
+
+    count: int = 0
+    total: float = 0.0
+    total_sq: float = 0.0
+    low: float = math.inf
+    high: float = -math.inf
+
+    def add(self, values: np.ndarray) -> None:
+        values = values[np.isfinite(values)]
+        if values.size:
+            self.count += values.size
+            self.total += float(values.sum())
+            self.total_sq += float(np.dot(values, values))
+            self.low = min(self.low, float(values.min()))
+            self.high = max(self.high, float(values.max()))
+
+    def as_dict(self) -> dict:
+        if not self.count:
+            return {"count": 0, "mean": None, "std": None, "min": None, "max": None}
+        mean = self.total / self.count
+        var = max(self.total_sq / self.count - mean * mean, 0.0)
+        return {"count": self.count, "mean": mean, "std": math.sqrt(var), "min": self.low, "max": self.high}
+
+
+@dataclass(frozen=True)
+class ReepResult:
+    """What ``run_reep`` found; the command turns it into files and a report."""
+
+    results: dict
+    warnings: tuple[str, ...]
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    geometry: ScanGeometry | None = None
+    force_curves: dict = field(default_factory=dict)
+    z_units: str = ""
+
+
+def excitation_lines(dither: np.ndarray, sample_rate_hz: float, f0_hz: float) -> list[float]:
+    """Frequencies (Hz) of the distinct spectral lines of the dither near resonance.
+
+    A line is a local maximum of the periodogram within ±25 % of f0 and
+    within 30 dB of the strongest one.  REEP's five-parameter free-air
+    identification needs three (§3.3.2).
+    """
+    from scipy.signal import find_peaks, periodogram
+
+    n = min(len(dither), 1 << 16)
+    if n < 64:
+        return []
+    freqs, power = periodogram(dither[:n], fs=sample_rate_hz, window="hann")
+    band = (freqs > 0.75 * f0_hz) & (freqs < 1.25 * f0_hz)
+    if not band.any() or power[band].max() <= 0:
+        return []
+    threshold = power[band].max() * 1e-3
+    peaks, _ = find_peaks(np.where(band, power, 0.0), height=threshold, distance=max(1, int(500 * n / sample_rate_hz)))
+    return [float(freqs[p]) for p in peaks]
+
+
+def _spectral_peak_hz(x: np.ndarray, sample_rate_hz: float) -> float:
+    from scipy.signal import welch
+
+    x = x - x.mean()
+    freqs, power = welch(x, fs=sample_rate_hz, nperseg=min(len(x), 1 << 14))
+    power[freqs < 1e3] = 0.0
+    return float(freqs[int(np.argmax(power))])
+
+
+class _Bandpass:
+    """Causal Butterworth band-pass with carried state (output-only mode)."""
+
+    def __init__(self, centre_hz: float, half_width_hz: float, sample_rate_hz: float) -> None:
+        from scipy.signal import butter, sosfilt_zi
+
+        low = max(centre_hz - half_width_hz, 1.0)
+        high = min(centre_hz + half_width_hz, 0.49 * sample_rate_hz)
+        self.sos = butter(2, [low, high], btype="bandpass", fs=sample_rate_hz, output="sos")
+        self.zi = sosfilt_zi(self.sos) * 0.0
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        from scipy.signal import sosfilt
+
+        y, self.zi = sosfilt(self.sos, x, zi=self.zi)
+        return y
+
+
+def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirModel | None, chunks):
+    """Return (model or None, chunk iterator to process, free-air segment seconds or None)."""
+    if model is not None or not params.use_input:
+        return model, chunks, None
+    interval = parse_interval(params.free_air, "--free-air")
+    if interval is None and "free_air" in reader.info.metadata:
+        meta = reader.info.metadata["free_air"]
+        interval = (float(meta["start_s"]), float(meta["end_s"]))
+    if interval is None:
+        raise ConfigError(
+            "REEP needs the free-air model: give --free-air START:END, --model free_air.json, "
+            "or capture metadata free_air (or use --no-input)"
+        )
+    fs = reader.info.sample_rate_hz
+    start, end = round(interval[0] * fs), round(interval[1] * fs)
+    prefix = split_prefix(chunks, end)
+    segment = segment_arrays(prefix, ("deflection", "dither"), start, end)
+    identified = free_air_from_segment(segment["deflection"], segment["dither"], fs)
+    return identified, prefix.replay(), interval
+
+
+def run_reep(
+    reader: CaptureReader,
+    params: ReepParams,
+    writer: ResultWriter,
+    *,
+    model: FreeAirModel | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> ReepResult:
+    """Run REEP over a whole capture, streaming, and write the decimated series.
+
+    Parameters
+    ----------
+    reader : CaptureReader
+        Needs ``deflection``, and ``dither`` unless ``params.use_input`` is off.
+    params : ReepParams
+        Effective parameters.
+    writer : ResultWriter
+        Receives ``t``, ``f0_hz``, ``q``, ``b1``, ``b0``, ``sigma2``,
+        ``amplitude``, ``phase_deg`` (and ``z`` for force curves), decimated.
+    model : FreeAirModel, optional
+        A given free-air model; otherwise it is identified from the
+        free-air segment (``params.free_air`` or the capture metadata).
+    """
+    from afmtool.estimators.lockin import LockIn, default_lowpass_hz
+    from afmtool.estimators.rls import ReepState, reep_update
+    from afmtool.models.discretisation import resonance_from_denominator
+
+    info = reader.info
+    fs = info.sample_rate_hz
+    warnings: list[str] = []
+    z_mode = params.vs == "z" or (params.vs == "auto" and "z_piezo" in info.channel_names)
+    channels = ["deflection"] + (["dither"] if params.use_input else []) + (["z_piezo"] if z_mode else [])
+    chunks: Iterator[Chunk] = iter_chunks(reader, channels, params.chunk_samples, progress=progress)
+    model, chunks, segment_s = _resolve_model(reader, params, model, chunks)
+    first = next(chunks, None)
+    if first is None:
+        raise InputError(f"{info.source}: the capture has no samples")
+    chunks = _prepend(first, chunks)
+
+    drive = info.metadata.get("drive", {})
+    if params.drive_frequency_hz:
+        drive_hz = params.drive_frequency_hz
+    elif "frequency_hz" in drive:
+        drive_hz = float(drive["frequency_hz"])
+    elif model is not None:
+        drive_hz = model.f0_hz
+    else:
+        drive_hz = _spectral_peak_hz(first.data["deflection"], fs)
+    if not 0 < drive_hz < fs / 2:
+        raise InputError(f"drive frequency {drive_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
+    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, drive.get("sideband_offset_hz"))
+    decimate = params.decimate or max(1, round(fs / drive_hz))
+
+    numerator = model.numerator_at(fs) if (model is not None and params.use_input) else None
+    lines: list[float] = []
+    if params.use_input:
+        lines = excitation_lines(first.data["dither"], fs, model.f0_hz)
+        if len(lines) < 3:
+            warnings.append(
+                f"the dither has {len(lines)} spectral line(s) near resonance; REEP's free-air model needs "
+                "three to be persistently exciting for five parameters (thesis §3.3.2)"
+            )
+    bandpass = None
+    if not params.use_input and params.bandpass_half_width_hz > 0:
+        bandpass = _Bandpass(drive_hz, params.bandpass_half_width_hz, fs)
+
+    state = ReepState.initial(lam=params.lam, p0=params.p0)
+    lockin = LockIn(drive_hz, fs, lowpass_hz)
+    deflection_lock = lockin.initial_state()
+    dither_lock = lockin.initial_state() if params.use_input else None
+    warmup = int(params.warmup_windows / (1.0 - params.lam))
+    summaries = {name: _Summary() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
+    flagged = 0
+    n_total = 0
+    geometry = ScanGeometry.from_metadata(info.metadata)
+    image_acc = ImageAccumulator(geometry, _IMAGE_QUANTITIES) if geometry else None
+    curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if z_mode else None
+
+    for chunk in chunks:
+        p = chunk.data["deflection"]
+        g = chunk.data.get("dither")
+        p_for_rls = bandpass(p) if bandpass is not None else p
+        block, state = reep_update(
+            state, p_for_rls, g, numerator, bias_compensation=params.bias_compensation, use_input=params.use_input
+        )
+        f0, q, valid = resonance_from_denominator(block.b1, block.b0, fs)
+        flagged += int(np.count_nonzero(~np.asarray(valid)))
+        demod, deflection_lock = lockin.process(p, deflection_lock)
+        phase = demod.phase_rad
+        if dither_lock is not None:
+            reference, dither_lock = lockin.process(g, dither_lock)
+            phase = phase - reference.phase_rad
+        phase_deg = np.degrees(np.angle(np.exp(1j * phase)))
+
+        index = chunk.start + np.arange(len(p))
+        keep = (index + 1) % decimate == 0
+        columns = {
+            "t": index[keep] / fs,
+            "f0_hz": np.asarray(f0)[keep],
+            "q": np.asarray(q)[keep],
+            "b1": block.b1[keep],
+            "b0": block.b0[keep],
+            "sigma2": block.sigma2[keep],
+            "amplitude": demod.amplitude[keep],
+            "phase_deg": phase_deg[keep],
+        }
+        if z_mode:
+            columns["z"] = chunk.data["z_piezo"][keep]
+        writer.append(columns)
+        settled = index[keep] >= warmup
+        for name, summary in summaries.items():
+            summary.add(columns[name][settled])
+        if image_acc is not None:
+            image_acc.add(columns["t"], columns)
+        if curve_acc is not None:
+            curve_acc.add(columns["z"], {k: np.where(settled, columns[k], np.nan) for k in _CURVE_QUANTITIES})
+        n_total = chunk.start + len(p)
+
+    window = 1.0 / (1.0 - params.lam)
+    results = {
+        "free_air_model": model.to_dict() if model is not None else None,
+        "free_air_segment_s": list(segment_s) if segment_s else None,
+        "forgetting_factor": params.lam,
+        "window_samples": window,
+        "window_us": window / fs * 1e6,
+        "bias_compensation": params.bias_compensation,
+        "use_input": params.use_input,
+        "n_samples": n_total,
+        "duration_s": n_total / fs,
+        "sample_rate_hz": fs,
+        "decimate": decimate,
+        "drive_frequency_hz": drive_hz,
+        "lockin": {"lowpass_hz": lowpass_hz, "order": lockin.order, "type": "Butterworth, complex demodulation"},
+        "excitation_lines_hz": lines,
+        "flagged_samples": flagged,
+        "summary_after_warmup_samples": warmup,
+        "summary": {name: s.as_dict() for name, s in summaries.items()},
+    }
+    if flagged:
+        warnings.append(f"{flagged} samples had (b1, b0) outside the under-damped region; f0', Q' are NaN there")
+    force_curves = curve_acc.tables() if curve_acc is not None else {}
+    images = image_acc.images() if image_acc is not None else {}
+    z_units = info.units("z_piezo") if z_mode else ""
+    return ReepResult(results, tuple(warnings), images, geometry, force_curves, z_units)
+
+
+def _prepend(first: Chunk, rest: Iterator[Chunk]) -> Iterator[Chunk]:
+    yield first
+    yield from rest

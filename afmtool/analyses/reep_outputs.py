@@ -1,0 +1,125 @@
+"""The ``reep`` command end to end: parameters, run, files, report."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from afmtool.analyses.reep import SERIES_UNITS, ReepResult, run_reep
+from afmtool.config import load_toml, resolve_from
+from afmtool.config.params import ReepParams
+from afmtool.io.capture import CaptureReader
+from afmtool.io.results import ResultWriter
+from afmtool.models.free_air import load_free_air_model
+from afmtool.report.json_report import input_record
+from afmtool.report.outputs import OutputDir
+from afmtool.report.run import finish_run
+
+__all__ = ["run_reep_command"]
+
+_IMAGE_TITLES = {"f0_hz": ("f0'", "Hz"), "q": ("Q'", ""), "amplitude": ("amplitude", None), "phase_deg": ("phase", "deg")}
+
+
+def run_reep_command(
+    reader: CaptureReader,
+    capture: str,
+    out: Path,
+    config: Path | None,
+    flags: Mapping,
+    progress: Callable[[int], None],
+) -> dict:
+    """Resolve parameters, run REEP, write every output atomically; return the report."""
+    params = resolve_from(ReepParams, "reep", load_toml(config) if config else None, flags)
+    model = load_free_air_model(Path(params.model)) if params.model else None
+    deflection_units = reader.info.units("deflection") if "deflection" in reader.info.channel_names else ""
+    units = dict(SERIES_UNITS, amplitude=deflection_units, sigma2=f"{deflection_units}^2" if deflection_units else "")
+    inputs = [input_record(capture)]
+    if params.model:
+        inputs.append(input_record(params.model if Path(params.model).is_file() else Path(params.model) / "free_air.json", "model"))
+    with OutputDir(out) as staged:
+        with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}) as writer:
+            result = run_reep(reader, params, writer, model=model, progress=progress)
+            _write_force_curves(staged, writer, result)
+            _write_images(staged, writer, result, deflection_units)
+        results = dict(result.results)
+        if result.force_curves:
+            results["force_curve"] = _curve_summary(result)
+        if result.geometry is not None:
+            results["images"] = {
+                name: {"mean": _finite_mean(image)} for name, image in sorted(result.images.items())
+            }
+        if result.results["free_air_model"]:
+            from afmtool.models.free_air import FreeAirModel
+
+            FreeAirModel(**result.results["free_air_model"]).save(staged.path("free_air.json"))
+        return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
+
+
+def _finite_mean(values: np.ndarray) -> float | None:
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else None
+
+
+def _curve_summary(result: ReepResult) -> dict:
+    summary = {}
+    for leg, table in result.force_curves.items():
+        summary[leg] = {
+            "bins": int(len(table.z)),
+            "z_range": [float(table.z.min()), float(table.z.max())],
+            "z_units": result.z_units,
+            "f0_hz_range": [float(np.nanmin(table.means["f0_hz"])), float(np.nanmax(table.means["f0_hz"]))],
+            "q_range": [float(np.nanmin(table.means["q"])), float(np.nanmax(table.means["q"]))],
+            "max_abs_df0_dz": float(np.nanmax(np.abs(table.sensitivities["f0_hz"]))) if len(table.z) > 1 else None,
+            "max_abs_dq_dz": float(np.nanmax(np.abs(table.sensitivities["q"]))) if len(table.z) > 1 else None,
+            "max_abs_da_dz": float(np.nanmax(np.abs(table.sensitivities["amplitude"]))) if len(table.z) > 1 else None,
+        }
+    return summary
+
+
+def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepResult) -> None:
+    if not result.force_curves:
+        return
+    from afmtool.report.images import APPROACH_STYLE, RETRACT_STYLE, write_multi_panel_png
+
+    for leg, table in result.force_curves.items():
+        writer.put(f"force_curve/{leg}/z", table.z, result.z_units)
+        writer.put(f"force_curve/{leg}/count", table.count)
+        for name, values in table.means.items():
+            writer.put(f"force_curve/{leg}/{name}", values, SERIES_UNITS.get(name, ""))
+            writer.put(f"force_curve/{leg}/d_{name}_dz", table.sensitivities[name])
+    styles = {"approach": APPROACH_STYLE, "retract": RETRACT_STYLE}
+    labels = {"f0_hz": "f0' (Hz)", "q": "Q'", "amplitude": "amplitude", "phase_deg": "phase (deg)"}
+    for prefix, key in (("", "means"), ("d", "sensitivities")):
+        panels = []
+        for name, label in labels.items():
+            series = [
+                (table.z, getattr(table, key)[name], leg, styles[leg]) for leg, table in result.force_curves.items()
+            ]
+            panels.append({"y_label": f"d{label}/dz" if prefix else label, "series": series})
+        name = "force_curve.png" if not prefix else "force_curve_sensitivity.png"
+        write_multi_panel_png(
+            staged.path(name),
+            panels,
+            x_label=f"z_piezo ({result.z_units})" if result.z_units else "z_piezo",
+            title="REEP force curve" + (" sensitivities (by differences)" if prefix else ""),
+        )
+
+
+def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str) -> None:
+    if result.geometry is None:
+        return
+    from afmtool.report.images import write_gsf, write_image_png
+
+    size = result.geometry.scan_size_m
+    y_size = size * result.geometry.lines / result.geometry.pixels_per_line
+    for key, image in sorted(result.images.items()):
+        quantity, direction = key.split("/")
+        title, units = _IMAGE_TITLES[quantity]
+        units = deflection_units if units is None else units
+        top_first = image[::-1]  # last line scanned at the top, as AFM viewers show it
+        writer.put(f"images/{key}", image, units, {"row0": "first line scanned"})
+        stem = f"{quantity}_{direction}"
+        write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})")
+        write_gsf(staged.path(f"{stem}.gsf"), top_first, size, y_size, xy_units="m", z_units=units, title=f"{title} {direction}")

@@ -1,0 +1,108 @@
+"""The identified free-air model every observer and REEP runs beside the data.
+
+Whatever route identified it (an off-sample ARX fit, a frequency sweep, a
+thermal-noise spectrum), the result is one :class:`FreeAirModel`: the
+continuous parameters f0, Q and gain with their uncertainties, and, when the
+route was a discrete fit, the discrete numerator (a2, a1, a0) of eq. 3.40 at
+the capture's sample rate.  It is saved as ``free_air.json`` and can be
+passed back to any command with ``--model``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from afmtool.errors import InputError
+
+__all__ = ["FreeAirModel", "load_free_air_model"]
+
+
+@dataclass(frozen=True)
+class FreeAirModel:
+    """Free-air cantilever model G(s) = gain·ω0²/(s² + (ω0/Q)s + ω0²).
+
+    Parameters
+    ----------
+    f0_hz, q, gain : float
+        Resonant frequency (Hz), quality factor, and DC gain (deflection
+        units per dither unit, e.g. nm/V).
+    f0_std_hz, q_std, gain_std : float or None
+        One-standard-deviation uncertainties, where the route gives them.
+    source : str
+        ``"segment"``, ``"sweep"``, ``"thermal"`` or ``"given"``.
+    sample_rate_hz : float or None
+        The rate at which ``numerator``/``denominator`` were identified.
+    numerator : tuple of 3 floats or None
+        (a2, a1, a0) of eq. 3.40, from a discrete fit.
+    denominator : tuple of 2 floats or None
+        (b1, b0) of eq. 3.40, from a discrete fit.
+    delay_s : float
+        Pure delay of the drive path, s (sweep route).
+    """
+
+    f0_hz: float
+    q: float
+    gain: float = 1.0
+    f0_std_hz: float | None = None
+    q_std: float | None = None
+    gain_std: float | None = None
+    source: str = "given"
+    sample_rate_hz: float | None = None
+    numerator: tuple[float, float, float] | None = None
+    denominator: tuple[float, float] | None = None
+    delay_s: float = 0.0
+
+    def numerator_at(self, sample_rate_hz: float) -> tuple[float, float, float]:
+        """(a2, a1, a0) at ``sample_rate_hz``: the identified one, or gain·ZOH(G)."""
+        if self.numerator is not None and self.sample_rate_hz == sample_rate_hz:
+            return tuple(float(a) for a in self.numerator)
+        from afmtool.models.discretisation import zoh_numerator
+
+        numerator = zoh_numerator(self.f0_hz, self.q, sample_rate_hz)
+        return (self.gain * numerator.a2, self.gain * numerator.a1, self.gain * numerator.a0)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def save(self, path: Path) -> None:
+        from afmtool.report.atomic import write_text_atomic
+
+        write_text_atomic(Path(path), json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str = "model") -> FreeAirModel:
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise InputError(f"{where}: unknown free-air model keys {sorted(unknown)}")
+        try:
+            model = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+        except TypeError as exc:
+            raise InputError(f"{where}: not a free-air model ({exc})") from None
+        for name in ("f0_hz", "q"):
+            value = getattr(model, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InputError(f"{where}: {name}={value!r} must be a number > 0")
+        return model
+
+
+def load_free_air_model(path: Path) -> FreeAirModel:
+    """Read ``free_air.json`` (or a ``report.json`` holding ``results.free_air_model``)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "free_air.json"
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not JSON ({exc})") from None
+    if isinstance(data, dict) and "results" in data:
+        data = data["results"].get("free_air_model", {})
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: not a free-air model")
+    return FreeAirModel.from_dict(data, str(path))

@@ -1,0 +1,697 @@
+"""Image and plot writers: Gwyddion Simple Field files and PNG figures.
+
+Images are 2-D arrays with rows along y, top row first (row 0 is drawn at
+the top, as in Gwyddion), values in ``z_units``; the scan size is given in
+metres.  PNG figures use matplotlib, imported inside the writers only, so
+that ``import afmtool.report.images`` (and the CLI start-up) stays free of
+it.  Every file is written through :func:`afmtool.report.atomic.atomic_path`.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, NamedTuple, TypedDict
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from afmtool.errors import InputError
+from afmtool.report.atomic import OutputError, atomic_path
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.colors import Colormap
+    from matplotlib.figure import Figure
+
+__all__ = [
+    "APPROACH_STYLE",
+    "GSF_MAGIC",
+    "NAN_COLOUR",
+    "PNG_DPI",
+    "RETRACT_STYLE",
+    "GsfImage",
+    "PanelSpec",
+    "Series",
+    "read_gsf",
+    "write_gsf",
+    "write_image_png",
+    "write_line_plot_png",
+    "write_multi_panel_png",
+    "write_side_by_side_png",
+]
+
+GSF_MAGIC = b"Gwyddion Simple Field 1.0\n"
+
+#: Resolution of every PNG, in dots per inch.
+PNG_DPI = 150
+
+#: Colour of NaN (and infinite) pixels: a neutral grey, outside every AFM colour map.
+NAN_COLOUR = "#7f7f7f"
+
+#: Line styles for force curves: approach solid, retract dashed, same in every panel.
+APPROACH_STYLE: Mapping[str, Any] = MappingProxyType({"color": "C0", "linestyle": "-"})
+RETRACT_STYLE: Mapping[str, Any] = MappingProxyType({"color": "C3", "linestyle": "--"})
+
+_STYLE_KEYS = frozenset({"color", "linestyle", "linewidth", "marker", "markersize", "alpha", "zorder", "drawstyle"})
+_PANEL_KEYS = frozenset({"series", "y_label", "title"})
+
+# Units that take an SI prefix on a colour bar; anything else is shown as given.
+_PREFIXABLE = frozenset({"m", "V", "A", "N", "Hz", "s", "W", "Pa", "F", "S", "rad"})
+_SI_PREFIXES = {-18: "a", -15: "f", -12: "p", -9: "n", -6: "µ", -3: "m", 0: "", 3: "k", 6: "M", 9: "G"}
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _as_image(image: ArrayLike, name: str = "image") -> np.ndarray:
+    """``image`` as a 2-D real array (not copied when it already is one)."""
+    arr = np.asarray(image)
+    if arr.ndim != 2 or arr.size == 0:
+        raise ValueError(f"{name} must be a non-empty 2-D array, got shape {arr.shape}")
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"{name} must be real numbers, got dtype {arr.dtype}")
+    return arr
+
+
+def _check_size(name: str, value: float) -> float:
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name}={value!r} must be a finite length > 0")
+    return value
+
+
+def _check_header_value(name: str, value: str) -> str:
+    if not isinstance(value, str):
+        raise ValueError(f"{name}={value!r} must be a string")
+    if any(c in value for c in "\n\r\0"):
+        raise ValueError(f"{name}={value!r} must be one line without NUL characters")
+    if value != value.strip():
+        raise ValueError(f"{name}={value!r} must not start or end with whitespace (Gwyddion strips it)")
+    return value
+
+
+def _check_png_path(path: Path) -> Path:
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise OutputError(f"{path}: a PNG figure needs a .png suffix")
+    return path
+
+
+def _check_z_range(z_range: tuple[float, float] | None) -> tuple[float, float] | None:
+    if z_range is None:
+        return None
+    lo, hi = (float(v) for v in z_range)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(f"z_range={z_range!r} must be two finite numbers, low < high")
+    return lo, hi
+
+
+# --------------------------------------------------------------------------- GSF
+
+
+@dataclass(frozen=True)
+class GsfImage:
+    """A Gwyddion Simple Field file as read: header fields and data.
+
+    ``header`` maps every field name to its text value (whitespace around
+    both stripped); ``data`` is float32 with shape ``(YRes, XRes)``, top row
+    first, read-only.
+    """
+
+    header: Mapping[str, str]
+    data: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "header", MappingProxyType(dict(self.header)))
+
+
+def _gsf_header(
+    xres: int, yres: int, x_real: float, y_real: float, xy_units: str, z_units: str, title: str
+) -> bytes:
+    """Magic line, ``name = value`` lines, then 1-4 NULs so that len % 4 == 0."""
+    lines = [f"XRes = {xres}", f"YRes = {yres}", f"XReal = {x_real!r}", f"YReal = {y_real!r}"]
+    # Empty values are left out, as Gwyddion's own exporter does; the reader then
+    # uses its defaults (no units, a fallback channel title).
+    for key, value in (("XYUnits", xy_units), ("ZUnits", z_units), ("Title", title)):
+        if value:
+            lines.append(f"{key} = {value}")
+    text = GSF_MAGIC + "".join(line + "\n" for line in lines).encode("utf-8")
+    # Always at least one NUL: it terminates the header.
+    return text + b"\0" * (4 - len(text) % 4)
+
+
+def write_gsf(
+    path: Path,
+    image: ArrayLike,
+    x_real_m: float,
+    y_real_m: float,
+    *,
+    xy_units: str = "m",
+    z_units: str = "m",
+    title: str = "",
+) -> None:
+    """Write a 2-D image as a Gwyddion Simple Field (.gsf) file.
+
+    Parameters
+    ----------
+    path : Path
+        The output file (conventionally ``*.gsf``; Gwyddion detects the
+        format by its first line).
+    image : array_like, shape (ny, nx)
+        Values in ``z_units``; row 0 is the top row of the scan.
+    x_real_m, y_real_m : float
+        Physical width and height of the scan, in ``xy_units`` (metres by
+        default); positive and finite.
+    xy_units, z_units : str, optional
+        Units as Gwyddion spells them (``"m"``, ``"V"``, ``"Hz"``, ``"deg"``).
+        Empty strings are left out of the header.
+    title : str, optional
+        Channel title (UTF-8); left out when empty.
+
+    Raises
+    ------
+    ValueError
+        A bad argument, or a finite value too large for float32.
+    OutputError
+        The file cannot be written.
+
+    Notes
+    -----
+    Layout (Gwyddion user guide, "Simple Field Files"): the line
+    ``Gwyddion Simple Field 1.0``, then ``XRes``, ``YRes``, ``XReal``,
+    ``YReal``, ``XYUnits``, ``ZUnits``, ``Title`` as ``name = value`` lines,
+    each ending in LF; then 1 to 4 NUL bytes so the data start at a multiple
+    of 4; then ``XRes*YRes`` little-endian float32 values, row by row, top
+    row first.  Lengths are written with ``repr`` so they read back exactly.
+
+    NaN is stored as float32 NaN; the format has no other way to mark
+    missing pixels.  Gwyddion 2.62 (checked with ``gwyddion-thumbnailer``)
+    replaces NaN pixels on import by values interpolated from their
+    neighbours and puts a mask over them (drawn in red), so holes show as
+    masked, not as data.  Other readers see the raw NaN.
+    """
+    arr = _as_image(image)
+    x_real = _check_size("x_real_m", x_real_m)
+    y_real = _check_size("y_real_m", y_real_m)
+    for name, value in (("xy_units", xy_units), ("z_units", z_units), ("title", title)):
+        _check_header_value(name, value)
+    with np.errstate(over="ignore", invalid="ignore"):
+        data = np.ascontiguousarray(arr, dtype="<f4")
+    overflow = np.isinf(data) & np.isfinite(arr)
+    if overflow.any():
+        row, col = np.argwhere(overflow)[0]
+        raise ValueError(f"image[{row}, {col}]={arr[row, col]!r} does not fit in float32")
+    yres, xres = arr.shape
+    header = _gsf_header(xres, yres, x_real, y_real, xy_units, z_units, title)
+    with atomic_path(Path(path)) as tmp, open(tmp, "wb") as fh:
+        fh.write(header)
+        fh.write(data.tobytes())
+
+
+def _parse_gsf_header(path: Path, text: bytes) -> dict[str, str]:
+    try:
+        decoded = text.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: GSF header is not UTF-8") from None
+    header = {}
+    for number, line in enumerate(decoded.split("\n"), start=2):
+        if not line.strip():
+            continue
+        name, sep, value = line.partition("=")
+        if not sep:
+            raise InputError(f"{path}: GSF header line {number} is not 'name = value': {line!r}")
+        header[name.strip()] = value.strip()
+    return header
+
+
+def _pixel_count(path: Path, header: Mapping[str, str], key: str) -> int:
+    value = header.get(key)
+    if value is None:
+        raise InputError(f"{path}: GSF header has no {key}")
+    try:
+        count = int(value)
+    except ValueError:
+        raise InputError(f"{path}: GSF {key}={value!r} is not an integer") from None
+    if count < 1:
+        raise InputError(f"{path}: GSF {key}={count} must be positive")
+    return count
+
+
+def read_gsf(path: Path) -> GsfImage:
+    """Read a Gwyddion Simple Field file strictly (used to check :func:`write_gsf`).
+
+    Raises
+    ------
+    InputError
+        The file is missing, not GSF, or its size does not match its header.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror})") from None
+    if not raw.startswith(GSF_MAGIC):
+        raise InputError(f"{path}: not a Gwyddion Simple Field file (bad first line)")
+    nul = raw.find(b"\0", len(GSF_MAGIC))
+    if nul < 0:
+        raise InputError(f"{path}: GSF header is not terminated by a NUL byte")
+    offset = nul + 4 - nul % 4
+    if raw[nul:offset] != b"\0" * (offset - nul):
+        raise InputError(f"{path}: GSF header padding is not 1-4 NUL bytes")
+    header = _parse_gsf_header(path, raw[len(GSF_MAGIC) : nul])
+    xres = _pixel_count(path, header, "XRes")
+    yres = _pixel_count(path, header, "YRes")
+    expected = offset + 4 * xres * yres
+    if len(raw) != expected:
+        raise InputError(f"{path}: {len(raw)} bytes, but the header ({xres}x{yres}) implies {expected}")
+    data = np.frombuffer(raw, dtype="<f4", count=xres * yres, offset=offset).reshape(yres, xres)
+    return GsfImage(header=header, data=data)
+
+
+# --------------------------------------------------------------------------- matplotlib
+
+
+def _figure_class() -> type[Figure]:
+    """Import matplotlib (only now) and return its ``Figure`` class.
+
+    Figures are built from ``Figure`` directly, never through pyplot, so
+    nothing is registered globally and nothing needs closing.  The Agg
+    backend is selected only if pyplot has not been imported: switching
+    backends under a running pyplot (a notebook) would close its figures.
+    """
+    import matplotlib
+
+    if "matplotlib.pyplot" not in sys.modules:
+        matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    return Figure
+
+
+@contextmanager
+def _png_figure(path: Path, width_in: float, height_in: float) -> Iterator[Figure]:
+    """Yield a new figure, then save it to ``path`` as PNG if the block succeeds.
+
+    The figure is built and saved under matplotlib's default style, not the
+    user's matplotlibrc, so the output does not depend on who runs it.
+    """
+    import matplotlib.style
+
+    figure_class = _figure_class()
+    with matplotlib.style.context("default"):
+        fig = figure_class(figsize=(width_in, height_in), dpi=PNG_DPI, layout="constrained")
+        yield fig
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=PNG_DPI)
+
+
+def _colormap(name: str) -> Colormap:
+    import matplotlib
+
+    try:
+        base = matplotlib.colormaps[name]
+    except KeyError:
+        raise ValueError(f"cmap={name!r} is not a matplotlib colour map (e.g. 'afmhot', 'gray')") from None
+    return base.with_extremes(bad=NAN_COLOUR)
+
+
+def _si_scale(max_abs: float, units: str) -> tuple[float, str]:
+    """Factor and prefixed units that bring ``max_abs`` into [1, 1000): (1e9, "nm") for 3e-9 m."""
+    if units not in _PREFIXABLE or not (math.isfinite(max_abs) and max_abs > 0):
+        return 1.0, units
+    exponent = min(max(3 * math.floor(math.log10(max_abs) / 3), -18), 9)
+    return 10.0**-exponent, _SI_PREFIXES[exponent] + units
+
+
+def _lateral_scale(x_real_m: float, y_real_m: float) -> tuple[float, str]:
+    """Micrometres for scans of 1 µm or more, nanometres below."""
+    return (1e6, "µm") if max(x_real_m, y_real_m) >= 1e-6 else (1e9, "nm")
+
+
+class _ZScale(NamedTuple):
+    factor: float  # displayed = value * factor
+    units: str  # prefixed units of the displayed values
+    vmin: float  # displayed colour limits
+    vmax: float
+    extend: str  # colour bar arrows for values clipped by z_range
+
+
+def _z_scale(images: Sequence[np.ndarray], z_units: str, z_range: tuple[float, float] | None) -> _ZScale:
+    """One colour scale for all ``images``: SI prefix, limits, and clipping arrows."""
+    finite = [a[np.isfinite(a)] for a in images]
+    values = np.concatenate([f.ravel().astype(float) for f in finite])
+    lo, hi = (float(values.min()), float(values.max())) if values.size else (0.0, 1.0)
+    extend = "neither"
+    if z_range is not None:
+        clipped = (values.size > 0 and lo < z_range[0], values.size > 0 and hi > z_range[1])
+        extend = {(True, True): "both", (True, False): "min", (False, True): "max"}.get(clipped, "neither")
+        lo, hi = z_range
+    elif lo == hi:  # a flat image: centre it in a small range rather than divide by zero
+        pad = abs(lo) * 1e-3 or 1.0
+        lo, hi = lo - pad, hi + pad
+    factor, units = _si_scale(max(abs(lo), abs(hi)), z_units)
+    return _ZScale(factor, units, lo * factor, hi * factor, extend)
+
+
+def _colorbar_label(z_label: str, units: str) -> str:
+    if z_label and units:
+        return f"{z_label} ({units})"
+    return z_label or units
+
+
+def _draw_image(
+    ax: Axes,
+    image: np.ndarray,
+    extent: tuple[float, float, float, float],
+    cmap: Colormap,
+    zs: _ZScale,
+) -> Any:
+    """Draw one image, top row at the top, y increasing downwards as in Gwyddion."""
+    shown = np.ma.masked_invalid(image.astype(float) * zs.factor)
+    im = ax.imshow(
+        shown,
+        cmap=cmap,
+        vmin=zs.vmin,
+        vmax=zs.vmax,
+        origin="upper",
+        extent=extent,
+        interpolation="antialiased",
+    )
+    ax.set_aspect("equal")
+    return im
+
+
+def _draw_colorbar(fig: Figure, ax: Axes, im: Any, label: str, extend: str) -> None:
+    """A colour bar just right of ``ax``, exactly as tall as the image."""
+    cax = ax.inset_axes((1.04, 0.0, 0.05, 1.0))
+    fig.colorbar(im, cax=cax, label=label, extend=extend)
+
+
+def _image_figure_size(x_real_m: float, y_real_m: float, n: int) -> tuple[float, float]:
+    aspect = min(max(y_real_m / x_real_m, 0.25), 4.0)
+    panel = 4.8 if n == 1 else 3.6
+    height = min(max(panel * aspect, 2.4), 9.0) + 1.0
+    return panel * n + 1.6, height
+
+
+def write_image_png(
+    path: Path,
+    image: ArrayLike,
+    x_real_m: float,
+    y_real_m: float,
+    *,
+    z_units: str,
+    title: str,
+    cmap: str = "afmhot",
+    z_label: str = "",
+    z_range: tuple[float, float] | None = None,
+) -> None:
+    """Render a 2-D scan as a PNG with physical axes and a labelled colour bar.
+
+    Parameters
+    ----------
+    path : Path
+        The output file; must end in ``.png``.
+    image : array_like, shape (ny, nx)
+        Values in ``z_units``; row 0 is drawn at the top.
+    x_real_m, y_real_m : float
+        Scan width and height in metres.  The axes are in µm for scans of
+        1 µm or more, in nm below; y increases downwards, as in Gwyddion.
+    z_units : str
+        Units of the values.  SI units (``m``, ``V``, ``Hz``, ...) get a
+        prefix on the colour bar (heights of a few 1e-9 m show as nm).
+    title : str
+        Figure title.
+    cmap : str, optional
+        Matplotlib colour map; ``afmhot`` by default.  NaN and infinite
+        pixels are drawn in neutral grey (:data:`NAN_COLOUR`).
+    z_label : str, optional
+        Quantity on the colour bar, e.g. ``"height"``; the units follow in
+        parentheses.
+    z_range : (float, float), optional
+        Colour limits in ``z_units``; by default the finite minimum and
+        maximum.  Clipped values are marked by arrows on the colour bar.
+    """
+    path = _check_png_path(path)
+    arr = _as_image(image)
+    x_real = _check_size("x_real_m", x_real_m)
+    y_real = _check_size("y_real_m", y_real_m)
+    zr = _check_z_range(z_range)
+    colormap = _colormap(cmap)
+
+    factor, unit = _lateral_scale(x_real, y_real)
+    zs = _z_scale([arr], z_units, zr)
+    with _png_figure(path, *_image_figure_size(x_real, y_real, 1)) as fig:
+        ax = fig.add_subplot()
+        im = _draw_image(ax, arr, (0.0, x_real * factor, y_real * factor, 0.0), colormap, zs)
+        ax.set_xlabel(f"x ({unit})")
+        ax.set_ylabel(f"y ({unit})")
+        ax.set_title(title)
+        _draw_colorbar(fig, ax, im, _colorbar_label(z_label, zs.units), zs.extend)
+
+
+def write_side_by_side_png(
+    path: Path,
+    images: Sequence[tuple[ArrayLike, str]],
+    x_real_m: float,
+    y_real_m: float,
+    *,
+    z_units: str,
+    suptitle: str,
+    cmap: str = "afmhot",
+    z_label: str = "",
+    z_range: tuple[float, float] | None = None,
+) -> None:
+    """Render several scans of the same area in one row with one shared colour scale.
+
+    Parameters
+    ----------
+    path : Path
+        The output file; must end in ``.png``.
+    images : sequence of (array_like, str)
+        Each image (rows along y, top row first) and its panel title.  All
+        cover the same ``x_real_m`` by ``y_real_m`` area; pixel counts may
+        differ.
+    x_real_m, y_real_m, z_units, cmap, z_label, z_range
+        As for :func:`write_image_png`; the colour limits span every image.
+    suptitle : str
+        Title over the whole row.
+    """
+    path = _check_png_path(path)
+    if len(images) == 0:
+        raise ValueError("images must hold at least one (array, title) pair")
+    arrays, titles = [], []
+    for i, item in enumerate(images):
+        arr, panel_title = item
+        arrays.append(_as_image(arr, f"images[{i}]"))
+        titles.append(str(panel_title))
+    x_real = _check_size("x_real_m", x_real_m)
+    y_real = _check_size("y_real_m", y_real_m)
+    zr = _check_z_range(z_range)
+    colormap = _colormap(cmap)
+
+    factor, unit = _lateral_scale(x_real, y_real)
+    zs = _z_scale(arrays, z_units, zr)
+    extent = (0.0, x_real * factor, y_real * factor, 0.0)
+    with _png_figure(path, *_image_figure_size(x_real, y_real, len(arrays))) as fig:
+        axes = fig.subplots(1, len(arrays), sharex=True, sharey=True, squeeze=False)[0]
+        for ax, arr, panel_title in zip(axes, arrays, titles, strict=True):
+            im = _draw_image(ax, arr, extent, colormap, zs)
+            ax.set_title(panel_title)
+            ax.set_xlabel(f"x ({unit})")
+        axes[0].set_ylabel(f"y ({unit})")
+        fig.suptitle(suptitle)
+        _draw_colorbar(fig, axes[-1], im, _colorbar_label(z_label, zs.units), zs.extend)
+
+
+# --------------------------------------------------------------------------- line plots
+
+
+class Series(NamedTuple):
+    """One line: ``x`` and ``y`` (1-D, same length), a legend label, and a style.
+
+    ``style`` holds matplotlib line properties (``color``, ``linestyle``,
+    ``linewidth``, ``marker``, ``markersize``, ``alpha``, ``zorder``,
+    ``drawstyle``), e.g. :data:`APPROACH_STYLE`.  Plain ``(x, y, label)``
+    tuples are accepted wherever a ``Series`` is.  NaN in ``y`` breaks the line.
+    """
+
+    x: ArrayLike
+    y: ArrayLike
+    label: str
+    style: Mapping[str, Any] | None = None
+
+
+class PanelSpec(TypedDict, total=False):
+    """One panel of :func:`write_multi_panel_png`; only ``series`` is required."""
+
+    series: Sequence[Series | tuple]
+    y_label: str
+    title: str
+
+
+def _as_series(item: Series | tuple, name: str) -> tuple[np.ndarray, np.ndarray, str, dict[str, Any]]:
+    if not 3 <= len(item) <= 4:
+        raise ValueError(f"{name} must be (x, y, label) or (x, y, label, style), got {len(item)} items")
+    s = Series(*item)
+    x, y = np.asarray(s.x), np.asarray(s.y)
+    if x.ndim != 1 or y.ndim != 1 or len(x) != len(y) or len(x) == 0:
+        raise ValueError(f"{name}: x and y must be non-empty 1-D arrays of one length, got {x.shape} and {y.shape}")
+    for axis, arr in (("x", x), ("y", y)):
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"{name}: {axis} must be real numbers, got dtype {arr.dtype}")
+    style = dict(s.style or {})
+    unknown = sorted(set(style) - _STYLE_KEYS)
+    if unknown:
+        raise ValueError(f"{name}: unknown style keys {unknown}; allowed: {sorted(_STYLE_KEYS)}")
+    return x, y, str(s.label), style
+
+
+def _check_markers(markers: Sequence[tuple[float, str]] | None) -> list[tuple[float, str]]:
+    checked = []
+    for i, item in enumerate(markers or ()):
+        x, label = item
+        x = float(x)
+        if not math.isfinite(x):
+            raise ValueError(f"markers[{i}]: x={x!r} must be finite")
+        checked.append((x, str(label)))
+    return checked
+
+
+def _draw_series(ax: Axes, series: Sequence[tuple[np.ndarray, np.ndarray, str, dict[str, Any]]]) -> None:
+    for x, y, label, style in series:
+        ax.plot(x, y, label=label or None, **style)
+    if any(label for _, _, label, _ in series):
+        ax.legend(fontsize="small")
+    ax.grid(True, alpha=0.3)
+
+
+def _draw_markers(ax: Axes, markers: Sequence[tuple[float, str]], *, labelled: bool) -> None:
+    """Dotted vertical lines at ``markers`` x positions, labelled at the top of the axes."""
+    for x, label in markers:
+        ax.axvline(x, color="0.35", linestyle=":", linewidth=1.0)
+        if labelled and label:
+            ax.annotate(
+                label,
+                xy=(x, 1.0),
+                xycoords=("data", "axes fraction"),
+                xytext=(-2, -4),
+                textcoords="offset points",
+                rotation=90,
+                ha="right",
+                va="top",
+                fontsize="small",
+                color="0.35",
+            )
+
+
+def write_line_plot_png(
+    path: Path,
+    series: Sequence[Series | tuple],
+    *,
+    x_label: str,
+    y_label: str,
+    title: str,
+    markers: Sequence[tuple[float, str]] | None = None,
+) -> None:
+    """Plot one or more lines on one pair of axes.
+
+    Parameters
+    ----------
+    path : Path
+        The output file; must end in ``.png``.
+    series : sequence of Series or (x, y, label[, style]) tuples
+        The lines, drawn in order; labelled lines get a legend.
+    x_label, y_label : str
+        Axis labels with their units, e.g. ``"z (nm)"``; values are plotted
+        as given.
+    title : str
+        Figure title.
+    markers : sequence of (float, str), optional
+        ``(x, label)`` pairs drawn as labelled dotted vertical lines (a
+        contact point, a set point).
+    """
+    path = _check_png_path(path)
+    if len(series) == 0:
+        raise ValueError("series must hold at least one line")
+    lines = [_as_series(item, f"series[{i}]") for i, item in enumerate(series)]
+    marks = _check_markers(markers)
+
+    with _png_figure(path, 7.0, 4.2) as fig:
+        ax = fig.add_subplot()
+        _draw_series(ax, lines)
+        _draw_markers(ax, marks, labelled=True)
+        ax.set_xlabel(x_label)
+        ax.set_ylabel(y_label)
+        ax.set_title(title)
+
+
+def write_multi_panel_png(
+    path: Path,
+    panels: Sequence[PanelSpec],
+    *,
+    x_label: str = "",
+    title: str = "",
+    markers: Sequence[tuple[float, str]] | None = None,
+) -> None:
+    """Stack panels that share one x axis: force-curve style plots.
+
+    Parameters
+    ----------
+    path : Path
+        The output file; must end in ``.png``.
+    panels : sequence of dict
+        Top to bottom.  Each holds ``series`` (as for
+        :func:`write_line_plot_png`), and optionally ``y_label`` and
+        ``title``.  Give approach and retract the same style in every panel
+        (:data:`APPROACH_STYLE`, :data:`RETRACT_STYLE`).
+    x_label : str, optional
+        Shared x label, under the bottom panel, e.g. ``"z (nm)"``.
+    title : str, optional
+        Title over all panels.
+    markers : sequence of (float, str), optional
+        ``(x, label)`` dotted vertical lines through every panel, labelled
+        in the top one.
+
+    Examples
+    --------
+    >>> panels = [  # doctest: +SKIP
+    ...     {"y_label": "f0' (kHz)", "series": [(z, f_app, "approach", APPROACH_STYLE),
+    ...                                        (z, f_ret, "retract", RETRACT_STYLE)]},
+    ...     {"y_label": "Q'", "series": [(z, q_app, "approach", APPROACH_STYLE)]},
+    ... ]
+    >>> write_multi_panel_png(Path("curve.png"), panels, x_label="z (nm)")  # doctest: +SKIP
+    """
+    path = _check_png_path(path)
+    if len(panels) == 0:
+        raise ValueError("panels must hold at least one panel")
+    checked = []
+    for p, panel in enumerate(panels):
+        unknown = sorted(set(panel) - _PANEL_KEYS)
+        if unknown:
+            raise ValueError(f"panels[{p}]: unknown keys {unknown}; allowed: {sorted(_PANEL_KEYS)}")
+        if not panel.get("series"):
+            raise ValueError(f"panels[{p}] must hold a non-empty 'series'")
+        lines = [_as_series(item, f"panels[{p}]['series'][{i}]") for i, item in enumerate(panel["series"])]
+        checked.append((lines, str(panel.get("y_label", "")), str(panel.get("title", ""))))
+    marks = _check_markers(markers)
+
+    with _png_figure(path, 7.0, 1.9 * len(checked) + 1.1) as fig:
+        axes = fig.subplots(len(checked), 1, sharex=True, squeeze=False)[:, 0]
+        for i, (ax, (lines, y_label, panel_title)) in enumerate(zip(axes, checked, strict=True)):
+            _draw_series(ax, lines)
+            _draw_markers(ax, marks, labelled=i == 0)
+            ax.set_ylabel(y_label)
+            if panel_title:
+                ax.set_title(panel_title, fontsize="medium")
+        axes[-1].set_xlabel(x_label)
+        if title:
+            fig.suptitle(title)
