@@ -72,11 +72,17 @@ def open_capture(
     if fmt == "hdf5":
         from afmtool.io.hdf5 import Hdf5Reader
 
+        if topic_map:
+            raise InputError(f"{path}: --topic maps bag topics; use --channel NAME=/dataset for HDF5")
+
         return Hdf5Reader(Path(path), channel_map, sample_rate_hz)
     if channel_map:
         raise InputError(f"{path}: --channel maps HDF5 datasets; use --topic for bags")
     if fmt == "csv":
         from afmtool.io.csv import CsvReader
+
+        if topic_map:
+            raise InputError(f"{path}: --topic maps bag topics; CSV columns are channels")
 
         return CsvReader(path, sample_rate_hz)
     from afmtool.io.rosbag import RosbagReader
