@@ -145,7 +145,13 @@ def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirMode
     start, end = round(interval[0] * fs), round(interval[1] * fs)
     prefix = split_prefix(chunks, end)
     segment = segment_arrays(prefix, ("deflection", "dither"), start, end)
-    identified = free_air_from_segment(segment["deflection"], segment["dither"], fs)
+    try:
+        identified = free_air_from_segment(segment["deflection"], segment["dither"], fs)
+    except InputError as exc:
+        raise InputError(
+            f"free-air segment {interval[0]:g}:{interval[1]:g} s: {exc}; or give --model free_air.json "
+            "(identify freeair --psd / --sweep)"
+        ) from None
     return identified, prefix.replay(), interval
 
 
