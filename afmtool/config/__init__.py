@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 
 from afmtool.errors import ConfigError
 
-__all__ = ["field", "load_toml", "resolve", "resolve_from", "section_to_toml", "parameters_dict", "help_for"]
+__all__ = ["field", "load_toml", "packaged_defaults", "resolve", "resolve_from", "section_to_toml", "parameters_dict", "help_for"]
 
 P = TypeVar("P")
 
@@ -103,10 +103,19 @@ def resolve(cls: type[P], *layers: Mapping | None, where: str = "") -> P:
     return instance
 
 
+def packaged_defaults() -> dict:
+    """The ``defaults.toml`` shipped with afmtool (generated from the parameter models)."""
+    from importlib import resources
+
+    text = resources.files("afmtool.config").joinpath("defaults.toml").read_text(encoding="utf-8")
+    return tomllib.loads(text)
+
+
 def resolve_from(cls: type[P], section: str, user_config: Mapping | None, flags: Mapping) -> P:
-    """Defaults, then ``[section]`` of the user's config, then flags."""
+    """Packaged defaults, then ``[section]`` of the user's config, then flags."""
+    packaged = _section(packaged_defaults(), section)
     from_file = _section(user_config or {}, section)
-    return resolve(cls, from_file, flags, where=f"[{section}] ")
+    return resolve(cls, packaged, from_file, flags, where=f"[{section}] ")
 
 
 def parameters_dict(instance: Any) -> dict:

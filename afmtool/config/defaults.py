@@ -33,3 +33,7 @@ def default_toml() -> str:
 
 def packaged_defaults_text() -> str:
     return resources.files("afmtool.config").joinpath("defaults.toml").read_text(encoding="utf-8")
+
+
+if __name__ == "__main__":  # python -m afmtool.config.defaults > afmtool/config/defaults.toml
+    print(default_toml(), end="")
