@@ -20,7 +20,7 @@ from afmtool.cli.options import (
 )
 from afmtool.cli.progress import progress_bar, stderr_console
 
-__all__ = ["register"]
+__all__ = ["register", "finish_command"]
 
 
 def reep(
@@ -72,7 +72,7 @@ def reep(
     with open_input(capture, channel, topic, sample_rate) as reader:
         with progress_bar("reep", reader.info.n_samples, quiet) as update:
             report = run_reep_command(reader, capture, out, config, flags, update)
-    _finish(report, out, json_output, quiet)
+    finish_command(report, out, json_output, quiet)
 
 
 def identify_freeair(
@@ -122,10 +122,10 @@ def identify_freeair(
         with open_input(capture, channel, topic, sample_rate) as reader:
             with progress_bar("identify", reader.info.n_samples, quiet) as update:
                 report = run_freeair_command(reader, capture, out, config, flags, update)
-    _finish(report, out, json_output, quiet)
+    finish_command(report, out, json_output, quiet)
 
 
-def _finish(report: dict, out: Path, json_output: bool, quiet: bool) -> None:
+def finish_command(report: dict, out: Path, json_output: bool, quiet: bool) -> None:
     from afmtool.report.json_report import dumps
 
     if json_output:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from afmtool.config import field
 from afmtool.errors import ConfigError
 
-__all__ = ["SECTIONS", "ReepParams", "FreeAirParams", "parse_interval"]
+__all__ = ["SECTIONS", "ReepParams", "FreeAirParams", "AveragingParams", "TheoryCompareParams", "parse_interval"]
 
 
 def parse_interval(text: str, option: str) -> tuple[float, float] | None:
@@ -85,8 +85,51 @@ class ReepParams:
         parse_interval(self.free_air, "free_air")
 
 
+_FORCE_SETS = ("attractive", "attractive-repulsive", "repulsive", "repulsive-q38", "ch4-default")
+
+
+@dataclass(frozen=True)
+class AveragingParams:
+    """``afmtool theory averaging``: ωe, Qe and the steady state along a force curve (ch. 4)."""
+
+    f0_hz: float = field(80318.0, "Free-air resonant frequency", "Hz")
+    q: float = field(168.0, "Free-air quality factor")
+    force_set: str = field("attractive", "Piecewise-linear force parameters (thesis sets)", choices=_FORCE_SETS)
+    free_amplitude_nm: float = field(20.0, "Free-air oscillation amplitude at the drive", "nm")
+    drive_offset_hz: float = field(0.0, "Drive frequency minus f0", "Hz")
+    separation_from_nm: float = field(30.0, "Force curve start (largest separation)", "nm")
+    separation_to_nm: float = field(0.0, "Force curve turn (smallest separation)", "nm")
+    points: int = field(601, "Separations along each leg")
+
+    def validate(self) -> None:
+        for name in ("f0_hz", "q", "free_amplitude_nm"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be > 0")
+        if self.separation_to_nm >= self.separation_from_nm:
+            raise ConfigError("separation_to_nm must be below separation_from_nm")
+        if self.points < 2:
+            raise ConfigError(f"points={self.points!r} must be >= 2")
+
+
+@dataclass(frozen=True)
+class TheoryCompareParams:
+    """``afmtool theory compare``: REEP output beside averaging theory (§3.4.3)."""
+
+    force_set: str = field("", "Force parameters; empty = the capture's metadata force", choices=("",) + _FORCE_SETS)
+    amplitude_fraction: float = field(0.6, "Compare where the amplitude is above this share of the free amplitude")
+    tolerance: float = field(0.25, "Pass when the worst error is within this share of the theory's change")
+
+    def validate(self) -> None:
+        if not 0 < self.amplitude_fraction < 1:
+            raise ConfigError(f"amplitude_fraction={self.amplitude_fraction!r} must be in (0, 1)")
+        if self.tolerance <= 0:
+            raise ConfigError(f"tolerance={self.tolerance!r} must be > 0")
+
+
 #: Config-file section -> parameter model.
 SECTIONS: dict[str, type] = {
     "identify.freeair": FreeAirParams,
     "reep": ReepParams,
+    "theory.averaging": AveragingParams,
+    "theory.compare": TheoryCompareParams,
 }

@@ -1,0 +1,149 @@
+"""The ``theory averaging`` and ``theory compare`` commands end to end."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from afmtool.analyses.theory import compare_with_theory
+from afmtool.config import load_toml, resolve_from
+from afmtool.config.params import AveragingParams, TheoryCompareParams
+from afmtool.errors import InputError
+from afmtool.io.results import ResultWriter
+from afmtool.models.cantilever import Cantilever
+from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
+from afmtool.report.json_report import input_record
+from afmtool.report.outputs import OutputDir
+from afmtool.report.run import finish_run
+
+__all__ = ["run_averaging_command", "run_compare_command"]
+
+
+def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dict:
+    """Theoretical force curve, approach and retract, with topography sensitivities."""
+    from afmtool.models.averaging import SinusoidalDrive, theoretical_force_curve, topography_sensitivities
+    from afmtool.report.images import APPROACH_STYLE, RETRACT_STYLE, write_multi_panel_png
+
+    params = resolve_from(AveragingParams, "theory.averaging", load_toml(config) if config else None, flags)
+    cantilever = Cantilever(params.f0_hz, params.q)
+    force = THESIS_FORCE_SETS[params.force_set]
+    drive = SinusoidalDrive.for_free_amplitude(
+        cantilever, params.free_amplitude_nm, params.f0_hz + params.drive_offset_hz
+    )
+    approach_path = np.linspace(params.separation_from_nm, params.separation_to_nm, params.points)
+    legs = {
+        "approach": theoretical_force_curve(approach_path, drive, cantilever, force),
+        "retract": theoretical_force_curve(approach_path[::-1], drive, cantilever, force),
+    }
+    results = {"drive_amplitude_nm": drive.amplitude_nm, "drive_frequency_hz": drive.frequency_hz}
+    with OutputDir(out) as staged:
+        with ResultWriter(staged.path("theory.h5"), {}) as writer:
+            for leg, curve in legs.items():
+                sens = topography_sensitivities(
+                    curve.amplitude_nm, curve.separation_nm, drive.omega_rad_s, cantilever, force
+                )
+                for name, values, units in (
+                    ("separation_nm", curve.separation_nm, "nm"),
+                    ("amplitude_nm", curve.amplitude_nm, "nm"),
+                    ("phase_deg", np.degrees(curve.phase_rad), "deg"),
+                    ("f0_e_hz", curve.f0_e_hz, "Hz"),
+                    ("q_e", curve.q_e, ""),
+                    ("n_stable", curve.n_stable, ""),
+                    ("da_dl", sens.da_dl, "nm/nm"),
+                    ("domega_e_dl", sens.domega_e_dl, "rad/s/nm"),
+                    ("dq_e_dl", sens.dq_e_dl, "1/nm"),
+                ):
+                    writer.put(f"{leg}/{name}", values, units)
+                bistable = curve.separation_nm[curve.n_stable > 1]
+                results[leg] = {
+                    "f0_e_range_hz": [float(np.nanmin(curve.f0_e_hz)), float(np.nanmax(curve.f0_e_hz))],
+                    "q_e_range": [float(np.nanmin(curve.q_e)), float(np.nanmax(curve.q_e))],
+                    "bistable_separation_nm": [float(bistable.min()), float(bistable.max())] if bistable.size else None,
+                }
+        styles = {"approach": APPROACH_STYLE, "retract": RETRACT_STYLE}
+        panels = [
+            {"y_label": label, "series": [(c.separation_nm, getter(c), leg, styles[leg]) for leg, c in legs.items()]}
+            for label, getter in (
+                ("amplitude (nm)", lambda c: c.amplitude_nm),
+                ("phase (deg)", lambda c: np.degrees(c.phase_rad)),
+                ("f0e (Hz)", lambda c: c.f0_e_hz),
+                ("Qe", lambda c: c.q_e),
+            )
+        ]
+        write_multi_panel_png(
+            staged.path("averaging.png"), panels, x_label="separation l (nm)",
+            title=f"Averaging theory, {params.force_set} force (f0 {params.f0_hz:g} Hz, Q {params.q:g})",
+        )
+        return finish_run(staged, "theory averaging", [], "theory.averaging", params, results, [])
+
+
+def _force_from(metadata: Mapping, force_set: str) -> tuple[PiecewiseLinearForce, str]:
+    if force_set:
+        return THESIS_FORCE_SETS[force_set], force_set
+    meta = metadata.get("force")
+    if not meta:
+        raise InputError("the capture has no force metadata; give --force-set")
+    force = PiecewiseLinearForce(
+        meta["d_nm"], meta["omega_a2_per_s2"], meta["omega_b2_per_s2"], meta["c_a_per_s"], meta["c_b_per_s"]
+    )
+    return force, meta.get("set", "metadata")
+
+
+def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: Mapping) -> dict:
+    """Put a REEP run beside averaging theory along its (simulated) force curve."""
+    params = resolve_from(TheoryCompareParams, "theory.compare", load_toml(config) if config else None, flags)
+    report_path, series_path = reep_dir / "report.json", reep_dir / "reep.h5"
+    if not report_path.is_file() or not series_path.is_file():
+        raise InputError(f"{reep_dir}: not a reep output folder (needs report.json and reep.h5)")
+    reep_report = json.loads(report_path.read_text())
+    capture = Path(reep_report["inputs"][0]["path"])
+    with h5py.File(series_path, "r") as f:
+        series = {name: f[name][()] for name in ("t", "f0_hz", "q", "amplitude")}
+    try:
+        with h5py.File(capture, "r") as f:
+            metadata = json.loads(f.attrs.get("metadata", "{}"))
+            fs = float(f.attrs["sample_rate_hz"])
+            separation = f["truth/separation_nm"][()]
+    except (OSError, KeyError):
+        raise InputError(f"{capture}: the REEP input must be a simulated HDF5 capture with /truth/separation_nm") from None
+    force, force_name = _force_from(metadata, params.force_set)
+    cantilever_meta = metadata.get("cantilever") or reep_report["results"]["free_air_model"]
+    cantilever = Cantilever(cantilever_meta["f0_hz"], cantilever_meta["q"])
+    decimate = reep_report["results"]["decimate"]
+    index = np.round(series["t"] * fs).astype(int)
+    free_amplitude = metadata.get("drive", {}).get("free_amplitude_nm") or float(
+        np.nanmedian(series["amplitude"][: max(1, len(series["t"]) // 20)])
+    )
+    comparison = compare_with_theory(
+        series["t"], series["f0_hz"], series["q"], series["amplitude"], separation[index],
+        drive_frequency_hz=reep_report["results"]["drive_frequency_hz"], cantilever=cantilever, force=force,
+        forgetting_factor=reep_report["results"]["forgetting_factor"] ** decimate,
+        free_amplitude_nm=free_amplitude, amplitude_fraction=params.amplitude_fraction,
+    )
+    summary = comparison.summary()
+    passed = comparison.f0_error_fraction <= params.tolerance and comparison.q_error_fraction <= params.tolerance
+    results = {"force_set": force_name, "free_amplitude_nm": free_amplitude, **summary, "pass": passed}
+    warnings = [] if passed else [
+        f"REEP and averaging theory differ by more than {params.tolerance:.0%} of the theory's change"
+    ]
+    with OutputDir(out) as staged:
+        _plot_comparison(staged.path("compare.png"), series, separation[index], comparison)
+        inputs = [input_record(report_path, "reep report"), input_record(series_path, "reep series"), input_record(capture)]
+        return finish_run(staged, "theory compare", inputs, "theory.compare", params, results, warnings)
+
+
+def _plot_comparison(path: Path, series, separation, comparison) -> None:
+    from afmtool.report.images import write_multi_panel_png
+
+    m = comparison.mask
+    panels = [
+        {"y_label": "f0' (Hz)", "series": [(separation[m], series["f0_hz"][m], "REEP", {"color": "C0", "linestyle": "none", "marker": ","}),
+                                          (separation[m], comparison.f0_theory_hz[m], "averaging theory", {"color": "C3", "linestyle": "none", "marker": ","})]},
+        {"y_label": "Q'", "series": [(separation[m], series["q"][m], "REEP", {"color": "C0", "linestyle": "none", "marker": ","}),
+                                    (separation[m], comparison.q_theory[m], "averaging theory", {"color": "C3", "linestyle": "none", "marker": ","})]},
+    ]
+    write_multi_panel_png(path, panels, x_label="separation l (nm)", title="REEP vs averaging theory (thesis Figs. 3.11-3.14)")
