@@ -119,3 +119,63 @@ def test_input_is_never_modified(tmp_path, shared):
     result = run_cli("convert", source, tmp_path / "copy.csv")
     assert result.returncode == 0, result.stderr.decode()
     assert source.read_bytes() == before
+
+
+def test_bag_with_no_matching_topic(tmp_path):
+    from afmtool.io.capture import ChannelSpec
+    from afmtool.io.rosbag import RosbagWriter
+
+    bag = tmp_path / "other.bag"
+    writer = RosbagWriter(bag, 1000.0, [ChannelSpec("deflection", "nm")], {}, version="ros1")
+    writer.write({"deflection": np.zeros(10)})
+    writer.close()
+    before = sorted(p.name for p in tmp_path.iterdir())
+    result = run_cli("info", bag, "--topic", "deflection=/not/there")
+    assert_clean_failure(result, tmp_path, before)
+
+
+def test_analysis_missing_channel(tmp_path):
+    path = tmp_path / "c.h5"
+    _write_h5(path)  # deflection only, no dither
+    before = sorted(p.name for p in tmp_path.iterdir())
+    result = run_cli("reep", path, "--out", tmp_path / "out", "--free-air", "0:0.05")
+    assert_clean_failure(result, tmp_path, before)
+    assert "dither" in result.stderr.decode()
+
+
+def test_late_bad_sample_leaves_no_partial_output(tmp_path):
+    """A NaN deep in the capture stops the run after work began: nothing is published."""
+    from afmtool import sim
+    from afmtool.io.capture import ChannelSpec
+    from afmtool.io.hdf5 import Hdf5Writer
+
+    captured = sim.simulate("ltv", {"duration_s": 0.03, "step_time_s": 1.0}, seed=0)
+    data = {k: np.array(v) for k, v in captured.data.items()}
+    data["deflection"][14_000] = np.nan
+    path = tmp_path / "late_nan.h5"
+    writer = Hdf5Writer(path, captured.sample_rate_hz, captured.channels, captured.metadata)
+    writer.write(data)
+    writer.close()
+    config = tmp_path / "small_chunks.toml"
+    config.write_text("[reep]\nchunk_samples = 1000\n")  # reep.h5 is half written when the NaN arrives
+    before = sorted(p.name for p in tmp_path.iterdir())
+    result = run_cli("reep", path, "--out", tmp_path / "out", "--config", config)
+    assert_clean_failure(result, tmp_path, before)
+    assert "sample 14000" in result.stderr.decode()
+
+
+def test_version():
+    result = run_cli("--version")
+    assert result.returncode == 0
+    assert result.stdout.decode().startswith("afmtool ")
+
+
+def test_progress_bar_only_on_a_tty(monkeypatch, capsys):
+    import sys
+
+    from afmtool.cli.progress import progress_bar
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
+    with progress_bar("x", 10, quiet=False) as update:
+        update(5)
+    assert capsys.readouterr().err == ""
