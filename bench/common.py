@@ -69,30 +69,50 @@ def _evict(path: Path) -> None:
 
 
 def generate_h5(path: Path, n_samples: int, channels: tuple[str, ...] = ("dither", "deflection"), *, seed: int = 0) -> Path:
-    """An afmtool-layout HDF5 capture of ``n_samples`` per channel, written in blocks."""
+    """An afmtool-layout HDF5 capture of ``n_samples`` per channel, written in blocks.
+
+    The dither is the three-sine REEP excitation at 70 kHz ± 6 kHz and the
+    deflection the ZOH-sampled free-air response (f0 70 kHz, Q 200) plus
+    0.05 nm of white noise, generated with ``lfilter`` and carried state so
+    any length streams in bounded memory.
+    """
     import h5py
     import numpy as np
+    from scipy.signal import lfilter
 
+    from afmtool.models.discretisation import discrete_denominator, zoh_numerator
+
+    fs, f0, q = 500e3, 70e3, 200.0
     if path.exists() and path.stat().st_size > 0:
         with h5py.File(path) as f:
-            if all(len(f[f"channels/{c}"]) == n_samples for c in channels if f"channels/{c}" in f):
+            if all(f"channels/{c}" in f and len(f[f"channels/{c}"]) == n_samples for c in channels):
                 return path
     rng = np.random.default_rng(seed)
-    fs = 500e3
+    denominator = discrete_denominator(f0, q, fs)
+    numerator = zoh_numerator(f0, q, fs)
+    b = [numerator.a2, numerator.a1, numerator.a0]
+    a = [1.0, denominator.b1, denominator.b0]
+    zi = np.zeros(2)
+    amplitude = 25.0 / q
     block = 1 << 22
     with h5py.File(path, "w") as f:
         f.attrs["sample_rate_hz"] = fs
-        f.attrs["metadata"] = json.dumps({"free_air": {"start_s": 0.0, "end_s": 0.02}})
+        f.attrs["metadata"] = json.dumps({"free_air": {"start_s": 0.002, "end_s": 0.02}})
         datasets = {c: f.create_dataset(f"channels/{c}", shape=(n_samples,), dtype="f8") for c in channels}
         for c, ds in datasets.items():
             ds.attrs["units"] = "nm" if c == "deflection" else "V"
-        phase_step = 2 * np.pi * 70e3 / fs
         for start in range(0, n_samples, block):
             n = min(block, n_samples - start)
-            k = start + np.arange(n)
-            base = np.sin(phase_step * k)
+            t = (start + np.arange(n)) / fs
+            dither = amplitude * (
+                np.sin(2 * np.pi * f0 * t)
+                + 0.5 * np.sin(2 * np.pi * (f0 + 6e3) * t)
+                + 0.5 * np.sin(2 * np.pi * (f0 - 6e3) * t)
+            )
+            deflection, zi = lfilter(b, a, dither, zi=zi)
+            values = {"dither": dither, "deflection": deflection + 0.05 * rng.standard_normal(n)}
             for c, ds in datasets.items():
-                ds[start : start + n] = (25.0 if c == "deflection" else 0.125) * base + 0.05 * rng.standard_normal(n)
+                ds[start : start + n] = values.get(c, dither)
     return path
 
 

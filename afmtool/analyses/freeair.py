@@ -11,9 +11,7 @@
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -21,7 +19,7 @@ from afmtool.errors import InputError
 from afmtool.io.capture import Chunk
 from afmtool.models.free_air import FreeAirModel
 
-__all__ = ["free_air_from_segment", "split_prefix", "segment_arrays", "SegmentPrefix"]
+__all__ = ["free_air_from_segment", "read_segment", "replay_held"]
 
 #: Fewer samples than this cannot pin five ARX coefficients with any precision.
 MIN_SEGMENT_SAMPLES = 500
@@ -75,40 +73,30 @@ def free_air_from_segment(deflection: np.ndarray, dither: np.ndarray, sample_rat
     )
 
 
-@dataclass(frozen=True)
-class SegmentPrefix:
-    """The chunks read ahead to cover a segment, and the rest of the stream."""
-
-    chunks: tuple[Chunk, ...]
-    rest: Iterator[Chunk]
-
-    def replay(self) -> Iterator[Chunk]:
-        """Every chunk of the capture, read-ahead ones first, each read once."""
-        return itertools.chain(self.chunks, self.rest)
+def replay_held(held: list[Chunk], rest: Iterator[Chunk]) -> Iterator[Chunk]:
+    """Yield ``held`` chunks then ``rest``, dropping each held chunk once it is handed on."""
+    while held:
+        yield held.pop(0)
+    yield from rest
 
 
-def split_prefix(chunks: Iterator[Chunk], end_sample: int) -> SegmentPrefix:
-    """Read ahead until sample ``end_sample`` is covered (works on stdin too)."""
-    held = []
+def read_segment(
+    chunks: Iterator[Chunk], names: tuple[str, ...], start_sample: int, end_sample: int
+) -> tuple[dict[str, np.ndarray], Iterator[Chunk]]:
+    """Samples [start_sample, end_sample) of ``names``, read ahead from a single-pass stream.
+
+    Returns the segment and an iterator over every chunk of the capture, the
+    read-ahead ones first, so the stream (stdin included) is read once.
+    """
+    held: list[Chunk] = []
     for chunk in chunks:
         held.append(chunk)
         if chunk.start + len(chunk) >= end_sample:
             break
-    return SegmentPrefix(tuple(held), chunks)
-
-
-def segment_arrays(
-    prefix: SegmentPrefix, names: tuple[str, ...], start_sample: int, end_sample: int
-) -> dict[str, np.ndarray]:
-    """The samples [start_sample, end_sample) of ``names`` from the read-ahead chunks."""
-    if not prefix.chunks:
-        raise InputError("the capture is empty")
-    last = prefix.chunks[-1]
-    available = last.start + len(last)
+    available = held[-1].start + len(held[-1]) if held else 0
     if available < end_sample:
-        raise InputError(
-            f"segment ends at sample {end_sample} but the capture has only {available} samples"
-        )
-    return {
-        name: np.concatenate([c.data[name] for c in prefix.chunks])[start_sample:end_sample] for name in names
+        raise InputError(f"segment ends at sample {end_sample} but the capture has only {available} samples")
+    segment = {
+        name: np.concatenate([c.data[name] for c in held])[start_sample:end_sample] for name in names
     }
+    return segment, replay_held(held, chunks)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afmtool.analyses.freeair import free_air_from_segment, segment_arrays, split_prefix
+from afmtool.analyses.freeair import free_air_from_segment, read_segment
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import FreeAirParams, parse_interval
 from afmtool.errors import ConfigError
@@ -31,7 +31,7 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tu
     fs = reader.info.sample_rate_hz
     start, end = round(interval[0] * fs), round(interval[1] * fs)
     chunks = iter_chunks(reader, ("deflection", "dither"), 1 << 20, progress=progress)
-    segment = segment_arrays(split_prefix(chunks, end), ("deflection", "dither"), start, end)
+    segment, _ = read_segment(chunks, ("deflection", "dither"), start, end)
     model = free_air_from_segment(segment["deflection"], segment["dither"], fs)
     return model, {"segment_s": list(interval), "segment_samples": end - start}
 

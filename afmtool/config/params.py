@@ -66,7 +66,7 @@ class ReepParams:
     vs: str = field("auto", "Force-curve binning against z_piezo", choices=("auto", "time", "z"))
     z_bin: float = field(0.5, "Force-curve bin width, in the units of z_piezo")
     warmup_windows: float = field(5.0, "Windows 1/(1-λ) left out of summary statistics at the start")
-    chunk_samples: int = field(1 << 20, "Samples per streamed chunk")
+    chunk_samples: int = field(1 << 18, "Samples per streamed chunk (memory against per-chunk overhead)")
 
     def validate(self) -> None:
         if not 0.0 < self.lam < 1.0:

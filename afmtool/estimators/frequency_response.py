@@ -2,12 +2,14 @@
 
 This module holds the Fourier-domain identification shared by two features:
 
-* the **sweep route** to the free-air model of REEP (§3.4): the response
-  G(jω) from the dither to the deflection is measured with a chirp/noise
-  drive (H1 estimator) or a stepped sine (lock-in per step), and the
-  second-order model G(s) = gain·ω0²/(s² + (ω0/Q)s + ω0²)·e^{−sτ} (eq. 3.1
-  with a pure delay τ of the drive path) is fitted to it, giving a
-  :class:`~afmtool.models.free_air.FreeAirModel` with ``source="sweep"``;
+* the **sweep route** to the free-air model whose numerator REEP keeps
+  fixed (§3.3.3): the response G(jω) from the dither to the deflection is
+  measured with a chirp/noise drive (H1 estimator) or a stepped sine
+  (lock-in per step), and the second-order model
+  G(s) = gain·ω0²/(s² + (ω0/Q)s + ω0²)·e^{−sτ} (eq. 3.1 with a pure delay τ
+  of the drive path) is fitted to it, as §6.7.1 does with a chirp on V_sub,
+  giving a :class:`~afmtool.models.free_air.FreeAirModel` with
+  ``source="sweep"``;
 * the **Γ transfer functions** of the thermal sensor (§6.6): Γ_p,V (eq. 6.14),
   Γ_IR,V, the feed-through Γ_sp and the sensing map Γ_IR,ts of eq. 6.15, and
   H(jω) as the ratio of the cross spectrum of (Δt_s, ΔT1) to the auto
@@ -62,7 +64,8 @@ __all__ = [
 ]
 
 #: Bins whose input auto spectrum is below this fraction of its maximum carry
-#: no input (e.g. the DC bin after mean removal) and get a NaN response.
+#: no input (rounding only: a zero input, or far outside the band of a
+#: band-limited drive) and get a NaN response.
 _NO_INPUT_FRACTION = float(np.finfo(np.float64).eps)
 #: Number of segments processed at once by the accumulator (bounds memory).
 _SEGMENT_BLOCK = 256
@@ -210,8 +213,9 @@ class CrossSpectra(NamedTuple):
 def _welch_independent_averages(window: np.ndarray, hop: int, n_segments: int) -> float:
     """Equivalent number of independent averages n_d of a Welch estimate.
 
-    Welch (1967), eq. (11): for K segments shifted by D samples the variance
-    of the averaged spectrum of a Gaussian white-ish process is that of
+    Welch (1967, IEEE Trans. Audio Electroacoust. 15, 70–73): for K
+    segments shifted by D samples the variance of the averaged spectrum of a
+    Gaussian, locally white process is that of
     n_d = K / (1 + 2 Σ_{j=1}^{K−1} (1 − j/K) ρ²(jD)) independent averages,
     with ρ(jD) = Σ_n w[n]·w[n+jD] / Σ_n w[n]².  For a Hann window at 50 %
     overlap ρ(D) ≈ 0.167 and n_d ≈ K/1.06.
@@ -228,19 +232,7 @@ def _welch_independent_averages(window: np.ndarray, hop: int, n_segments: int) -
 
 
 def _h1_from_spectra(spectra: CrossSpectra) -> FrequencyResponse:
-    """H1 = P_xy/P_xx, γ² = |P_xy|²/(P_xx·P_yy) and their random errors.
-
-    The errors are Bendat & Piersol's first-order random-error formulas for
-    a single-input/single-output frequency-response estimate (Bendat &
-    Piersol, *Random Data*, 4th ed., 2010, §9.2, gain and phase factor
-    estimates):
-
-    ε[|Ĥ|] = √(1 − γ²) / (|γ|·√(2 n_d)),  s.d.[φ̂] ≈ √(1 − γ²) / (|γ|·√(2 n_d)) rad,
-
-    so ``magnitude_std`` = |Ĥ|·ε and ``phase_std_rad`` = s.d.[φ̂], with the
-    estimated γ² in place of the true one.  They are valid for small errors
-    (ε ≲ 0.2) and say nothing about bias (leakage, resolution).
-    """
+    """H1 = P_xy/P_xx, γ² = |P_xy|²/(P_xx·P_yy) and their random errors (see :func:`h1_estimate`)."""
     f, pxx, pyy, pxy, _k, n_d = spectra
     has_input = pxx > _NO_INPUT_FRACTION * np.max(pxx) if pxx.size else pxx > 0
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -304,12 +296,26 @@ def h1_estimate(
               \\hat\\gamma^2 = \\frac{|\\sum_k X_k^* Y_k|^2}{\\sum_k |X_k|^2 \\sum_k |Y_k|^2}.
 
     H1 is unbiased by noise on the output (the usual case: deflection noise)
-    and biased low by noise on the input.  Its random errors follow
-    Bendat & Piersol (see :class:`FrequencyResponse`), with the number of
-    independent averages corrected for overlap (Welch 1967).  This is also
-    how §6.6.2 obtains H(jω) = C_{T1,ts}/C_{ts,ts}.  The spectra come from
+    and biased low by noise on the input.  This is also how §6.6.2 obtains
+    H(jω) = C_{T1,ts}/C_{ts,ts}.  The spectra come from
     :func:`scipy.signal.csd` and :func:`scipy.signal.welch`;
     :class:`H1Accumulator` gives the same result chunk by chunk.
+
+    Random errors: Bendat & Piersol's first-order formulas for a
+    single-input/single-output frequency-response estimate (Bendat &
+    Piersol, *Random Data*, 4th ed., 2010, ch. 9, gain- and phase-factor
+    estimates),
+
+    .. math:: \\varepsilon[|\\hat H|] = \\frac{\\sqrt{1-\\gamma^2}}{|\\gamma|\\sqrt{2 n_d}},\\qquad
+              \\mathrm{s.d.}[\\hat\\phi] \\approx \\frac{\\sqrt{1-\\gamma^2}}{|\\gamma|\\sqrt{2 n_d}}\\ \\mathrm{rad},
+
+    so ``magnitude_std`` = |Ĥ|·ε and ``phase_std_rad`` = s.d.[φ̂], with the
+    estimated γ̂² for γ² and n_d the number of independent averages, K
+    corrected for overlap after Welch (1967) (``n_averages``).  They hold
+    for small errors (ε ≲ 0.2) and say nothing about bias (leakage,
+    resolution).  With a swept drive (chirp) each bin is excited in only a
+    few segments, γ̂² is then biased towards 1 and the errors are optimistic;
+    a noise drive or a stepped sine gives calibrated ones.
 
     Raises
     ------
@@ -343,7 +349,7 @@ class H1Accumulator:
 
     Feed the input and output records in chunks of any size with
     :meth:`add`; segments straddling chunk boundaries are completed from a
-    carried tail of at most ``nperseg − 1 + hop`` samples, so the segments
+    carried tail of at most ``nperseg − 1`` samples, so the segments
     (start 0, hop, 2·hop, … with hop = nperseg − noverlap) are exactly those
     of :func:`h1_estimate` on the concatenated records, and :meth:`result`
     equals it to rounding.  Memory is O(nperseg + chunk), whatever the
@@ -590,8 +596,8 @@ def stepped_sine_response(
             raise InputError(f"segments[{k}]: the input has no component at {freq:g} Hz")
         gx = min(abs(x_amp) ** 2 / 2 / x_power, 1.0)
         gy = min(abs(y_amp) ** 2 / 2 / y_power, 1.0) if y_power > 0 else 0.0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rel = math.sqrt((1 - gx) / (n * gx) + ((1 - gy) / (n * gy) if gy > 0 else math.inf))
+        # relative lock-in errors of X̂ and Ŷ (Notes); gx > 0 here
+        rel = math.sqrt((1 - gx) / (n * gx) + ((1 - gy) / (n * gy) if gy > 0 else math.inf))
         rows.append((freq, y_amp / x_amp, gy, rel))
     rows.sort(key=lambda r: r[0])
     freq = np.array([r[0] for r in rows])
@@ -722,7 +728,7 @@ def detect_segments(
             steps.append([a, b, line])
     if not steps:
         return ()
-    return _step_boundaries(steps, phase, driven, block, fs)
+    return _step_boundaries(steps, phase, np.abs(analytic), driven, block, fs)
 
 
 def _driven_runs(driven: np.ndarray, a0: int, b0: int) -> list[tuple[int, int]]:
@@ -754,16 +760,29 @@ def _step_line(phase, f_block, a: int, b: int, block: int, fs: float, tolerance_
     return float(slope / (2 * np.pi)), float(offset)
 
 
-def _step_boundaries(steps, phase: np.ndarray, driven: np.ndarray, block: int, fs: float) -> tuple[SineSegment, ...]:
-    """Sample boundaries of the steps: block edges, refined where two steps touch.
+def _step_boundaries(
+    steps, phase: np.ndarray, envelope: np.ndarray, driven: np.ndarray, block: int, fs: float
+) -> tuple[SineSegment, ...]:
+    """Sample boundaries of the steps from their block edges.
 
     Where step A meets step B, the boundary c (first sample of B) minimises
     Σ_{n<c} (φ[n] − L_A[n])² + Σ_{n≥c} (φ[n] − L_B[n])² over ±2 blocks,
     L_A and L_B the steps' phase lines: a change-point fit that holds with or
-    without phase continuity at the step.
+    without phase continuity at the step.  Next to a gap without drive, the
+    edge is where the envelope crosses half its median over the step.
     """
     n = phase.size
     edges = [[a * block, b * block] for a, b, _ in steps]
+    for i, (a, b, _) in enumerate(steps):
+        level = 0.5 * float(np.median(envelope[a * block : b * block]))
+        if a > 0 and not driven[a - 1]:
+            lo = max(edges[i][0] - block, 0)
+            above = np.flatnonzero(envelope[lo : edges[i][0] + block] >= level)
+            edges[i][0] = lo + int(above[0]) if above.size else edges[i][0]
+        if b < driven.size and not driven[b]:
+            lo = edges[i][1] - block
+            above = np.flatnonzero(envelope[lo : min(edges[i][1] + block, n)] >= level)
+            edges[i][1] = lo + int(above[-1]) + 1 if above.size else edges[i][1]
     if np.all(driven[: steps[0][0]]):
         edges[0][0] = 0
     if np.all(driven[steps[-1][1] :]):
@@ -1019,8 +1038,11 @@ def fit_transfer_function(
     output error Σ_k w_k |H_k − N(s_k)/D(s_k)·e^{−s_kτ}|².  The frequency is
     scaled by ω_max = 2π·max f_k inside the fit for conditioning.  With
     ``delay=True`` τ minimises that cost by a grid search (spacing
-    1/(8 f_max), at most 2001 points) refined by bounded Brent
-    minimisation, re-running the rational fit at each trial τ.  SK is a
+    1/(8 f_max), at most 2001 points) whose best 8 local minima are refined
+    by bounded Brent minimisation, re-running the rational fit at each
+    trial τ (near a sharp resonance the cost has narrow minima spaced by
+    half a period, a sign flip of the gain; the phase slope across the band
+    decides between them).  SK is a
     linear method: fast, no start values, and exact on noise-free data of
     the right order; it does not enforce stable poles (check ``poles``).
 

@@ -1,9 +1,10 @@
 """Streaming lock-in demodulation: amplitude and phase at one frequency.
 
 The baseline imaging signals of tapping-mode AFM.  The signal is mixed with
-``exp(-j·2πf·t)`` and the product low-passed by a Butterworth filter run as
-``scipy.signal.lfilter`` with carried state ``zi``, so chunked and single-call
-results are identical.
+``exp(-j·2πf·t)`` and the product low-passed by a Butterworth filter (second-
+order sections).  Both steps are one numba kernel with carried state: the
+filter's section states, and the sample count that fixes the reference phase.
+Chunked and single-call results are bit-for-bit identical.
 """
 
 from __future__ import annotations
@@ -12,8 +13,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 __all__ = ["LockIn", "LockInState", "LockInBlock", "default_lowpass_hz"]
+
+#: The oscillator is recomputed exactly every this many samples of the capture
+#: (aligned to the capture, not to chunks) and rotated recursively in between.
+_RESYNC_SAMPLES = 4096
 
 
 def default_lowpass_hz(frequency_hz: float, sideband_offset_hz: float | None = None) -> float:
@@ -31,7 +37,7 @@ def default_lowpass_hz(frequency_hz: float, sideband_offset_hz: float | None = N
 
 @dataclass(frozen=True)
 class LockInBlock:
-    """Per-sample demodulated output: in-phase/quadrature as one complex value."""
+    """Demodulated output at the kept samples: amplitude (input units) and phase (rad)."""
 
     amplitude: np.ndarray
     phase_rad: np.ndarray
@@ -39,8 +45,53 @@ class LockInBlock:
 
 @dataclass(frozen=True)
 class LockInState:
+    """Section states (n_sections × 2, complex) and samples processed so far."""
+
     zi: np.ndarray
     samples_seen: int
+
+
+@njit(cache=True, nogil=True)
+def _lockin_kernel(signals, start, cycles_per_sample, sos, zi, keep_every, out):  # noqa: PLR0913
+    """Mix each row of ``signals`` with e^{-j2πfn/fs}, filter by the SOS cascade, keep 1 in N.
+
+    Every row shares one reference oscillator.  For each section, in direct
+    form II transposed: y = b0·v + s1;  s1 = b1·v − a1·y + s2;  s2 = b2·v − a2·y.
+    """
+    n_signals = signals.shape[0]
+    n_sections = sos.shape[0]
+    two_pi = 2.0 * math.pi
+    step = complex(math.cos(two_pi * cycles_per_sample), -math.sin(two_pi * cycles_per_sample))
+    # Rebuild the rotor exactly as an unchunked run would hold it at `start`:
+    # from the last resynchronisation point, rotated forward sample by sample.
+    synced = start - start % _RESYNC_SAMPLES
+    frac = (synced * cycles_per_sample) % 1.0
+    rotor = complex(math.cos(two_pi * frac), -math.sin(two_pi * frac))
+    for _ in range(start - synced):
+        rotor *= step
+    k = 0
+    # countdown to the next kept sample, n + 1 ≡ 0 (mod keep_every); no division per sample
+    until_keep = (keep_every - (start + 1) % keep_every) % keep_every
+    for i in range(signals.shape[1]):
+        n = start + i
+        if n % _RESYNC_SAMPLES == 0:
+            frac = (n * cycles_per_sample) % 1.0
+            rotor = complex(math.cos(two_pi * frac), -math.sin(two_pi * frac))
+        keep = until_keep == 0
+        until_keep = keep_every - 1 if keep else until_keep - 1
+        for c in range(n_signals):
+            v = signals[c, i] * rotor
+            for s in range(n_sections):
+                y = sos[s, 0] * v + zi[c, s, 0]
+                zi[c, s, 0] = sos[s, 1] * v - sos[s, 4] * y + zi[c, s, 1]
+                zi[c, s, 1] = sos[s, 2] * v - sos[s, 5] * y
+                v = y
+            if keep:
+                out[c, k] = v
+        if keep:
+            k += 1
+        rotor *= step
+    return k
 
 
 class LockIn:
@@ -51,7 +102,7 @@ class LockIn:
     For ``x(t) = A cos(2πft + φ)`` the low-passed product
     ``X(t) = LP[x(t)·e^{-j2πft}] → (A/2)e^{jφ}``, so the amplitude is
     ``2|X|`` and the phase ``arg X`` (rad), relative to a cosine reference
-    that starts at the capture's first sample.
+    whose phase is zero at the capture's first sample.
     """
 
     def __init__(self, frequency_hz: float, sample_rate_hz: float, lowpass_hz: float, order: int = 4) -> None:
@@ -65,20 +116,31 @@ class LockIn:
         self.sample_rate_hz = float(sample_rate_hz)
         self.lowpass_hz = float(lowpass_hz)
         self.order = int(order)
-        self._b, self._a = butter(order, lowpass_hz, fs=sample_rate_hz)
+        self._sos = np.ascontiguousarray(butter(order, lowpass_hz, fs=sample_rate_hz, output="sos"))
 
-    def initial_state(self) -> LockInState:
-        return LockInState(np.zeros(max(len(self._a), len(self._b)) - 1, dtype=np.complex128), 0)
+    def initial_state(self, n_signals: int = 1) -> LockInState:
+        """Zero filter state for ``n_signals`` signals demodulated together."""
+        return LockInState(np.zeros((n_signals, self._sos.shape[0], 2), dtype=np.complex128), 0)
 
-    def process(self, x: np.ndarray, state: LockInState) -> tuple[LockInBlock, LockInState]:
-        """Demodulate one chunk; return its output and the state for the next chunk."""
-        from scipy.signal import lfilter
+    def process(
+        self, signals: np.ndarray | tuple[np.ndarray, ...], state: LockInState, keep_every: int = 1
+    ) -> tuple[tuple[LockInBlock, ...], LockInState]:
+        """Demodulate one chunk of one or more equal-length signals with one reference.
 
-        n = state.samples_seen + np.arange(len(x))
-        # The cycle count is reduced modulo 1 before the multiplication by 2π
-        # so the reference phase stays exact over captures of 1e9 samples.
-        cycles = np.mod(n * (self.frequency_hz / self.sample_rate_hz), 1.0)
-        mixed = x * np.exp(-2j * math.pi * cycles)
-        baseband, zf = lfilter(self._b, self._a, mixed, zi=state.zi)
-        block = LockInBlock(2.0 * np.abs(baseband), np.angle(baseband))
-        return block, LockInState(zf, state.samples_seen + len(x))
+        Keeps the samples whose capture index n has (n + 1) % keep_every == 0.
+        Returns one :class:`LockInBlock` per signal and the state for the next chunk.
+        """
+        rows = np.atleast_2d(np.asarray(signals, dtype=np.float64))
+        if rows.shape[0] != state.zi.shape[0]:
+            raise ValueError(f"state holds {state.zi.shape[0]} signals, got {rows.shape[0]}")
+        zi = state.zi.copy()
+        first_kept = (-(state.samples_seen + 1)) % keep_every
+        n = rows.shape[1]
+        n_kept = 0 if first_kept >= n else (n - 1 - first_kept) // keep_every + 1
+        out = np.empty((rows.shape[0], n_kept), dtype=np.complex128)
+        _lockin_kernel(
+            np.ascontiguousarray(rows), state.samples_seen, self.frequency_hz / self.sample_rate_hz,
+            self._sos, zi, keep_every, out,
+        )
+        blocks = tuple(LockInBlock(2.0 * np.abs(row), np.angle(row)) for row in out)
+        return blocks, LockInState(zi, state.samples_seen + n)

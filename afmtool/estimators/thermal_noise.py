@@ -270,6 +270,12 @@ class _LogFit(NamedTuple):
     params: np.ndarray  # ln A, f0 (Hz), ln Q, ln W
     cov: np.ndarray  # covariance of (ln A, f0, ln Q, ln W)
     rms: float
+    n_bins: int
+
+    @property
+    def start(self) -> _Start:
+        ln_a, f0, ln_q, ln_w = self.params
+        return _Start(float(f0), math.exp(ln_q), math.exp(ln_a), math.exp(ln_w))
 
 
 def _fit_log_psd(f: np.ndarray, psd: np.ndarray, start: _Start) -> _LogFit:
@@ -290,7 +296,7 @@ def _fit_log_psd(f: np.ndarray, psd: np.ndarray, start: _Start) -> _LogFit:
     cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
     scale = np.array([1.0, f0_scale, 1.0, 1.0])
     params = sol.x * scale
-    return _LogFit(params, cov * np.outer(scale, scale), math.sqrt(float(np.mean(sol.fun**2))))
+    return _LogFit(params, cov * np.outer(scale, scale), math.sqrt(float(np.mean(sol.fun**2))), f.size)
 
 
 def fit_thermal_spectrum(
@@ -343,12 +349,15 @@ def fit_thermal_spectrum(
     in every bin and ln S has constant variance ψ′(M) ≈ 1/M: unweighted
     least squares on ln S is then (nearly) the weighted maximum-likelihood
     fit, without weights that depend on the noisy data (which bias a PSD
-    fit low), and the 20 dB dynamic range of peak and floor is equally
-    represented.  The log's bias E[ln χ²_{2M}/2M] = ψ(M) − ln M is the same
-    in every bin, a constant factor on S that leaves f0 and Q unbiased and
+    fit low), and peak and floor, decades apart, are equally represented.
+    The log's bias E[ln χ²_{2M}/2M] = ψ(M) − ln M is the same in every bin,
+    a constant factor on S that leaves f0 and Q unbiased and
     scales A and W by e^{ψ(M) − ln M} (≈ 1 − 1/(2M)); with ``n_averages``
     A and W are corrected for it.  Errors: cov = s²·(JᵀJ)⁻¹, s² the residual
     variance; bins correlated by a spectral window make them optimistic.
+    A real peak that is not a clean oscillator (asymmetric wings, a
+    resonance drifting during the averaging) shows as ``rms_log_residual``
+    well above 1/√M, and then Q depends on the band.
 
     *Spring constant.*  k = k_B·T/⟨p²⟩ with ⟨p²⟩ = (π/2)·A·f0·Q, the area of
     the oscillator part (the floor excluded).  This assumes the spectrum is
@@ -370,7 +379,8 @@ def fit_thermal_spectrum(
         For a bad spectrum, no peak, or fewer than 8 usable bins in the band.
     """
     f, asd = _spectrum(frequency_hz, asd_m_per_sqrt_hz)
-    if temperature_k is not None and not (_is_real(temperature_k) and math.isfinite(temperature_k) and temperature_k > 0):
+    valid_temperature = _is_real(temperature_k) and math.isfinite(temperature_k) and temperature_k > 0
+    if temperature_k is not None and not valid_temperature:
         raise ConfigError(f"temperature_k={temperature_k!r} must be a finite number > 0 or None")
     if n_averages is not None and not (
         isinstance(n_averages, numbers.Integral) and not isinstance(n_averages, bool) and n_averages >= 1
@@ -384,23 +394,29 @@ def fit_thermal_spectrum(
         lo_hz, hi_hz = _check_band(band, f)
     region = positive & (f >= lo_hz) & (f <= hi_hz)
     if np.count_nonzero(region) < 8:
-        raise InputError(f"only {np.count_nonzero(region)} usable bins in {lo_hz:g}–{hi_hz:g} Hz; at least 8 are needed")
+        raise InputError(
+            f"only {np.count_nonzero(region)} usable bins in {lo_hz:g}–{hi_hz:g} Hz; at least 8 are needed"
+        )
     start = _initial_guess(f[region], psd[region])
-    fit_band = (lo_hz, hi_hz) if band is not None else _auto_band(start, lo_hz, hi_hz)
-    iterations = 1 if band is not None else 2
-    for _ in range(iterations):
-        in_band = positive & (f >= fit_band[0]) & (f <= fit_band[1])
-        if np.count_nonzero(in_band) < 8:
-            raise InputError(
-                f"only {np.count_nonzero(in_band)} usable bins in the band {fit_band[0]:g}–{fit_band[1]:g} Hz; "
-                "at least 8 are needed (give band, or a finer spectrum)"
-            )
-        result = _fit_log_psd(f[in_band], psd[in_band], start)
-        ln_a, f0, ln_q, ln_w = result.params
-        start = _Start(f0, math.exp(ln_q), math.exp(ln_a), math.exp(ln_w))
-        if band is None and _ < iterations - 1:
-            fit_band = _auto_band(start, lo_hz, hi_hz)
-    return _thermal_fit(result, fit_band, int(np.count_nonzero(in_band)), temperature_k, n_averages)
+    if band is None:
+        # band from the initial guess, fit, then band from that fit and fit again
+        first = _fit_in_band(f, psd, positive, _auto_band(start, lo_hz, hi_hz), start)
+        fit_band = _auto_band(first.start, lo_hz, hi_hz)
+        result = _fit_in_band(f, psd, positive, fit_band, first.start)
+    else:
+        fit_band = (lo_hz, hi_hz)
+        result = _fit_in_band(f, psd, positive, fit_band, start)
+    return _thermal_fit(result, fit_band, temperature_k, n_averages)
+
+
+def _fit_in_band(f, psd, positive, band: tuple[float, float], start: _Start) -> _LogFit:
+    in_band = positive & (f >= band[0]) & (f <= band[1])
+    if np.count_nonzero(in_band) < 8:
+        raise InputError(
+            f"only {np.count_nonzero(in_band)} usable bins in the band {band[0]:g}–{band[1]:g} Hz; "
+            "at least 8 are needed (give band, or a finer spectrum)"
+        )
+    return _fit_log_psd(f[in_band], psd[in_band], start)
 
 
 def _check_band(band, f: np.ndarray) -> tuple[float, float]:
@@ -415,7 +431,7 @@ def _check_band(band, f: np.ndarray) -> tuple[float, float]:
     return lo, hi
 
 
-def _thermal_fit(result: _LogFit, band, n_bins: int, temperature_k, n_averages) -> ThermalFit:
+def _thermal_fit(result: _LogFit, band, temperature_k, n_averages) -> ThermalFit:
     ln_a, f0, ln_q, ln_w = result.params
     if n_averages is not None:
         # E[ln(S·χ²_2M/2M)] = ln S + ψ(M) − ln M: undo the constant log bias
@@ -444,7 +460,7 @@ def _thermal_fit(result: _LogFit, band, n_bins: int, temperature_k, n_averages) 
         floor_asd_m_per_sqrt_hz=floor_asd,
         peak_asd_m_per_sqrt_hz=peak_asd,
         band_hz=(float(band[0]), float(band[1])),
-        n_bins=n_bins,
+        n_bins=result.n_bins,
         f0_std_hz=math.sqrt(max(cov[1, 1], 0.0)),
         q_std=q * math.sqrt(max(cov[2, 2], 0.0)),
         floor_asd_std=0.5 * floor_asd * math.sqrt(max(cov[3, 3], 0.0)),
@@ -526,14 +542,18 @@ def read_psd_csv(path: Path | str) -> PsdTable:
 
 
 def _parse_psd_rows(path: Path, handle) -> PsdTable:
-    rows = ((n, row) for n, row in enumerate(csv.reader(handle), start=1) if row and not row[0].lstrip().startswith("#"))
+    rows = (
+        (n, row) for n, row in enumerate(csv.reader(handle), start=1) if row and not row[0].lstrip().startswith("#")
+    )
     header_line, header = next(rows, (0, None))
     if header is None:
         raise InputError(f"{path}: empty file (no header row {_FREQUENCY_COLUMN},{_ASD_COLUMN})")
     names = [name.strip() for name in header]
     missing = [c for c in (_FREQUENCY_COLUMN, _ASD_COLUMN) if c not in names]
     if missing:
-        raise InputError(f"{path}: line {header_line}: missing column(s) {', '.join(missing)}; found {', '.join(names)}")
+        raise InputError(
+            f"{path}: line {header_line}: missing column(s) {', '.join(missing)}; found {', '.join(names)}"
+        )
     i_f, i_a = names.index(_FREQUENCY_COLUMN), names.index(_ASD_COLUMN)
     freq: list[float] = []
     asd: list[float] = []

@@ -171,7 +171,7 @@ class Hdf5Writer:
         dtype: str = "float64",
         compression: str | None = None,
     ) -> None:
-        self._file = h5py.File(path, "w")
+        self._file = h5py.File(path, "w", rdcc_nbytes=0)  # flat memory while appending (see io.results)
         self._file.attrs["sample_rate_hz"] = float(sample_rate_hz)
         if metadata:
             self._file.attrs["metadata"] = json.dumps(dict(metadata))

@@ -40,6 +40,7 @@ import numpy as np
 from afmtool.errors import ConfigError
 
 __all__ = [
+    "is_underdamped",
     "DiscreteDenominator",
     "DiscreteNumerator",
     "ResonanceFromDenominator",
@@ -170,6 +171,16 @@ def zoh_numerator(f0_hz: float, q: float, sample_rate_hz: float) -> DiscreteNume
     return DiscreteNumerator(0.0, a1, a0)
 
 
+def is_underdamped(b1, b0) -> np.ndarray:
+    """Where (b1, b0) is the pole pair of an under-damped mode: 0 < b0 < 1 and b1² < 4·b0.
+
+    The validity condition of eq. 3.48 (|b1| < 2√b0), without a square root.
+    """
+    b1a = np.asarray(b1, dtype=np.float64)
+    b0a = np.asarray(b0, dtype=np.float64)
+    return (b0a > 0) & (b0a < 1) & (b1a * b1a < 4.0 * b0a)
+
+
 def resonance_from_denominator(b1, b0, sample_rate_hz: float) -> ResonanceFromDenominator:
     """Resonant frequency and quality factor from (b1, b0), eq. 3.48.
 
@@ -194,7 +205,7 @@ def resonance_from_denominator(b1, b0, sample_rate_hz: float) -> ResonanceFromDe
     b1a, b0a = np.broadcast_arrays(b1a, b0a)
     with np.errstate(invalid="ignore", divide="ignore"):
         root = np.sqrt(b0a)
-        valid = (b0a > 0) & (b0a < 1) & (np.abs(b1a) < 2 * root)
+        valid = is_underdamped(b1a, b0a)
         period = 1.0 / sample_rate_hz
         decay = -np.log(b0a) / (2 * period)
         damped = np.arccos(np.clip(-b1a / (2 * root), -1.0, 1.0)) / period
