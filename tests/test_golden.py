@@ -28,9 +28,10 @@ def test_golden_report(tmp_path, name, args):
     assert_matches_golden(report, name)
 
 
-def test_golden_comparison_can_fail():
+def test_golden_comparison_can_fail(monkeypatch):
     from tests.golden import GOLDEN_DIR
 
+    monkeypatch.delenv("AFMTOOL_UPDATE_GOLDEN", raising=False)  # compare, never rewrite, here
     golden = json.loads((GOLDEN_DIR / "reep_ltv_step.json").read_text())
     golden["inputs"][0]["path"] = "ltv_step.h5"
     golden["results"]["summary"]["f0_hz"]["mean"] *= 1 + 1e-5
