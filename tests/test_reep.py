@@ -171,3 +171,44 @@ def test_real_kpfm_record_output_only(shared, tmp_path):
     print(f"KPFM record, output-only REEP: f0' = {mean:.2f} Hz (std {np.nanstd(f0):.2f} Hz)")
     assert result.results["drive_frequency_hz"] == pytest.approx(60_630, abs=200)
     assert mean == pytest.approx(60_630.0, abs=15.0)
+
+
+def test_images_from_scan_geometry(tmp_path):
+    """f0' switches every half line period, so trace and retrace images differ by the step."""
+    from afmtool.io.capture import ChannelSpec  # noqa: F401 - documents the channel records used
+    from afmtool.io.hdf5 import Hdf5Writer
+    from afmtool.report.images import read_gsf
+
+    captured = sim.simulate(
+        "ltv",
+        {"duration_s": 0.08, "step_time_s": 0.02, "step_repeat_s": 0.01, "step_f0_hz": 69_500.0, "step_q": 200.0},
+        seed=2,
+    )
+    metadata = dict(captured.metadata)
+    metadata["scan"] = {"lines": 4, "pixels_per_line": 8, "scan_size_m": 2e-6, "line_rate_hz": 50.0,
+                        "trace_retrace": True}
+    path = tmp_path / "scan.h5"
+    writer = Hdf5Writer(path, captured.sample_rate_hz, captured.channels, metadata)
+    writer.write(captured.data)
+    writer.close()
+    out = tmp_path / "reep"
+    result = run_cli("reep", path, "--out", out, "--json", "--free-air", "0:0.02")
+    assert result.returncode == 0, result.stderr.decode()
+    report = json.loads(result.stdout)
+    for quantity in ("f0_hz", "q", "amplitude", "phase_deg"):
+        for direction in ("trace", "retrace"):
+            assert f"{quantity}_{direction}.png" in report["outputs"]
+            assert f"{quantity}_{direction}.gsf" in report["outputs"]
+    with h5py.File(out / "reep.h5") as f:
+        trace = f["images/f0_hz/trace"][()]
+        retrace = f["images/f0_hz/retrace"][()]
+    assert trace.shape == (4, 8)
+    # line 0 is all before the first switch; lines 1-3: trace after a switch to 69.5 kHz,
+    # retrace after the switch back.  The settling inside each half line blurs the pixels
+    # next to the switch, so compare the line means.
+    assert np.mean(trace[0]) == pytest.approx(70_000.0, abs=20.0)
+    for line in (1, 2, 3):
+        assert np.mean(trace[line]) < np.mean(retrace[line]) - 250.0
+    gsf = read_gsf(out / "f0_hz_trace.gsf")
+    assert gsf.data.shape == (4, 8)
+    np.testing.assert_allclose(gsf.data[::-1], trace.astype(np.float32))  # top row = last line

@@ -13,9 +13,9 @@ from afmtool.estimators.thermal_noise import (
     BOLTZMANN_J_PER_K,
     fit_thermal_spectrum,
     free_air_from_thermal,
-    read_psd_csv,
     sho_psd,
 )
+from afmtool.io.psd import read_psd_csv
 from afmtool.models.free_air import FreeAirModel
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"

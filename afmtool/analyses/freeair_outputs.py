@@ -42,7 +42,7 @@ def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tupl
     chunks = list(iter_chunks(reader, ("dither", "deflection"), 1 << 20, progress=progress))
     dither = np.concatenate([c.data["dither"] for c in chunks])
     deflection = np.concatenate([c.data["deflection"] for c in chunks])
-    segments = reader.info.metadata.get("segments")
+    segments = reader.info.metadata.get("segments") if params.sweep_method == "stepped" else None
     model = free_air_from_sweep(
         dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method, segments=segments
     )
@@ -50,15 +50,20 @@ def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tupl
 
 
 def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict]:
-    from afmtool.estimators.thermal_noise import fit_thermal_spectrum, read_psd_csv
+    from afmtool.estimators.thermal_noise import fit_thermal_spectrum
+    from afmtool.io.psd import read_psd_csv
 
     frequency, asd = read_psd_csv(psd)
     fit = fit_thermal_spectrum(frequency, asd, temperature_k=params.temperature_k)
-    model = FreeAirModel(f0_hz=fit.f0_hz, q=fit.q, gain=1.0, f0_std_hz=fit.f0_std_hz, q_std=fit.q_std, source="thermal")
+    model = fit.free_air_model()
     details = {
-        "white_floor_asd_m_per_sqrt_hz": fit.white_asd,
+        "floor_asd_m_per_sqrt_hz": fit.floor_asd_m_per_sqrt_hz,
+        "peak_asd_m_per_sqrt_hz": fit.peak_asd_m_per_sqrt_hz,
         "band_hz": list(fit.band_hz),
-        "spring_constant_n_per_m": getattr(fit, "spring_constant_n_per_m", None),
+        "n_bins": fit.n_bins,
+        "rms_log_residual": fit.rms_log_residual,
+        "spring_constant_n_per_m": fit.spring_constant_n_per_m,
+        "spring_constant_note": "equipartition, assuming the ASD is calibrated tip displacement (m/sqrt(Hz))",
         "temperature_k": params.temperature_k,
     }
     return model, details

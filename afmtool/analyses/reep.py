@@ -219,6 +219,11 @@ def run_reep(
                 f"the dither has {len(lines)} spectral line(s) near resonance; REEP's free-air model needs "
                 "three to be persistently exciting for five parameters (thesis §3.3.2)"
             )
+    if model is not None and params.use_input and model.delay_s > 1.5 / fs:
+        warnings.append(
+            f"the free-air model has a drive delay of {model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
+            "fixed numerator does not model; f0' and Q' may be biased"
+        )
     bandpass = None
     if not params.use_input and params.bandpass_half_width_hz > 0:
         bandpass = _Bandpass(drive_hz, params.bandpass_half_width_hz, fs)

@@ -57,7 +57,13 @@ class FreeAirModel:
     delay_s: float = 0.0
 
     def numerator_at(self, sample_rate_hz: float) -> tuple[float, float, float]:
-        """(a2, a1, a0) at ``sample_rate_hz``: the identified one, or gain·ZOH(G)."""
+        """(a2, a1, a0) at ``sample_rate_hz``: the identified one, or gain·ZOH(G).
+
+        ``delay_s`` is not applied: the zero-order-hold discretisation already
+        carries the half-sample delay T/2 that a sweep fit finds on sampled
+        data.  A longer drive-path delay would need a z^-d term, which is not
+        modelled (REEP warns when the model's delay exceeds 1.5 samples).
+        """
         if self.numerator is not None and self.sample_rate_hz == sample_rate_hz:
             return tuple(float(a) for a in self.numerator)
         from afmtool.models.discretisation import zoh_numerator
