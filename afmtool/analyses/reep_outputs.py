@@ -17,7 +17,10 @@ from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
-__all__ = ["run_reep_command"]
+__all__ = ["run_reep_command", "run_reep_stream"]
+
+#: Chunk size for --stream: small, so rows follow the input closely.
+STREAM_CHUNK_SAMPLES = 4096
 
 _IMAGE_TITLES = {"f0_hz": ("f0'", "Hz"), "q": ("Q'", ""), "amplitude": ("amplitude", None), "phase_deg": ("phase", "deg")}
 
@@ -55,6 +58,21 @@ def run_reep_command(
 
             FreeAirModel(**result.results["free_air_model"]).save(staged.path("free_air.json"))
         return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
+
+
+def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:
+    """Run REEP and write decimated rows to stdout as each chunk completes (``--stream``)."""
+    import sys
+
+    from afmtool.io.rows import RowWriter
+
+    flags = {"chunk_samples": STREAM_CHUNK_SAMPLES, **{k: v for k, v in flags.items() if v is not None}}
+    params = resolve_from(ReepParams, "reep", load_toml(config) if config else None, flags)
+    model = load_free_air_model(Path(params.model)) if params.model else None
+    with RowWriter(sys.stdout, fmt) as writer:
+        result = run_reep(reader, params, writer, model=model)
+    for warning in result.warnings:
+        print(f"afmtool: warning: {warning}", file=sys.stderr)
 
 
 def _finite_mean(values: np.ndarray) -> float | None:

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import open_input, output_target
+from afmtool.cli.common import open_input, output_target, stdout_pipe
 from afmtool.cli.options import CaptureArg, ChannelOpt, ChunkOpt, JsonOpt, QuietOpt, SampleRateOpt, TopicOpt
 from afmtool.cli.progress import progress_bar
 from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES
@@ -34,10 +34,11 @@ def info(
     with open_input(capture, channel, topic, sample_rate) as reader:
         with progress_bar("info", reader.info.n_samples, quiet) as update:
             summary = summarize(reader, chunk_samples, update)
-    if json_output:
-        typer.echo(dumps(to_jsonable(summary)), nl=False)
-        return
-    _print_summary(summary)
+    with stdout_pipe():
+        if json_output:
+            typer.echo(dumps(to_jsonable(summary)), nl=False)
+        else:
+            _print_summary(summary)
 
 
 def _print_summary(summary) -> None:

@@ -9,7 +9,28 @@ from typing import Iterator
 
 from afmtool.cli.options import parse_mapping
 
-__all__ = ["open_input", "output_target"]
+__all__ = ["open_input", "output_target", "stdout_pipe"]
+
+
+@contextmanager
+def stdout_pipe() -> Iterator[None]:
+    """A closed downstream pipe (``| head``) ends the command quietly with status 0.
+
+    click turns EPIPE into status 1 on its own, so commands that write to
+    stdout catch it here first.
+    """
+    import os
+
+    import typer
+
+    try:
+        yield
+        sys.stdout.flush()
+    except BrokenPipeError:
+        # Point stdout at /dev/null so the interpreter's final flush is silent.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        raise typer.Exit(0) from None
 
 
 @contextmanager
@@ -33,8 +54,8 @@ def open_input(path: str, channel: list[str] | None, topic: list[str] | None, sa
 def output_target(output: str, fmt: str) -> Iterator[Path | object]:
     """Yield where to write a capture: stdout for ``-``, else an atomic temp path."""
     if output == "-":
-        yield sys.stdout
-        sys.stdout.flush()
+        with stdout_pipe():
+            yield sys.stdout
         return
     from afmtool.report.atomic import atomic_path
 

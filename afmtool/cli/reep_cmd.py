@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import open_input
+from afmtool.cli.common import open_input, stdout_pipe
 from afmtool.cli.options import (
     CaptureArg,
     ChannelOpt,
@@ -25,7 +25,16 @@ __all__ = ["register", "finish_command"]
 
 def reep(
     capture: CaptureArg,
-    out: OutOpt,
+    out: Annotated[
+        Optional[Path], typer.Option("--out", "-o", help="Output folder; created if missing (optional with --stream).")
+    ] = None,
+    stream: Annotated[
+        bool,
+        typer.Option("--stream", help="Write result rows to stdout as they are computed (live pipelines)."),
+    ] = False,
+    stream_format: Annotated[
+        str, typer.Option("--stream-format", help="Rows on stdout: csv or jsonl.")
+    ] = "csv",
     free_air: Annotated[
         Optional[str], typer.Option("--free-air", help="Off-sample segment START:END (s) for the free-air model.")
     ] = None,
@@ -55,9 +64,12 @@ def reep(
 
     Writes reep.h5 (t, f0_hz, q, b1, b0, sigma2, amplitude, phase_deg; decimated),
     report.json, config.toml, and with z_piezo force-curve tables and plots,
-    with scan metadata per-pixel images (PNG and Gwyddion .gsf).
+    with scan metadata per-pixel images (PNG and Gwyddion .gsf).  With --stream
+    the decimated rows go to stdout as they are computed, e.g.
+    afmtool simulate ltv -o - --format csv | afmtool reep - --stream --free-air 0:0.01 | head
     """
-    from afmtool.analyses.reep_outputs import run_reep_command
+    from afmtool.analyses.reep_outputs import run_reep_command, run_reep_stream
+    from afmtool.errors import ConfigError
 
     flags = {
         "free_air": free_air,
@@ -69,6 +81,14 @@ def reep(
         "vs": vs,
         "z_bin": z_bin,
     }
+    if stream:
+        if stream_format not in ("csv", "jsonl"):
+            raise ConfigError(f"--stream-format {stream_format!r} must be csv or jsonl")
+        with open_input(capture, channel, topic, sample_rate) as reader, stdout_pipe():
+            run_reep_stream(reader, config, flags, stream_format)
+        return
+    if out is None:
+        raise ConfigError("--out is required (or use --stream)")
     with open_input(capture, channel, topic, sample_rate) as reader:
         with progress_bar("reep", reader.info.n_samples, quiet) as update:
             report = run_reep_command(reader, capture, out, config, flags, update)
