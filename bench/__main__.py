@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-MODULES = ["bench.bench_io", "bench.bench_rls", "bench.bench_reep"]
+MODULES = ["bench.bench_io", "bench.bench_rls", "bench.bench_observer", "bench.bench_reep"]
 
 
 def main() -> None:

@@ -20,7 +20,7 @@ except ImportError:  # pragma: no cover - older typer uses click itself
     from click import exceptions as click_exceptions
 
 import afmtool
-from afmtool.cli import capture_cmds, config_cmd, reep_cmd, simulate_cmd, theory_cmd
+from afmtool.cli import batch_cmd, capture_cmds, config_cmd, reep_cmd, simulate_cmd, theory_cmd
 from afmtool.errors import AfmtoolError
 
 __all__ = ["app", "main"]
@@ -55,6 +55,7 @@ identify_app = typer.Typer(help="Identify models: the free-air cantilever, ...",
 capture_cmds.register(app)
 simulate_cmd.register(app)
 reep_cmd.register(app, identify_app)
+batch_cmd.register(app)
 app.add_typer(identify_app, name="identify")
 app.add_typer(theory_cmd.app, name="theory")
 app.add_typer(config_cmd.app, name="config")

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from afmtool.estimators._common import JIT_OPTIONS
+
 __all__ = ["LockIn", "LockInState", "LockInBlock", "default_lowpass_hz"]
 
 #: The oscillator is recomputed exactly every this many samples of the capture
@@ -51,7 +53,7 @@ class LockInState:
     samples_seen: int
 
 
-@njit(cache=True, nogil=True)
+@njit(**JIT_OPTIONS)
 def _lockin_kernel(signals, start, cycles_per_sample, sos, zi, keep_every, out):  # noqa: PLR0913
     """Mix each row of ``signals`` with e^{-j2πfn/fs}, filter by the SOS cascade, keep 1 in N.
 

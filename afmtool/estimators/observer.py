@@ -29,9 +29,9 @@ With x̂(n|n−1) the prediction of the state before y(n) is seen::
     e(n)       = y(n) − ŷ(n)                                 (the innovation)
     x̂(n+1|n)   = A x̂(n|n−1) + B g(n) + L e(n)
 
-It is causal: e(n) uses y and g up to sample n only.  The error x − x̂ of
-a plant equal to the model obeys ε(n+1) = (A − LC) ε(n) (+ noise terms,
-eq. 2.11), and A − LC = [[−(b1 + L1), 1], [−(b0 + L2), 0]] has the
+It is causal: e(n) uses y and g up to sample n only.  The error
+x̃ = x − x̂ of a plant equal to the model obeys x̃(n+1) = (A − LC) x̃(n)
+(+ noise terms, eq. 2.11), and A − LC = [[−(b1 + L1), 1], [−(b0 + L2), 0]] has the
 characteristic polynomial
 
 .. math:: z^2 + (b_1 + L_1) z + (b_0 + L_2) =: z^2 + c_1 z + c_0,
@@ -66,7 +66,7 @@ Gains
   would cause (deflection units rms, F/k) and k_in the dither-to-deflection
   DC gain (``FreeAirModel.gain``; 1 for the normalised G of eq. 2.6, where
   the dither is itself in deflection units).  v is white measurement noise
-  (deflection units rms).  This is the ηB of eqs. 3.50 and 2.9.
+  (deflection units rms).  This is the Bη of eq. 3.50 (B1 = B in eq. 2.9).
 * :func:`gain_for_decay` — pole placement: the model's pole pair
   ρe^{±jθ} is moved radially to re^{±jθ}, keeping the oscillation
   frequency and shrinking the envelope, with r set so that the **envelope
@@ -99,10 +99,26 @@ started the mean is over those samples.
 Single observer: numba, not lfilter
 -----------------------------------
 The single observer is the bank kernel with one row.  On 1e7 samples it
-runs several times faster than the two ``lfilter`` calls of the transfer-function
-form plus a vectorised window RMS (``bench/bench_observer.py`` measures
-both in the same run), and it shares its code with the bank and the
-adaptive observer.
+ran at about 175 MS/s (innovation and window RMS), against 75 MS/s for the
+two ``lfilter`` calls of the transfer-function form with carried ``zi``
+alone and 30 MS/s with a vectorised cumulative-sum window RMS added
+(``bench/bench_observer.py`` measures all three in the same run); it also
+shares its code with the bank and the adaptive observer.  The bank of 5
+ran at about 70 MS/s (input samples), the adaptive observer at 170 MS/s.
+
+Thesis notes
+------------
+* Eq. 2.8 and the A matrices of eqs. 2.9 and 2.12 carry the damping with
+  the wrong power or sign (NOTES.md): the model is
+  p̈ + (ω0/Q)ṗ + ω0²p = ω0²g, i.e. A = [[0, 1], [−ω0², −ω0/Q]].
+* Eq. 2.13: with e = x − x̂ the forcing term is (A_z − A − L(C_z − C))x
+  (plus (B_z − B)g), the negative of the printed one; only its RMS is
+  used, so the sign is immaterial.  Eq. 5.3 has the right sign.
+* Eq. 2.12 moves ω_e² into C_z (the numerator changes on-sample), whereas
+  eq. 5.13 keeps the numerator fixed; this module follows eq. 5.13 (a
+  bank shares one numerator), as NOTES.md recommends.
+* Eq. 5.15 adds RMS values of uncorrelated components; their variances add:
+  RMS = (A_e²/2 + σ²_ηe + σ²_νe)^{1/2}.
 
 NaN: a NaN sample makes every later innovation of that observer NaN, as in
 the thesis's recursion; split records at gaps and start from ``initial``.
@@ -120,7 +136,7 @@ import scipy.linalg
 from numba import njit
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.rls import _JIT_OPTIONS, _as_signal, _check_numerator
+from afmtool.estimators._common import JIT_OPTIONS, as_signal, check_numerator
 
 __all__ = [
     "DiscreteStateSpace",
@@ -226,7 +242,7 @@ def state_space(b1: float, b0: float, numerator: Sequence[float]) -> DiscreteSta
         If a coefficient is not a finite number.
     """
     b1, b0 = _check_denominator((b1, b0))
-    a2, a1, a0 = _check_numerator(numerator)
+    a2, a1, a0 = check_numerator(numerator)
     return DiscreteStateSpace(
         A=_frozen([[-b1, 1.0], [-b0, 0.0]]),
         B=_frozen([a1 - a2 * b1, a0 - a2 * b0]),
@@ -501,7 +517,7 @@ class ObserverDesign:
 
     def __post_init__(self) -> None:
         b1, b0 = _check_denominator(self.denominator)
-        numerator = _check_numerator(self.numerator)
+        numerator = check_numerator(self.numerator)
         try:
             l1, l2 = (float(v) for v in self.gain)
         except (TypeError, ValueError):
@@ -602,7 +618,7 @@ def drive_period_window(sample_rate_hz: float, drive_frequency_hz: float) -> int
 # ---------------------------------------------------------------------------
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _predict(x1, x2, resid, g, b1, b0, bb1, bb2, l1, l2):
     """One predictor step of one observer; ``resid`` = y(n) − D g(n).
 
@@ -616,7 +632,7 @@ def _predict(x1, x2, resid, g, b1, b0, bb1, bb2, l1, l2):
     return e, x1_next, x2_next
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _window_push(ring, sums, k, pos, square):
     """Put e_k(n)² in ring slot ``pos``; return the boxcar sum S_k(n)."""
     # S_k(n) = S_k(n−1) + e_k(n)² − e_k(n−W)²
@@ -626,7 +642,7 @@ def _window_push(ring, sums, k, pos, square):
     return s
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _window_rms(s, inv_count):
     """√(S/count); a running sum that rounding left just below 0 reads 0 (NaN stays NaN)."""
     ms = s * inv_count
@@ -635,13 +651,13 @@ def _window_rms(s, inv_count):
     return math.sqrt(ms)
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _window_block_end(start, n_samples, since):
     """End of the run of samples that ends at the next exact re-summation (or the chunk)."""
     return min(n_samples, start + (_RESYNC_SAMPLES - since))
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _window_resync(ring, sums, since):
     """After a run: when _RESYNC_SAMPLES samples have passed, re-sum every S_k exactly.
 
@@ -661,7 +677,7 @@ def _window_resync(ring, sums, since):
     return 0
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _bank_kernel(y, g, d, b1, b0, bb1, bb2, l1, l2, xhat, ring, sums, counters, out_rms, out_e):  # noqa: PLR0913
     """N fixed observers with a shared numerator over one chunk, one loop.
 
@@ -706,7 +722,7 @@ def _bank_kernel(y, g, d, b1, b0, bb1, bb2, l1, l2, xhat, ring, sums, counters, 
     counters[_SINCE] = since
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _adaptive_kernel(y, g, b1s, b0s, a2, a1, a0, radius, model, xhat, ring, sums, counters, out_rms, out_e):  # noqa: PLR0913
     """One observer whose model (b1(n), b0(n)) changes every sample.
 
@@ -768,7 +784,7 @@ def _adaptive_kernel(y, g, b1s, b0s, a2, a1, a0, radius, model, xhat, ring, sums
     counters[_SINCE] = since
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _rms_kernel(x, ring, sums, counters, out_rms):
     """Window RMS of each row of ``x`` (N, T); carried state as in ``_bank_kernel``."""
     n_rows = x.shape[0]
@@ -804,7 +820,7 @@ def _rms_kernel(x, ring, sums, counters, out_rms):
 # ---------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class WindowState:
     """Carried state of a W-sample boxcar RMS over N channels.
 
@@ -955,8 +971,8 @@ def _check_designs(designs) -> tuple[ObserverDesign, ...]:
 
 
 def _check_signals(deflection, dither) -> tuple[np.ndarray, np.ndarray]:
-    y = _as_signal("deflection", deflection)
-    g = _as_signal("dither", dither)
+    y = as_signal("deflection", deflection)
+    g = as_signal("dither", dither)
     if g.shape != y.shape:
         raise InputError(f"dither has {g.shape[0]} samples but deflection has {y.shape[0]}")
     return y, g
@@ -975,7 +991,7 @@ def _initial_estimate(n_obs: int, estimate) -> np.ndarray:
     return _frozen(x0)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BankState:
     """Everything a bank of N fixed observers carries between chunks.
 
@@ -1015,7 +1031,7 @@ class BankState:
         designs = _check_designs(designs)
         return cls(designs, _initial_estimate(len(designs), estimate), WindowState.initial(len(designs), window_samples))
 
-    def _coefficients(self) -> tuple[float, np.ndarray, ...]:
+    def _coefficients(self) -> tuple:
         a2, a1, a0 = self.designs[0].numerator
         b1 = np.array([des.denominator[0] for des in self.designs])
         b0 = np.array([des.denominator[1] for des in self.designs])
@@ -1119,7 +1135,7 @@ class ObserverBlock(NamedTuple):
     rms: np.ndarray
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ObserverState:
     """A single fixed observer's carried state (ch. 2 reliability index).
 
@@ -1194,7 +1210,7 @@ def observer_update(state: ObserverState, deflection, dither) -> ObserverStep:
 # ---------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class AdaptiveState:
     """Carried state of the adaptive observer.
 
@@ -1255,7 +1271,7 @@ class AdaptiveState:
         ConfigError
             If a parameter is out of range.
         """
-        numerator = _check_numerator(numerator)
+        numerator = check_numerator(numerator)
         b1, b0 = _check_denominator(initial_denominator)
         if not (0.0 < b0 < 1.0 and b1 * b1 < 4.0 * b0):
             raise ConfigError(f"initial_denominator={initial_denominator!r} must be an under-damped pole pair")
@@ -1321,8 +1337,8 @@ def adaptive_update(state: AdaptiveState, deflection, dither, b1, b0) -> Adaptiv
     if not isinstance(state, AdaptiveState):
         raise ConfigError(f"state must be an AdaptiveState, got {type(state).__name__}")
     y, g = _check_signals(deflection, dither)
-    b1s = _as_signal("b1", b1)
-    b0s = _as_signal("b0", b0)
+    b1s = as_signal("b1", b1)
+    b0s = as_signal("b0", b0)
     if b1s.shape != y.shape or b0s.shape != y.shape:
         raise InputError(f"b1 and b0 must have {y.shape[0]} samples, got {b1s.shape[0]} and {b0s.shape[0]}")
     a2, a1, a0 = state.numerator

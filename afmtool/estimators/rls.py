@@ -37,6 +37,7 @@ import scipy.signal
 from numba import njit
 
 from afmtool.errors import ConfigError, InputError
+from afmtool.estimators._common import JIT_OPTIONS, as_signal, check_numerator
 
 __all__ = [
     "DEFAULT_FORGETTING_FACTOR",
@@ -67,11 +68,6 @@ DEFAULT_P0 = 1.0e6
 #: the compensation of that sample is skipped (see ``_reep_kernel``).
 MIN_BIAS_DENOMINATOR = 0.5
 
-#: Compile options of every kernel, kept in one constant.  No ``fastmath``:
-#: NaN and inf must propagate as IEEE 754 says, and ``contract``/``reassoc``
-#: would make the numba results differ from the plain-Python reference.
-_JIT_OPTIONS = {"cache": True, "nogil": True}
-
 # Slots of the carried REEP state vector (float64), read at kernel entry and
 # written back at exit, so that chunked and single runs are bit-for-bit equal.
 _TH_LS_B1, _TH_LS_B0 = 0, 1  # θ̂_LS(n) = [b1, b0]
@@ -91,7 +87,7 @@ _STATE_LEN = 15
 # ---------------------------------------------------------------------------
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _reep_kernel(  # noqa: PLR0913, PLR0915
     p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, state, out_b1, out_b0, out_sigma2
 ):
@@ -374,27 +370,6 @@ class ReepStep(NamedTuple):
     state: ReepState
 
 
-def _as_signal(name: str, x) -> np.ndarray:
-    """A 1-D float64 C-contiguous view or copy of ``x``; the input is never modified."""
-    try:
-        a = np.ascontiguousarray(x, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a 1-D array of numbers") from None
-    if a.ndim != 1:
-        raise InputError(f"{name} must be 1-D, got shape {a.shape}")
-    return a
-
-
-def _check_numerator(numerator) -> tuple[float, float, float]:
-    try:
-        a2, a1, a0 = (float(v) for v in numerator)
-    except (TypeError, ValueError):
-        raise ConfigError(f"numerator={numerator!r} must be three numbers (a2, a1, a0)") from None
-    if not all(map(math.isfinite, (a2, a1, a0))):
-        raise ConfigError(f"numerator={numerator!r} must be finite")
-    return a2, a1, a0
-
-
 def reep_update(
     state: ReepState,
     deflection,
@@ -472,14 +447,14 @@ def reep_update(
     """
     if not isinstance(state, ReepState):
         raise ConfigError(f"state must be a ReepState, got {type(state).__name__}")
-    p = _as_signal("deflection", deflection)
+    p = as_signal("deflection", deflection)
     if use_input:
         if dither is None or numerator is None:
             raise ConfigError("dither and numerator are required when use_input=True")
-        g = _as_signal("dither", dither)
+        g = as_signal("dither", dither)
         if g.shape != p.shape:
             raise InputError(f"dither has {g.shape[0]} samples but deflection has {p.shape[0]}")
-        a2, a1, a0 = _check_numerator(numerator)
+        a2, a1, a0 = check_numerator(numerator)
     else:
         g = np.empty(0, dtype=np.float64)
         a2 = a1 = a0 = 0.0
@@ -525,7 +500,7 @@ def reep(
 # ---------------------------------------------------------------------------
 
 
-@njit(**_JIT_OPTIONS)
+@njit(**JIT_OPTIONS)
 def _bcewrls_kernel(phi, y, lam_diag, lam, trace_cap, out_theta_c, out_theta_ls, out_sigma2):
     """Eq. 3.39 for m parameters; row i of ``phi`` is φᵀ(i+1).
 
@@ -647,7 +622,7 @@ def bcewrls(
     """
     _check_lam_p0(lam, p0)
     phi = np.ascontiguousarray(regressors, dtype=np.float64)
-    y = _as_signal("target", target)
+    y = as_signal("target", target)
     if phi.ndim != 2 or phi.shape[0] != y.shape[0]:
         raise InputError(f"regressors must have shape (N, m) with N = len(target) = {y.shape[0]}, got {phi.shape}")
     lam_diag = np.ascontiguousarray(bias_mask, dtype=np.float64)
@@ -682,8 +657,8 @@ def arx_regressors(deflection, dither) -> tuple[np.ndarray, np.ndarray]:
     y : numpy.ndarray, shape (N − 2,)
         p(n) for the same n.
     """
-    p = _as_signal("deflection", deflection)
-    g = _as_signal("dither", dither)
+    p = as_signal("deflection", deflection)
+    g = as_signal("dither", dither)
     if g.shape != p.shape:
         raise InputError(f"dither has {g.shape[0]} samples but deflection has {p.shape[0]}")
     if p.shape[0] < 3:
@@ -872,8 +847,8 @@ def identify_arx(
     if not (isinstance(max_iter, int) and max_iter >= 1):
         raise ConfigError(f"max_iter={max_iter!r} must be an integer >= 1")
     phi, y = arx_regressors(deflection, dither)
-    p_arr = _as_signal("deflection", deflection)
-    g_arr = _as_signal("dither", dither)
+    p_arr = as_signal("deflection", deflection)
+    g_arr = as_signal("dither", dither)
     n_rows = y.shape[0]
     if n_rows < 6:
         raise InputError(f"need at least 8 samples to identify 5 coefficients, got {n_rows + 2}")

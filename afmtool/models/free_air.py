@@ -71,6 +71,15 @@ class FreeAirModel:
         numerator = zoh_numerator(self.f0_hz, self.q, sample_rate_hz)
         return (self.gain * numerator.a2, self.gain * numerator.a1, self.gain * numerator.a0)
 
+    def denominator_at(self, sample_rate_hz: float) -> tuple[float, float]:
+        """(b1, b0) at ``sample_rate_hz``: the identified one, or the exact pole map of (f0, Q)."""
+        if self.denominator is not None and self.sample_rate_hz == sample_rate_hz:
+            return tuple(float(b) for b in self.denominator)
+        from afmtool.models.discretisation import discrete_denominator
+
+        denominator = discrete_denominator(self.f0_hz, self.q, sample_rate_hz)
+        return (float(denominator.b1), float(denominator.b0))
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 

@@ -1,0 +1,211 @@
+"""``afmtool batch``: one analysis over many captures, in parallel on Dask.
+
+Each input runs as its own ``afmtool COMMAND INPUT --out SUBDIR`` process on
+a Dask worker, so a batch result is exactly the single-file result and a
+crash in one file cannot take the others down.  A failing input is recorded
+with its reason and the batch goes on; ``summary.csv`` has one row per input.
+Inputs whose output folder already holds a ``report.json`` for the same
+input bytes are skipped (resume).
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import json
+import subprocess
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from afmtool.errors import ConfigError, InputError
+from afmtool.report.json_report import sha256_file
+
+__all__ = ["BatchItem", "BatchOutcome", "expand_inputs", "plan_batch", "run_one", "headline", "write_summary"]
+
+_CAPTURE_SUFFIXES = {".h5", ".hdf5", ".hdf", ".csv", ".bag"}
+
+
+@dataclass(frozen=True)
+class BatchItem:
+    """One input of a batch and the subfolder its outputs go to."""
+
+    source: str
+    out_dir: str
+
+
+@dataclass(frozen=True)
+class BatchOutcome:
+    """What happened to one input: ``ok``, ``failed`` or ``skipped`` (already complete)."""
+
+    source: str
+    out_dir: str
+    status: str
+    reason: str
+    headline: dict
+
+
+def expand_inputs(patterns: Sequence[str]) -> list[Path]:
+    """Files from globs, paths and folders (captures in a folder, ROS2 bag folders as one input)."""
+    found: list[Path] = []
+    for pattern in patterns:
+        matches = sorted(glob.glob(pattern)) or [pattern]
+        for match in matches:
+            path = Path(match)
+            if path.is_dir() and not (path / "metadata.yaml").is_file():
+                found.extend(
+                    p for p in sorted(path.iterdir())
+                    if p.suffix.lower() in _CAPTURE_SUFFIXES or (p / "metadata.yaml").is_file()
+                )
+            else:
+                found.append(path)
+    unique = list(dict.fromkeys(found))
+    if not unique:
+        raise InputError(f"no inputs match {' '.join(patterns)}")
+    return unique
+
+
+def plan_batch(inputs: Sequence[Path], out: Path) -> list[BatchItem]:
+    """A distinct output subfolder per input, named after it."""
+    items, used = [], set()
+    for path in inputs:
+        name = path.name.replace(".", "_")
+        candidate, k = name, 2
+        while candidate in used:
+            candidate, k = f"{name}_{k}", k + 1
+        used.add(candidate)
+        items.append(BatchItem(str(path), str(out / candidate)))
+    return items
+
+
+def _complete(item: BatchItem) -> dict | None:
+    """The existing report if the subfolder already holds this input's finished result."""
+    report_path = Path(item.out_dir) / "report.json"
+    if not report_path.is_file() or not Path(item.source).exists():
+        return None
+    try:
+        report = json.loads(report_path.read_text())
+        recorded = report["inputs"][0]["sha256"]
+    except (json.JSONDecodeError, KeyError, IndexError, OSError):
+        return None
+    return report if recorded == sha256_file(Path(item.source)) else None
+
+
+def headline(command: str, report: dict) -> dict:
+    """A few headline numbers of a report, for summary.csv."""
+    results = report.get("results", {})
+    if command == "reep":
+        summary = results.get("summary", {})
+        return {
+            "f0_hz_mean": summary.get("f0_hz", {}).get("mean"),
+            "q_mean": summary.get("q", {}).get("mean"),
+            "amplitude_mean": summary.get("amplitude", {}).get("mean"),
+            "flagged_samples": results.get("flagged_samples"),
+        }
+    if "free_air_model" in results and results["free_air_model"]:
+        return {"f0_hz": results["free_air_model"]["f0_hz"], "q": results["free_air_model"]["q"]}
+    return {k: v for k, v in results.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+
+
+FAILURE_FILE = "failure.json"
+
+
+def _known_failure(item: BatchItem) -> str | None:
+    """The recorded reason if this exact input already failed in an earlier run."""
+    path = Path(item.out_dir) / FAILURE_FILE
+    if not path.is_file() or not Path(item.source).exists():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except (json.JSONDecodeError, OSError):
+        return None
+    return record.get("reason") if record.get("sha256") == _sha_or_none(item.source) else None
+
+
+def _sha_or_none(source: str) -> str | None:
+    try:
+        return sha256_file(Path(source))
+    except OSError:
+        return None
+
+
+def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], retry_failed: bool = False) -> BatchOutcome:
+    """Run one input as a separate afmtool process (on whichever worker Dask chose).
+
+    Completed inputs are skipped; an input that failed before with the same
+    bytes is reported failed again without rerunning unless ``retry_failed``.
+    """
+    existing = _complete(item)
+    name = " ".join(command)
+    if existing is not None:
+        return BatchOutcome(item.source, item.out_dir, "skipped", "outputs complete", headline(name, existing))
+    known = None if retry_failed else _known_failure(item)
+    if known is not None:
+        return BatchOutcome(item.source, item.out_dir, "failed", f"{known} (unchanged since the last run)", {})
+    args = [sys.executable, "-m", "afmtool", *command, item.source, "--out", item.out_dir, "--quiet", *extra_args]
+    proc = subprocess.run(args, capture_output=True, text=True)
+    if proc.returncode != 0:
+        reason = (proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
+        reason = reason.removeprefix("afmtool: error: ")
+        Path(item.out_dir).mkdir(parents=True, exist_ok=True)
+        (Path(item.out_dir) / FAILURE_FILE).write_text(
+            json.dumps({"input": item.source, "sha256": _sha_or_none(item.source), "reason": reason}) + "\n"
+        )
+        return BatchOutcome(item.source, item.out_dir, "failed", reason, {})
+    (Path(item.out_dir) / FAILURE_FILE).unlink(missing_ok=True)
+    report = json.loads((Path(item.out_dir) / "report.json").read_text())
+    return BatchOutcome(item.source, item.out_dir, "ok", "", headline(name, report))
+
+
+def write_summary(path: Path, outcomes: Sequence[BatchOutcome]) -> None:
+    """summary.csv: input, status, reason, output folder, then the headline columns."""
+    keys = list(dict.fromkeys(k for o in outcomes for k in o.headline))
+    with open(path, "w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["input", "status", "reason", "output", *keys])
+        for o in outcomes:
+            writer.writerow([o.source, o.status, o.reason, o.out_dir, *(o.headline.get(k, "") for k in keys)])
+
+
+def run_batch(
+    command: Sequence[str],
+    items: Sequence[BatchItem],
+    extra_args: Sequence[str],
+    *,
+    workers: int,
+    scheduler: str | None,
+    on_done: Callable[[BatchOutcome], None],
+    retry_failed: bool = False,
+) -> list[BatchOutcome]:
+    """Submit every item to Dask (a local cluster, or ``scheduler``) and gather outcomes in input order."""
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise ConfigError("afmtool batch needs Dask: pip install 'afmtool[cluster]'") from None
+    cluster = None
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except OSError as exc:
+            raise InputError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+    else:
+        cluster = LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=50
+        )
+        client = Client(cluster)
+    try:
+        futures = {
+            client.submit(run_one, list(command), item, list(extra_args), retry_failed, key=f"afmtool-{i}-{item.out_dir}", pure=False): i
+            for i, item in enumerate(items)
+        }
+        outcomes: list[BatchOutcome | None] = [None] * len(items)
+        for future in as_completed(futures):
+            outcome = future.result()
+            outcomes[futures[future]] = outcome
+            on_done(outcome)
+        return [o for o in outcomes if o is not None]
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,99 @@
+"""afmtool batch on Dask: a local cluster, and a real scheduler + worker on 127.0.0.1."""
+
+from __future__ import annotations
+
+import csv
+import json
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from tests.conftest import run_cli
+
+pytest.importorskip("dask.distributed")
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("captures")
+    for seed in range(5):
+        result = run_cli("simulate", "ltv", "-o", folder / f"c{seed}.h5", "--seed", seed, "--set", "duration_s=0.02")
+        assert result.returncode == 0
+    (folder / "corrupt.h5").write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 100)
+    return folder
+
+
+def _summary(out):
+    with open(out / "summary.csv") as handle:
+        return {row["input"].rsplit("/", 1)[-1]: row for row in csv.DictReader(handle)}
+
+
+def test_local_cluster_batch(tmp_path, captures):
+    out = tmp_path / "batch"
+    result = run_cli("batch", "reep", str(captures / "*.h5"), "--out", out, "--workers", "2", "--quiet")
+    assert result.returncode == 1  # one input failed
+    rows = _summary(out)
+    assert len(rows) == 6
+    assert [name for name, row in rows.items() if row["status"] == "failed"] == ["corrupt.h5"]
+    assert "HDF5" in rows["corrupt.h5"]["reason"]
+    assert sum(row["status"] == "ok" for row in rows.values()) == 5
+    assert "corrupt.h5" in result.stderr.decode()
+    # identical to a single-file run
+    single = tmp_path / "single"
+    assert run_cli("reep", captures / "c3.h5", "--out", single, "--quiet").returncode == 0
+    batch_report = json.loads((out / "c3_h5" / "report.json").read_text())
+    single_report = json.loads((single / "report.json").read_text())
+    assert batch_report["results"] == single_report["results"]
+    assert float(rows["c3.h5"]["f0_hz_mean"]) == single_report["results"]["summary"]["f0_hz"]["mean"]
+    # a rerun processes nothing new
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("report.json")}
+    again = run_cli("batch", "reep", str(captures), "--out", out, "--workers", "2", "--quiet")
+    assert again.returncode == 1
+    rows = _summary(out)
+    assert sum(row["status"] == "skipped" for row in rows.values()) == 5
+    assert "unchanged since the last run" in rows["corrupt.h5"]["reason"]
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("report.json")} == stamps
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_existing_scheduler(tmp_path, captures):
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    scheduler = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
+         "--dashboard-address", ":0", "--no-show"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1", "--nworkers", "1",
+         "--no-dashboard", "--host", "127.0.0.1"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.2)
+        out = tmp_path / "remote"
+        result = run_cli("batch", "reep", captures / "c0.h5", captures / "c1.h5", "--out", out,
+                         "--scheduler", address, "--quiet")
+        assert result.returncode == 0, result.stderr.decode()
+        rows = _summary(out)
+        assert [row["status"] for row in rows.values()] == ["ok", "ok"]
+    finally:
+        for proc in (worker, scheduler):
+            proc.terminate()
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
