@@ -39,6 +39,21 @@ def _open_h5(path: Path) -> h5py.File:
         raise InputError(f"{path}: not a readable HDF5 file ({reason})") from None
 
 
+def _refuse_external_link(path: Path, h5: h5py.File, dataset_path: str) -> None:
+    """Refuse a dataset reached through an external link anywhere along its path."""
+    node = ""
+    for part in [p for p in dataset_path.split("/") if p]:
+        node = f"{node}/{part}"
+        try:
+            link = h5.get(node, getlink=True)
+        except (KeyError, OSError, ValueError):
+            return
+        if isinstance(link, h5py.ExternalLink):
+            raise InputError(f"{path}: {node} is an external link to {link.filename}; refusing data outside the file")
+        if link is None:
+            return
+
+
 def _check_local(path: Path, name: str, dataset: h5py.Dataset) -> None:
     """Refuse data that lives outside the input file (external or virtual)."""
     if dataset.is_virtual:
@@ -88,6 +103,7 @@ class Hdf5Reader(ReaderBase):
             )
         datasets = {}
         for name, dataset_path in mapping.items():
+            _refuse_external_link(path, h5, dataset_path)
             try:
                 obj = h5.get(dataset_path)
             except (KeyError, OSError, ValueError):

@@ -10,12 +10,31 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import tempfile
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from afmtool.errors import AfmtoolError
 
 __all__ = ["OutputDir"]
+
+_DEFERRED_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM for the duration; they are delivered on exit."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 class OutputDir:
@@ -67,6 +86,12 @@ class OutputDir:
                 self._staging = None
 
     def _commit(self) -> None:
+        # SIGINT/SIGTERM wait until every file is in place: a run interrupted
+        # here would otherwise leave new files beside old ones.
+        with _signals_deferred():
+            self._move_into_place()
+
+    def _move_into_place(self) -> None:
         self.out.mkdir(parents=False, exist_ok=True)
         for name in self._names:
             staged = self._staging / name
