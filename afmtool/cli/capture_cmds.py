@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
@@ -98,6 +99,24 @@ def convert(
             )
 
 
+def report(
+    folder: Annotated[Path, typer.Argument(help="An afmtool output folder (holding report.json).")],
+    output: Annotated[
+        Optional[Path], typer.Option("--output", "-o", help="HTML file to write (default: FOLDER/report.html).")
+    ] = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """One self-contained HTML page (plots embedded) from any analysis output folder."""
+    from afmtool.cli.progress import stderr_console
+    from afmtool.report.atomic import write_text_atomic
+    from afmtool.report.html import render_report_html
+
+    target = output or folder / "report.html"
+    write_text_atomic(target, render_report_html(folder))
+    stderr_console(quiet).print(f"wrote {target}", highlight=False)
+
+
 def register(app: typer.Typer) -> None:
     app.command()(info)
     app.command()(convert)
+    app.command()(report)
