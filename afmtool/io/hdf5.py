@@ -87,6 +87,10 @@ class Hdf5Reader(ReaderBase):
         try:
             self._datasets = self._find_datasets(channel_map)
             self.info = self._make_info(sample_rate_hz)
+        except (OSError, RuntimeError, KeyError, ValueError, TypeError) as exc:
+            # HDF5 reports a damaged file's structure as any of these, at any depth.
+            self._file.close()
+            raise InputError(f"{self._path}: damaged HDF5 structure ({_first_line(exc)})") from None
         except BaseException:
             self._file.close()
             raise
@@ -151,19 +155,26 @@ class Hdf5Reader(ReaderBase):
                 buffer = np.empty(stop - start, dtype=np.float64)
                 try:
                     self._datasets[name].read_direct(buffer, np.s_[start:stop])
-                except (OSError, RuntimeError) as exc:
-                    raise InputError(f"{self._path}: cannot read {name} at sample {start} ({exc})") from None
+                except (OSError, RuntimeError, ValueError) as exc:
+                    raise InputError(f"{self._path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
                 data[name] = buffer
             yield Chunk(start, data)
 
     def truth(self) -> dict[str, np.ndarray]:
-        group = self._file.get("truth")
-        if not isinstance(group, h5py.Group):
-            return {}
-        return {name: ds[()] for name, ds in group.items() if isinstance(ds, h5py.Dataset)}
+        try:
+            group = self._file.get("truth")
+            if not isinstance(group, h5py.Group):
+                return {}
+            return {name: ds[()] for name, ds in group.items() if isinstance(ds, h5py.Dataset)}
+        except (OSError, RuntimeError, KeyError, ValueError) as exc:
+            raise InputError(f"{self._path}: cannot read /truth ({_first_line(exc)})") from None
 
     def close(self) -> None:
         self._file.close()
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
 def _decode_attr(value) -> str:

@@ -1,0 +1,261 @@
+"""Mutation fuzzing of every afmtool reader.
+
+Every generated input must either read cleanly or raise ``AfmtoolError``
+(one-line message, exit status 2 from the CLI); anything else, a crash of
+the interpreter, or a case slower than ``--timeout`` seconds is a finding.
+
+CI runs a bounded budget through ``tests/test_fuzz.py``.  The long run::
+
+    python -m tests.fuzz_harness --cases 10000            # every reader
+    python -m tests.fuzz_harness --reader hdf5 --cases 20000 --seed 7
+
+Each reader runs in a child process that is restarted after a hard crash,
+so a segfault inside a C library is reported with its input, not lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import shutil
+import signal
+import sys
+import tempfile
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+READERS = ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", "psd", "toml", "metadata")
+_SUFFIX = {"csv": ".csv", "hdf5": ".h5", "ros1": ".bag", "psd": ".csv", "toml": ".toml", "metadata": ".json"}
+
+
+# --------------------------------------------------------------------------- seeds
+
+def _seed_capture(folder: Path, fmt: str) -> Path:
+    """A small valid capture in ``fmt`` written by afmtool itself."""
+    from afmtool import sim
+    from afmtool.analyses.convert import convert_capture
+    from afmtool.io.memory import ArrayReader
+
+    captured = sim.simulate("ltv", {"duration_s": 0.0005}, seed=1)
+    reader = ArrayReader(captured.sample_rate_hz, captured.channels, captured.data, captured.metadata, captured.truth)
+    target = folder / ("seed" + _SUFFIX.get(fmt, ""))
+    if fmt.startswith("ros2"):
+        target = folder / "seed_bag"
+    if fmt == "csv":
+        with open(target, "w", encoding="utf-8") as handle:
+            convert_capture(reader, handle, "csv")
+    else:
+        convert_capture(reader, target, fmt)
+    return target
+
+
+def seed_input(folder: Path, reader: str) -> Path:
+    if reader in ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap"):
+        return _seed_capture(folder, reader)
+    path = folder / ("seed" + _SUFFIX[reader])
+    if reader == "psd":
+        f = np.arange(1, 400) * 250.0
+        asd = 1e-13 + 1e-11 / np.sqrt((1 - (f / 5e4) ** 2) ** 2 + (f / 5e4 / 300) ** 2)
+        path.write_text("frequency_hz,asd_m_per_sqrt_hz\n" + "".join(f"{a:.6f},{b:.6e}\n" for a, b in zip(f, asd)))
+    elif reader == "toml":
+        from afmtool.config.defaults import default_toml
+
+        path.write_text(default_toml())
+    else:
+        path.write_text(json.dumps({"cantilever": {"f0_hz": 7e4, "q": 200}, "free_air": {"start_s": 0, "end_s": 0.01},
+                                    "scan": {"lines": 4, "pixels_per_line": 8, "scan_size_m": 1e-6, "line_rate_hz": 2.0}}))
+    return path
+
+
+# ----------------------------------------------------------------------- mutation
+
+def mutate(data: bytes, rng: np.random.Generator) -> bytes:
+    """1-4 random byte-level mutations: flips, truncation, duplication, insertion, zeroing."""
+    buf = bytearray(data)
+    for _ in range(int(rng.integers(1, 5))):
+        if not buf:
+            buf = bytearray(rng.bytes(int(rng.integers(1, 64))))
+            continue
+        kind = int(rng.integers(0, 6))
+        i = int(rng.integers(0, len(buf)))
+        if kind == 0:
+            buf[i] ^= 1 << int(rng.integers(0, 8))
+        elif kind == 1:
+            del buf[i:]
+        elif kind == 2:
+            j = min(len(buf), i + int(rng.integers(1, 256)))
+            buf[i:i] = buf[i:j]
+        elif kind == 3:
+            buf[i:i] = rng.bytes(int(rng.integers(1, 32)))
+        elif kind == 4:
+            j = min(len(buf), i + int(rng.integers(1, 64)))
+            buf[i:j] = bytes(j - i)
+        else:
+            buf[i] = int(rng.choice([0, 0xFF, 0x7F, 0x80, ord(","), ord("\n"), ord("#"), ord("n")]))
+    return bytes(buf)
+
+
+def materialise(seed: Path, data: bytes, folder: Path) -> Path:
+    """Write a mutated copy of ``seed``; a ROS2 bag keeps its other file intact."""
+    if seed.is_dir():
+        target = folder / "case_bag"
+        shutil.rmtree(target, ignore_errors=True)
+        shutil.copytree(seed, target)
+        storage = next(p for p in target.iterdir() if p.suffix in (".mcap", ".db3"))
+        if storage.stem != target.name:  # rosbags names the storage after the folder
+            storage = storage.rename(target / f"{target.name}{storage.suffix}")
+            meta = (target / "metadata.yaml").read_text().replace(seed.name, target.name)
+            (target / "metadata.yaml").write_text(meta)
+        victim = storage if data[:1] != b"\x00" or len(data) % 7 else target / "metadata.yaml"
+        victim.write_bytes(data if victim is storage else mutate(victim.read_bytes(), np.random.default_rng(len(data))))
+        return target
+    target = folder / ("case" + seed.suffix)
+    target.write_bytes(data)
+    return target
+
+
+# ------------------------------------------------------------------------- targets
+
+def read_target(reader: str) -> Callable[[Path], None]:
+    """The code under test for ``reader``: parse everything, raise AfmtoolError on bad input."""
+    if reader in ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap"):
+        from afmtool.io.chunks import iter_chunks
+        from afmtool.io.registry import open_capture
+
+        def run(path: Path) -> None:
+            with open_capture(path) as capture:
+                for _ in iter_chunks(capture, capture.info.channel_names, 257):
+                    pass
+                capture.truth()
+
+        return run
+    if reader == "psd":
+        from afmtool.estimators.thermal_noise import fit_thermal_spectrum
+        from afmtool.io.psd import read_psd_csv
+
+        def run(path: Path) -> None:
+            table = read_psd_csv(path)
+            try:
+                fit_thermal_spectrum(table.frequency_hz, table.asd_m_per_sqrt_hz)
+            except (ValueError, ArithmeticError):
+                pass  # a garbled spectrum may not fit; reading it must still be clean
+
+        return run
+    if reader == "toml":
+        from afmtool.config import load_toml, resolve_from
+        from afmtool.config.params import SECTIONS
+
+        def run(path: Path) -> None:
+            document = load_toml(path)
+            for section, cls in SECTIONS.items():
+                resolve_from(cls, section, document, {})
+
+        return run
+
+    from afmtool.io.metadata import parse_metadata_json
+
+    return lambda path: parse_metadata_json(path.read_bytes().decode("utf-8", errors="replace"), str(path))
+
+
+# --------------------------------------------------------------------------- driver
+
+def _worker(reader: str, seed_dir: str, start: int, stop: int, rng_seed: int, timeout: float, conn) -> None:
+    from afmtool.errors import AfmtoolError
+
+    def on_alarm(signum, frame):
+        raise TimeoutError
+
+    signal.signal(signal.SIGALRM, on_alarm)
+    seed = seed_input(Path(seed_dir), reader)
+    original = b"" if seed.is_dir() else seed.read_bytes()
+    if seed.is_dir():
+        original = next(p for p in seed.iterdir() if p.suffix in (".mcap", ".db3")).read_bytes()
+    target = read_target(reader)
+    work = Path(tempfile.mkdtemp(prefix=f"fuzz-{reader}-"))
+    try:
+        for case in range(start, stop):
+            data = mutate(original, np.random.default_rng([rng_seed, case]))
+            path = materialise(seed, data, work)
+            conn.send(("start", case, data))
+            signal.setitimer(signal.ITIMER_REAL, timeout)
+            try:
+                target(path)
+                outcome = ("ok", case, None)
+            except AfmtoolError as exc:
+                message = str(exc)
+                outcome = ("rejected", case, None) if "\n" not in message.strip() else ("multiline", case, message)
+            except TimeoutError:
+                outcome = ("hang", case, None)
+            except Exception:  # noqa: BLE001 - any other exception is the finding
+                outcome = ("crash", case, traceback.format_exc(limit=6))
+            finally:
+                signal.setitimer(signal.ITIMER_REAL, 0)
+            conn.send(outcome)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+        conn.send(("done", stop, None))
+
+
+def fuzz_reader(reader: str, cases: int, seed: int = 0, timeout: float = 10.0) -> dict:
+    """Run ``cases`` mutated inputs through ``reader``; return counts and findings."""
+    counts = {"ok": 0, "rejected": 0, "crash": 0, "hang": 0, "multiline": 0, "died": 0}
+    findings: list[dict] = []
+    seed_dir = tempfile.mkdtemp(prefix=f"fuzz-seed-{reader}-")
+    context = mp.get_context("spawn")
+    start = 0
+    try:
+        while start < cases:
+            parent, child = context.Pipe()
+            proc = context.Process(target=_worker, args=(reader, seed_dir, start, cases, seed, timeout, child))
+            proc.start()
+            child.close()
+            current, data = start, b""
+            while True:
+                try:
+                    kind, case, detail = parent.recv()
+                except EOFError:  # the interpreter died on `current`
+                    counts["died"] += 1
+                    findings.append({"reader": reader, "case": current, "kind": "died", "input_hex": data[:4096].hex()})
+                    start = current + 1
+                    break
+                if kind == "start":
+                    current, data = case, detail
+                    continue
+                if kind == "done":
+                    start = cases
+                    break
+                counts[kind] += 1
+                if kind not in ("ok", "rejected"):
+                    findings.append({"reader": reader, "case": case, "kind": kind, "detail": detail,
+                                     "input_hex": data[:4096].hex()})
+            proc.join(timeout=30)
+    finally:
+        shutil.rmtree(seed_dir, ignore_errors=True)
+    return {"reader": reader, "cases": cases, "counts": counts, "findings": findings}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reader", choices=READERS, action="append")
+    parser.add_argument("--cases", type=int, default=10_000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--timeout", type=float, default=10.0)
+    parser.add_argument("--findings", type=Path, default=Path("fuzz-findings.json"))
+    args = parser.parse_args(argv)
+    results = []
+    for reader in args.reader or READERS:
+        result = fuzz_reader(reader, args.cases, args.seed, args.timeout)
+        print(f"{reader:14s} {json.dumps(result['counts'])}", flush=True)
+        results.append(result)
+    findings = [f for r in results for f in r["findings"]]
+    args.findings.write_text(json.dumps(results, indent=1))
+    print(f"{len(findings)} findings; details in {args.findings}")
+    return 1 if findings else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,57 @@
+"""Bounded fuzzing of every reader in CI (the long run: python -m tests.fuzz_harness --cases 10000)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tests.fuzz_harness import READERS, fuzz_reader
+
+#: Mutated inputs per reader in CI; the documented long run uses 10,000.
+CI_CASES = 120
+
+
+@pytest.mark.parametrize("reader", READERS)
+def test_reader_survives_mutations(reader):
+    result = fuzz_reader(reader, CI_CASES, seed=20261122, timeout=10.0)
+    counts = result["counts"]
+    print(reader, counts)
+    assert counts["ok"] + counts["rejected"] == CI_CASES, json.dumps(result["findings"][:3], indent=1)[:4000]
+    assert counts["rejected"] > 0  # the mutations really produce bad input
+
+
+# Regression tests for what fuzzing found.
+
+
+def test_toml_with_invalid_utf8_is_a_config_error(tmp_path):
+    from afmtool.config import load_toml
+    from afmtool.errors import ConfigError
+
+    path = tmp_path / "bad.toml"
+    path.write_bytes(b"[reep]\nlam = 0.99 # \xb8\xff\n")
+    with pytest.raises(ConfigError, match="UTF-8"):
+        load_toml(path)
+
+
+def test_hdf5_with_damaged_btree_is_an_input_error(tmp_path):
+    """h5py raised RuntimeError ('wrong B-tree signature') while listing /channels."""
+    import numpy as np
+
+    from afmtool.errors import InputError
+    from afmtool.io.capture import ChannelSpec
+    from afmtool.io.hdf5 import Hdf5Writer
+    from afmtool.io.registry import open_capture
+
+    path = tmp_path / "c.h5"
+    writer = Hdf5Writer(path, 1000.0, [ChannelSpec("deflection", "nm")])
+    writer.write({"deflection": np.arange(100.0)})
+    writer.close()
+    data = bytearray(path.read_bytes())
+    signature = data.find(b"TREE")
+    assert signature > 0
+    data[signature : signature + 4] = b"XXXX"
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError):
+        with open_capture(path) as reader:
+            list(reader.blocks(reader.info.channel_names, 10))
