@@ -1,11 +1,57 @@
-"""Run every benchmark: ``python -m bench`` (from the repository root)."""
+"""Run every benchmark: ``python -m bench [NAME ...]`` from the repository root.
+
+Prints each module's numbers as it goes, then one table of the acceptance
+criteria with the values measured in this run, and writes ``bench.json``.
+"""
 
 from __future__ import annotations
 
 import importlib
+import json
 import sys
 
+from bench.common import REPO
+
 MODULES = ["bench.bench_io", "bench.bench_rls", "bench.bench_observer", "bench.bench_reep"]
+
+#: (bench.json section, key path, criterion, test) rows of the closing table.
+CRITERIA = [
+    ("io", "help.help_seconds", "afmtool --help < 0.3 s", lambda v: v < 0.3),
+    ("io", "info_2gb.afmtool_info.peak_rss_mb", "info on 2 GB: peak RSS < 300 MB", lambda v: v < 300),
+    ("rls", "kernel_ms_per_s", "REEP kernel >= 50 MS/s", lambda v: v >= 50),
+    ("rls", "ratio_kernel_to_padasip", "REEP >= 300x padasip RLS", lambda v: v >= 300),
+    ("rls", "ratio_kernel_to_pure_python", "REEP vs pure Python (ratio)", lambda v: v > 1),
+    ("observer", "bank5_kernel_ms_per_s", "bank of 5 >= 40 MS/s", lambda v: v >= 40),
+    ("observer", "ratio_bank5_kernel_to_5_filterpy", "bank of 5 >= 500x filterpy", lambda v: v >= 500),
+    ("reep", "largest_ms_per_s", "reep end to end >= 20 MS/s", lambda v: v >= 20),
+    ("reep", "largest_peak_rss_mb", "reep peak RSS < 400 MB", lambda v: v < 400),
+    ("reep", "rss_ratio_largest_to_smallest", "reep RSS at 1e8 <= 1.5x RSS at 1e6", lambda v: v <= 1.5),
+    ("reep", "runs.-1.fraction_of_read_ceiling", "reep >= 5% of the raw-read ceiling", lambda v: v >= 0.05),
+]
+
+
+def _lookup(data, path: str):
+    for part in path.split("."):
+        if isinstance(data, list):
+            data = data[int(part)]
+        elif isinstance(data, dict) and part in data:
+            data = data[part]
+        else:
+            return None
+    return data
+
+
+def summary_table() -> list[tuple[str, str, str]]:
+    path = REPO / "bench.json"
+    data = json.loads(path.read_text()) if path.exists() else {}
+    rows = []
+    for section, key, label, check in CRITERIA:
+        value = _lookup(data.get(section, {}), key)
+        if value is None:
+            rows.append((label, "not run", ""))
+        else:
+            rows.append((label, f"{value:.4g}", "pass" if check(value) else "FAIL"))
+    return rows
 
 
 def main() -> None:
@@ -18,8 +64,13 @@ def main() -> None:
         except ModuleNotFoundError as exc:
             print(f"skip {name}: {exc}")
             continue
-        print(f"== {name}")
+        print(f"== {name}", flush=True)
         module.main()
+    print("\n== acceptance criteria (this run)")
+    rows = summary_table()
+    width = max(len(r[0]) for r in rows)
+    for label, value, verdict in rows:
+        print(f"{label:<{width}}  {value:>10}  {verdict}")
     print("results in bench.json")
 
 

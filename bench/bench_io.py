@@ -73,8 +73,23 @@ sys.exit(1 if heavy else 0)
 """
 
 
+def bench_numba_cache() -> dict:
+    """First-call cost: `afmtool reep` on a tiny capture with an empty numba cache, then warm."""
+    import tempfile
+
+    path = generate_h5(scratch_dir() / "tiny_100000.h5", 100_000)
+    cache = tempfile.mkdtemp(prefix="numba-cache-")
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+    out = scratch_dir() / "tiny_out"
+    args = [*AFMTOOL, "reep", str(path), "--out", str(out), "--quiet"]
+    cold = run_command(args, env=env)
+    warm = run_command(args, env=env)
+    print(f"reep on 1e5 samples: {cold.seconds:.2f} s with an empty numba cache, {warm.seconds:.2f} s cached")
+    return {"cold_seconds": cold.seconds, "warm_seconds": warm.seconds, "first_call_cost_seconds": cold.seconds - warm.seconds}
+
+
 def main() -> dict:
-    results = {"help": bench_help(), "info_2gb": bench_info_2gb()}
+    results = {"help": bench_help(), "numba_cache": bench_numba_cache(), "info_2gb": bench_info_2gb()}
     write_results("io", results)
     return results
 

@@ -42,12 +42,12 @@ def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
     return min(times)
 
 
-def run_command(args: list[str], *, drop_cache_of: Path | None = None) -> Measurement:
+def run_command(args: list[str], *, drop_cache_of: Path | None = None, env: dict | None = None) -> Measurement:
     """Run a command in a fresh process; peak RSS from wait4's rusage (MB)."""
     if drop_cache_of is not None:
         _evict(drop_cache_of)
     start = time.perf_counter()
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=REPO)
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=REPO, env=env)
     _, status, usage = os.wait4(proc.pid, 0)
     seconds = time.perf_counter() - start
     proc.returncode = os.waitstatus_to_exitcode(status)
