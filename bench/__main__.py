@@ -12,7 +12,15 @@ import sys
 
 from bench.common import REPO
 
-MODULES = ["bench.bench_io", "bench.bench_rls", "bench.bench_observer", "bench.bench_reep"]
+MODULES = [
+    "bench.bench_io",
+    "bench.bench_rls",
+    "bench.bench_observer",
+    "bench.bench_reep",
+    "bench.bench_decode",
+    "bench.bench_kalman_bank",
+    "bench.bench_probeloss",
+]
 
 #: (bench.json section, key path, criterion, test) rows of the closing table.
 CRITERIA = [

@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
-from afmtool.analyses.freeair import free_air_from_segment, read_segment, replay_held
-from afmtool.config.params import ReepParams, parse_interval
+from afmtool.analyses.freeair import replay_held
+from afmtool.analyses.freeair_source import free_air_interval, identify_from_segment, read_free_air
+from afmtool.config.params import ReepParams
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
@@ -132,26 +133,14 @@ def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirMode
     """Return (model or None, chunk iterator to process, free-air segment seconds or None)."""
     if model is not None or not params.use_input:
         return model, chunks, None
-    interval = parse_interval(params.free_air, "--free-air")
-    if interval is None and "free_air" in reader.info.metadata:
-        meta = reader.info.metadata["free_air"]
-        interval = (float(meta["start_s"]), float(meta["end_s"]))
+    interval = free_air_interval(reader, params.free_air)
     if interval is None:
         raise ConfigError(
             "REEP needs the free-air model: give --free-air START:END, --model free_air.json, "
             "or capture metadata free_air (or use --no-input)"
         )
-    fs = reader.info.sample_rate_hz
-    start, end = round(interval[0] * fs), round(interval[1] * fs)
-    segment, chunks = read_segment(chunks, ("deflection", "dither"), start, end)
-    try:
-        identified = free_air_from_segment(segment["deflection"], segment["dither"], fs)
-    except InputError as exc:
-        raise InputError(
-            f"free-air segment {interval[0]:g}:{interval[1]:g} s: {exc}; or give --model free_air.json "
-            "(identify freeair --psd / --sweep)"
-        ) from None
-    return identified, chunks, interval
+    segment, chunks = read_free_air(reader, chunks, interval, ("deflection", "dither"))
+    return identify_from_segment(segment, reader.info.sample_rate_hz), chunks, interval
 
 
 def run_reep(

@@ -20,7 +20,18 @@ except ImportError:  # pragma: no cover - older typer uses click itself
     from click import exceptions as click_exceptions
 
 import afmtool
-from afmtool.cli import batch_cmd, capture_cmds, config_cmd, reep_cmd, simulate_cmd, theory_cmd
+from afmtool.cli import (
+    batch_cmd,
+    capture_cmds,
+    config_cmd,
+    decode_cmd,
+    identify_cmd,
+    kalman_bank_cmd,
+    probeloss_cmd,
+    reep_cmd,
+    simulate_cmd,
+    theory_cmd,
+)
 from afmtool.errors import AfmtoolError
 
 __all__ = ["app", "main"]
@@ -55,7 +66,11 @@ identify_app = typer.Typer(help="Identify models: the free-air cantilever, ...",
 capture_cmds.register(app)
 simulate_cmd.register(app)
 reep_cmd.register(app, identify_app)
+decode_cmd.register(app)
+identify_cmd.register(identify_app)
 batch_cmd.register(app)
+kalman_bank_cmd.register(app)
+probeloss_cmd.register(app)
 app.add_typer(identify_app, name="identify")
 app.add_typer(theory_cmd.app, name="theory")
 app.add_typer(config_cmd.app, name="config")

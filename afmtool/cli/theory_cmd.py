@@ -1,4 +1,4 @@
-"""``afmtool theory averaging`` and ``afmtool theory compare``."""
+"""``afmtool theory averaging``, ``theory compare`` and ``theory observer``."""
 
 from __future__ import annotations
 
@@ -12,7 +12,9 @@ from afmtool.cli.reep_cmd import finish_command
 
 __all__ = ["app"]
 
-app = typer.Typer(help="Averaging theory (ch. 4) and its check against REEP.", no_args_is_help=True)
+app = typer.Typer(
+    help="Averaging theory (ch. 4), its check against REEP, observer design (ch. 5).", no_args_is_help=True
+)
 
 
 @app.command("averaging")
@@ -57,3 +59,63 @@ def compare(
 
     report = run_compare_command(reep_dir, out, config, {"force_set": force_set})
     finish_command(report, out, json_output, quiet)
+
+
+@app.command("observer")
+def observer(
+    out: OutOpt = Path("theory_observer"),
+    f0: Annotated[Optional[float], typer.Option("--f0", help="Nominal (free-air) f0 (Hz).")] = None,
+    q: Annotated[Optional[float], typer.Option("--q", help="Nominal Q.")] = None,
+    model: Annotated[
+        Optional[Path], typer.Option("--model", help="free_air.json (or its folder): f0, Q and gain of the plant.")
+    ] = None,
+    f0_low: Annotated[
+        Optional[float], typer.Option("--f0-low", help="On-sample end of the direction, f0' (Hz).")
+    ] = None,
+    q_low: Annotated[Optional[float], typer.Option("--q-low", help="On-sample end of the direction, Q'.")] = None,
+    reep: Annotated[
+        Optional[Path],
+        typer.Option("--reep", help="REEP output folder or reep.h5: the direction from its force curve."),
+    ] = None,
+    force_set: Annotated[
+        Optional[str], typer.Option("--force-set", help="Else the direction from averaging theory with this force set.")
+    ] = None,
+    cycles: Annotated[
+        Optional[str], typer.Option("--cycles", help="Gains: error time constants in drive periods, e.g. 4,50.")
+    ] = None,
+    observers: Annotated[
+        Optional[str], typer.Option("--observers", help="Observer models f0_hz:q,... for the directional plots.")
+    ] = None,
+    recommend: Annotated[
+        bool, typer.Option("--recommend", help="Pick the model and gain of most sensitivity that settle in time.")
+    ] = False,
+    max_cycles: Annotated[
+        Optional[float], typer.Option("--max-cycles", help="Recommend: settle within this many drive periods.")
+    ] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Observer-design trade-offs (ch. 5): A_e², its sensitivities, SNR and transients.
+
+    Maps over observer models (f_k, Q_k) at the free-air plant, one per gain, and
+    lines as the plant moves along the force-curve direction (eqs. 5.16-5.22).
+    With --recommend, the model and gain that maximise |dA_e²| along the force
+    curve while the error settles within --max-cycles drive periods.
+    """
+    from afmtool.analyses.observer_theory_outputs import run_observer_theory_command
+
+    flags = {
+        "f0_hz": f0,
+        "q": q,
+        "model": str(model) if model else None,
+        "f0_low_hz": f0_low,
+        "q_low": q_low,
+        "reep": str(reep) if reep else None,
+        "force_set": force_set,
+        "cycles": cycles,
+        "observers": observers,
+        "recommend": True if recommend else None,
+        "max_cycles": max_cycles,
+    }
+    finish_command(run_observer_theory_command(out, config, flags), out, json_output, quiet)

@@ -13,7 +13,22 @@ from dataclasses import dataclass
 from afmtool.config import field
 from afmtool.errors import ConfigError
 
-__all__ = ["SECTIONS", "ReepParams", "FreeAirParams", "AveragingParams", "TheoryCompareParams", "parse_interval"]
+__all__ = [
+    "SECTIONS",
+    "ReepParams",
+    "ProbeLossParams",
+    "FreeAirParams",
+    "AveragingParams",
+    "TheoryCompareParams",
+    "KalmanBankParams",
+    "ObserverTheoryParams",
+    "GammaParams",
+    "ThermalParams",
+    "ElectrostaticFitParams",
+    "parse_interval",
+    "DecodeParams",
+    "parse_bracket_nm",
+]
 
 
 def parse_interval(text: str, option: str) -> tuple[float, float] | None:
@@ -85,6 +100,61 @@ class ReepParams:
         parse_interval(self.free_air, "free_air")
 
 
+@dataclass(frozen=True)
+class ProbeLossParams:
+    """``afmtool probeloss``: reliability index, switching signal and amplitude baseline (ch. 2)."""
+
+    free_air: str = field("", "Off-sample segment START:END (model, index level, thresholds, A0); empty = metadata", "s")
+    model: str = field("", "Free-air model file (free_air.json from 'identify freeair'); overrides identification")
+    gain: str = field("decay", "Observer gain: error decay in decay_cycles, or steady-state Kalman", choices=("decay", "kalman"))
+    decay_cycles: float = field(1.0, "Decay design: time constant of the observer error", "drive periods")
+    process_noise: float = field(0.0, "Kalman design: force noise as the static deflection it causes, rms", "deflection units")
+    measurement_noise: float = field(0.0, "Kalman design: measurement noise rms (> 0)", "deflection units")
+    window_periods: float = field(1.0, "Reliability-index window (RMS of the innovation)", "drive periods")
+    index_level: float = field(0.0, "Free-air innovation RMS the index is divided by; 0 = from the free-air segment",
+                               "deflection units")
+    on: float = field(0.0, "Loss declared when the index falls below this; 0 = automatic (free-air statistics)")
+    off: float = field(0.0, "Loss ends when the index rises above this; 0 = automatic")
+    quantile: float = field(0.999, "Automatic on: this quantile of the free-air index")
+    off_ratio: float = field(2.0, "Automatic off: off_ratio times on")
+    amplitude_upper: float = field(0.0, "Amplitude baseline: loss while the amplitude exceeds A_upper; 0 = automatic",
+                                   "deflection units")
+    setpoint: float = field(0.0, "Amplitude set point A_sp for the automatic A_upper; 0 = metadata controller",
+                            "deflection units")
+    upper_fraction: float = field(0.25, "Automatic A_upper = A_sp + upper_fraction·(A0 − A_sp)")
+    drive_frequency_hz: float = field(0.0, "Drive frequency; 0 = metadata drive, else the free-air f0", "Hz")
+    lockin_lowpass_hz: float = field(0.0, "Lock-in low-pass corner; 0 = min(f/10, Δf/2)", "Hz")
+    decimate: int = field(0, "Keep one output sample in N; 0 = one per drive period")
+    min_event_periods: float = field(5.0, "Truth scores count events at least this long", "drive periods")
+    truth_gap_periods: float = field(1.5, "Truth: no contact for longer than this is probe loss", "drive periods")
+    max_events: int = field(1000, "Events listed in report.json (all are counted)")
+    chunk_samples: int = field(1 << 18, "Samples per streamed chunk (memory against per-chunk overhead)")
+
+    def validate(self) -> None:
+        parse_interval(self.free_air, "free_air")
+        positive = ("decay_cycles", "window_periods", "quantile", "off_ratio", "min_event_periods", "truth_gap_periods")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be > 0")
+        nonnegative = ("process_noise", "measurement_noise", "index_level", "on", "off", "amplitude_upper",
+                       "setpoint", "upper_fraction", "drive_frequency_hz", "lockin_lowpass_hz")
+        for name in nonnegative:
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
+        if not self.quantile < 1:
+            raise ConfigError(f"quantile={self.quantile!r} must be in (0, 1)")
+        if not self.off_ratio > 1:
+            raise ConfigError(f"off_ratio={self.off_ratio!r} must be > 1")
+        if self.on and self.off and not self.on < self.off:
+            raise ConfigError(f"on={self.on!r} must be below off={self.off!r}")
+        if self.gain == "kalman" and not self.measurement_noise > 0:
+            raise ConfigError("gain='kalman' needs measurement_noise > 0 (and process_noise >= 0)")
+        if self.decimate < 0 or self.max_events < 0:
+            raise ConfigError("decimate and max_events must be >= 0")
+        if self.chunk_samples < 16:
+            raise ConfigError(f"chunk_samples={self.chunk_samples!r} must be >= 16")
+
+
 _FORCE_SETS = ("attractive", "attractive-repulsive", "repulsive", "repulsive-q38", "ch4-default")
 
 
@@ -126,10 +196,306 @@ class TheoryCompareParams:
             raise ConfigError(f"tolerance={self.tolerance!r} must be > 0")
 
 
+@dataclass(frozen=True)
+class KalmanBankParams:
+    """``afmtool kalman-bank``: validate REEP by a bank of Kalman filters and an adaptive observer (§3.4.2)."""
+
+    n_filters: int = field(5, "Filters spread over the approach when neither at_z nor models is given")
+    at_z: str = field("", "Design points z1,z2,... (z_piezo units); models from REEP there; empty = automatic")
+    models: str = field("", "Bank models f0_hz:q,f0_hz:q,... instead of REEP's; empty = from REEP")
+    design_leg: str = field("approach", "Force-curve leg the design points and verdict refer to", choices=("approach", "retract"))
+    reep: str = field("", "REEP output folder or reep.h5 to use; empty = run REEP internally")
+    free_air: str = field("", "Off-sample segment START:END for the free-air model; empty = metadata", "s")
+    model: str = field("", "Free-air model file (free_air.json); overrides free_air")
+    lam: float = field(0.995, "Internal REEP: forgetting factor λ (eq. 3.39)")
+    noise_ratio: float = field(
+        0.03, "Kalman gains: process-noise rms (as static deflection) over measurement-noise rms, σ_w/σ_v"
+    )
+    rms_window_periods: float = field(10.0, "Innovation RMS window, in drive periods")
+    z_bin: float = field(0.5, "Bin width of RMS against z, in the units of z_piezo")
+    min_amplitude_fraction: float = field(
+        0.25, "Automatic design points: only where REEP's amplitude is above this share of the free amplitude"
+    )
+    onset_fraction: float = field(
+        0.1, "Automatic design points: start where the model has moved this share of its change along the leg"
+    )
+    z_tolerance_bins: int = field(0, "Verdict: a filter's RMS minimum may lie this many z bins from its design bin")
+    rms_tolerance: float = field(
+        0.01, "Verdict: or its RMS at the design bin may exceed its minimum by at most this share (flat minima)"
+    )
+    adaptive_fraction: float = field(0.9, "Verdict: share of the time the adaptive observer must have the least RMS")
+    f0_scale: float = field(1.0, "Multiply every bank model's f0 by this: a negative control that must fail")
+    drive_frequency_hz: float = field(0.0, "Drive frequency; 0 = metadata drive, else the free-air f0", "Hz")
+    decimate: int = field(0, "Keep one output sample in N; 0 = one per drive period")
+    warmup_windows: float = field(5.0, "REEP windows 1/(1-λ) left out of the statistics at the start")
+    chunk_samples: int = field(1 << 18, "Samples per streamed chunk (memory against per-chunk overhead)")
+
+    def validate(self) -> None:
+        positive = ("lam", "noise_ratio", "rms_window_periods", "z_bin", "adaptive_fraction", "f0_scale")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be > 0")
+        if not self.lam < 1.0:
+            raise ConfigError(f"lam={self.lam!r} must be in (0, 1)")
+        if self.n_filters < 1:
+            raise ConfigError(f"n_filters={self.n_filters!r} must be >= 1")
+        if self.at_z and self.models:
+            raise ConfigError("give at_z or models, not both")
+        for name in ("min_amplitude_fraction", "onset_fraction", "adaptive_fraction"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be in [0, 1]")
+        for name in ("z_tolerance_bins", "rms_tolerance", "drive_frequency_hz", "decimate", "warmup_windows"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
+        if self.chunk_samples < 16:
+            raise ConfigError(f"chunk_samples={self.chunk_samples!r} must be >= 16")
+        parse_interval(self.free_air, "free_air")
+
+
+@dataclass(frozen=True)
+class ObserverTheoryParams:
+    """``afmtool theory observer``: A_e², sensitivities, SNR and transients of an observer design (ch. 5)."""
+
+    f0_hz: float = field(80318.0, "Nominal (free-air) plant resonance f0", "Hz")
+    q: float = field(168.0, "Nominal plant quality factor")
+    gain: float = field(1.0, "Numerator DC gain: c0 = gain·ω0², c1 = 0 (eq. 5.13), deflection per dither unit")
+    model: str = field("", "Free-air model file (free_air.json); overrides f0_hz, q and gain")
+    f0_low_hz: float = field(0.0, "End of the force-curve direction (on-sample f0'); 0 = from reep or averaging theory", "Hz")
+    q_low: float = field(0.0, "End of the force-curve direction (on-sample Q'); 0 = as f0_low_hz")
+    reep: str = field("", "REEP output folder or reep.h5: the direction ends at its lowest usable amplitude")
+    force_set: str = field("attractive", "Averaging theory direction: thesis force set", choices=_FORCE_SETS)
+    setpoint_fraction: float = field(0.3, "Direction end: amplitude as a share of the free amplitude")
+    free_amplitude_nm: float = field(20.0, "Free-air deflection amplitude at the drive", "nm")
+    drive_frequency_hz: float = field(0.0, "Drive frequency ω/2π; 0 = f0_hz", "Hz")
+    cycles: str = field("4,50", "Observer gains: error time constants in drive periods (aggressive, sluggish)")
+    observers: str = field("", "Directional plots: observer models f0_hz:q,...; empty = free-air and direction end")
+    grid_points: int = field(41, "Points per axis of the 2-D observer-model maps")
+    grid_margin: float = field(0.5, "Maps extend this share of the direction's span beyond its ends")
+    line_points: int = field(101, "Points along the force-curve direction")
+    spring_constant_n_per_m: float = field(2.0, "Spring constant k, for the thermal noise η", "N/m")
+    temperature_k: float = field(300.0, "Temperature of the thermal noise η", "K")
+    measurement_asd: float = field(1.0e-4, "Measurement noise ν, one-sided amplitude spectral density", "nm/sqrt(Hz)")
+    recommend: bool = field(False, "Also pick the model and gain of greatest sensitivity whose transients settle in time")
+    max_cycles: float = field(10.0, "Recommend: the error must settle (below residual) within this many drive periods")
+    residual: float = field(0.36787944117144233, "Settled: the step response stays below this share of the step (1/e)")
+    sample_rate_hz: float = field(500e3, "Recommend: also give the discrete observer (eq. 3.40) at this rate", "Hz")
+
+    def validate(self) -> None:
+        for name in ("f0_hz", "q", "gain", "free_amplitude_nm", "spring_constant_n_per_m", "max_cycles", "sample_rate_hz"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be > 0")
+        for name in ("f0_low_hz", "q_low", "drive_frequency_hz", "temperature_k", "measurement_asd", "grid_margin"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
+        if self.q <= 0.5:
+            raise ConfigError(f"q={self.q!r} must be > 0.5 (an under-damped mode)")
+        if not 0 < self.setpoint_fraction < 1:
+            raise ConfigError(f"setpoint_fraction={self.setpoint_fraction!r} must be in (0, 1)")
+        if not 0 < self.residual < 1:
+            raise ConfigError(f"residual={self.residual!r} must be in (0, 1)")
+        if self.grid_points < 3 or self.line_points < 3:
+            raise ConfigError("grid_points and line_points must be >= 3")
+
+
+@dataclass(frozen=True)
+class GammaParams:
+    """``afmtool identify gamma``: Γ_IR,ts with the feed-through removed (eqs. 6.15, 6.16)."""
+
+    method: str = field(
+        "auto", "Frequency responses: H1 (chirp/broadband), stepped sines, or auto (stepped if both captures "
+        "carry segments metadata)", choices=("auto", "h1", "stepped"),
+    )
+    nperseg: int = field(0, "H1 segment length in samples; 0 = largest power of two <= n/16")
+    min_coherence: float = field(0.9, "Usable band: coherence of Gamma_IR,V and Gamma_ts,V at least this")
+    settle_fraction: float = field(0.5, "Stepped sines: share of each step skipped before the lock-in")
+    min_periods: int = field(4, "Stepped sines: fewest drive periods per step after settling")
+    roll_off_start_factor: float = field(2.0, "Roll-off fitted from this multiple of the bandwidth ...")
+    roll_off_stop_factor: float = field(10.0, "... to this multiple (or the top of the usable band)")
+    chunk_samples: int = field(1 << 18, "Samples per streamed chunk (H1 streams; stepped sines are held)")
+
+    def validate(self) -> None:
+        if self.nperseg != 0 and self.nperseg < 16:
+            raise ConfigError(f"nperseg={self.nperseg!r} must be 0 (auto) or >= 16")
+        if not 0 <= self.min_coherence <= 1:
+            raise ConfigError(f"min_coherence={self.min_coherence!r} must be in [0, 1]")
+        if not 0 <= self.settle_fraction < 1:
+            raise ConfigError(f"settle_fraction={self.settle_fraction!r} must be in [0, 1)")
+        if self.min_periods < 1:
+            raise ConfigError(f"min_periods={self.min_periods!r} must be >= 1")
+        if not 0 < self.roll_off_start_factor < self.roll_off_stop_factor:
+            raise ConfigError(
+                f"roll_off_start_factor={self.roll_off_start_factor!r} must be > 0 and below "
+                f"roll_off_stop_factor={self.roll_off_stop_factor!r}"
+            )
+        if self.chunk_samples < 16:
+            raise ConfigError(f"chunk_samples={self.chunk_samples!r} must be >= 16")
+
+
+@dataclass(frozen=True)
+class DecodeParams:
+    """``afmtool decode``: EKF bit decoder for electrostatically actuated probes (ch. 7)."""
+
+    voltage_channel: str = field("", "Channel holding the lever-sample voltage V; empty = alpha_r*v_r - v_sub (eq. 6.3)")
+    nominal: str = field("", "Nominal (bit-free) segment START:END for l0 and noise; empty = metadata nominal", "s")
+    f0_hz: float = field(0.0, "Resonant frequency f0; 0 = metadata cantilever.f0_hz", "Hz")
+    q: float = field(0.0, "Quality factor Q; 0 = metadata cantilever.q")
+    spring_constant_n_per_m: float = field(0.0, "Spring constant k; 0 = metadata, else eq. 7.10's 0.1404", "N/m")
+    k_esf_f_m: float = field(0.0, "K_esf (no-1/2 convention); 0 = metadata electrostatic, else 1.66e-21", "F*m")
+    alpha_r: float = field(0.0, "alpha_R of V = alpha_R*V_R - V_sub; 0 = metadata electrostatic, else 0.2549")
+    tip_height_nm: float = field(0.0, "Tip height t_h; 0 = metadata electrostatic, else 768.3", "nm")
+    l0_nm: float = field(0.0, "Lever-sample separation l0; 0 = estimate on the nominal segment (§7.4)", "nm")
+    l0_bracket_nm: str = field("", "l0 search bracket LOW:HIGH; empty = 0.75-1.33 x the guess (metadata or 1081.8)", "nm")
+    l0_grid_points: int = field(41, "Coarse grid points of the l0 search before golden-section refinement")
+    process_noise_n_per_rthz: float = field(
+        0.0, "Force-noise ASD of the EKF; 0 = estimate on the nominal segment (mean NIS = 1)", "N/sqrt(Hz)"
+    )
+    measurement_noise_nm: float = field(0.0, "Rms measurement noise; 0 = estimate from the PSD floor of the nominal segment", "nm")
+    temperature_k: float = field(300.0, "Thermal force noise used for the l0 search when the process noise is estimated", "K")
+    warmup_s: float = field(2e-4, "Start of the nominal segment left out of the innovation statistics", "s")
+    actuation_hz: float = field(0.0, "Actuation frequency; 0 = metadata drive, else the strongest line of V^2", "Hz")
+    mean_window: int = field(0, "Running mean of the innovation, samples; 0 = one actuation period")
+    bit_rate_hz: float = field(0.0, "Bit rate; 0 = recover the clock from the transitions", "Hz")
+    bit_rate_min_hz: float = field(1000.0, "Clock recovery: lowest bit rate searched", "Hz")
+    bit_rate_max_hz: float = field(0.0, "Clock recovery: highest bit rate searched; 0 = the actuation frequency", "Hz")
+    bits_from_s: float = field(-1.0, "Start of the bit stream; < 0 = the end of the nominal segment (or 0)", "s")
+    clock_window_s: float = field(0.005, "Clock acquisition window at the start of the bit stream", "s")
+    integrate_fraction: float = field(0.7, "Share of each bit cell integrated (centred)")
+    polarity: str = field(
+        "negative", "Innovation sign of a 1 bit (a raised sample attracts more: negative)", choices=("negative", "positive")
+    )
+    pll_phase_gain: float = field(0.05, "Clock tracking: share of each transition's phase error corrected")
+    pll_rate_gain: float = field(0.001, "Clock tracking: rate correction per transition (recovered rates only)")
+    baseline_lowpass_hz: float = field(0.0, "Lock-in baseline low-pass; 0 = min(bit rate/2, actuation/4)", "Hz")
+    psd_window_s: float = field(0.02, "Stretch of the bit stream used for the PSD comparison plot", "s")
+    eye_traces: int = field(200, "Bit cells drawn in the eye diagram")
+    chunk_samples: int = field(1 << 18, "Samples per streamed chunk (memory against per-chunk overhead)")
+
+    def validate(self) -> None:
+        parse_interval(self.nominal, "nominal")
+        for name in (
+            "f0_hz", "q", "spring_constant_n_per_m", "k_esf_f_m", "alpha_r", "tip_height_nm", "l0_nm",
+            "process_noise_n_per_rthz", "measurement_noise_nm", "temperature_k", "warmup_s", "actuation_hz",
+            "bit_rate_hz", "bit_rate_max_hz", "baseline_lowpass_hz", "mean_window",
+        ):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
+        for name in ("bit_rate_min_hz", "clock_window_s", "psd_window_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be > 0")
+        if 0 < self.q <= 0.5:
+            raise ConfigError(f"q={self.q!r} must be > 0.5 (an under-damped mode)")
+        if self.bit_rate_max_hz and self.bit_rate_max_hz <= self.bit_rate_min_hz:
+            raise ConfigError(f"bit_rate_max_hz={self.bit_rate_max_hz!r} must exceed bit_rate_min_hz={self.bit_rate_min_hz!r}")
+        if self.l0_grid_points < 5:
+            raise ConfigError(f"l0_grid_points={self.l0_grid_points!r} must be >= 5")
+        if self.l0_bracket_nm:
+            parse_bracket_nm(self.l0_bracket_nm)
+        if not 0 < self.integrate_fraction <= 1:
+            raise ConfigError(f"integrate_fraction={self.integrate_fraction!r} must be in (0, 1]")
+        if not 0 <= self.pll_phase_gain < 1 or not 0 <= self.pll_rate_gain < 1:
+            raise ConfigError("pll_phase_gain and pll_rate_gain must be in [0, 1)")
+        if self.eye_traces < 1:
+            raise ConfigError(f"eye_traces={self.eye_traces!r} must be >= 1")
+        if self.chunk_samples < 16:
+            raise ConfigError(f"chunk_samples={self.chunk_samples!r} must be >= 16")
+
+
+def parse_bracket_nm(text: str) -> tuple[float, float]:
+    """``"900:1300"`` -> (900.0, 1300.0) nm, 0 < LOW < HIGH."""
+    low, sep, high = text.partition(":")
+    try:
+        bracket = (float(low), float(high))
+    except ValueError:
+        raise ConfigError(f"l0_bracket_nm={text!r} must look like LOW:HIGH in nm") from None
+    if not sep or not 0 < bracket[0] < bracket[1]:
+        raise ConfigError(f"l0_bracket_nm={text!r} must look like LOW:HIGH with 0 < LOW < HIGH (nm)")
+    return bracket
+
+
+@dataclass(frozen=True)
+class ThermalParams:
+    """``afmtool identify thermal``: g(T), K_TP, K_TP(t_s), C(jω) and H(jω) (§6.5.2, §6.6.2)."""
+
+    breakdown_temperature_c: float = field(550.0, "Breakdown temperature T_k of the sensor (the I-V knee)", "degC")
+    room_temperature_c: float = field(25.0, "Room temperature T_r (the sensor at zero power)", "degC")
+    g_order: int = field(2, "Degree of the polynomial fit of g(T)")
+    g_table_bins: int = field(40, "Temperature bins of the g(T) table")
+    knee_fit_fraction: float = field(0.5, "The knee is fitted on V_R >= this share of the largest V_R")
+    z_bin_nm: float = field(10.0, "Bin width of the K_TP(t_s) table", "nm")
+    method: str = field(
+        "auto", "V_R sweep: H1, stepped sines, or auto (stepped if the capture has segments)",
+        choices=("auto", "h1", "stepped"),
+    )
+    nperseg: int = field(0, "V_R sweep, H1 segment length; 0 = largest power of two <= n/16")
+    min_coherence: float = field(0.9, "V_R sweep: bins with a lower coherence are left out of the summaries")
+    settle_fraction: float = field(0.5, "Stepped sines: share of each step skipped before the lock-in")
+    min_periods: int = field(4, "Stepped sines: fewest drive periods per step after settling")
+    chunk_samples: int = field(1 << 18, "Samples per streamed chunk")
+
+    def validate(self) -> None:
+        if not self.breakdown_temperature_c > self.room_temperature_c:
+            raise ConfigError(
+                f"breakdown_temperature_c={self.breakdown_temperature_c!r} must exceed "
+                f"room_temperature_c={self.room_temperature_c!r}"
+            )
+        if not 1 <= self.g_order <= 6:
+            raise ConfigError(f"g_order={self.g_order!r} must be in 1..6")
+        if self.g_table_bins < 2:
+            raise ConfigError(f"g_table_bins={self.g_table_bins!r} must be >= 2")
+        if not 0 < self.knee_fit_fraction < 1:
+            raise ConfigError(f"knee_fit_fraction={self.knee_fit_fraction!r} must be in (0, 1)")
+        if self.z_bin_nm <= 0:
+            raise ConfigError(f"z_bin_nm={self.z_bin_nm!r} must be > 0")
+        if self.nperseg != 0 and self.nperseg < 16:
+            raise ConfigError(f"nperseg={self.nperseg!r} must be 0 (auto) or >= 16")
+        if not 0 <= self.min_coherence <= 1:
+            raise ConfigError(f"min_coherence={self.min_coherence!r} must be in [0, 1]")
+        if not 0 <= self.settle_fraction < 1:
+            raise ConfigError(f"settle_fraction={self.settle_fraction!r} must be in [0, 1)")
+        if self.min_periods < 1:
+            raise ConfigError(f"min_periods={self.min_periods!r} must be >= 1")
+        if self.chunk_samples < 16:
+            raise ConfigError(f"chunk_samples={self.chunk_samples!r} must be >= 16")
+
+
+@dataclass(frozen=True)
+class ElectrostaticFitParams:
+    """``afmtool identify electrostatic``: eq. 6.6 (optical) or eq. 6.7 (thermal) by nonlinear least squares."""
+
+    sensor: str = field(
+        "auto", "Which curve to fit: optical deflection (eq. 6.6), thermal current through K_TP (eq. 6.7), or auto "
+        "(optical if the capture has deflection)", choices=("auto", "optical", "thermal"),
+    )
+    v_r_v: float = field(0.0, "Sensor voltage V_R; 0 = the mean of the capture's v_r channel", "V")
+    spring_constant_n_per_m: float = field(
+        0.0, "Spring constant k if known (then K_esf is reported); 0 = unknown: only K_esf/k is identifiable", "N/m"
+    )
+    snap_margin: float = field(0.05, "Drop this share of the V_sub range just before snap-in")
+    rank_tolerance: float = field(1e-7, "Relative singular value below which a combination is not identifiable")
+    max_relative_std: float = field(0.1, "Parameters with a larger relative standard deviation are flagged")
+
+    def validate(self) -> None:
+        if self.spring_constant_n_per_m < 0:
+            raise ConfigError(f"spring_constant_n_per_m={self.spring_constant_n_per_m!r} must be >= 0")
+        if not 0 <= self.snap_margin < 1:
+            raise ConfigError(f"snap_margin={self.snap_margin!r} must be in [0, 1)")
+        if not 0 < self.rank_tolerance < 1:
+            raise ConfigError(f"rank_tolerance={self.rank_tolerance!r} must be in (0, 1)")
+        if self.max_relative_std <= 0:
+            raise ConfigError(f"max_relative_std={self.max_relative_std!r} must be > 0")
+
+
 #: Config-file section -> parameter model.
 SECTIONS: dict[str, type] = {
     "identify.freeair": FreeAirParams,
+    "identify.gamma": GammaParams,
+    "identify.thermal": ThermalParams,
+    "identify.electrostatic": ElectrostaticFitParams,
     "reep": ReepParams,
+    "probeloss": ProbeLossParams,
+    "decode": DecodeParams,
     "theory.averaging": AveragingParams,
     "theory.compare": TheoryCompareParams,
+    "kalman-bank": KalmanBankParams,
+    "theory.observer": ObserverTheoryParams,
 }

@@ -17,12 +17,35 @@ simulator alike:
 
 Per unit mass (eq. 7.11): p″ + (ω0/Q)p′ + ω0²p = −ω0²·K_esf·V²/(k·ℓ_s²), since
 F/m = ω0²·F/k.
+
+Static balance before snap-in (eqs. 6.5-6.7)
+--------------------------------------------
+With no tip-sample force, k·p = −K_esf·V²/(ℓ0 + p)² (eq. 6.5, z = 0).  Only
+the ratio ρ = K_esf/k (m³/V²) enters: p(ℓ0 + p)² = −ρV².  On the stable
+branch −ℓ0/3 < p ≤ 0 the left side increases with p, so there is one
+root while ρV² ≤ 4ℓ0³/27 and none beyond, the electrostatic pull-in
+(:func:`stable_deflection_m`).  Eq. 6.7 is the same balance written in the
+tip-sample separation, t_s = ℓ0 + p − t_h.
+
+Small-signal actuation (eqs. 6.13, 6.14)
+----------------------------------------
+Linearising F_esf about (V0, ℓ_s0) gives ∂F/∂p = 2K_esf·V0²/ℓ_s0³ and
+∂F/∂V = −2K_esf·V0/ℓ_s0², hence, with κ = 2K_esf·V0²/(k·ℓ_s0³),
+
+    Γ_p,V(s) = L·ω′²/(s² + (ω′/Q′)s + ω′²),  ω′ = ω0√(1 − κ),
+    Q′ = Q0√(1 − κ),  L = −2K_esf·V0/(k·ℓ_s0²)/(1 − κ)   (m/V),
+
+the thesis's eq. 6.14 with its denominator corrected (NOTES.md) and the
+1/k that eq. 6.13 leaves implicit (it writes the force per unit stiffness)
+made explicit.  The input is V = α_R·V_R − V_sub, so Δt_s/ΔV_sub = −Γ_p,V
+at constant V_R and sample position.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -36,6 +59,11 @@ __all__ = [
     "electrostatic_force_n",
     "electrostatic_force_scalar",
     "static_deflection_polynomial",
+    "thermal_separation_polynomial",
+    "stable_deflection_m",
+    "pull_in_voltage_v",
+    "ActuationSmallSignal",
+    "linearise_actuation",
 ]
 
 
@@ -114,3 +142,128 @@ def static_deflection_polynomial(p_m, voltage_v, params: ElectrostaticParams) ->
     v = np.asarray(voltage_v, dtype=np.float64)
     k, l0 = params.spring_constant_n_per_m, params.l0_m
     return k * p**3 + 2 * l0 * k * p**2 + l0**2 * k * p + params.k_esf_f_m * v * v
+
+
+def thermal_separation_polynomial(separation_m, voltage_v, params: ElectrostaticParams) -> np.ndarray:
+    """Residual of eq. 6.7, k(t_s + t_h − ℓ0)(t_s + t_h)² + K_esf·V², N·m².
+
+    Zero at equilibrium before snap-in, with t_s the tip-sample separation
+    (m) measured by the thermal sensor; the deflection is p = t_s + t_h − ℓ0.
+    """
+    lever = np.asarray(separation_m, dtype=np.float64) + params.tip_height_m
+    v = np.asarray(voltage_v, dtype=np.float64)
+    k = params.spring_constant_n_per_m
+    return k * (lever - params.l0_m) * lever**2 + params.k_esf_f_m * v * v
+
+
+def stable_deflection_m(voltage_v, ratio_m3_per_v2: float, l0_m: float) -> np.ndarray:
+    """The stable root p of p(ℓ0 + p)² = −ρV² (eq. 6.6 divided by k), m.
+
+    Parameters
+    ----------
+    voltage_v : array_like
+        V = α_R·V_R − V_sub, V.
+    ratio_m3_per_v2 : float
+        ρ = K_esf/k, m³/V² (> 0).
+    l0_m : float
+        ℓ0, m (> 0).
+
+    Returns
+    -------
+    numpy.ndarray
+        p in (−ℓ0/3, 0], m; NaN beyond pull-in (ρV² > 4ℓ0³/27).
+
+    Notes
+    -----
+    In x = p/ℓ0 and c = ρV²/ℓ0³ the balance is f(x) = x(1 + x)² + c = 0.
+    On −1/3 ≤ x ≤ 0, f increases (f′ = (1 + x)(1 + 3x) ≥ 0) and is convex
+    (f″ = 6x + 4 > 0), and f(0) = c ≥ 0, so Newton's method from x = 0
+    decreases monotonically onto the root without overshooting it.
+    """
+    if not (math.isfinite(ratio_m3_per_v2) and ratio_m3_per_v2 > 0):
+        raise ConfigError(f"ratio_m3_per_v2={ratio_m3_per_v2!r} must be a finite number > 0")
+    if not (math.isfinite(l0_m) and l0_m > 0):
+        raise ConfigError(f"l0_m={l0_m!r} must be a finite number > 0")
+    v = np.asarray(voltage_v, dtype=np.float64)
+    c = ratio_m3_per_v2 * v * v / l0_m**3
+    x = np.zeros_like(c)
+    for _ in range(200):
+        f = x * (1.0 + x) ** 2 + c
+        df = (1.0 + x) * (1.0 + 3.0 * x)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(df > 0, f / df, 0.0)
+        x = np.maximum(x - step, -1.0 / 3.0)
+        if np.all(np.abs(step) <= 1e-15):
+            break
+    return np.where(c <= 4.0 / 27.0, x * l0_m, np.nan)
+
+
+def pull_in_voltage_v(ratio_m3_per_v2: float, l0_m: float) -> float:
+    """|V| at which the stable branch of eq. 6.6 ends: √(4ℓ0³/(27ρ)), V."""
+    return math.sqrt(4.0 * l0_m**3 / (27.0 * ratio_m3_per_v2))
+
+
+class ActuationSmallSignal(NamedTuple):
+    """Γ_p,V of eq. 6.14 (corrected): ω′/2π (Hz), Q′, L (m/V) and κ."""
+
+    f0_hz: float
+    q: float
+    gain_m_per_v: float
+    stiffness_ratio: float
+
+    def response(self, frequency_hz) -> np.ndarray:
+        """Γ_p,V(j2πf) = L·ω′²/(s² + (ω′/Q′)s + ω′²), m/V (input V = α_R·V_R − V_sub)."""
+        s = 2j * np.pi * np.asarray(frequency_hz, dtype=np.float64)
+        w = 2 * np.pi * self.f0_hz
+        return self.gain_m_per_v * w * w / (s * s + (w / self.q) * s + w * w)
+
+    def tf(self) -> tuple[np.ndarray, np.ndarray]:
+        """(numerator, denominator) of Γ_p,V in descending powers of s (rad/s)."""
+        w = 2 * np.pi * self.f0_hz
+        return np.array([self.gain_m_per_v * w * w]), np.array([1.0, w / self.q, w * w])
+
+
+def linearise_actuation(
+    params: ElectrostaticParams, f0_hz: float, q: float, voltage_v: float, separation_m: float
+) -> ActuationSmallSignal:
+    """Linearise the electrostatically forced lever about (V0, ℓ_s0) (eqs. 6.13, 6.14).
+
+    Parameters
+    ----------
+    params : ElectrostaticParams
+        k and K_esf are used.
+    f0_hz, q : float
+        Free-air f0 (Hz) and Q0 of eq. 6.1.
+    voltage_v : float
+        V0 = α_R·V_R0 − V_sub0, V.
+    separation_m : float
+        ℓ_s0 = ℓ0 + p0 − z, the lever-sample separation at equilibrium, m
+        (> t_h: the lever is off the sample).
+
+    Returns
+    -------
+    ActuationSmallSignal
+
+    Raises
+    ------
+    ConfigError
+        For bad arguments, or κ ≥ 1 (no stable equilibrium: snap-in).
+    """
+    for name, value in (("f0_hz", f0_hz), ("q", q), ("separation_m", separation_m)):
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"{name}={value!r} must be a finite number > 0")
+    if not math.isfinite(voltage_v):
+        raise ConfigError(f"voltage_v={voltage_v!r} must be finite")
+    if separation_m <= params.tip_height_m:
+        raise ConfigError(f"separation_m={separation_m!r} must exceed the tip height {params.tip_height_m!r}")
+    k, kesf = params.spring_constant_n_per_m, params.k_esf_f_m
+    # κ = (∂F/∂p)/k = 2K_esf·V0²/(k·ℓ_s0³)
+    kappa = 2.0 * kesf * voltage_v**2 / (k * separation_m**3)
+    if kappa >= 1.0:
+        raise ConfigError(
+            f"voltage_v={voltage_v!r} at separation_m={separation_m!r} is past snap-in (κ = {kappa:.3g} >= 1)"
+        )
+    root = math.sqrt(1.0 - kappa)
+    # L = (∂F/∂V)/(k(1 − κ)) = −2K_esf·V0/(k·ℓ_s0²(1 − κ))
+    gain = -2.0 * kesf * voltage_v / (k * separation_m**2) / (1.0 - kappa)
+    return ActuationSmallSignal(f0_hz * root, q * root, gain, kappa)

@@ -8,8 +8,11 @@ CLI lists them with :func:`scenario_names`, builds ``--help`` and the
 default TOML from :func:`scenario_parameters`, and runs them with
 :func:`simulate`, which validates the overrides before any work starts.
 
-Built-in scenarios: ``tapping`` (:mod:`afmtool.sim.tapping`) and ``ltv``
-(:mod:`afmtool.sim.ltv`).
+Built-in scenarios: ``tapping`` (:mod:`afmtool.sim.tapping`), ``ltv``
+(:mod:`afmtool.sim.ltv`), ``raster`` (:mod:`afmtool.sim.raster`, ch. 2),
+``thermal-sweep``, ``iv-ramp`` and ``es-approach``
+(:mod:`afmtool.sim.thermal_scenarios`, ch. 6), ``bits`` and ``vphi-step``
+(:mod:`afmtool.sim.bits`, :mod:`afmtool.sim.vphi`, ch. 7).
 """
 
 from __future__ import annotations
@@ -399,3 +402,9 @@ from afmtool.sim import tapping as _tapping  # noqa: E402
 
 register_scenario("tapping", _tapping.TappingParams, _tapping.simulate_tapping)
 register_scenario("ltv", _ltv.LtvParams, _ltv.simulate_ltv)
+
+# These modules register themselves on import.
+from afmtool.sim import bits as _bits  # noqa: E402,F401
+from afmtool.sim import raster as _raster  # noqa: E402,F401
+from afmtool.sim import thermal_scenarios as _thermal_scenarios  # noqa: E402,F401
+from afmtool.sim import vphi as _vphi  # noqa: E402,F401

@@ -1,0 +1,810 @@
+"""``afmtool decode``: bits from an electrostatically actuated probe by the EKF innovation (ch. 7).
+
+capture → nominal segment (read ahead) → measurement noise (PSD floor),
+ℓ0 (§7.4: innovation RMS minimised on a grid, then golden section), process
+noise (mean NIS = 1) → chunks → EKF kernel (eqs. 7.11-7.15) → innovation
+and its running mean → clock acquisition on the first ``clock_window_s`` of
+the bit stream, then integrate-and-dump with a tracking clock → two-class
+threshold → bits.  Beside it, the lock-in amplitude of the deflection at
+the actuation frequency is integrated over the same cells: the baseline.
+Every filter carries its state across chunks, so the result does not depend
+on the chunk size; memory is flat apart from one value per bit.
+
+The voltage is V = α_R·V_R − V_sub from the ``v_r`` and ``v_sub`` channels
+(eq. 6.3), or a channel named by ``voltage_channel``.  Model parameters
+come from the parameters, else the capture metadata (``cantilever``,
+``electrostatic``), else the thesis's values (eq. 7.10); the report says
+which.  Units: deflection in nm, K_esf in F·m with F = −K_esf·V²/ℓ² (no ½).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from afmtool.analyses.freeair import read_segment, replay_held
+from afmtool.config.params import DecodeParams, parse_bracket_nm, parse_interval
+from afmtool.errors import ConfigError, InputError
+from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
+from afmtool.io.chunks import iter_chunks
+from afmtool.io.results import ResultWriter
+from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, actuation_voltage
+
+if TYPE_CHECKING:  # numba and scipy load when a decode runs, not on import
+    from afmtool.estimators.lockin import LockIn
+
+__all__ = [
+    "DecodeResult",
+    "run_decode",
+    "BitErrors",
+    "bit_errors",
+    "ber_upper_bound",
+    "ModelSetup",
+    "resolve_model",
+    "SERIES_UNITS",
+]
+
+#: Series written, with units: ``t`` and ``innovation`` per sample; the running mean of the
+#: innovation (over one actuation period) at the end of each period, ``t_mean`` and ``innovation_mean``.
+SERIES_UNITS = {"t": "s", "innovation": "nm", "t_mean": "s", "innovation_mean": "nm"}
+
+#: Hysteresis levels of the transition detector, as shares of the two-class span.
+_HYSTERESIS = (0.3, 0.7)
+#: Transition smoothing: this share of one bit cell.
+_SMOOTH_SHARE = 0.25
+#: Welch segment of the PSD plot, samples.
+_PSD_NPERSEG = 4096
+#: Smallest measurement noise the EKF assumes, nm (a noise-free capture would make R = 0).
+_MIN_MEASUREMENT_NOISE_NM = 1e-4
+
+
+# --------------------------------------------------------------------------- model
+
+
+class ModelSetup(NamedTuple):
+    """The plant the EKF models before ℓ0 is estimated, and where each value came from."""
+
+    f0_hz: float
+    q: float
+    electrostatic: ElectrostaticParams  #: its l0_m is the guess (metadata, parameter or thesis)
+    sources: dict  #: parameter name -> "parameter", "metadata" or "thesis (eq. 7.10)"
+
+
+def _pick(name: str, given: float, meta: Mapping, key: str, default: float | None, scale: float = 1.0):
+    if given:
+        return given * scale, "parameter"
+    if key in meta:
+        try:
+            value = float(meta[key])
+        except (TypeError, ValueError):
+            raise InputError(f"metadata {key}={meta[key]!r} is not a number") from None
+        return value, "metadata"
+    if default is None:
+        raise ConfigError(f"give {name} in the [decode] section of --config (the capture metadata has no {key})")
+    return default, "thesis (eq. 7.10)"
+
+
+def resolve_model(info: CaptureInfo, params: DecodeParams) -> ModelSetup:
+    """f0, Q, k, K_esf, α_R, t_h and an ℓ0 guess from parameters, metadata or the thesis."""
+    cantilever = info.metadata.get("cantilever", {})
+    es_meta = info.metadata.get("electrostatic", {})
+    if not isinstance(cantilever, Mapping) or not isinstance(es_meta, Mapping):
+        raise InputError("metadata cantilever and electrostatic must be objects")
+    th = THESIS_CH7_PARAMS
+    sources = {}
+    f0, sources["f0_hz"] = _pick("f0_hz", params.f0_hz, cantilever, "f0_hz", None)
+    q, sources["q"] = _pick("q", params.q, cantilever, "q", None)
+    k, sources["spring_constant_n_per_m"] = _pick(
+        "spring_constant_n_per_m", params.spring_constant_n_per_m, cantilever, "spring_constant_n_per_m",
+        th.spring_constant_n_per_m,
+    )
+    k_esf, sources["k_esf_f_m"] = _pick("k_esf_f_m", params.k_esf_f_m, es_meta, "k_esf_f_m", th.k_esf_f_m)
+    alpha, sources["alpha_r"] = _pick("alpha_r", params.alpha_r, es_meta, "alpha_r", th.alpha_r)
+    tip, sources["tip_height_nm"] = _pick("tip_height_nm", params.tip_height_nm, es_meta, "tip_height_m",
+                                          th.tip_height_m, 1e-9)
+    l0, sources["l0_guess_nm"] = _pick("l0_nm", params.l0_nm, es_meta, "l0_m", th.l0_m, 1e-9)
+    if params.voltage_channel:
+        sources["alpha_r"] = "unused (voltage channel)"
+    return ModelSetup(f0, q, ElectrostaticParams(k, k_esf, alpha, l0, tip), sources)
+
+
+# --------------------------------------------------------------------------- truth
+
+
+class BitErrors(NamedTuple):
+    """Decoded bits against the ground truth."""
+
+    compared: int  #: decoded bits that fall on a truth bit cell
+    errors: int
+    ber: float  #: errors/compared (NaN if none compared)
+    lag_samples: int  #: latency from the truth cell to the decoded centre (the alignment chosen)
+    inverted: bool  #: the polarity was flipped (baseline only)
+    confusion: dict  #: counts "truth0_decoded0", "truth0_decoded1", "truth1_decoded0", "truth1_decoded1"
+
+
+def bit_errors(
+    bits: np.ndarray,
+    centre_samples: np.ndarray,
+    truth_bit: np.ndarray,
+    truth_index: np.ndarray,
+    *,
+    max_lag: int,
+    allow_inversion: bool = False,
+) -> BitErrors:
+    """Compare decoded bits with the truth after aligning the latency.
+
+    Decoded bit i (centre c_i, samples of the signal it was decoded from) is
+    compared with the truth bit under the tip at sample round(c_i − L).  The
+    latency L ∈ [0, max_lag] is the one with the fewest errors (a BER
+    tester's pattern alignment; ties: the middle of the best range).  With
+    ``allow_inversion`` the polarity is chosen the same way.
+
+    Parameters
+    ----------
+    bits : numpy.ndarray
+        Decoded bits (0/1).
+    centre_samples : numpy.ndarray
+        Their centres, samples from the capture start.
+    truth_bit, truth_index : numpy.ndarray
+        Per-sample truth: the bit under the tip and its cell (−1 outside).
+    max_lag : int
+        Largest latency tried, samples.
+    allow_inversion : bool, optional
+        Also try the inverted bits.
+    """
+    bits = np.asarray(bits).astype(bool)
+    centres = np.asarray(centre_samples, dtype=np.float64)
+    truth_bit = np.asarray(truth_bit).astype(bool)
+    truth_index = np.asarray(truth_index)
+    n = truth_bit.size
+    best = None
+    for lag in range(max_lag + 1):
+        idx = np.rint(centres - lag).astype(np.int64)
+        ok = (idx >= 0) & (idx < n)
+        ok[ok] &= truth_index[idx[ok]] >= 0
+        if not ok.any():
+            continue
+        truth = truth_bit[idx[ok]]
+        decoded = bits[ok]
+        for inverted in (False, True) if allow_inversion else (False,):
+            errors = int(np.count_nonzero((decoded ^ inverted) != truth))
+            rate = errors / ok.sum()
+            if best is None or rate < best[0] - 1e-15:
+                best = (rate, [(lag, inverted, errors, int(ok.sum()))])
+            elif abs(rate - best[0]) <= 1e-15:
+                best[1].append((lag, inverted, errors, int(ok.sum())))
+    if best is None:
+        return BitErrors(0, 0, math.nan, 0, False, {})
+    lag, inverted, errors, compared = best[1][len(best[1]) // 2]
+    idx = np.rint(centres - lag).astype(np.int64)
+    ok = (idx >= 0) & (idx < n)
+    ok[ok] &= truth_index[idx[ok]] >= 0
+    truth = truth_bit[idx[ok]]
+    decoded = bits[ok] ^ inverted
+    confusion = {
+        f"truth{t}_decoded{d}": int(np.count_nonzero((truth == bool(t)) & (decoded == bool(d))))
+        for t in (0, 1) for d in (0, 1)
+    }
+    return BitErrors(compared, errors, errors / compared, int(lag), bool(inverted), confusion)
+
+
+def ber_upper_bound(errors: int, compared: int, confidence: float = 0.95) -> float:
+    """One-sided Clopper-Pearson upper bound of a bit error rate: ``errors`` in ``compared`` bits.
+
+    For no errors it is 1 − (1 − confidence)^(1/n) ≈ 3/n at 95 % (the rule of three).
+    """
+    from scipy.stats import beta
+
+    if not 0 <= errors <= compared or compared < 1:
+        raise ConfigError(f"errors={errors!r} and compared={compared!r} must satisfy 0 <= errors <= compared, compared >= 1")
+    if errors == compared:
+        return 1.0
+    return float(beta.ppf(confidence, errors + 1, compared - errors))
+
+
+# --------------------------------------------------------------------------- result
+
+
+@dataclass(frozen=True)
+class DecodeResult:
+    """What :func:`run_decode` found; the command turns it into files and a report."""
+
+    results: dict
+    warnings: tuple[str, ...]
+    l0_curve_nm: tuple[np.ndarray, np.ndarray] | None  #: (ℓ0, innovation RMS), nm
+    psd: dict = field(default_factory=dict)  #: frequency_hz, deflection, innovation (nm²/Hz)
+    eye: dict = field(default_factory=dict)  #: x (bit periods), traces (2-D, nm), threshold_nm
+
+
+# --------------------------------------------------------------------------- setup helpers
+
+
+def _nominal_interval(info: CaptureInfo, params: DecodeParams) -> tuple[float, float] | None:
+    interval = parse_interval(params.nominal, "--nominal")
+    if interval is None and "nominal" in info.metadata:
+        meta = info.metadata["nominal"]
+        try:
+            interval = (float(meta["start_s"]), float(meta["end_s"]))
+        except (KeyError, TypeError, ValueError):
+            raise InputError("metadata nominal must hold start_s and end_s (s)") from None
+    return interval
+
+
+def _voltage(data: Mapping[str, np.ndarray], params: DecodeParams, alpha_r: float) -> np.ndarray:
+    if params.voltage_channel:
+        return data[params.voltage_channel]
+    return actuation_voltage(data["v_r"], data["v_sub"], alpha_r)
+
+
+def _actuation_hz(info: CaptureInfo, params: DecodeParams, voltage: np.ndarray) -> tuple[float, str]:
+    if params.actuation_hz:
+        return params.actuation_hz, "parameter"
+    drive = info.metadata.get("drive", {})
+    if isinstance(drive, Mapping) and "frequency_hz" in drive:
+        return float(drive["frequency_hz"]), "metadata"
+    from scipy.signal import welch
+
+    v2 = voltage * voltage
+    freqs, power = welch(v2 - v2.mean(), fs=info.sample_rate_hz, nperseg=min(len(v2), 1 << 14))
+    power[freqs < 100.0] = 0.0
+    if not power.any():
+        raise InputError("the voltage has no AC line to take the actuation frequency from; give --actuation-hz")
+    return float(freqs[int(np.argmax(power))]), "strongest line of V^2"
+
+
+class _Tuning(NamedTuple):
+    model: object  # EkfModel
+    results: dict
+    l0_curve_nm: tuple[np.ndarray, np.ndarray] | None
+    warnings: list
+
+
+def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: int) -> _Tuning:
+    """Measurement noise, ℓ0 and process noise: given, or from the nominal segment."""
+    from afmtool.estimators.ekf import EkfModel, thermal_force_asd
+    from afmtool.estimators.ekf_tuning import (
+        estimate_l0,
+        estimate_measurement_noise,
+        estimate_process_noise,
+        innovation_stats,
+    )
+
+    warnings: list[str] = []
+    es = setup.electrostatic
+    thermal = thermal_force_asd(es.spring_constant_n_per_m, setup.f0_hz, setup.q, params.temperature_k) \
+        if params.temperature_k > 0 else 0.0
+    noise: dict = {"thermal_force_asd_n_per_rthz": thermal, "temperature_k": params.temperature_k}
+    if segment is None:
+        missing = [n for n, v in (("l0_nm", params.l0_nm), ("measurement_noise_nm", params.measurement_noise_nm),
+                                  ("process_noise_n_per_rthz", params.process_noise_n_per_rthz)) if not v]
+        if missing:
+            raise ConfigError(
+                f"no nominal segment (give --nominal START:END or capture metadata nominal) to estimate "
+                f"{', '.join(missing)}; or give them"
+            )
+    y, v = segment if segment is not None else (None, None)
+    if params.measurement_noise_nm:
+        r_nm, noise["measurement_source"] = params.measurement_noise_nm, "parameter"
+    else:
+        if 0.3 * fs < 3.0 * setup.f0_hz:
+            raise ConfigError(
+                f"the PSD floor above 0.3·fs = {0.3 * fs:g} Hz is not clear of the resonance f0 = {setup.f0_hz:g} Hz; "
+                "give --measurement-noise"
+            )
+        r_nm, noise["measurement_source"] = estimate_measurement_noise(y, fs), "PSD floor of the nominal segment"
+        if not r_nm >= _MIN_MEASUREMENT_NOISE_NM:
+            warnings.append(
+                f"the deflection's noise floor is {r_nm:.3g} nm (a noise-free capture?); the EKF assumes "
+                f"{_MIN_MEASUREMENT_NOISE_NM:g} nm"
+            )
+            r_nm = _MIN_MEASUREMENT_NOISE_NM
+    noise["measurement_noise_nm"] = r_nm
+    q_start = params.process_noise_n_per_rthz or thermal
+    if not q_start > 0:
+        raise ConfigError("the process noise is 0: give --process-noise or a temperature_k > 0")
+    model = EkfModel(setup.f0_hz, setup.q, es, q_start, r_nm)
+    l0_result: dict
+    curve = None
+    if params.l0_nm:
+        l0_result = {"estimate_nm": params.l0_nm, "source": "parameter"}
+    else:
+        if params.l0_bracket_nm:
+            low, high = parse_bracket_nm(params.l0_bracket_nm)
+        else:
+            guess = es.l0_m * 1e9
+            low, high = max(0.75 * guess, 1.01 * es.tip_height_m * 1e9), 1.33 * guess
+        search = estimate_l0(
+            model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup
+        )
+        model = model.with_l0(search.l0_m)
+        curve = (search.curve_l0_m * 1e9, search.curve_rms_nm)
+        l0_result = {
+            "estimate_nm": search.l0_m * 1e9,
+            "source": "innovation RMS minimum on the nominal segment (§7.4)",
+            "rms_at_minimum_nm": search.rms_nm,
+            "bracket_nm": [low, high],
+            "grid_points": search.grid_points,
+            "evaluations": int(search.curve_l0_m.size),
+            "unique_minimum": search.unique,
+            "process_noise_used_n_per_rthz": q_start,
+        }
+        if not search.unique:
+            warnings.append(f"l0: no unique minimum of the innovation RMS: {search.note}")
+    if params.process_noise_n_per_rthz:
+        noise["process_noise_n_per_rthz"], noise["process_source"] = params.process_noise_n_per_rthz, "parameter"
+    else:
+        fit = estimate_process_noise(model, y, v, fs, warmup=warmup)
+        model = model.with_noise(fit.asd_n_per_rthz, r_nm)
+        noise["process_noise_n_per_rthz"] = fit.asd_n_per_rthz
+        noise["process_source"] = "mean NIS = 1 on the nominal segment"
+        if fit.clamped:
+            warnings.append(
+                f"process noise: no consistent level in the search range (mean NIS {fit.mean_nis:.3g}); "
+                f"using {fit.asd_n_per_rthz:.3g} N/sqrt(Hz)"
+            )
+    if segment is not None:
+        stats = innovation_stats(model, y, v, fs, warmup)
+        noise["nominal_innovation_rms_nm"] = stats.rms_nm
+        noise["nominal_mean_nis"] = stats.mean_nis
+    return _Tuning(model, {"l0": l0_result, "noise": noise}, curve, warnings)
+
+
+def _group_delay_samples(lowpass_hz: float, order: int, fs: float) -> float:
+    """Low-frequency group delay of the lock-in's Butterworth low-pass, samples."""
+    from scipy.signal import butter, group_delay
+
+    b, a = butter(order, lowpass_hz, fs=fs)
+    _, delay = group_delay((b, a), w=[lowpass_hz / 100.0], fs=fs)
+    return float(delay[0])
+
+
+# --------------------------------------------------------------------------- bit stage
+
+
+class _BitStage:
+    """Clock acquisition on a held window, then the streaming slicer; collects the cells."""
+
+    def __init__(self, fs: float, start: int, params: DecodeParams, actuation_hz: float,
+                 delay_primary: int, delay_aux: int) -> None:
+        self.fs = fs
+        self.start = start
+        self.params = params
+        self.rate_max = params.bit_rate_max_hz or actuation_hz
+        self.delays = (delay_primary, delay_aux)
+        self.window = max(1, int(round(params.clock_window_s * fs)))
+        self.pending: list[tuple[np.ndarray, np.ndarray]] = []
+        self.pending_n = 0
+        self.config = None
+        self.state = None
+        self.clock = None
+        self.centres: list[np.ndarray] = []
+        self.soft: list[np.ndarray] = []
+        self.aux: list[np.ndarray] = []
+        self.eye_x = np.linspace(-1.0, 1.0, 81)
+        self.eye_traces = np.empty((0, self.eye_x.size))
+
+    def feed(self, chunk_start: int, primary: np.ndarray, aux: np.ndarray) -> None:
+        skip = max(0, self.start - chunk_start)
+        if skip >= len(primary):
+            return
+        primary, aux = primary[skip:], aux[skip:]
+        if self.state is None:
+            self.pending.append((primary, aux))
+            self.pending_n += len(primary)
+            if self.pending_n >= self.window:
+                self._acquire()
+            return
+        self._slice(primary, aux)
+
+    def finish(self) -> None:
+        if self.state is None and self.pending_n:
+            self._acquire()
+
+    def _slice(self, primary: np.ndarray, aux: np.ndarray):
+        from afmtool.estimators.bitslicer import slicer_update
+
+        step = slicer_update(self.config, self.state, primary, aux)
+        self.state = step.state
+        self.centres.append(step.block.centre_samples + self.start)
+        self.soft.append(step.block.soft_primary)
+        self.aux.append(step.block.soft_aux)
+        return step.block
+
+    def _acquire(self) -> None:
+        from afmtool.estimators.bitslicer import (
+            SlicerConfig,
+            SlicerState,
+            acquire_clock,
+            moving_average,
+            slicer_update,
+            two_class_threshold,
+        )
+
+        params = self.params
+        primary_all = np.concatenate([p for p, _ in self.pending])
+        aux_all = np.concatenate([a for _, a in self.pending])
+        self.pending = []
+        # the clock and levels come from exactly the first `window` samples, whatever the chunking
+        primary, aux = primary_all[: self.window], aux_all[: self.window]
+        period_guess = self.fs / (params.bit_rate_hz or self.rate_max)
+        smooth = max(1, int(round(_SMOOTH_SHARE * period_guess)))
+        try:
+            levels = two_class_threshold(moving_average(primary, smooth)[smooth:])
+        except InputError:
+            raise InputError(
+                f"bit clock: the innovation is constant over the first {len(primary) / self.fs * 1e3:.3g} ms "
+                f"of the bit stream (from {self.start / self.fs:g} s); no bits to find"
+            ) from None
+        span = levels.high_centre - levels.low_centre
+        config = SlicerConfig(
+            lo=levels.low_centre + _HYSTERESIS[0] * span,
+            mid=levels.threshold,
+            hi=levels.low_centre + _HYSTERESIS[1] * span,
+            smooth=smooth,
+            fraction=params.integrate_fraction,
+            phase_gain=params.pll_phase_gain,
+            rate_gain=0.0 if params.bit_rate_hz else params.pll_rate_gain,
+            delay_primary=self.delays[0],
+            delay_aux=self.delays[1],
+        )
+        found = slicer_update(config, SlicerState.unlocked(config), primary, aux).block.transitions_samples
+        try:
+            self.clock = acquire_clock(
+                found, self.fs, rate_hz=params.bit_rate_hz, rate_range_hz=(params.bit_rate_min_hz, self.rate_max)
+            )
+        except InputError as exc:
+            raise InputError(
+                f"bit clock: {exc} in the first {len(primary) / self.fs * 1e3:.3g} ms of the bit stream "
+                f"(from {self.start / self.fs:g} s); check --bits-from, --clock-window or --bit-rate"
+            ) from None
+        self.config = config
+        self.state = SlicerState.locked_to(config, self.clock)
+        block = self._slice(primary, aux)
+        if primary_all.size > primary.size:
+            self._slice(primary_all[primary.size :], aux_all[primary.size :])
+        period = self.clock.period_samples
+        centres = block.centre_samples
+        usable = centres[(centres - period >= 0) & (centres + period <= len(primary) - 1)]
+        usable = usable[: params.eye_traces]
+        grid = usable[:, None] + self.eye_x[None, :] * period
+        self.eye_traces = np.interp(grid.ravel(), np.arange(len(primary)), primary).reshape(grid.shape)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        join = lambda parts: np.concatenate(parts) if parts else np.empty(0)  # noqa: E731
+        return join(self.centres), join(self.soft), join(self.aux)
+
+
+class _Hold:
+    """Sample-and-hold of a signal kept at capture indices n with (n + 1) % keep == 0 (LockIn's rule)."""
+
+    def __init__(self, keep: int) -> None:
+        self.keep = keep
+        self.last = 0.0
+
+    def __call__(self, start: int, n: int, kept: np.ndarray) -> np.ndarray:
+        first = (-(start + 1)) % self.keep
+        out = np.empty(n)
+        out[: min(first, n)] = self.last
+        if kept.size:
+            out[first:] = np.repeat(kept, self.keep)[: n - first]
+            self.last = float(kept[-1])
+        return out
+
+
+class _PsdBuffer:
+    """The first ``limit`` samples of the raw deflection and the innovation from ``start`` on."""
+
+    def __init__(self, start: int, limit: int) -> None:
+        self.start, self.limit = start, limit
+        self.parts: list[tuple[np.ndarray, np.ndarray]] = []
+        self.n = 0
+
+    def feed(self, chunk_start: int, deflection: np.ndarray, innovation: np.ndarray) -> None:
+        if self.n >= self.limit:
+            return
+        skip = max(0, self.start - chunk_start)
+        take = min(len(deflection) - skip, self.limit - self.n)
+        if take > 0:
+            self.parts.append((deflection[skip : skip + take].copy(), innovation[skip : skip + take].copy()))
+            self.n += take
+
+    def spectra(self, fs: float) -> dict:
+        from scipy.signal import welch
+
+        if self.n < 2 * _PSD_NPERSEG // 4:
+            return {}
+        deflection = np.concatenate([d for d, _ in self.parts])
+        innovation = np.concatenate([e for _, e in self.parts])
+        nperseg = min(_PSD_NPERSEG, self.n)
+        freqs, p_defl = welch(deflection, fs=fs, nperseg=nperseg)
+        _, p_innov = welch(innovation, fs=fs, nperseg=nperseg)
+        return {"frequency_hz": freqs, "deflection": p_defl, "innovation": p_innov, "samples": self.n}
+
+
+# --------------------------------------------------------------------------- run
+
+
+def run_decode(
+    reader: CaptureReader,
+    params: DecodeParams,
+    writer: ResultWriter,
+    *,
+    progress: Callable[[int], None] | None = None,
+) -> DecodeResult:
+    """Decode the bits of a capture, streaming, and write the per-sample series.
+
+    Parameters
+    ----------
+    reader : CaptureReader
+        Needs ``deflection`` (nm) and ``v_sub``, ``v_r`` (V), or the channel
+        ``params.voltage_channel`` (V).
+    params : DecodeParams
+        Effective parameters.
+    writer : ResultWriter
+        Receives ``t`` and ``innovation`` per sample, ``t_mean`` and
+        ``innovation_mean`` once per running-mean window, and
+        ``bit_times_s``, ``bits``, ``soft``, ``baseline_soft``,
+        ``baseline_bits`` and the ℓ0 curve as whole arrays.
+
+    Returns
+    -------
+    DecodeResult
+    """
+    from afmtool.estimators.ekf import discretise
+
+    info = reader.info
+    fs = info.sample_rate_hz
+    setup = resolve_model(info, params)
+    if setup.f0_hz >= fs / 2:
+        raise InputError(f"f0 = {setup.f0_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
+    channels = ("deflection",) + ((params.voltage_channel,) if params.voltage_channel else ("v_sub", "v_r"))
+    chunks: Iterator[Chunk] = iter_chunks(reader, channels, params.chunk_samples, progress=progress)
+    nominal = _nominal_interval(info, params)
+    segment = None
+    if nominal is not None:
+        held, chunks = read_segment(chunks, channels, round(nominal[0] * fs), round(nominal[1] * fs))
+        segment = (held["deflection"], _voltage(held, params, setup.electrostatic.alpha_r))
+        del held
+    first = next(chunks, None)
+    if first is None:
+        raise InputError(f"{info.source}: the capture has no samples")
+    probe = segment[1] if segment is not None else _voltage(first.data, params, setup.electrostatic.alpha_r)
+    actuation_hz, actuation_source = _actuation_hz(info, params, probe)
+    if not 0 < actuation_hz < fs / 2:
+        raise InputError(f"actuation frequency {actuation_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
+    mean_window = params.mean_window or max(1, int(round(fs / actuation_hz)))
+    warmup = int(round(params.warmup_s * fs))
+    if segment is not None and warmup >= len(segment[0]) // 2:
+        raise ConfigError(f"warmup_s={params.warmup_s!r} leaves too little of the {len(segment[0])}-sample nominal segment")
+    tuning = _tune(setup, params, fs, segment, warmup)
+    del segment, probe
+    design = discretise(tuning.model, fs, mean_window)
+    if params.bits_from_s >= 0:
+        bits_start = int(round(params.bits_from_s * fs))
+    else:
+        bits_start = round(nominal[1] * fs) if nominal is not None else 0
+    baseline = _Baseline.create(params, fs, actuation_hz, mean_window)
+    stage = _BitStage(fs, bits_start, params, actuation_hz, baseline.delay_primary, baseline.delay_aux)
+    psd = _PsdBuffer(bits_start, int(round(params.psd_window_s * fs)))
+    totals = _stream(replay_held([first], chunks), design, baseline, stage, psd, writer, params, setup, bits_start)
+    warnings = list(tuning.warnings)
+    decided = _decide(stage, params, mean_window, writer, warnings)
+    if tuning.l0_curve_nm is not None:
+        writer.put("l0_search/l0_nm", tuning.l0_curve_nm[0], "nm")
+        writer.put("l0_search/innovation_rms_nm", tuning.l0_curve_nm[1], "nm")
+    results: dict = {
+        "model": _model_results(setup, params),
+        "nominal_segment_s": list(nominal) if nominal is not None else None,
+        **tuning.results,
+        "ekf": {
+            "sample_rate_hz": fs,
+            "actuation_hz": actuation_hz,
+            "actuation_source": actuation_source,
+            "mean_window_samples": mean_window,
+            "bit_stream_innovation_rms_nm": totals.bit_stream_rms_nm,
+        },
+        **decided.results,
+        "baseline": {**baseline.results(), **decided.baseline_results},
+        "n_samples": totals.n_samples,
+        "duration_s": totals.n_samples / fs,
+    }
+    results["clock"]["bits_from_s"] = bits_start / fs
+    _compare_truth(reader, results, decided, stage.clock.period_samples, 0.5 * (mean_window - 1))
+    eye = {"x": stage.eye_x, "traces": stage.eye_traces, "threshold_nm": decided.threshold_nm}
+    eye = eye if stage.eye_traces.size else {}
+    return DecodeResult(results, tuple(warnings), tuning.l0_curve_nm, psd.spectra(fs), eye)
+
+
+def _model_results(setup: ModelSetup, params: DecodeParams) -> dict:
+    es = setup.electrostatic
+    return {
+        "f0_hz": setup.f0_hz,
+        "q": setup.q,
+        "spring_constant_n_per_m": es.spring_constant_n_per_m,
+        "k_esf_f_m": es.k_esf_f_m,
+        "alpha_r": es.alpha_r,
+        "tip_height_nm": es.tip_height_m * 1e9,
+        "l0_guess_nm": es.l0_m * 1e9,
+        "sources": setup.sources,
+        "convention": "F_esf = -K_esf*V^2/(l0 + p)^2 (no 1/2), K_esf in F*m; EKF state [p (nm), dp/dt (nm/s)]",
+        "voltage": params.voltage_channel or "alpha_r*v_r - v_sub",
+    }
+
+
+@dataclass(frozen=True)
+class _Baseline:
+    """The lock-in amplitude baseline: demodulator, decimation and its alignment to the innovation."""
+
+    lockin: LockIn
+    keep: int  #: amplitude kept 1 sample in `keep`, held in between
+    delay_primary: int  #: samples the innovation mean is delayed by to line up with the amplitude
+    delay_aux: int  #: samples the amplitude is delayed by (one of the two is 0)
+
+    @classmethod
+    def create(cls, params: DecodeParams, fs: float, actuation_hz: float, mean_window: int) -> _Baseline:
+        from afmtool.estimators.lockin import LockIn
+
+        rate = params.bit_rate_hz or params.bit_rate_max_hz or actuation_hz / 2
+        lowpass_hz = params.baseline_lowpass_hz or min(rate / 2, actuation_hz / 4)
+        lockin = LockIn(actuation_hz, fs, lowpass_hz)
+        # band-limited to the low-pass: keep ≥ 16 samples per low-pass period, hold in between
+        keep = int(min(max(fs / (16.0 * lowpass_hz), 1.0), 8.0))
+        # the amplitude lags by the low-pass group delay and half the hold; the mean by half its window
+        lag = _group_delay_samples(lowpass_hz, lockin.order, fs) + 0.5 * (keep - 1) - 0.5 * (mean_window - 1)
+        if lag > 0:
+            return cls(lockin, keep, int(round(lag)), 0)
+        return cls(lockin, keep, 0, int(round(-lag)))
+
+    def results(self) -> dict:
+        return {
+            "method": "lock-in amplitude of the deflection at the actuation frequency, integrated over the same cells",
+            "lockin_lowpass_hz": self.lockin.lowpass_hz,
+            "lockin_order": self.lockin.order,
+            "amplitude_kept_every": self.keep,
+            "alignment_delay_samples": self.delay_primary - self.delay_aux,
+        }
+
+
+class _Totals(NamedTuple):
+    n_samples: int
+    bit_stream_rms_nm: float | None
+
+
+def _stream(chunks, design, baseline: _Baseline, stage: _BitStage, psd: _PsdBuffer, writer,  # noqa: PLR0913
+            params: DecodeParams, setup: ModelSetup, bits_start: int) -> _Totals:
+    """EKF and lock-in over every chunk; the lock-in runs in a worker thread (both kernels release the GIL)."""
+    from afmtool.estimators.ekf import EkfState, ekf_update
+
+    fs = design.sample_rate_hz
+    window = design.mean_window
+    ekf_state = EkfState.initial(design, stats_from=bits_start)  # the kernel sums ε² over the bit stream
+    lock_state = baseline.lockin.initial_state(1)
+    held = _Hold(baseline.keep)
+    n_total = 0
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for chunk in chunks:
+            y = chunk.data["deflection"]
+            n = len(y)
+            demodulating = pool.submit(baseline.lockin.process, (y,), lock_state, baseline.keep)
+            step = ekf_update(design, ekf_state, y, _voltage(chunk.data, params, setup.electrostatic.alpha_r))
+            ekf_state = step.state
+            innovation, mean = step.block
+            writer.append({"t": np.arange(chunk.start, chunk.start + n) * (1.0 / fs), "innovation": innovation})
+            kept = np.arange((-(chunk.start + 1)) % window, n, window)
+            writer.append({"t_mean": (chunk.start + kept) / fs, "innovation_mean": mean[kept]})
+            psd.feed(chunk.start, y, innovation)
+            (demod,), lock_state = demodulating.result()
+            stage.feed(chunk.start, mean, held(chunk.start, n, demod.amplitude))
+            n_total = chunk.start + n
+    stage.finish()
+    if stage.clock is None:
+        raise InputError(f"the bit stream (from {bits_start / fs:g} s) is empty; check --bits-from")
+    stats = ekf_state.stats()
+    return _Totals(n_total, stats.rms_nm if stats.count else None)
+
+
+class _Decided(NamedTuple):
+    bits: np.ndarray
+    baseline_bits: np.ndarray
+    centres: np.ndarray  #: cell centres, samples of the innovation running mean
+    threshold_nm: float
+    results: dict  #: "clock" and "bits"
+    baseline_results: dict
+
+
+def _decide(stage: _BitStage, params: DecodeParams, mean_window: int, writer, warnings: list) -> _Decided:
+    """Two-class thresholds, bits, and the per-bit arrays of decode.h5."""
+    from afmtool.estimators.bitslicer import two_class_threshold
+
+    centres, soft, soft_aux = stage.arrays()
+    finite = np.isfinite(soft)
+    if finite.sum() < 2:
+        raise InputError(f"only {int(finite.sum())} complete bit cells were decoded")
+    if (~finite).any():
+        warnings.append(f"{int((~finite).sum())} bit cells had no samples to integrate (clock jumps); their bits are 0")
+    levels = two_class_threshold(soft)
+    one_low = params.polarity == "negative"
+    bits = ((soft < levels.threshold) if one_low else (soft >= levels.threshold)).astype(np.uint8)
+    base_levels = two_class_threshold(soft_aux)
+    base_bits = (soft_aux >= base_levels.threshold).astype(np.uint8)
+    bit_times = (centres - 0.5 * (mean_window - 1)) / stage.fs
+    writer.put("bit_times_s", bit_times, "s", {"meaning": "centre of each decoded cell, running-mean delay removed"})
+    writer.put("bits", bits, "", {"polarity": params.polarity})
+    writer.put("soft", soft, "nm", {"meaning": "innovation running mean averaged over the integrated part of the cell"})
+    writer.put("baseline_soft", soft_aux, "nm", {"meaning": "lock-in amplitude averaged over the same cells"})
+    writer.put("baseline_bits", base_bits, "", {"polarity": "1 = larger amplitude"})
+    clock = stage.clock
+    results = {
+        "clock": {
+            "rate_hz": clock.rate_hz,
+            "recovered": clock.recovered,
+            "period_samples": clock.period_samples,
+            "final_period_samples": stage.state.period_samples,
+            "acquisition_transitions": clock.transitions,
+            "line_strength": clock.line_strength,
+            "rms_jitter_samples": clock.rms_jitter_samples,
+        },
+        "bits": {
+            "count": int(bits.size),
+            "ones": int(bits.sum()),
+            "incomplete_cells": int((~finite).sum()),
+            "detector": f"integrate-and-dump over the central {params.integrate_fraction:g} of each cell",
+            "threshold_nm": levels.threshold,
+            "centres_nm": [levels.low_centre, levels.high_centre],
+            "std_nm": [levels.low_std, levels.high_std],
+            "separation": levels.separation,
+            "estimated_ber_gaussian": levels.estimated_error_rate,
+        },
+    }
+    baseline = {
+        "threshold_nm": base_levels.threshold,
+        "separation": base_levels.separation,
+        "estimated_ber_gaussian": base_levels.estimated_error_rate,
+    }
+    return _Decided(bits, base_bits, centres, levels.threshold, results, baseline)
+
+
+def _compare_truth(
+    reader: CaptureReader, results: dict, decided: _Decided, period: float, latency_known: float
+) -> None:
+    """BER and confusion counts of the decoder and the baseline when /truth has the bits."""
+    bits, base_bits, centres = decided.bits, decided.baseline_bits, decided.centres
+    names = reader.info.truth_names
+    if not {"bit", "bit_index"} <= set(names):
+        return
+    truth = reader.truth()
+    truth_bit, truth_index = truth["bit"], truth["bit_index"]
+    truth_results: dict = {}
+    if "l0_nm" in truth and truth["l0_nm"].size:
+        l0_true = float(truth["l0_nm"][0])
+        truth_results["l0_nm"] = l0_true
+        estimate = results["l0"]["estimate_nm"]
+        truth_results["l0_error_percent"] = 100.0 * (estimate / l0_true - 1.0)
+    max_lag = int(math.ceil(2 * period + latency_known))
+    ekf = bit_errors(bits, centres, truth_bit, truth_index, max_lag=max_lag)
+    base = bit_errors(base_bits, centres, truth_bit, truth_index, max_lag=max_lag + int(math.ceil(period)),
+                      allow_inversion=True)
+    fs = reader.info.sample_rate_hz
+    for key, found in (("decoder", ekf), ("baseline", base)):
+        truth_results[key] = {
+            "ber": found.ber,
+            "ber_upper_95": ber_upper_bound(found.errors, found.compared) if found.compared else None,
+            "errors": found.errors,
+            "compared": found.compared,
+            "latency_s": found.lag_samples / fs,
+            "confusion": found.confusion,
+        }
+    truth_results["baseline"]["inverted"] = base.inverted
+    truth_results["alignment"] = "latency (0 to 2 bit periods) with the fewest errors, per decoder"
+    if ekf.compared and base.compared:
+        # with no decoder error the ratio is bounded below, by the one-sided 95 % upper bound of its BER
+        bound = ekf.ber if ekf.errors else ber_upper_bound(0, ekf.compared)
+        truth_results["baseline_to_decoder_ber_ratio"] = base.ber / bound if bound > 0 else None
+        truth_results["ratio_is_lower_bound"] = ekf.errors == 0
+    results["truth"] = truth_results
+    del truth

@@ -1,0 +1,220 @@
+"""The ``identify electrostatic`` command end to end: curve, region before snap-in, fit, files, report."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from afmtool.analyses.electrostatic_fit import ElectrostaticFit, fit_electrostatic, select_before_snap_in
+from afmtool.analyses.gamma import canonical_scale
+from afmtool.analyses.thermal_outputs import THERMAL_MODEL_FILE, load_thermal_model
+from afmtool.analyses.thermal_sensor import separation_from_current
+from afmtool.config import load_toml, resolve_from
+from afmtool.config.params import ElectrostaticFitParams
+from afmtool.errors import ConfigError, InputError
+from afmtool.io.capture import CaptureReader
+from afmtool.io.chunks import iter_chunks
+from afmtool.report.json_report import input_record
+from afmtool.report.outputs import OutputDir
+from afmtool.report.run import finish_run
+
+__all__ = ["run_electrostatic_command"]
+
+#: Most points drawn per curve in electrostatic_fit.png (the CSV keeps every sample).
+_PLOT_POINTS = 20000
+_NOTES = {
+    "spring_constant_n_per_m": "k and K_esf enter eqs. 6.6/6.7 only as K_esf/k: a static curve cannot separate "
+    "them; give --spring-constant (e.g. from a thermal-noise fit) to get K_esf",
+}
+
+
+def _sensor(params: ElectrostaticFitParams, reader: CaptureReader, model_path) -> str:
+    if params.sensor != "auto":
+        return params.sensor
+    if "deflection" in reader.info.channel_names:
+        return "optical"
+    if "thermal_current" in reader.info.channel_names and model_path:
+        return "thermal"
+    raise ConfigError("the capture has no deflection channel: give a thermal_current capture with --thermal-model")
+
+
+def _read(reader: CaptureReader, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    blocks = list(iter_chunks(reader, names, 1 << 20))
+    if not blocks:
+        raise InputError(f"{reader.info.source}: the capture is empty")
+    return {name: np.concatenate([b.data[name] for b in blocks]) for name in names}
+
+
+def _v_r(params: ElectrostaticFitParams, reader: CaptureReader, data: Mapping[str, np.ndarray]) -> float:
+    if params.v_r_v != 0:
+        return params.v_r_v
+    if "v_r" in data:
+        return float(np.mean(data["v_r"]))
+    ramp = reader.info.metadata.get("ramp", {})
+    if isinstance(ramp, Mapping) and "v_r_v" in ramp:
+        return float(ramp["v_r_v"])
+    raise ConfigError("V_R is unknown: the capture has no v_r channel; give --v-r VOLTS")
+
+
+def _curve(sensor: str, reader: CaptureReader, model_path, warnings: list) -> tuple[dict, np.ndarray, str]:
+    """The channels and the measured curve in m: deflection p (optical) or t_s through K_TP (thermal)."""
+    names = ["v_sub"] + (["v_r"] if "v_r" in reader.info.channel_names else [])
+    if sensor == "optical":
+        data = _read(reader, tuple(names + ["deflection"]))
+        scale, assumed = canonical_scale("length", reader.info.units("deflection"), "deflection")
+        if assumed:
+            warnings.append("channel 'deflection' has no units; assumed nm")
+        return data, data["deflection"] * scale * 1e-9, "6.6"
+    if not model_path:
+        raise ConfigError("the thermal route needs --thermal-model (thermal_sensor.json from 'identify thermal')")
+    model = load_thermal_model(Path(model_path))
+    if model.g_fit is None or model.k_tp_separation_m is None:
+        raise InputError(f"{model_path}: the thermal model needs g(T) (--iv) and a K_TP(t_s) table (--z-curve)")
+    if "v_r" not in reader.info.channel_names:
+        raise InputError(f"{reader.info.source}: the thermal route needs the v_r channel")
+    data = _read(reader, tuple(names + ["thermal_current"]))
+    scale, _ = canonical_scale("current", reader.info.units("thermal_current"), "thermal_current")
+    ts = separation_from_current(data["v_r"], data["thermal_current"] * scale * 1e-6, model.g_fit,
+                                 model.k_tp_separation_m, model.k_tp_table_k_per_w)
+    outside = int(np.count_nonzero(~np.isfinite(ts)))
+    if outside:
+        warnings.append(f"{outside} samples are outside the K_TP(t_s) table and were not converted to t_s")
+    warnings.append("thermal t_s is measured from the z-curve snap-in (t_s = 0 there): any snap-in distance "
+                    "shows up in t_h")
+    return data, ts, "6.7"
+
+
+def _parameters_dict(fit: ElectrostaticFit) -> dict:
+    out = {}
+    for name, est in fit.estimates.items():
+        entry = {"value": est.value, "std": est.std, "relative_std": est.relative_std, "status": est.status}
+        if est.status == "not identifiable" and name in ("spring_constant_n_per_m", "k_esf_f_m"):
+            entry["note"] = _NOTES["spring_constant_n_per_m"]
+        out[name] = entry
+    return out
+
+
+def _identifiability_dict(fit: ElectrostaticFit) -> dict:
+    ident = fit.identifiability
+    return {
+        "method": "SVD of the Jacobian in relative parameters (d ln theta; alpha_R: d theta/|theta|), residuals "
+        "in noise units",
+        "parameters": list(ident.names),
+        "singular_values": [float(s) for s in ident.singular_values],
+        "condition_number": ident.condition_number if math.isfinite(ident.condition_number) else None,
+        "directions": [[float(x) for x in row] for row in ident.directions],
+        "non_identifiable": [
+            {
+                "parameters": list(d.parameters),
+                "weights": list(d.weights),
+                "identifiable_combination": d.identifiable_combination,
+                "relative_singular_value": d.singular_value / float(ident.singular_values[0]),
+            }
+            for d in ident.null_directions
+        ],
+        "fixed_in_fit": list(fit.fixed),
+        "poorly_identifiable": [n for n, e in fit.estimates.items() if e.status == "poorly identifiable"],
+    }
+
+
+def _write(staged: OutputDir, fit: ElectrostaticFit, v_sub, y_m, v_r: float, region, sensor: str, results: dict):
+    from afmtool.io.rows import RowWriter
+    from afmtool.report.images import write_line_plot_png
+
+    in_fit = np.zeros(v_sub.size)
+    in_fit[region.start : region.stop] = 1.0
+    model = np.full(v_sub.size, np.nan)
+    model[: region.turn_index + 1] = fit.predict(v_sub[: region.turn_index + 1], v_r)
+    model[region.snap_index + 1 if region.snap_index is not None else region.turn_index + 1 :] = np.nan
+    label = "deflection_nm" if sensor == "optical" else "separation_nm"
+    table = {"v_sub_v": v_sub, label: y_m * 1e9, "model_nm": model * 1e9, "residual_nm": (y_m - model) * 1e9,
+             "in_fit": in_fit}
+    with open(staged.path("fit.csv"), "w", encoding="utf-8", newline="") as handle, RowWriter(handle, "csv") as rows:
+        rows.append(table)
+    staged.path("electrostatic.json").write_text(
+        json.dumps({"sensor": sensor, "v_r_v": v_r, "parameters": results["parameters"],
+                    "identifiability": results["identifiability"]}, indent=2, allow_nan=False) + "\n",
+        encoding="utf-8",
+    )
+    markers = [] if region.snap_index is None else [(float(v_sub[region.snap_index]), "snap-in")]
+    step = max(1, v_sub.size // _PLOT_POINTS)  # Agg draws a bounded number of vertices per path
+    approach = slice(0, region.turn_index + 1, step)
+    fitted = slice(region.start, region.stop, step)
+    write_line_plot_png(
+        staged.path("electrostatic_fit.png"),
+        [
+            (v_sub[::step], y_m[::step] * 1e9, "measured", {"color": "0.6", "linewidth": 0.8}),
+            (v_sub[fitted], y_m[fitted] * 1e9, "fitted region",
+             {"color": "C0", "linestyle": "none", "marker": ".", "markersize": 2}),
+            (v_sub[approach], model[approach] * 1e9, f"eq. {results['thesis_equation']} fit", {"color": "C3"}),
+        ],
+        x_label="V_sub (V)",
+        y_label="deflection p (nm)" if sensor == "optical" else "t_s from snap-in (nm)",
+        title=f"Electrostatic approach curve ({sensor})",
+        markers=markers,
+    )
+
+
+def run_electrostatic_command(
+    reader: CaptureReader,
+    source: str | Path,
+    out: Path,
+    config: Path | None,
+    flags: Mapping,
+    thermal_model: Path | None,
+) -> dict:
+    """Fit eq. 6.6 or 6.7 to the region before snap-in; write electrostatic.json, fit.csv, a plot and report."""
+    params = resolve_from(ElectrostaticFitParams, "identify.electrostatic", load_toml(config) if config else None,
+                          flags)
+    warnings: list[str] = []
+    sensor = _sensor(params, reader, thermal_model)
+    data, y_m, equation = _curve(sensor, reader, thermal_model, warnings)
+    v_r = _v_r(params, reader, data)
+    v_sub = data["v_sub"]
+    region = select_before_snap_in(v_sub, y_m, margin_fraction=params.snap_margin)
+    if region.snap_index is None:
+        warnings.append("no snap-in found: the whole approach leg is fitted")
+    part = slice(region.start, region.stop)
+    ok = np.isfinite(y_m[part])
+    fit = fit_electrostatic(
+        v_sub[part][ok], y_m[part][ok], v_r, sensor=sensor,
+        spring_constant_n_per_m=params.spring_constant_n_per_m or None,
+        rank_tolerance=params.rank_tolerance, max_relative_std=params.max_relative_std,
+    )
+    if fit.residual_autocorrelation > 0.5:
+        warnings.append(
+            f"the residuals are strongly correlated (lag-1 {fit.residual_autocorrelation:.2f}): a systematic misfit; "
+            "the region may reach into the tip-sample force or contact (raise snap_margin)"
+        )
+    for name, est in fit.estimates.items():
+        if est.status == "poorly identifiable":
+            warnings.append(f"{name} is poorly identifiable (relative std {est.relative_std:.3g})")
+    results = {
+        "sensor": sensor,
+        "thesis_equation": equation,
+        "v_r_v": v_r,
+        "region": {
+            "v_sub_range_v": [float(v_sub[region.start]), float(v_sub[region.stop - 1])],
+            "points": int(np.count_nonzero(ok)),
+            "snap_in_v_sub_v": region.snap_v_sub_v,
+            "snap_in_jump_nm": region.jump * 1e9,
+            "margin_fraction": params.snap_margin,
+        },
+        "parameters": _parameters_dict(fit),
+        "identifiability": _identifiability_dict(fit),
+        "correlation": fit.correlation,
+        "rms_residual_nm": fit.rms_residual_m * 1e9,
+        "residual_lag1_autocorrelation": fit.residual_autocorrelation,
+    }
+    inputs = [input_record(source)]
+    if sensor == "thermal":
+        path = Path(thermal_model)
+        inputs.append(input_record(path / THERMAL_MODEL_FILE if path.is_dir() else path, "thermal-model"))
+    with OutputDir(out) as staged:
+        _write(staged, fit, v_sub, y_m, v_r, region, sensor, results)
+        return finish_run(staged, "identify electrostatic", inputs, "identify.electrostatic", params, results,
+                          warnings)

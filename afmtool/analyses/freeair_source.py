@@ -1,0 +1,73 @@
+"""Where an analysis gets its free-air model and segment: shared by ``reep`` and ``probeloss``.
+
+The off-sample segment is ``--free-air START:END`` or the capture metadata
+``free_air``; it is read ahead from the single-pass chunk stream
+(:func:`~afmtool.analyses.freeair.read_segment`), so stdin works too, and
+the free-air model is identified from it by the bias-compensated ARX fit
+(:func:`~afmtool.analyses.freeair.free_air_from_segment`) unless the user
+gave one (``--model free_air.json``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import NamedTuple
+
+import numpy as np
+
+from afmtool.analyses.freeair import free_air_from_segment, read_segment
+from afmtool.config.params import parse_interval
+from afmtool.errors import InputError
+from afmtool.io.capture import CaptureReader, Chunk
+from afmtool.models.free_air import FreeAirModel
+
+__all__ = ["FreeAirSegment", "free_air_interval", "read_free_air", "identify_from_segment"]
+
+
+class FreeAirSegment(NamedTuple):
+    """Samples of an off-sample segment.
+
+    Attributes
+    ----------
+    interval_s : tuple of 2 floats
+        (start, end), s from the capture's first sample.
+    start_sample : int
+        Index of the segment's first sample.
+    data : dict of str to numpy.ndarray
+        The segment of each channel read.
+    """
+
+    interval_s: tuple[float, float]
+    start_sample: int
+    data: dict[str, np.ndarray]
+
+
+def free_air_interval(reader: CaptureReader, text: str, option: str = "--free-air") -> tuple[float, float] | None:
+    """The free-air segment (s): ``text`` (START:END) if given, else metadata ``free_air``, else None."""
+    interval = parse_interval(text, option)
+    if interval is None and "free_air" in reader.info.metadata:
+        meta = reader.info.metadata["free_air"]
+        interval = (float(meta["start_s"]), float(meta["end_s"]))
+    return interval
+
+
+def read_free_air(
+    reader: CaptureReader, chunks: Iterator[Chunk], interval: tuple[float, float], names: tuple[str, ...]
+) -> tuple[FreeAirSegment, Iterator[Chunk]]:
+    """Read the segment ahead; return it and an iterator over every chunk (read-ahead ones first)."""
+    fs = reader.info.sample_rate_hz
+    start, end = round(interval[0] * fs), round(interval[1] * fs)
+    data, chunks = read_segment(chunks, names, start, end)
+    return FreeAirSegment(interval, start, data), chunks
+
+
+def identify_from_segment(segment: FreeAirSegment, sample_rate_hz: float) -> FreeAirModel:
+    """Free-air model from the segment's deflection and dither, with the way out in the error."""
+    try:
+        return free_air_from_segment(segment.data["deflection"], segment.data["dither"], sample_rate_hz)
+    except InputError as exc:
+        start, end = segment.interval_s
+        raise InputError(
+            f"free-air segment {start:g}:{end:g} s: {exc}; or give --model free_air.json "
+            "(identify freeair --psd / --sweep)"
+        ) from None

@@ -1,0 +1,262 @@
+"""The ``identify gamma`` command end to end: read both sweeps, estimate every Γ, write files and report."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from afmtool.analyses.gamma import (
+    CANONICAL_UNITS,
+    GammaResponses,
+    RunningMeans,
+    SensingSummary,
+    auto_nperseg,
+    canonical_scale,
+    combine_gamma,
+    feedthrough_rise,
+    fit_feedthrough,
+    progress_offset,
+    responses_from_chunks,
+    scale_response,
+    sensing_summary,
+    usable_band,
+    usable_mask,
+)
+from afmtool.config import load_toml, resolve_from
+from afmtool.config.params import GammaParams
+from afmtool.errors import InputError
+from afmtool.estimators.frequency_response import FrequencyResponse, frf_table
+from afmtool.io.capture import CaptureReader
+from afmtool.io.chunks import iter_chunks, require_channels
+from afmtool.io.results import ResultWriter
+from afmtool.report.json_report import input_record
+from afmtool.report.outputs import OutputDir
+from afmtool.report.run import finish_run
+
+__all__ = ["run_gamma_command", "GAMMA_UNITS"]
+
+#: Units of the Γ responses once the channels are in µA, nm and V.
+GAMMA_UNITS = {"ir_v": "uA/V", "ts_v": "nm/V", "feedthrough": "uA/V", "ir_ts": "uA/nm", "ir_ts_uncorrected": "uA/nm"}
+#: H1 segment length for a sweep read from a stream, whose length is not known in advance.
+_STREAM_NPERSEG = 1 << 14
+_TITLES = {
+    "ir_v": "Gamma_IR,V near the sample",
+    "ts_v": "Gamma_ts,V (optical deflection)",
+    "feedthrough": "Gamma_sp, tip in contact (feed-through)",
+    "ir_ts": "Gamma_IR,ts (eq. 6.15)",
+    "ir_ts_uncorrected": "Gamma_IR,V / Gamma_ts,V (eq. 6.16, uncorrected)",
+}
+
+
+def _method(params: GammaParams, sweep: CaptureReader, contact: CaptureReader) -> str:
+    if params.method != "auto":
+        return params.method
+    both = "segments" in sweep.info.metadata and "segments" in contact.info.metadata
+    return "stepped" if both else "h1"
+
+
+def _scales(reader: CaptureReader, channels: Mapping[str, str], warnings: list[str]) -> dict[str, float]:
+    factors = {}
+    for name, kind in channels.items():
+        factor, assumed = canonical_scale(kind, reader.info.units(name), name)
+        if assumed:
+            warnings.append(f"{reader.info.source}: channel {name!r} has no units; assumed {CANONICAL_UNITS[kind]}")
+        factors[name] = factor
+    return factors
+
+
+def _estimate(
+    reader: CaptureReader, ys: tuple[str, ...], params: GammaParams, method: str, nperseg: int, progress
+) -> tuple[dict[str, FrequencyResponse], RunningMeans]:
+    segments = reader.info.metadata.get("segments") if method == "stepped" else None
+    chunks = RunningMeans(iter_chunks(reader, ("v_sub", *ys), params.chunk_samples, progress=progress))
+    responses = responses_from_chunks(
+        chunks,
+        reader.info.sample_rate_hz,
+        "v_sub",
+        ys,
+        method=method,
+        nperseg=nperseg,
+        segments=segments,
+        settle_fraction=params.settle_fraction,
+        min_periods=params.min_periods,
+    )
+    return responses, chunks
+
+
+def estimate_from_captures(
+    sweep: CaptureReader, contact: CaptureReader, params: GammaParams, progress: Callable[[int], None], warnings: list
+) -> tuple[GammaResponses, dict]:
+    """Every Γ in µA, nm and V from the near-sample and contact sweeps, and facts about the run."""
+    require_channels(sweep.info, ("v_sub", "thermal_current", "deflection"))
+    require_channels(contact.info, ("v_sub", "thermal_current"))
+    s_near = _scales(sweep, {"v_sub": "voltage", "thermal_current": "current", "deflection": "length"}, warnings)
+    s_far = _scales(contact, {"v_sub": "voltage", "thermal_current": "current"}, warnings)
+    method = _method(params, sweep, contact)
+    n_sweep = sweep.info.n_samples or 0
+    if params.nperseg:
+        nperseg = params.nperseg
+    elif n_sweep:
+        nperseg = auto_nperseg(n_sweep)
+    else:
+        nperseg = _STREAM_NPERSEG
+        warnings.append(f"the sweep's length is unknown (a stream): nperseg={nperseg}; set nperseg to choose")
+    if sweep.info.sample_rate_hz != contact.info.sample_rate_hz and method == "h1":
+        warnings.append("the sweeps have different sample rates; Gamma_sp is interpolated onto the sweep's grid")
+    near, near_means = _estimate(sweep, ("thermal_current", "deflection"), params, method, nperseg, progress)
+    far, contact_means = _estimate(contact, ("thermal_current",), params, method, nperseg,
+                                   progress_offset(progress, n_sweep))
+    gamma = combine_gamma(
+        scale_response(near["thermal_current"], s_near["thermal_current"] / s_near["v_sub"]),
+        scale_response(near["deflection"], s_near["deflection"] / s_near["v_sub"]),
+        scale_response(far["thermal_current"], s_far["thermal_current"] / s_far["v_sub"]),
+    )
+    facts = {
+        "method": method,
+        "nperseg": nperseg if method == "h1" else None,
+        "frequency_resolution_hz": sweep.info.sample_rate_hz / nperseg if method == "h1" else None,
+        "n_frequencies": int(gamma.frequency_hz.size),
+        "samples": {"sweep": near_means.count, "contact": contact_means.count},
+        "operating_point": {
+            "v_sub_mean_v": near_means.mean("v_sub") * s_near["v_sub"],
+            "thermal_current_mean_ua": near_means.mean("thermal_current") * s_near["thermal_current"],
+            "deflection_mean_nm": near_means.mean("deflection") * s_near["deflection"],
+            "contact_thermal_current_mean_ua": contact_means.mean("thermal_current") * s_far["thermal_current"],
+        },
+    }
+    return gamma, facts
+
+
+def _summary_dict(summary: SensingSummary) -> dict:
+    return {
+        "dc_sensitivity_ua_per_nm": summary.dc_sensitivity,
+        "bandwidth_hz": summary.bandwidth_hz,
+        "roll_off_db_per_decade": summary.roll_off_db_per_decade,
+        "roll_off_band_hz": list(summary.roll_off_band_hz),
+        "dc_band_hz": list(summary.dc_band_hz),
+    }
+
+
+def summarise(gamma: GammaResponses, params: GammaParams, warnings: list) -> tuple[dict, np.ndarray]:
+    """The report's numbers (usable band, DC sensitivity, bandwidth, roll-off, the uncorrected view) and the usable mask."""
+    mask = usable_mask(gamma, params.min_coherence)
+    band = usable_band(gamma.frequency_hz, mask)
+    kwargs = {"roll_off_start_factor": params.roll_off_start_factor, "roll_off_stop_factor": params.roll_off_stop_factor}
+    corrected = sensing_summary(gamma.ir_ts, mask, **kwargs)
+    results = {
+        "units": dict(GAMMA_UNITS),
+        "min_coherence": params.min_coherence,
+        "usable_band_hz": list(band),
+        "usable_bins": int(np.count_nonzero(mask)),
+        **_summary_dict(corrected),
+    }
+    try:
+        results["uncorrected"] = _summary_dict(sensing_summary(gamma.ir_ts_uncorrected, mask, **kwargs))
+    except InputError as exc:
+        results["uncorrected"] = None
+        warnings.append(f"uncorrected Gamma (eq. 6.16): no summary ({exc})")
+    rise = feedthrough_rise(gamma.ir_ts, gamma.ir_ts_uncorrected, mask)
+    results["feedthrough_rise"] = {
+        "excess_db": rise.excess_db,
+        "uncorrected_slope_db_per_decade": rise.uncorrected_slope_db_per_decade,
+        "corrected_slope_db_per_decade": rise.corrected_slope_db_per_decade,
+        "band_hz": list(rise.band_hz),
+    }
+    try:
+        sp = fit_feedthrough(gamma.feedthrough, params.min_coherence)
+        results["feedthrough_fit"] = {
+            "capacitance_pf": sp.capacitance_pf,
+            "pole_hz": sp.pole_hz,
+            "numerator_ua_per_v": list(sp.fit.numerator),
+            "denominator": list(sp.fit.denominator),
+            "rms_residual_ua_per_v": sp.fit.rms_residual,
+            "band_hz": list(sp.band_hz),
+            "form": "(b1 s + b0)/(s + a0), s in rad/s",
+        }
+    except InputError as exc:
+        results["feedthrough_fit"] = None
+        warnings.append(f"feed-through: no fit ({exc})")
+    if not np.isfinite(corrected.bandwidth_hz):
+        warnings.append("|Gamma_IR,ts| never falls 3 dB below its DC value in the usable band: no bandwidth")
+    return results, mask
+
+
+def _write_tables(staged: OutputDir, gamma: GammaResponses, facts: dict) -> None:
+    from afmtool.io.rows import RowWriter
+
+    attrs = {"afmtool_command": "identify gamma",
+             "thermal_current_mean_ua": facts["operating_point"]["thermal_current_mean_ua"]}
+    with ResultWriter(staged.path("gamma.h5"), {}, attrs) as writer:
+        writer.put("frf/frequency_hz", gamma.frequency_hz, "Hz")
+        for name, units in GAMMA_UNITS.items():
+            fr: FrequencyResponse = getattr(gamma, name)
+            writer.put(f"frf/{name}", fr.response, units, {"description": _TITLES[name]})
+            writer.put(f"frf/coherence_{name}", fr.coherence, "")
+            writer.put(f"frf/magnitude_std_{name}", fr.magnitude_std, units)
+            with open(staged.path(f"frf_{name}.csv"), "w", encoding="utf-8", newline="") as handle:
+                with RowWriter(handle, "csv") as rows:
+                    rows.append(frf_table(fr))
+
+
+def _write_plots(staged: OutputDir, gamma: GammaResponses, results: dict, mask: np.ndarray) -> None:
+    """Bode plots; Γ_IR,ts and eq. 6.16 are drawn over the usable bins only (noise elsewhere)."""
+    from afmtool.report.bode import BodeCurve, write_bode_png
+
+    f = gamma.frequency_hz
+    markers = [(results["bandwidth_hz"], "-3 dB")] if np.isfinite(results["bandwidth_hz"]) else []
+
+    def usable(fr: FrequencyResponse) -> np.ndarray:
+        return np.where(mask, fr.response, np.nan)
+
+    write_bode_png(
+        staged.path("gamma_ir_ts.png"),
+        [
+            BodeCurve(f, usable(gamma.ir_ts), "corrected, eq. 6.15", {"color": "C0"}),
+            BodeCurve(f, usable(gamma.ir_ts_uncorrected), "uncorrected, eq. 6.16", {"color": "C3", "linestyle": "--"}),
+        ],
+        title="Sensing transfer function Gamma_IR,ts",
+        magnitude_label="|Gamma_IR,ts| (dB re 1 uA/nm)",
+        markers=markers,
+    )
+    lo, hi = results["usable_band_hz"]
+    driven = (f >= lo) & (f <= hi)  # the feed-through's own coherence is low at low f: drawn, not masked
+    write_bode_png(
+        staged.path("feedthrough.png"),
+        [
+            BodeCurve(f[driven], gamma.ir_v.response[driven], "Gamma_IR,V near the sample", {"color": "C0"}),
+            BodeCurve(f[driven], gamma.feedthrough.response[driven], "Gamma_sp in contact (feed-through)",
+                      {"color": "C3"}),
+        ],
+        title="V_sub to thermal current: near the sample and in contact",
+        magnitude_label="|Gamma| (dB re 1 uA/V)",
+    )
+    write_bode_png(
+        staged.path("gamma_ts_v.png"),
+        [BodeCurve(f[driven], gamma.ts_v.response[driven], "Gamma_ts,V", {"color": "C2"})],
+        title="V_sub to tip-sample separation (optical deflection)",
+        magnitude_label="|Gamma_ts,V| (dB re 1 nm/V)",
+    )
+
+
+def run_gamma_command(
+    sweep: CaptureReader,
+    contact: CaptureReader,
+    sources: tuple[str | Path, str | Path],
+    out: Path,
+    config: Path | None,
+    flags: Mapping,
+    progress: Callable[[int], None],
+) -> dict:
+    """Estimate Γ_IR,V, Γ_ts,V, Γ_sp, Γ_IR,ts (eq. 6.15) and eq. 6.16; write gamma.h5, CSV, PNG and report."""
+    params = resolve_from(GammaParams, "identify.gamma", load_toml(config) if config else None, flags)
+    warnings: list[str] = []
+    gamma, facts = estimate_from_captures(sweep, contact, params, progress, warnings)
+    summary, mask = summarise(gamma, params, warnings)
+    results = {**facts, **summary}
+    inputs = [input_record(sources[0], "sweep"), input_record(sources[1], "contact")]
+    with OutputDir(out) as staged:
+        _write_tables(staged, gamma, facts)
+        _write_plots(staged, gamma, results, mask)
+        return finish_run(staged, "identify gamma", inputs, "identify.gamma", params, results, warnings)

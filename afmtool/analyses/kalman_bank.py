@@ -1,0 +1,605 @@
+"""``afmtool kalman-bank``: REEP's on-sample estimates checked by a bank of Kalman filters (§3.4.2).
+
+A frequency sweep cannot check REEP on the sample: it changes the very
+interaction it measures.  The thesis checks it instead with the innovation
+of observers (eq. 3.51: the filter whose model matches the plant has the
+least innovation RMS):
+
+1. REEP's equivalent model (f0′, Q′) is binned against z along the force
+   curve (pass 1: :func:`afmtool.analyses.reep.run_reep`; or a finished run
+   given with ``--reep``).
+2. N steady-state Kalman filters are built from that model at N design
+   points z_i (or from models the user names); they share the free-air
+   numerator (eq. 5.13).
+3. Pass 2 streams the capture once more through the fused bank kernel and
+   an adaptive observer whose model follows REEP's (b1, b0) sample by
+   sample (REEP runs again beside it, chunk by chunk, bit for bit as in
+   pass 1; or its decimated estimates are held).  Each innovation's window
+   RMS is binned against z, approach and retract apart.
+4. The verdict (:mod:`afmtool.analyses.kalman_bank_verdict`): every
+   filter's least RMS lies in its design bin, and the adaptive observer has
+   the least RMS for a stated share of the time.
+
+Choices
+-------
+* Kalman gains depend only on σ_w/σ_v (scaling both scales P, not L), so
+  the bank is set by ``noise_ratio`` and needs no noise level in the
+  capture's units.  σ_w is a white force entering with the dither, as a
+  static deflection (:func:`afmtool.estimators.observer.kalman_gain`).
+* The adaptive observer places its error poles by the decay closed form
+  (:func:`afmtool.estimators.observer.adaptive_update`) at the mean radius
+  of the bank's Kalman error poles, so its error dynamics decay as the
+  bank's and only its model differs.
+* The window RMS at sample n covers samples n − W + 1 … n, and the
+  innovation follows a change of model through the error dynamics, whose
+  envelope lags by their time constant τ = −1/ln r samples (r the error
+  pole radius).  RMS is therefore binned against z at n − (W − 1)//2 − τ,
+  so RMS against z does not lag along the ramp; likewise REEP's model is
+  binned at its window's centroid (:mod:`afmtool.analyses.kalman_bank_reep`).
+* With ``--reep``, reep.h5 holds (b1, b0) at one sample in ``decimate``.
+  They are **held** (zero-order hold): sample n uses the last estimate at
+  or before n (:class:`~afmtool.analyses.kalman_bank_reep.HeldReepCoefficients`).
+  Holding keeps the observer causal; REEP's estimate moves over its window
+  1/(1 − λ) (200 samples), so a hold of under one drive period adds no
+  visible lag.  Samples before the first estimate run on the free-air model.
+* The adaptive observer's share of least RMS is counted over every kept
+  sample after the warm-up ("throughout", Figs. 3.6, 3.9); the report also
+  gives it per leg and within the span of the design points, where the
+  bank's models are and the comparison is hardest.
+* Captures that cannot be read twice (stdin) need ``--reep`` or
+  ``--models``: then REEP's tables come with the file, or the models are
+  given and only one pass is needed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afmtool.analyses.accumulators import ForceCurveAccumulator, ForceCurveTable
+from afmtool.analyses.freeair_source import free_air_interval, identify_from_segment, read_free_air
+from afmtool.analyses.kalman_bank_reep import (
+    DelayLine,
+    HeldReepCoefficients,
+    InternalReep,
+    ReepBinner,
+    reep_delay,
+    reep_pass_one,
+    reep_tables_from_file,
+    warmup_samples,
+)
+from afmtool.analyses.kalman_bank_verdict import (
+    BankVerdict,
+    DesignPoint,
+    ModelTable,
+    RmsTable,
+    VerdictTolerance,
+    adaptive_verdict,
+    auto_design_points,
+    bank_verdict,
+    design_points_at_z,
+    design_points_for_models,
+    filter_verdicts,
+    parse_model_list,
+    parse_z_list,
+)
+from afmtool.config.params import KalmanBankParams
+from afmtool.errors import ConfigError, InputError
+from afmtool.io.capture import CaptureReader, Chunk
+from afmtool.io.chunks import iter_chunks, require_channels
+from afmtool.models.free_air import FreeAirModel
+
+__all__ = ["SERIES_UNITS", "KalmanBankResult", "BankSetup", "build_bank", "run_kalman_bank"]
+
+#: Units of the per-sample series written (decimated), "" = dimensionless.
+SERIES_UNITS = {
+    "t": "s",
+    "z": "",
+    "rms": "deflection units",
+    "adaptive_rms": "deflection units",
+    "reep_f0_hz": "Hz",
+    "reep_q": "",
+}
+_CHANNELS = ("deflection", "dither", "z_piezo")
+
+
+@dataclass(frozen=True)
+class KalmanBankResult:
+    """What :func:`run_kalman_bank` found; the command turns it into files and a report.
+
+    Attributes
+    ----------
+    results : dict
+        The ``results`` of report.json.
+    warnings : tuple of str
+    points : tuple of DesignPoint
+        The bank's design points, in filter order.
+    rms_tables : dict of str to RmsTable
+        Innovation RMS against z per leg.
+    reep_tables : dict of str to ModelTable
+        REEP's model against z per leg.
+    verdict : BankVerdict
+    z_units : str
+    model_f0_hz : tuple of float
+        The bank's f0 (after ``f0_scale``), Hz.
+    """
+
+    results: dict
+    warnings: tuple[str, ...]
+    points: tuple[DesignPoint, ...]
+    rms_tables: dict[str, RmsTable]
+    reep_tables: dict[str, ModelTable]
+    verdict: BankVerdict
+    z_units: str = ""
+    model_f0_hz: tuple[float, ...] = field(default_factory=tuple)
+
+
+def build_bank(
+    points, numerator, sample_rate_hz: float, *, noise_ratio: float, input_gain: float, f0_scale: float = 1.0
+) -> tuple:
+    """Steady-state Kalman predictors of the design points' models (f0 × ``f0_scale``), one numerator.
+
+    Parameters
+    ----------
+    points : sequence of DesignPoint
+        The models (f0 in Hz, Q).
+    numerator : sequence of 3 floats
+        The free-air (a2, a1, a0) of eq. 3.40 they share (eq. 5.13).
+    sample_rate_hz : float
+        fs, Hz: (f0, Q) map to (b1, b0) by the pole map.
+    noise_ratio : float
+        σ_w/σ_v (σ_v = 1 deflection unit: only the ratio sets the gain).
+    input_gain : float
+        Dither-to-deflection DC gain; w enters as the dither w/k_in.
+    f0_scale : float, optional
+        Multiplies every f0 (a negative control).
+
+    Returns
+    -------
+    tuple of ObserverDesign
+    """
+    from afmtool.estimators.observer import ObserverDesign
+    from afmtool.models.discretisation import discrete_denominator
+
+    designs = []
+    for point in points:
+        denominator = discrete_denominator(point.f0_hz * f0_scale, point.q, sample_rate_hz)
+        designs.append(
+            ObserverDesign.from_kalman(
+                (float(denominator.b1), float(denominator.b0)), numerator, noise_ratio, 1.0, input_gain=input_gain
+            )
+        )
+    return tuple(designs)
+
+
+# ---------------------------------------------------------------------------
+# Setup: the model, the drive, the bank
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BankSetup:
+    """Everything fixed before pass 2.
+
+    Attributes
+    ----------
+    model : FreeAirModel
+        The free-air model (numerator of every observer, start model of the adaptive one).
+    segment_s : tuple of 2 floats or None
+        The free-air segment it came from.
+    lam : float
+        REEP's forgetting factor.
+    drive_hz : float
+        Drive frequency, Hz.
+    window : int
+        Innovation-RMS window W, samples.
+    decimate : int
+        One output sample kept in ``decimate``.
+    warmup : int
+        Samples left out of the statistics at the start.
+    points : tuple of DesignPoint
+        Design points (z NaN for ``models`` until REEP's model is binned).
+    designs : tuple of ObserverDesign
+        The bank.
+    radius : float
+        Mean error-pole radius of the bank; the adaptive observer's.
+    """
+
+    model: FreeAirModel
+    segment_s: tuple[float, float] | None
+    lam: float
+    drive_hz: float
+    window: int
+    decimate: int
+    warmup: int
+    points: tuple[DesignPoint, ...]
+    designs: tuple
+    radius: float
+
+    @property
+    def rms_delay(self) -> int:
+        """Where an RMS value belongs: (W − 1)//2 samples back, plus the error dynamics' lag −1/ln r."""
+        return (self.window - 1) // 2 + round(-1.0 / math.log(self.radius))
+
+
+def _drive_frequency(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel) -> float:
+    fs = reader.info.sample_rate_hz
+    drive = reader.info.metadata.get("drive", {})
+    if params.drive_frequency_hz:
+        hz = params.drive_frequency_hz
+    elif "frequency_hz" in drive:
+        hz = float(drive["frequency_hz"])
+    else:
+        hz = model.f0_hz
+    if not 0 < hz < fs / 2:
+        raise InputError(f"drive frequency {hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
+    return hz
+
+
+def _design_points(params: KalmanBankParams, tables: dict[str, ModelTable] | None, model: FreeAirModel):
+    if tables is None:  # --models with REEP alongside: design points once REEP's model is binned
+        return tuple(DesignPoint(f, q, math.nan, "models", math.nan) for f, q in parse_model_list(params.models))
+    if params.design_leg not in tables:
+        raise InputError(f"REEP's force curve has no {params.design_leg} leg")
+    table = tables[params.design_leg]
+    if params.models:
+        return design_points_for_models(table, parse_model_list(params.models), f0_ref=model.f0_hz, q_ref=model.q)
+    if params.at_z:
+        return design_points_at_z(table, parse_z_list(params.at_z))
+    return auto_design_points(
+        table,
+        params.n_filters,
+        f0_ref=model.f0_hz,
+        q_ref=model.q,
+        min_amplitude_fraction=params.min_amplitude_fraction,
+        onset_fraction=params.onset_fraction,
+    )
+
+
+def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: Iterator[Chunk]):
+    """The free-air model from the segment (read ahead from the chunk stream), as REEP does."""
+    interval = free_air_interval(reader, params.free_air)
+    if interval is None:
+        raise ConfigError(
+            "kalman-bank needs the free-air model: give --free-air START:END, --model free_air.json, --reep REEP_DIR "
+            "with its free_air.json, or capture metadata free_air"
+        )
+    segment, chunks = read_free_air(reader, chunks, interval, ("deflection", "dither"))
+    return identify_from_segment(segment, reader.info.sample_rate_hz), chunks, interval
+
+
+def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
+    fs = reader.info.sample_rate_hz
+    drive_hz = _drive_frequency(reader, params, model)
+    window = max(1, round(params.rms_window_periods * fs / drive_hz))
+    points = _design_points(params, tables, model)
+    designs = build_bank(
+        points, model.numerator_at(fs), fs, noise_ratio=params.noise_ratio, input_gain=model.gain,
+        f0_scale=params.f0_scale,
+    )
+    radius = float(np.mean([np.abs(d.error_poles).mean() for d in designs]))
+    return BankSetup(
+        model, segment_s, lam, drive_hz, window, params.decimate or max(1, round(fs / drive_hz)),
+        warmup_samples(params, lam) + window, points, designs, radius,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Pass 2: the bank, the adaptive observer and REEP, streaming
+# ---------------------------------------------------------------------------
+
+
+class _PassTwo:
+    """Pass 2's carried state: observers, REEP, delay lines, accumulators, counters."""
+
+    def __init__(self, setup: BankSetup, coefficients, params: KalmanBankParams, fs: float) -> None:
+        from afmtool.estimators.observer import AdaptiveState, BankState
+
+        numerator = setup.model.numerator_at(fs)
+        self.setup = setup
+        self.fs = fs
+        self.bank = BankState.initial(setup.designs, setup.window)
+        self.adaptive = AdaptiveState.initial(numerator, setup.model.denominator_at(fs), setup.radius, setup.window)
+        self.coefficients = coefficients
+        self.z_delay = DelayLine(setup.rms_delay)
+        names = tuple(f"rms_{k}" for k in range(len(setup.designs))) + ("adaptive", "lowest")
+        self.accumulator = ForceCurveAccumulator(params.z_bin, names)
+        self.reep_binner = ReepBinner(params.z_bin, reep_delay(setup.lam, setup.decimate), setup.warmup / fs)
+        self.counted = 0  # kept samples after the warm-up
+        self.lowest = 0  # ... where the adaptive observer had the least RMS
+        self.z_travel = 0.0  # Σ|Δz| between kept samples
+        self.moving = 0  # kept samples whose z moved
+        self.last_z = math.nan
+        self.n_total = 0
+
+    def process(self, chunk: Chunk, writer) -> None:
+        """One chunk: observers, kept samples to ``writer``, statistics."""
+        from afmtool.estimators.observer import adaptive_update, bank_update
+        from afmtool.models.discretisation import resonance_from_denominator
+
+        y, g = chunk.data["deflection"], chunk.data["dither"]
+        b1, b0 = self.coefficients.block(chunk)
+        bank_step = bank_update(self.bank, y, g)
+        adaptive_step = adaptive_update(self.adaptive, y, g, b1, b0)
+        self.bank, self.adaptive = bank_step.state, adaptive_step.state
+        z_rms = self.z_delay(chunk.data["z_piezo"])
+        # kept samples: n with (n + 1) % decimate == 0, as REEP keeps them
+        keep = slice((-(chunk.start + 1)) % self.setup.decimate, None, self.setup.decimate)
+        index = np.arange(chunk.start, chunk.start + len(y))[keep]
+        t = index / self.fs
+        z = chunk.data["z_piezo"][keep]
+        rms = bank_step.block.rms[:, keep]
+        adaptive = adaptive_step.block.rms[keep]
+        f0, q, _ = resonance_from_denominator(b1[keep], b0[keep], self.fs)
+        writer.append({"t": t, "z": z_rms[keep], "rms": rms, "adaptive_rms": adaptive, "reep_f0_hz": f0, "reep_q": q})
+        settled = index >= self.setup.warmup
+        lowest = adaptive < rms.min(axis=0)
+        self.counted += int(np.count_nonzero(settled))
+        self.lowest += int(np.count_nonzero(lowest & settled))
+        values = {f"rms_{k}": row for k, row in enumerate(rms)}
+        values.update(adaptive=adaptive, lowest=lowest.astype(np.float64))
+        self.accumulator.add(z_rms[keep], {name: np.where(settled, v, np.nan) for name, v in values.items()})
+        self.reep_binner.append({"t": t, "z": z, "f0_hz": f0, "q": q})
+        self._travel(z)
+        self.n_total = chunk.start + len(y)
+
+    def _travel(self, z: np.ndarray) -> None:
+        steps = np.abs(np.diff(np.concatenate(([self.last_z], z))))
+        moved = np.isfinite(steps) & (steps > 0)
+        self.z_travel += float(steps[moved].sum())
+        self.moving += int(np.count_nonzero(moved))
+        if len(z):
+            self.last_z = float(z[-1])
+
+    @property
+    def z_per_sample(self) -> float:
+        """Mean |dz| per input sample while z moves (the ramp speed)."""
+        return self.z_travel / (self.moving * self.setup.decimate) if self.moving else 0.0
+
+    def rms_tables(self) -> dict[str, RmsTable]:
+        return _rms_tables(self.accumulator.tables(), len(self.setup.designs))
+
+
+def _rms_tables(tables: dict[str, ForceCurveTable], n_filters: int) -> dict[str, RmsTable]:
+    out = {}
+    for leg, table in tables.items():
+        rms = np.vstack([table.means[f"rms_{k}"] for k in range(n_filters)])
+        out[leg] = RmsTable(table.z, table.count, rms, table.means["adaptive"], table.means["lowest"])
+    return out
+
+
+def _pass_progress(progress, n_passes: int, total: int | None):
+    """Progress callbacks of each pass, mapped onto one count of ``total`` samples."""
+    if progress is None or n_passes == 1 or not total:
+        return progress, progress
+    return (lambda done: progress(done // 2)), (lambda done: progress(total // 2 + done // 2))
+
+
+# ---------------------------------------------------------------------------
+# The run
+# ---------------------------------------------------------------------------
+
+
+def _check_reep_file(reep_results, fs: float) -> float:
+    """The file's λ; its sample rate must be the capture's."""
+    rate = reep_results.report.get("sample_rate_hz", fs)
+    if rate != fs:
+        raise InputError(f"--reep {reep_results.path}: REEP ran at {rate:g} Hz, the capture is {fs:g} Hz")
+    return float(reep_results.report.get("forgetting_factor", 0.0))
+
+
+def run_kalman_bank(
+    reader: CaptureReader,
+    params: KalmanBankParams,
+    writer,
+    *,
+    model: FreeAirModel | None = None,
+    reep_results=None,
+    reopen: Callable[[], CaptureReader] | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> KalmanBankResult:
+    """Validate REEP on a force curve by a Kalman bank and an adaptive observer, streaming.
+
+    Parameters
+    ----------
+    reader : CaptureReader
+        Needs ``deflection``, ``dither`` and ``z_piezo``.
+    params : KalmanBankParams
+        Effective parameters.
+    writer
+        Receives ``t``, ``z`` (where each RMS value belongs),
+        ``rms`` (N, T), ``adaptive_rms``, ``reep_f0_hz``, ``reep_q``,
+        decimated, chunk by chunk.
+    model : FreeAirModel, optional
+        The free-air model; else that of ``reep_results``, else identified
+        from the free-air segment.
+    reep_results : afmtool.io.reep_results.ReepResults, optional
+        A finished REEP run of this capture (``--reep``); else REEP runs
+        internally.
+    reopen : callable, optional
+        Returns a fresh reader of the same capture for pass 2 (closed
+        here); by default ``reader`` is read again, which in-memory and
+        HDF5 readers allow.
+    progress : callable, optional
+        Called with the samples read so far (both passes on one count).
+
+    Returns
+    -------
+    KalmanBankResult
+
+    Raises
+    ------
+    InputError, ConfigError
+        On a capture without a force curve, models that cannot be built,
+        or a ``--reep`` run that does not match the capture.
+    """
+    info = reader.info
+    fs = info.sample_rate_hz
+    require_channels(info, _CHANNELS)
+    lam, segment_s, tables = params.lam, None, None
+    if reep_results is not None:
+        model = model or reep_results.free_air_model
+        lam = _check_reep_file(reep_results, fs) or lam
+        tables = reep_tables_from_file(reep_results, params, lam, fs)
+    two_passes = reep_results is None and not params.models
+    progress_one, progress_two = _pass_progress(progress, 2 if two_passes else 1, info.n_samples)
+    source = reader
+    if two_passes:
+        first = reep_pass_one(reader, params, model, progress_one)
+        tables, model, segment_s = first.tables, first.model, first.segment_s
+        source = reopen() if reopen is not None else reader
+    try:
+        chunks: Iterator[Chunk] = iter_chunks(source, _CHANNELS, params.chunk_samples, progress=progress_two)
+        if model is None:
+            model, chunks, segment_s = _identify_free_air(source, params, chunks)
+        setup = _setup(source, params, model, segment_s, lam, tables)
+        coefficients = (
+            HeldReepCoefficients(reep_results.series["t"], reep_results.series["b1"], reep_results.series["b0"], fs)
+            if reep_results is not None
+            else InternalReep(lam, model.numerator_at(fs))
+        )
+        stream = _PassTwo(setup, coefficients, params, fs)
+        for chunk in chunks:
+            stream.process(chunk, writer)
+    finally:
+        if source is not reader:
+            source.close()
+    if stream.n_total == 0:
+        raise InputError(f"{info.source}: the capture has no samples")
+    if reep_results is not None and coefficients.last_sample >= stream.n_total:
+        raise InputError(f"--reep {reep_results.path}: REEP's series runs past the capture's {stream.n_total} samples")
+    return _judge(params, setup, stream, tables, info.units("z_piezo"), reep_results)
+
+
+def _adaptive_hint(stream: _PassTwo, params: KalmanBankParams, z_units: str) -> str:
+    """Why the adaptive observer may lose: REEP's window measured in z along the ramp."""
+    reep_window_z = stream.z_per_sample / (1.0 - stream.setup.lam)
+    if not reep_window_z > 0.25 * params.z_bin:
+        return ""
+    return (
+        f"; REEP's window 1/(1-lambda) = {1.0 / (1.0 - stream.setup.lam):.0f} samples spans {reep_window_z:.3g}"
+        f"{' ' + z_units if z_units else ''} of z on this ramp ({reep_window_z / params.z_bin:.2g} bins), so the "
+        "adaptive observer's model lags the cantilever: a slower force curve (or a smaller lambda) is needed"
+    )
+
+
+def _judge(params, setup: BankSetup, stream: _PassTwo, tables, z_units: str, reep_results) -> KalmanBankResult:
+    """Bin, locate each filter's minimum, count the adaptive observer's wins, and write the results."""
+    rms_tables = stream.rms_tables()
+    points = setup.points
+    if tables is None:  # --models with REEP alongside: REEP's model against z from pass 2
+        tables = stream.reep_binner.tables(amplitude_known=False)
+        points = _design_points(params, tables, setup.model)
+    if params.design_leg not in rms_tables:
+        raise InputError(f"the capture has no {params.design_leg} leg after the warm-up")
+    tol = VerdictTolerance(params.z_bin, params.z_tolerance_bins, params.rms_tolerance, params.adaptive_fraction)
+    filters = filter_verdicts(rms_tables[params.design_leg], points, params.f0_scale, tol, z_units)
+    fraction = stream.lowest / stream.counted if stream.counted else math.nan
+    adaptive = adaptive_verdict(fraction, rms_tables, points, tol, _adaptive_hint(stream, params, z_units))
+    verdict = bank_verdict(filters, adaptive)
+    warnings = []
+    if stream.adaptive.held_samples:
+        warnings.append(
+            f"{stream.adaptive.held_samples} samples had no valid REEP model (start-up, or (b1, b0) outside the "
+            "under-damped region); the adaptive observer kept its previous model there"
+        )
+    results = _results(params, setup, stream, points, verdict, tol, z_units, reep_results, rms_tables)
+    return KalmanBankResult(
+        results, tuple(warnings), points, rms_tables, tables, verdict, z_units,
+        tuple(p.f0_hz * params.f0_scale for p in points),
+    )
+
+
+def leg_minima(tables: dict[str, RmsTable]) -> dict[str, list[float]]:
+    """z of each filter's least mean RMS on every leg (the non-design leg is reported, not judged)."""
+    out = {}
+    for leg, table in tables.items():
+        minima = []
+        for row in table.rms:
+            usable = (table.count > 0) & np.isfinite(row)
+            minima.append(float(table.z[usable][np.argmin(row[usable])]) if usable.any() else math.nan)
+        out[leg] = minima
+    return out
+
+
+def _filter_rows(params, setup: BankSetup, points, verdict: BankVerdict, minima) -> list[dict]:
+    rows = []
+    for k, (point, design, fv) in enumerate(zip(points, setup.designs, verdict.filters, strict=True)):
+        rows.append({
+            "index": k + 1,
+            "f0_hz": point.f0_hz * params.f0_scale,
+            "q": point.q,
+            "reep_f0_hz": point.f0_hz if point.source != "models" else None,
+            "source": point.source,
+            "design_z": point.z,
+            "design_bin": list(fv.design_bin),
+            "model_distance_to_reep": point.distance,
+            "denominator": list(design.denominator),
+            "gain": list(design.gain),
+            "error_pole_radius": float(np.abs(design.error_poles).mean()),
+            "min_z": {leg: values[k] for leg, values in minima.items()},
+            "min_bin_offset": fv.min_bin_offset,
+            "design_rms": fv.design_rms,
+            "min_rms": fv.min_rms,
+            "design_rms_excess": fv.excess,
+            "design_rms_over_adaptive": fv.over_adaptive,
+            "pass": fv.passed,
+        })
+    return rows
+
+
+def _results(params, setup: BankSetup, stream: _PassTwo, points, verdict, tol, z_units, reep_results, rms_tables):
+    fs = stream.fs
+    adaptive = verdict.adaptive
+    return {
+        "free_air_model": setup.model.to_dict(),
+        "free_air_segment_s": list(setup.segment_s) if setup.segment_s else None,
+        "reep": {
+            "source": str(reep_results.path) if reep_results is not None else "internal",
+            "forgetting_factor": setup.lam,
+            "coefficients": "held per sample from the decimated series" if reep_results is not None else "every sample",
+        },
+        "n_samples": stream.n_total,
+        "duration_s": stream.n_total / fs,
+        "sample_rate_hz": fs,
+        "drive_frequency_hz": setup.drive_hz,
+        "decimate": setup.decimate,
+        "rms_window_samples": setup.window,
+        "rms_window_periods": setup.window * setup.drive_hz / fs,
+        "rms_binned_delay_samples": setup.rms_delay,
+        "warmup_samples": setup.warmup,
+        "ramp_z_per_sample": stream.z_per_sample,
+        "reep_window_z": stream.z_per_sample / (1.0 - setup.lam),
+        "z_units": z_units,
+        "design": {
+            "method": points[0].source,
+            "leg": params.design_leg,
+            "n_filters": len(points),
+            "gain": "steady-state Kalman predictor (DARE)",
+            "noise_ratio": params.noise_ratio,
+            "f0_scale": params.f0_scale,
+        },
+        "filters": _filter_rows(params, setup, points, verdict, leg_minima(rms_tables)),
+        "adaptive": {
+            "pole_radius": setup.radius,
+            "error_time_constant_periods": -1.0 / math.log(setup.radius) * setup.drive_hz / fs,
+            "held_samples": stream.adaptive.held_samples,
+            "fraction_lowest": adaptive.fraction,
+            "fraction_lowest_by_leg": dict(adaptive.fraction_by_leg),
+            "fraction_lowest_within_bank_span": adaptive.fraction_within_span,
+            "samples_compared": stream.counted,
+            "pass": adaptive.passed,
+        },
+        "verdict": {
+            "pass": verdict.passed,
+            "tolerance": tol.describe(z_units),
+            "z_bin": tol.z_bin,
+            "z_tolerance_bins": tol.z_tolerance_bins,
+            "rms_tolerance": tol.rms_tolerance,
+            "adaptive_fraction_required": tol.adaptive_fraction,
+            "reasons": list(verdict.reasons),
+        },
+    }

@@ -1,0 +1,278 @@
+"""Where the Kalman bank gets REEP's model: binned against z, and per sample for the adaptive observer.
+
+Two sources, one interface:
+
+* internal: pass 1 runs :func:`afmtool.analyses.reep.run_reep` (its columns
+  go to a :class:`ReepBinner`), and pass 2 runs the same REEP kernel again
+  chunk by chunk (:class:`InternalReep`), which reproduces pass 1 bit for
+  bit;
+* a finished run (``--reep``): its decimated series are binned the same way
+  (:func:`reep_tables_from_file`) and its (b1, b0) are held per sample
+  (:class:`HeldReepCoefficients`).
+
+Binning at the window centroid
+------------------------------
+REEP's estimate at sample n weighs sample n − k by λᵏ(1 − λ); its centroid
+is λ/(1 − λ) samples back (199 at λ = 0.995), and along a ramp the
+estimate describes the cantilever there.  Each estimate is therefore binned
+against z that many samples earlier, as the bank's innovation RMS is
+binned where its own window and error dynamics put it.  Without this, a
+fast ramp (the bundled capture: 0.47 nm of z per REEP window) would shift
+every design point by about one 0.5 nm bin.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from afmtool.analyses.accumulators import ForceCurveAccumulator
+from afmtool.analyses.kalman_bank_verdict import ModelTable
+from afmtool.config.params import KalmanBankParams, ReepParams
+from afmtool.errors import InputError
+from afmtool.io.capture import CaptureReader, Chunk
+from afmtool.models.free_air import FreeAirModel
+
+__all__ = [
+    "DelayLine",
+    "ReepBinner",
+    "HeldReepCoefficients",
+    "InternalReep",
+    "PassOne",
+    "reep_pass_one",
+    "reep_tables_from_file",
+    "reep_delay",
+    "warmup_samples",
+]
+
+
+def reep_delay(lam: float, decimate: int) -> int:
+    """λ/(1 − λ), REEP's window centroid, in kept (decimated) samples."""
+    return round(lam / (1.0 - lam) / max(decimate, 1))
+
+
+def warmup_samples(params: KalmanBankParams, lam: float) -> int:
+    """REEP's start-up left out of the statistics: ``warmup_windows`` windows 1/(1 − λ)."""
+    return int(params.warmup_windows / (1.0 - lam))
+
+
+class DelayLine:
+    """x(n − d) of a stream, carried across chunks; the first value stands in before the start."""
+
+    def __init__(self, delay: int) -> None:
+        if delay < 0:
+            raise ValueError(f"{delay=} must be >= 0")
+        self.delay = delay
+        self._tail: np.ndarray | None = None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        if self.delay == 0 or len(x) == 0:
+            return x
+        if self._tail is None:
+            self._tail = np.full(self.delay, x[0])
+        extended = np.concatenate((self._tail, x))
+        self._tail = extended[-self.delay :]
+        return extended[: len(x)]
+
+
+class ReepBinner:
+    """REEP's model binned against z at the centroid of its window (module docstring).
+
+    It takes the columns REEP writes (``t``, ``z``, ``f0_hz``, ``q`` and
+    optionally ``amplitude``), so it can stand in for ``run_reep``'s writer.
+
+    Parameters
+    ----------
+    z_bin : float
+        Bin width, z_piezo units.
+    delay : int
+        λ/(1 − λ) in kept samples (:func:`reep_delay`).
+    warmup_s : float
+        Estimates before this time are left out (REEP's start-up).
+    """
+
+    def __init__(self, z_bin: float, delay: int, warmup_s: float) -> None:
+        self.accumulator = ForceCurveAccumulator(z_bin, ("f0_hz", "q", "amplitude"))
+        self.z_delay = DelayLine(delay)
+        self.warmup_s = warmup_s
+
+    def append(self, columns) -> None:
+        z = self.z_delay(columns["z"])
+        if len(z) == 0:
+            return
+        settled = np.asarray(columns["t"]) >= self.warmup_s
+        amplitude = columns.get("amplitude", np.zeros(len(z)))
+        values = {"f0_hz": columns["f0_hz"], "q": columns["q"], "amplitude": amplitude}
+        self.accumulator.add(z, {k: np.where(settled, v, np.nan) for k, v in values.items()})
+
+    def put(self, *args, **kwargs) -> None:
+        """Whole arrays of ``run_reep`` (tables, images) are not needed here."""
+
+    def tables(self, *, amplitude_known: bool = True) -> dict[str, ModelTable]:
+        """REEP's model per leg; amplitude NaN when the source had none."""
+        out = {}
+        for leg, t in self.accumulator.tables().items():
+            amplitude = t.means["amplitude"] if amplitude_known else np.full(t.z.shape, np.nan)
+            out[leg] = ModelTable(t.z, t.count.astype(np.float64), t.means["f0_hz"], t.means["q"], amplitude)
+        return out
+
+
+class HeldReepCoefficients:
+    """REEP's decimated (b1, b0) held per sample: sample n uses the last estimate at or before n.
+
+    Holding keeps the adaptive observer causal; REEP's estimate moves over
+    its window 1/(1 − λ) (200 samples), so a hold of under one drive period
+    adds no visible lag.  Samples before the first estimate get NaN, which
+    the adaptive kernel treats as "keep the previous (free-air) model".
+
+    Parameters
+    ----------
+    t, b1, b0 : array_like or h5py.Dataset, shape (K,)
+        Decimated times (s) and coefficients; read by slices, so datasets
+        of any length stream.
+    sample_rate_hz : float
+        The capture's rate; t·fs must be whole samples at a uniform step.
+
+    Raises
+    ------
+    InputError
+        If the times are not uniform whole samples at this rate.
+    """
+
+    def __init__(self, t, b1, b0, sample_rate_hz: float) -> None:
+        self._b1, self._b0 = b1, b0
+        self.length = len(t)
+        if self.length == 0 or len(b1) != self.length or len(b0) != self.length:
+            raise InputError("REEP series t, b1, b0 must be non-empty and of one length")
+        first = float(t[0]) * sample_rate_hz
+        self.first_sample = round(first)
+        self.step = round((float(t[1]) - float(t[0])) * sample_rate_hz) if self.length > 1 else 1
+        last = float(t[self.length - 1]) * sample_rate_hz
+        self.last_sample = self.first_sample + (self.length - 1) * self.step
+        uniform = abs(first - self.first_sample) <= 1e-3 and abs(last - self.last_sample) <= 1e-3 * max(1.0, last)
+        if self.step < 1 or not uniform:
+            raise InputError(
+                f"REEP series times are not uniform whole samples at {sample_rate_hz:g} Hz "
+                "(a REEP run of another capture or sample rate?)"
+            )
+
+    def block(self, chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
+        """(b1, b0) for the chunk's samples; NaN before the first estimate."""
+        n = chunk.start + np.arange(len(chunk))
+        k = np.minimum(np.floor_divide(n - self.first_sample, self.step), self.length - 1)
+        lo, hi = max(int(k.min()), 0), max(int(k.max()), 0)
+        b1 = np.asarray(self._b1[lo : hi + 1], dtype=np.float64)
+        b0 = np.asarray(self._b0[lo : hi + 1], dtype=np.float64)
+        inside = k >= 0
+        out1 = np.full(n.shape, np.nan)
+        out0 = np.full(n.shape, np.nan)
+        out1[inside] = b1[k[inside] - lo]
+        out0[inside] = b0[k[inside] - lo]
+        return out1, out0
+
+
+class InternalReep:
+    """REEP run chunk by chunk beside the bank, as ``run_reep`` runs it (same kernel, same state)."""
+
+    def __init__(self, lam: float, numerator) -> None:
+        from afmtool.estimators.rls import ReepState
+
+        self.state = ReepState.initial(lam=lam)
+        self.numerator = numerator
+
+    def block(self, chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
+        """(b1, b0) for every sample of the chunk (θ̂_C of eq. 3.39)."""
+        from afmtool.estimators.rls import reep_update
+
+        step = reep_update(self.state, chunk.data["deflection"], chunk.data["dither"], self.numerator)
+        self.state = step.state
+        return step.block.b1, step.block.b0
+
+
+class _LazyBinner:
+    """A :class:`ReepBinner` that learns REEP's decimation from the first block's times."""
+
+    def __init__(self, params: KalmanBankParams, sample_rate_hz: float) -> None:
+        self.params = params
+        self.fs = sample_rate_hz
+        self.binner: ReepBinner | None = None
+
+    def append(self, columns) -> None:
+        if self.binner is None:
+            t = np.asarray(columns["t"])
+            decimate = self.params.decimate or (round((t[1] - t[0]) * self.fs) if len(t) > 1 else 1)
+            lam = self.params.lam
+            warmup_s = warmup_samples(self.params, lam) / self.fs
+            self.binner = ReepBinner(self.params.z_bin, reep_delay(lam, decimate), warmup_s)
+        self.binner.append(columns)
+
+    def put(self, *args, **kwargs) -> None:
+        """Not needed (see :meth:`ReepBinner.put`)."""
+
+
+class PassOne(NamedTuple):
+    """REEP over the whole capture.
+
+    Attributes
+    ----------
+    tables : dict of str to ModelTable
+        REEP's model against z per leg, at its window centroid.
+    model : FreeAirModel
+        The free-air model REEP ran beside (given or identified).
+    segment_s : tuple of 2 floats or None
+        The free-air segment it was identified from.
+    """
+
+    tables: dict[str, ModelTable]
+    model: FreeAirModel
+    segment_s: tuple[float, float] | None
+
+
+def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel | None, progress) -> PassOne:
+    """Run REEP (``run_reep``, with the bank's λ, z bin and decimation) and bin its model against z."""
+    from afmtool.analyses.reep import run_reep
+
+    reep_params = ReepParams(
+        lam=params.lam,
+        free_air=params.free_air,
+        decimate=params.decimate,
+        drive_frequency_hz=params.drive_frequency_hz,
+        vs="z",
+        z_bin=params.z_bin,
+        warmup_windows=params.warmup_windows,
+        chunk_samples=params.chunk_samples,
+    )
+    binner = _LazyBinner(params, reader.info.sample_rate_hz)
+    result = run_reep(reader, reep_params, binner, model=model, progress=progress)
+    if not result.force_curves or binner.binner is None:
+        raise InputError(f"{reader.info.source}: REEP found no force curve (z_piezo never moves)")
+    used = model or FreeAirModel.from_dict(result.results["free_air_model"], "identified free-air model")
+    segment = result.results["free_air_segment_s"]
+    return PassOne(binner.binner.tables(), used, tuple(segment) if segment else None)
+
+
+def reep_tables_from_file(
+    reep_results, params: KalmanBankParams, lam: float, sample_rate_hz: float
+) -> dict[str, ModelTable]:
+    """REEP's model against z from a finished run's decimated series (streamed in slices).
+
+    Raises
+    ------
+    InputError
+        If the run has no ``z``, ``f0_hz`` or ``q`` series.
+    """
+    series = reep_results.series
+    missing = [name for name in ("z", "f0_hz", "q") if name not in series]
+    if missing:
+        raise InputError(f"--reep {reep_results.path}: no {', '.join(missing)} series (was z_piezo recorded?)")
+    t = series["t"]
+    n = len(t)
+    decimate = round((float(t[1]) - float(t[0])) * sample_rate_hz) if n > 1 else 1
+    binner = ReepBinner(params.z_bin, reep_delay(lam, decimate), warmup_samples(params, lam) / sample_rate_hz)
+    names = ("t", "z", "f0_hz", "q") + (("amplitude",) if "amplitude" in series else ())
+    step = 1 << 16
+    for start in range(0, n, step):
+        binner.append({name: np.asarray(series[name][start : start + step], dtype=np.float64) for name in names})
+    return binner.tables(amplitude_known="amplitude" in series)

@@ -1,0 +1,531 @@
+"""``afmtool probeloss``: reliability index, switching signal and amplitude baseline (ch. 2).
+
+capture → chunks → free-air observer (eq. 2.10, :mod:`afmtool.estimators.observer`)
+→ innovation window RMS / free-air level = reliability index → hysteresis
+switching signal (1 = probe loss, index low) → events; beside it the
+lock-in amplitude and the amplitude-threshold baseline (loss while
+A > A_upper, Ando et al., thesis §2.2) → events; decimated series in
+``probeloss.h5``, probe-loss mask and index images with scan geometry, and,
+when the capture carries ``/truth/contact``, per-event scores of both
+detectors.  Every filter carries its state across chunks, so the output does
+not depend on the chunk size, and everything is causal (sample n uses
+samples up to n), as on the instrument.
+
+Before the pass, the free-air segment (``--free-air`` or metadata) gives the
+free-air model (unless ``--model``), the free-air innovation RMS the index is
+divided by, the automatic switching thresholds and the free amplitude A0.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
+from afmtool.analyses.freeair_source import (
+    FreeAirSegment,
+    free_air_interval,
+    identify_from_segment,
+    read_free_air,
+)
+from afmtool.analyses.probeloss_events import (
+    Events,
+    RunState,
+    overlapping_lead,
+    runs_finish,
+    runs_update,
+    score_events,
+    truth_loss_events,
+)
+from afmtool.config.params import ProbeLossParams
+from afmtool.errors import ConfigError, InputError
+from afmtool.io.capture import CaptureReader, Chunk
+from afmtool.io.chunks import iter_chunks
+from afmtool.io.prefetch import prefetch
+from afmtool.models.free_air import FreeAirModel
+
+if TYPE_CHECKING:  # numba-backed modules load when the command runs
+    from afmtool.estimators.observer import ObserverDesign
+    from afmtool.estimators.reliability import FreeAirCalibration
+
+__all__ = ["ProbeLossResult", "ProbeLossSetup", "prepare_probeloss", "run_probeloss", "SERIES_UNITS"]
+
+#: Decimated series written per kept sample ("" = dimensionless; amplitude in input units).
+SERIES_UNITS = {"t": "s", "index": "", "switch": "", "amplitude": "deflection units", "amplitude_switch": ""}
+_IMAGE_QUANTITIES = ("loss", "index")
+#: Chunks the reader thread may hold ready (memory: about 16·chunk_samples bytes each).
+_READ_AHEAD = 2
+
+
+@dataclass(frozen=True)
+class ProbeLossSetup:
+    """Everything fixed before the pass: model, observer, normalisation, thresholds, A_upper.
+
+    Attributes
+    ----------
+    model : FreeAirModel
+        The free-air model the observer runs on.
+    model_source : str
+        ``"given"`` (``--model``) or ``"segment"`` (identified here).
+    design : ObserverDesign
+        The observer.
+    window_samples : int
+        W of the index.
+    drive_hz : float
+        Drive (lock-in) frequency, Hz.
+    period_samples : float
+        fs/drive_hz.
+    calibration : FreeAirCalibration
+        Index level and thresholds.
+    amplitude_upper : float
+        A_upper, deflection units.
+    free_amplitude : float or None
+        A0 on the free-air segment, deflection units.
+    setpoint : float or None
+        A_sp used for the automatic A_upper.
+    lowpass_hz : float
+        Lock-in corner, Hz.
+    decimate : int
+        One output sample in ``decimate``.
+    segment_s : tuple of 2 floats or None
+        The free-air segment, s.
+    """
+
+    model: FreeAirModel
+    model_source: str
+    design: ObserverDesign
+    window_samples: int
+    drive_hz: float
+    period_samples: float
+    calibration: FreeAirCalibration
+    amplitude_upper: float
+    free_amplitude: float | None
+    setpoint: float | None
+    lowpass_hz: float
+    decimate: int
+    segment_s: tuple[float, float] | None
+
+
+@dataclass(frozen=True)
+class ProbeLossResult:
+    """What :func:`run_probeloss` found; the command turns it into files and a report."""
+
+    results: dict
+    warnings: tuple[str, ...]
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    geometry: ScanGeometry | None = None
+    setup: ProbeLossSetup | None = None
+
+
+# --------------------------------------------------------------------------- set-up
+
+
+def _drive_frequency(reader: CaptureReader, params: ProbeLossParams, model: FreeAirModel) -> float:
+    fs = reader.info.sample_rate_hz
+    drive = reader.info.metadata.get("drive", {})
+    if params.drive_frequency_hz:
+        hz = params.drive_frequency_hz
+    elif "frequency_hz" in drive:
+        hz = float(drive["frequency_hz"])
+    else:
+        hz = model.f0_hz
+    if not 0 < hz < fs / 2:
+        raise InputError(f"drive frequency {hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
+    return hz
+
+
+def _design(params: ProbeLossParams, model: FreeAirModel, fs: float, period_samples: float):
+    from afmtool.estimators.observer import ObserverDesign
+
+    denominator, numerator = model.denominator_at(fs), model.numerator_at(fs)
+    if params.gain == "kalman":
+        return ObserverDesign.from_kalman(
+            denominator, numerator, params.process_noise, params.measurement_noise, input_gain=model.gain
+        )
+    return ObserverDesign.from_decay(denominator, numerator, params.decay_cycles, period_samples)
+
+
+def _calibrate(params: ProbeLossParams, design, window: int, segment: FreeAirSegment | None):
+    """Index level and thresholds: from the segment, or given."""
+    from afmtool.estimators.observer import ObserverState, observer_update
+    from afmtool.estimators.reliability import FreeAirCalibration, calibrate_index, check_thresholds, settle_samples
+
+    on = params.on or None
+    off = params.off or None
+    if segment is None:
+        if not (params.index_level and on and off):
+            raise ConfigError(
+                "without a free-air segment (--free-air or metadata free_air) give --index-level, --on and --off"
+            )
+        thresholds = check_thresholds(on, off)
+        return FreeAirCalibration(params.index_level, thresholds, 0, math.nan, math.nan, math.nan, params.quantile)
+    step = observer_update(ObserverState.initial(design, window), segment.data["deflection"], segment.data["dither"])
+    skip = settle_samples(design, window)
+    if step.block.rms.size < skip + 16:
+        raise InputError(
+            f"free-air segment {segment.interval_s[0]:g}:{segment.interval_s[1]:g} s is shorter than the "
+            f"observer's settling ({skip} samples) plus 16"
+        )
+    calibration = calibrate_index(
+        step.block.rms[skip:], on=on, off=off, quantile=params.quantile, off_ratio=params.off_ratio
+    )
+    if params.index_level:
+        calibration = calibration._replace(level=params.index_level)
+    return calibration
+
+
+def _free_amplitude(segment: FreeAirSegment | None, drive_hz: float, fs: float, lowpass_hz: float) -> float | None:
+    """Mean lock-in amplitude over the free-air segment after the low-pass settles."""
+    from afmtool.estimators.lockin import LockIn
+
+    if segment is None:
+        return None
+    lockin = LockIn(drive_hz, fs, lowpass_hz)
+    blocks, _ = lockin.process(segment.data["deflection"], lockin.initial_state(1))
+    amplitude = blocks[0].amplitude
+    skip = min(amplitude.size // 2, math.ceil(5.0 * fs / lowpass_hz))
+    return float(np.mean(amplitude[skip:]))
+
+
+def _amplitude_upper(params: ProbeLossParams, reader: CaptureReader, free_amplitude: float | None):
+    if params.amplitude_upper:
+        return params.amplitude_upper, None
+    setpoint = params.setpoint or reader.info.metadata.get("controller", {}).get("setpoint_nm")
+    if setpoint is None or free_amplitude is None:
+        raise ConfigError(
+            "the amplitude baseline needs --amplitude-upper, or a free-air segment and the set point "
+            "(--setpoint or metadata controller.setpoint_nm) for the automatic A_upper"
+        )
+    setpoint = float(setpoint)
+    # A_upper = A_sp + fraction·(A0 − A_sp)
+    return setpoint + params.upper_fraction * (free_amplitude - setpoint), setpoint
+
+
+def prepare_probeloss(
+    reader: CaptureReader, params: ProbeLossParams, chunks: Iterator[Chunk], model: FreeAirModel | None
+) -> tuple[ProbeLossSetup, Iterator[Chunk]]:
+    """Read the free-air segment ahead and fix the model, observer, index level, thresholds and A_upper."""
+    from afmtool.estimators.lockin import default_lowpass_hz
+    from afmtool.estimators.reliability import index_window
+
+    fs = reader.info.sample_rate_hz
+    interval = free_air_interval(reader, params.free_air)
+    segment = None
+    if interval is not None:
+        segment, chunks = read_free_air(reader, chunks, interval, ("deflection", "dither"))
+    source = "given"
+    if model is None:
+        if segment is None:
+            raise ConfigError(
+                "probeloss needs the free-air model: give --free-air START:END, --model free_air.json, "
+                "or capture metadata free_air"
+            )
+        model, source = identify_from_segment(segment, fs), "segment"
+    drive_hz = _drive_frequency(reader, params, model)
+    period = fs / drive_hz
+    design = _design(params, model, fs, period)
+    window = index_window(fs, drive_hz, params.window_periods)
+    calibration = _calibrate(params, design, window, segment)
+    drive = reader.info.metadata.get("drive", {})
+    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, drive.get("sideband_offset_hz"))
+    free_amplitude = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
+    upper, setpoint = _amplitude_upper(params, reader, free_amplitude)
+    decimate = params.decimate or max(1, round(period))
+    setup = ProbeLossSetup(
+        model, source, design, window, drive_hz, period, calibration, upper, free_amplitude, setpoint,
+        lowpass_hz, decimate, interval,
+    )
+    return setup, chunks
+
+
+# --------------------------------------------------------------------------- pass
+
+
+class _Pass:
+    """State of the streaming pass: detectors, events, counts, images.
+
+    Per chunk the lock-in runs in a worker thread while the observer kernel
+    runs in the caller's (both numba kernels release the GIL); each keeps
+    its own carried state, so the result does not depend on the threads.
+    """
+
+    def __init__(self, setup: ProbeLossSetup, fs: float, geometry: ScanGeometry | None) -> None:
+        from afmtool.estimators.lockin import LockIn
+        from afmtool.estimators.observer import ObserverState
+        from afmtool.estimators.reliability import ReliabilityState
+
+        self.setup = setup
+        self.fs = fs
+        self.detector = ReliabilityState(
+            ObserverState.initial(setup.design, setup.window_samples),
+            float(setup.calibration.level),
+            setup.calibration.thresholds,
+        )
+        self.lockin = LockIn(setup.drive_hz, fs, setup.lowpass_hz)
+        self.lock_state = self.lockin.initial_state(1)
+        self.amp_switch = 0
+        self.kept_seen = 0
+        self.index_runs = RunState()
+        self.amp_runs = RunState()
+        self.index_events: list[Events] = []
+        self.amp_events: list[Events] = []
+        self.n_samples = 0
+        self.images = ImageAccumulator(geometry, _IMAGE_QUANTITIES) if geometry else None
+
+    def chunk(self, chunk: Chunk, pool: ThreadPoolExecutor) -> dict[str, np.ndarray]:
+        from afmtool.estimators.reliability import hysteresis_update, reliability_update
+
+        setup = self.setup
+        p = chunk.data["deflection"]
+        # the amplitude at the kept samples n, (n + 1) % decimate == 0, beside the observer
+        demodulating = pool.submit(self.lockin.process, p, self.lock_state, setup.decimate)
+        try:
+            step = reliability_update(self.detector, p, chunk.data["dither"], keep_every=setup.decimate)
+        finally:
+            demodulated, self.lock_state = demodulating.result()
+        self.detector = step.state
+        switch = step.block.switch
+        runs = runs_update(self.index_runs, switch, chunk.start)
+        self.index_runs = runs.state
+        self.index_events.append(runs.events)
+        keep = slice((-(chunk.start + 1)) % setup.decimate, None, setup.decimate)
+        amplitude = demodulated[0].amplitude
+        upper = setup.amplitude_upper
+        amp = hysteresis_update(self.amp_switch, amplitude, upper, upper, loss_when="above")
+        self.amp_switch = amp.state
+        amp_runs = runs_update(self.amp_runs, amp.switch, self.kept_seen)
+        self.amp_runs = amp_runs.state
+        self.amp_events.append(amp_runs.events)
+        kept = (self.kept_seen + np.arange(amplitude.size)) * setup.decimate + (setup.decimate - 1)
+        self.kept_seen += amplitude.size
+        self.n_samples = chunk.start + len(p)
+        columns = {
+            "t": kept / self.fs,
+            "index": step.block.index,
+            "switch": switch[keep],
+            "amplitude": amplitude,
+            "amplitude_switch": amp.switch,
+        }
+        if self.images is not None:
+            self.images.add(columns["t"], {"loss": columns["switch"].astype(np.float64), "index": columns["index"]})
+        return columns
+
+    def finish(self) -> tuple[Events, Events]:
+        index_events = Events.concatenate([*self.index_events, runs_finish(self.index_runs, self.n_samples)])
+        # amplitude runs are counted in kept samples; the k-th kept sample is n = decimate − 1 + k·decimate
+        amp_runs = Events.concatenate([*self.amp_events, runs_finish(self.amp_runs, self.kept_seen)])
+        decimate = self.setup.decimate
+        start = decimate - 1 + amp_runs.start * decimate
+        end = np.minimum(decimate - 1 + amp_runs.end * decimate, self.n_samples)
+        return index_events, Events(start, end)
+
+
+# --------------------------------------------------------------------------- report
+
+
+def _event_list(index_events: Events, lead: np.ndarray, fs: float, limit: int) -> list[dict]:
+    out = []
+    for k in range(min(len(index_events), limit)):
+        start, end = int(index_events.start[k]), int(index_events.end[k])
+        out.append({
+            "start_s": start / fs,
+            "end_s": end / fs,
+            "duration_s": (end - start) / fs,
+            "amplitude_lead_s": None if math.isnan(lead[k]) else float(lead[k]) / fs,
+        })
+    return out
+
+
+def _median(values: np.ndarray) -> float | None:
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if values.size else None
+
+
+def _score_dict(score, period: float) -> dict:
+    latency = score.latency_samples / period
+    return {
+        "truth_events": score.truth_events,
+        "detected_events": score.detected_events,
+        "recall": score.recall,
+        "precision": score.precision,
+        "median_latency_periods": _median(latency),
+        "p90_latency_periods": float(np.percentile(latency, 90)) if latency.size else None,
+        "carried_over": score.carried_over,
+    }
+
+
+def _truth_results(reader: CaptureReader, params: ProbeLossParams, setup: ProbeLossSetup,
+                   index_events: Events, amp_events: Events) -> dict | None:
+    if "contact" not in reader.info.truth_names:
+        return None
+    contact = reader.truth()["contact"]
+    period = setup.period_samples
+    truth = truth_loss_events(contact, period, params.truth_gap_periods)
+    minimum = params.min_event_periods * period
+    index_score = score_events(index_events, truth, minimum)
+    amp_score = score_events(amp_events, truth, minimum)
+    t_index, t_amp = index_score.detection_samples, amp_score.detection_samples
+    both = (t_index >= 0) & (t_amp >= 0)
+    index_only = (t_index >= 0) & (t_amp < 0)
+    amplitude_only = (t_index < 0) & (t_amp >= 0)
+    first = both & (t_index < t_amp)
+    lead = (t_amp - t_index)[both] / period
+    stretch_samples = int(np.sum(truth.stretches.duration))
+    return {
+        "loss_fraction": stretch_samples / len(contact) if len(contact) else None,
+        "gap_periods": params.truth_gap_periods,
+        "min_event_periods": params.min_event_periods,
+        "index": _score_dict(index_score, period),
+        "amplitude": _score_dict(amp_score, period),
+        "index_first": {
+            "events": int(index_score.truth_events),
+            "both_detected": int(both.sum()),
+            "index_first": int(first.sum()),
+            "index_only": int(index_only.sum()),
+            "amplitude_only": int(amplitude_only.sum()),
+            "fraction_of_both": float(first.sum() / both.sum()) if both.any() else None,
+            "median_lead_periods": _median(lead),
+        },
+    }
+
+
+def _image_results(result_images: dict, geometry: ScanGeometry) -> dict:
+    per_line = {}
+    for key, image in result_images.items():
+        quantity, direction = key.split("/")
+        if quantity == "loss":
+            with np.errstate(invalid="ignore"):
+                rows = [float(np.nanmean(row)) if np.isfinite(row).any() else None for row in image]
+            per_line[direction] = rows
+    loss_images = [img for key, img in result_images.items() if key.startswith("loss/")]
+    stacked = np.concatenate([img.ravel() for img in loss_images])
+    finite = stacked[np.isfinite(stacked)]
+    return {
+        "loss_fraction_scan": float(finite.mean()) if finite.size else None,
+        "loss_fraction_per_line": per_line,
+        "tip_velocity_m_per_s": geometry.scan_size_m * geometry.line_rate_hz * (2.0 if geometry.trace_retrace else 1.0),
+    }
+
+
+def _finite_or_none(value: float) -> float | None:
+    return None if math.isnan(value) else float(value)
+
+
+def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
+    """The model, observer, index normalisation and baseline threshold, for report.json."""
+    calibration = setup.calibration
+    return {
+        "free_air_model": setup.model.to_dict(),
+        "free_air_model_source": setup.model_source,
+        "free_air_segment_s": list(setup.segment_s) if setup.segment_s else None,
+        "drive_frequency_hz": setup.drive_hz,
+        "decimate": setup.decimate,
+        "observer": {
+            "gain_design": params.gain,
+            "gain": list(setup.design.gain),
+            "error_pole_radius": float(np.max(np.abs(setup.design.error_poles))),
+            "window_samples": setup.window_samples,
+        },
+        "index": {
+            "level": calibration.level,
+            "on": calibration.thresholds.on,
+            "off": calibration.thresholds.off,
+            "free_air_samples": calibration.samples,
+            "free_air_median": _finite_or_none(calibration.index_median),
+            "free_air_quantile": _finite_or_none(calibration.index_quantile),
+            "free_air_max": _finite_or_none(calibration.index_max),
+        },
+        "amplitude_baseline": {
+            "upper": setup.amplitude_upper,
+            "free_amplitude": setup.free_amplitude,
+            "setpoint": setup.setpoint,
+            "lockin_lowpass_hz": setup.lowpass_hz,
+        },
+    }
+
+
+def _event_results(index_events: Events, amp_events: Events, lead: np.ndarray, n_samples: int, fs: float,
+                   limit: int) -> dict:
+    """Loss fraction, the index events and their lead over the amplitude baseline."""
+    return {
+        "loss_fraction": float(np.sum(index_events.duration)) / n_samples,
+        "events_total": len(index_events),
+        "events_listed": min(len(index_events), limit),
+        "median_amplitude_lead_s": _median(lead / fs),
+        "events": _event_list(index_events, lead, fs, limit),
+    }
+
+
+def run_probeloss(
+    reader: CaptureReader,
+    params: ProbeLossParams,
+    writer,
+    *,
+    model: FreeAirModel | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> ProbeLossResult:
+    """Reliability index, switching signal and amplitude baseline over a whole capture, streaming.
+
+    Parameters
+    ----------
+    reader : CaptureReader
+        Needs ``deflection`` and ``dither``.
+    params : ProbeLossParams
+        Effective parameters.
+    writer : ResultWriter or RowWriter
+        Receives ``t``, ``index``, ``switch``, ``amplitude``,
+        ``amplitude_switch`` at the kept samples.
+    model : FreeAirModel, optional
+        A given free-air model; otherwise identified from the free-air segment.
+
+    Returns
+    -------
+    ProbeLossResult
+    """
+    info = reader.info
+    fs = info.sample_rate_hz
+    chunks: Iterator[Chunk] = iter_chunks(reader, ("deflection", "dither"), params.chunk_samples)
+    setup, chunks = prepare_probeloss(reader, params, chunks, model)
+    geometry = ScanGeometry.from_metadata(info.metadata)
+    state = _Pass(setup, fs, geometry)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="afmtool-lockin") as pool:
+        # the reader runs ahead in its own thread (h5py and the numba kernels overlap)
+        for chunk in prefetch(chunks, _READ_AHEAD):
+            writer.append(state.chunk(chunk, pool))
+            if progress is not None:  # from this thread, not the reader's
+                progress(state.n_samples)
+    if state.n_samples == 0:
+        raise InputError(f"{info.source}: the capture has no samples")
+    index_events, amp_events = state.finish()
+    lead = overlapping_lead(index_events, amp_events)
+    warnings: list[str] = []
+    if setup.model.delay_s > 1.5 / fs:
+        warnings.append(
+            f"the free-air model has a drive delay of {setup.model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
+            "observer does not model; the free-air index level absorbs it, the contrast on the sample drops"
+        )
+    results = {
+        **_setup_results(setup, params),
+        "n_samples": state.n_samples,
+        "duration_s": state.n_samples / fs,
+        "sample_rate_hz": fs,
+        **_event_results(index_events, amp_events, lead, state.n_samples, fs, params.max_events),
+    }
+    results["amplitude_baseline"]["loss_fraction"] = float(np.sum(amp_events.duration)) / state.n_samples
+    results["amplitude_baseline"]["events_total"] = len(amp_events)
+    images = state.images.images() if state.images is not None else {}
+    if geometry is not None:
+        results["scan"] = _image_results(images, geometry)
+        median_lead = results["median_amplitude_lead_s"]
+        results["scan"]["median_amplitude_lead_m"] = (
+            None if median_lead is None else median_lead * results["scan"]["tip_velocity_m_per_s"]
+        )
+    truth = _truth_results(reader, params, setup, index_events, amp_events)
+    if truth is not None:
+        results["truth"] = truth
+    return ProbeLossResult(results, tuple(warnings), images, geometry, setup)

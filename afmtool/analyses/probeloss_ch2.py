@@ -1,0 +1,182 @@
+"""Chapter 2 reproduced: low, high and switching z-controller gains on the calibration grating.
+
+For each line rate the closed-loop ``raster`` scenario runs once per
+controller with the same seed, and the table compares, over the scan
+(after the engage):
+
+* the probe-loss area: the share of scan time the tip spends in truth loss
+  (no contact for more than ``gap_periods`` drive periods, as in
+  :func:`~afmtool.analyses.probeloss_events.truth_loss_events`); at a
+  constant tip speed the share of time is the share of image area;
+* the peak on-sample force: the largest repulsive tip-sample force of the
+  scan (truth ``force_n``, N);
+* the height image (``z_piezo``, the controller output) per pixel, trace.
+
+The thesis (§2.5) finds the switching controller's probe-loss area comparable
+to the high gain's and its on-sample behaviour that of the low gain;
+:func:`ch2_table` gives the ratios the acceptance test bounds (1.2×).
+
+``python -m afmtool.analyses.probeloss_ch2 OUT_DIR`` writes the table
+(``ch2_table.json``) and the side-by-side height images
+(``ch2_controllers.png``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
+from afmtool.analyses.probeloss_events import truth_loss_events
+from afmtool.sim.raster import CONTROLLERS, RasterParams, RasterRun, run_raster
+
+__all__ = ["TABLE_LINE_RATES_HZ", "ControllerRow", "Ch2Row", "run_controllers", "ch2_table", "height_image", "write_controller_png"]
+
+#: The thesis's grating line rates (Figs. 2.2-2.4) and its DNA rate (Fig. 2.6), Hz.
+TABLE_LINE_RATES_HZ = (4.0, 8.0, 12.0, 30.0)
+
+
+class ControllerRow(NamedTuple):
+    """One controller at one line rate.
+
+    Attributes
+    ----------
+    loss_area : float
+        Share of scan time in truth probe loss (0-1).
+    peak_force_n : float
+        Largest repulsive tip-sample force over the scan, N.
+    p999_force_n : float
+        99.9th percentile of the per-sample force extremes, N.
+    detected_loss : float
+        Share of scan samples the in-loop switching signal read loss.
+    """
+
+    loss_area: float
+    peak_force_n: float
+    p999_force_n: float
+    detected_loss: float
+
+
+class Ch2Row(NamedTuple):
+    """The three controllers at one line rate, and the two ratios of the acceptance test."""
+
+    line_rate_hz: float
+    low: ControllerRow
+    high: ControllerRow
+    switching: ControllerRow
+
+    @property
+    def loss_ratio_to_high(self) -> float:
+        """Switching probe-loss area / high-gain probe-loss area (inf if the high gain has none)."""
+        if self.high.loss_area == 0:
+            return 0.0 if self.switching.loss_area == 0 else float("inf")
+        return self.switching.loss_area / self.high.loss_area
+
+    @property
+    def force_ratio_to_low(self) -> float:
+        """Switching peak force / low-gain peak force."""
+        return self.switching.peak_force_n / self.low.peak_force_n
+
+    def as_dict(self) -> dict:
+        return {
+            "line_rate_hz": self.line_rate_hz,
+            **{name: getattr(self, name)._asdict() for name in CONTROLLERS},
+            "loss_ratio_switching_to_high": self.loss_ratio_to_high,
+            "force_ratio_switching_to_low": self.force_ratio_to_low,
+        }
+
+
+def _scan_start(run: RasterRun) -> int:
+    return int(round(run.params.scan_start_s * run.params.sample_rate_hz))
+
+
+def controller_row(run: RasterRun, gap_periods: float = 1.5) -> ControllerRow:
+    """Probe-loss area and forces of one run, over the scan."""
+    start = _scan_start(run)
+    period = run.params.sample_rate_hz / run.params.f0_hz
+    truth = truth_loss_events(run.contact[start:], period, gap_periods)
+    n = run.contact.size - start
+    force = run.force_n[start:]
+    return ControllerRow(
+        float(np.sum(truth.stretches.duration)) / n,
+        float(force.max()),
+        float(np.percentile(force, 99.9)),
+        float(np.count_nonzero(run.switch[start:])) / n,
+    )
+
+
+def run_controllers(line_rate_hz: float, overrides: Mapping | None = None, seed: int = 1) -> dict[str, RasterRun]:
+    """The three controllers on one scan (same surface, noise and seed)."""
+    base = RasterParams()
+    runs = {}
+    for controller in CONTROLLERS:
+        params = dataclasses.replace(base, **{**dict(overrides or {}), "controller": controller,
+                                              "line_rate_hz": float(line_rate_hz)})
+        runs[controller] = run_raster(params, seed)
+    return runs
+
+
+def ch2_table(
+    line_rates_hz: Sequence[float] = TABLE_LINE_RATES_HZ, overrides: Mapping | None = None, seed: int = 1,
+    runs: Mapping[float, Mapping[str, RasterRun]] | None = None,
+) -> list[Ch2Row]:
+    """One :class:`Ch2Row` per line rate (runs given, or simulated with ``overrides``)."""
+    rows = []
+    for rate in line_rates_hz:
+        by_controller = runs[rate] if runs is not None else run_controllers(rate, overrides, seed)
+        rows.append(Ch2Row(float(rate), *(controller_row(by_controller[c]) for c in CONTROLLERS)))
+    return rows
+
+
+def height_image(run: RasterRun, direction: str = "trace") -> np.ndarray:
+    """Per-pixel mean of the controller output z (nm), (lines, pixels), row 0 the first line."""
+    params = run.params
+    geometry = ScanGeometry(params.lines, params.pixels_per_line, params.scan_size_m, params.line_rate_hz,
+                            True, params.scan_start_s)
+    acc = ImageAccumulator(geometry, ("z",))
+    t = np.arange(run.z_piezo_nm.size) / params.sample_rate_hz
+    acc.add(t, {"z": run.z_piezo_nm})
+    return acc.images()[f"z/{direction}"]
+
+
+def write_controller_png(path: Path, runs: Mapping[str, RasterRun], *, title: str = "") -> None:
+    """The three controllers' height images side by side, one colour scale (thesis Figs. 2.3, 2.4)."""
+    from afmtool.report.images import write_side_by_side_png
+
+    params = runs[CONTROLLERS[0]].params
+    images = [(height_image(runs[c])[::-1], f"{c} gain") for c in CONTROLLERS]
+    y_size = params.scan_size_m * params.lines / params.pixels_per_line
+    write_side_by_side_png(
+        Path(path), images, params.scan_size_m, y_size, z_units="nm", z_label="height (z)",
+        suptitle=title or f"{params.topography}, {params.line_rate_hz:g} Hz line rate",
+    )
+
+
+def _main(argv: list[str]) -> int:
+    """``python -m afmtool.analyses.probeloss_ch2 OUT_DIR``: the table and the figure."""
+    if len(argv) != 1:
+        print("usage: python -m afmtool.analyses.probeloss_ch2 OUT_DIR", file=sys.stderr)
+        return 2
+    out = Path(argv[0])
+    out.mkdir(parents=True, exist_ok=True)
+    rows = ch2_table(TABLE_LINE_RATES_HZ, {"lines": 4})
+    (out / "ch2_table.json").write_text(json.dumps([row.as_dict() for row in rows], indent=2) + "\n")
+    # Fig. 2.4: at 12 Hz the low gain loses the pits' square profile and the switching gain recovers it
+    runs = run_controllers(12.0, {"lines": 48, "pixels_per_line": 48, "y_offset_m": 0.0})
+    write_controller_png(out / "ch2_controllers.png", runs, title="grating, 12 Hz line rate: z of the three controllers")
+    for row in rows:
+        print(f"{row.line_rate_hz:5g} Hz  loss low/high/switching "
+              f"{row.low.loss_area:.3f}/{row.high.loss_area:.3f}/{row.switching.loss_area:.3f}"
+              f"  peak force (nN) {row.low.peak_force_n * 1e9:.1f}/{row.high.peak_force_n * 1e9:.1f}"
+              f"/{row.switching.peak_force_n * 1e9:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main(sys.argv[1:]))

@@ -1,0 +1,124 @@
+"""The ``probeloss`` command end to end: parameters, run, files, report."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from afmtool.analyses.probeloss import SERIES_UNITS, ProbeLossResult, run_probeloss
+from afmtool.config import load_toml, resolve_from
+from afmtool.config.params import ProbeLossParams
+from afmtool.io.capture import CaptureReader
+from afmtool.io.results import ResultWriter
+from afmtool.models.free_air import load_free_air_model
+from afmtool.report.json_report import input_record
+from afmtool.report.outputs import OutputDir
+from afmtool.report.run import finish_run
+
+__all__ = ["run_probeloss_command", "run_probeloss_stream"]
+
+#: Chunk size for --stream: small, so rows follow the input closely.
+STREAM_CHUNK_SAMPLES = 4096
+
+_IMAGE_TITLES = {"loss": ("probe-loss fraction", ""), "index": ("reliability index", "")}
+_IMAGE_STEMS = {"loss": "loss_mask", "index": "index"}
+
+
+def _units(reader: CaptureReader) -> dict[str, str]:
+    deflection_units = reader.info.units("deflection") if "deflection" in reader.info.channel_names else ""
+    return dict(SERIES_UNITS, amplitude=deflection_units)
+
+
+def run_probeloss_command(
+    reader: CaptureReader,
+    capture: str,
+    out: Path,
+    config: Path | None,
+    flags: Mapping,
+    progress: Callable[[int], None],
+) -> dict:
+    """Resolve parameters, run the probe-loss analysis, write every output atomically; return the report."""
+    params = resolve_from(ProbeLossParams, "probeloss", load_toml(config) if config else None, flags)
+    model = load_free_air_model(Path(params.model)) if params.model else None
+    # the input's sha256 for report.json is computed beside the analysis (hashlib releases the GIL)
+    capture_record = _Background(input_record, capture)
+    with OutputDir(out) as staged:
+        with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"}) as writer:
+            result = run_probeloss(reader, params, writer, model=model, progress=progress)
+            _write_images(staged, writer, result)
+        results = dict(result.results)
+        if result.setup is not None and result.setup.model_source == "segment":
+            result.setup.model.save(staged.path("free_air.json"))
+        inputs = [capture_record.result()]
+        if params.model:
+            model_path = Path(params.model)
+            model_file = model_path if model_path.is_file() else model_path / "free_air.json"
+            inputs.append(input_record(model_file, "model"))
+        return finish_run(staged, "probeloss", inputs, "probeloss", params, results, result.warnings)
+
+
+class _Background:
+    """Run ``fn(*args)`` in a daemon thread; ``result()`` joins it (an interrupted run never waits for it)."""
+
+    def __init__(self, fn: Callable, *args) -> None:
+        self._value = None
+        self._error: BaseException | None = None
+
+        def run() -> None:
+            try:
+                self._value = fn(*args)
+            except BaseException as exc:  # noqa: BLE001 - re-raised by result() in the caller's thread
+                self._error = exc
+
+        self._thread = threading.Thread(target=run, name="afmtool-sha256", daemon=True)
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:
+    """Run the analysis and write decimated rows to stdout as each chunk completes (``--stream``)."""
+    import sys
+
+    from afmtool.io.rows import RowWriter
+
+    flags = {"chunk_samples": STREAM_CHUNK_SAMPLES, **{k: v for k, v in flags.items() if v is not None}}
+    params = resolve_from(ProbeLossParams, "probeloss", load_toml(config) if config else None, flags)
+    model = load_free_air_model(Path(params.model)) if params.model else None
+    with RowWriter(sys.stdout, fmt) as writer:
+        result = run_probeloss(reader, params, writer, model=model)
+    for warning in result.warnings:
+        print(f"afmtool: warning: {warning}", file=sys.stderr)
+
+
+def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResult) -> None:
+    """Probe-loss mask (fraction of each pixel's samples in loss) and index images, PNG and .gsf."""
+    if result.geometry is None:
+        return
+    from afmtool.report.images import write_gsf, write_image_png
+
+    size = result.geometry.scan_size_m
+    y_size = size * result.geometry.lines / result.geometry.pixels_per_line
+    for key, image in sorted(result.images.items()):
+        quantity, direction = key.split("/")
+        title, units = _IMAGE_TITLES[quantity]
+        top_first = image[::-1]  # last line scanned at the top, as AFM viewers show it
+        writer.put(f"images/{key}", image, units, {"row0": "first line scanned"})
+        stem = f"{_IMAGE_STEMS[quantity]}_{direction}"
+        z_range = (0.0, 1.0) if quantity == "loss" else None
+        cmap = "gray_r" if quantity == "loss" else "afmhot"
+        write_image_png(
+            staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})",
+            cmap=cmap, z_range=z_range,
+        )
+        write_gsf(
+            staged.path(f"{stem}.gsf"), np.asarray(top_first), size, y_size, xy_units="m", z_units=units,
+            title=f"{title} {direction}",
+        )

@@ -1,0 +1,86 @@
+"""``afmtool decode``: EKF bit decoder for electrostatically actuated probes (ch. 7)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from afmtool.cli.common import open_input
+from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, JsonOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.progress import progress_bar
+
+__all__ = ["register"]
+
+# Help texts are literal (not read from DecodeParams) so that `afmtool --help` does not import
+# the parameter models; `afmtool config init` shows the full help of every [decode] parameter.
+_HELP = {
+    "bit_rate_hz": "Bit rate [Hz]; default: recover the clock from the transitions.",
+    "nominal": "Bit-free nominal segment START:END [s] for l0 and the noise levels; default: metadata nominal.",
+    "l0_nm": "Lever-sample separation l0 [nm]; default: estimated on the nominal segment (thesis 7.4).",
+    "voltage_channel": "Channel holding the lever-sample voltage V [V]; default: V = alpha_R*v_r - v_sub.",
+    "process_noise": "EKF force-noise ASD [N/sqrt(Hz)]; default: estimated (mean NIS = 1 on the nominal segment).",
+    "measurement_noise": "EKF measurement noise [nm rms]; default: the PSD floor of the nominal segment.",
+    "actuation_hz": "Actuation frequency [Hz]; default: metadata drive, else the strongest line of V^2.",
+    "bits_from": "Start of the bit stream [s]; default: the end of the nominal segment.",
+    "clock_window": "Clock acquisition window at the start of the bit stream [s] (default 0.005).",
+    "polarity": "Innovation sign of a 1 bit: negative (default: a raised sample attracts more) or positive.",
+}
+
+
+def decode(
+    capture: CaptureArg,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder; created if missing.")],
+    bit_rate: Annotated[Optional[float], typer.Option("--bit-rate", help=_HELP["bit_rate_hz"], min=0.0)] = None,
+    nominal: Annotated[Optional[str], typer.Option("--nominal", help=_HELP["nominal"])] = None,
+    l0: Annotated[Optional[float], typer.Option("--l0", help=_HELP["l0_nm"], min=0.0)] = None,
+    voltage_channel: Annotated[Optional[str], typer.Option("--voltage-channel", help=_HELP["voltage_channel"])] = None,
+    process_noise: Annotated[
+        Optional[float], typer.Option("--process-noise", help=_HELP["process_noise"], min=0.0)
+    ] = None,
+    measurement_noise: Annotated[
+        Optional[float], typer.Option("--measurement-noise", help=_HELP["measurement_noise"], min=0.0)
+    ] = None,
+    actuation_hz: Annotated[Optional[float], typer.Option("--actuation-hz", help=_HELP["actuation_hz"], min=0.0)] = None,
+    bits_from: Annotated[Optional[float], typer.Option("--bits-from", help=_HELP["bits_from"])] = None,
+    clock_window: Annotated[Optional[float], typer.Option("--clock-window", help=_HELP["clock_window"])] = None,
+    polarity: Annotated[Optional[str], typer.Option("--polarity", help=_HELP["polarity"])] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+) -> None:
+    """Decode bits read by an electrostatically actuated probe with an EKF (thesis ch. 7).
+
+    Needs deflection (nm) and v_sub, v_r (V) channels, or --voltage-channel.  l0 and
+    the noise levels come from a bit-free nominal segment (--nominal or metadata).
+    Writes decode.h5 (t, innovation, innovation_mean, bit_times_s, bits, soft, baseline),
+    report.json (l0, noise, clock, bits; BER and confusion counts when /truth has bits,
+    also for the lock-in amplitude baseline), config.toml, eye.png, psd.png, l0_search.png.
+    """
+    from afmtool.analyses.decode_outputs import run_decode_command
+    from afmtool.cli.reep_cmd import finish_command
+
+    flags = {
+        "bit_rate_hz": bit_rate,
+        "nominal": nominal,
+        "l0_nm": l0,
+        "voltage_channel": voltage_channel,
+        "process_noise_n_per_rthz": process_noise,
+        "measurement_noise_nm": measurement_noise,
+        "actuation_hz": actuation_hz,
+        "bits_from_s": bits_from,
+        "clock_window_s": clock_window,
+        "polarity": polarity,
+    }
+    with open_input(capture, channel, topic, sample_rate) as reader:
+        with progress_bar("decode", reader.info.n_samples, quiet) as update:
+            report = run_decode_command(reader, capture, out, config, flags, update)
+    finish_command(report, out, json_output, quiet)
+
+
+def register(app: typer.Typer) -> None:
+    app.command()(decode)

@@ -1,0 +1,160 @@
+"""``afmtool identify gamma``, ``identify thermal`` and ``identify electrostatic`` (thesis ch. 6)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from afmtool.cli.common import open_input
+from afmtool.cli.options import ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.progress import progress_bar
+from afmtool.cli.reep_cmd import finish_command
+
+__all__ = ["register"]
+
+
+def identify_gamma(
+    sweep: Annotated[
+        str, typer.Argument(help="Sweep near the sample: v_sub, thermal_current and deflection (optical).")
+    ],
+    contact: Annotated[
+        str, typer.Option("--contact", help="The same sweep with the tip in contact: v_sub and thermal_current.")
+    ],
+    out: OutOpt = Path("gamma"),
+    stepped: Annotated[
+        bool, typer.Option("--stepped", help="Stepped sines (lock-in per segment); default: auto from metadata.")
+    ] = False,
+    h1: Annotated[bool, typer.Option("--h1", help="Chirp or broadband drive (H1 estimate).")] = False,
+    min_coherence: Annotated[
+        Optional[float], typer.Option("--min-coherence", help="Usable band threshold (default 0.9).")
+    ] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+) -> None:
+    """Sensing transfer function Gamma_IR,ts with the feed-through removed (thesis eq. 6.15).
+
+    Estimates Gamma_IR,V and Gamma_ts,V from SWEEP, the feed-through Gamma_sp from
+    the contact sweep, Gamma_IR,ts = (Gamma_IR,V - Gamma_sp)/Gamma_ts,V and the
+    uncorrected ratio of eq. 6.16.  Writes gamma.h5 (/frf/...), FRF tables (CSV),
+    Bode plots (PNG) and report.json with the DC sensitivity (uA/nm), the -3 dB
+    bandwidth, the roll-off (dB/decade) and the usable band.
+    """
+    from afmtool.analyses.gamma_outputs import run_gamma_command
+    from afmtool.errors import ConfigError
+
+    if stepped and h1:
+        raise ConfigError("give at most one of --stepped and --h1")
+    flags = {
+        "method": "stepped" if stepped else ("h1" if h1 else None),
+        "min_coherence": min_coherence,
+    }
+    with open_input(sweep, channel, topic, sample_rate) as near, open_input(contact, channel, topic, sample_rate) as far:
+        total = (near.info.n_samples or 0) + (far.info.n_samples or 0)
+        with progress_bar("identify gamma", total or None, quiet) as update:
+            report = run_gamma_command(near, far, (sweep, contact), out, config, flags, update)
+    finish_command(report, out, json_output, quiet)
+
+
+def identify_thermal(
+    iv: Annotated[
+        Optional[str], typer.Option("--iv", help="I-V ramp capture: v_r and thermal_current (V_R past breakdown).")
+    ] = None,
+    z_curve: Annotated[
+        Optional[str], typer.Option("--z-curve", help="Thermal z force curve: z_piezo, v_r and thermal_current.")
+    ] = None,
+    vr_sweep: Annotated[
+        Optional[str], typer.Option("--vr-sweep", help="V_R perturbation sweep: v_r and thermal_current (+ deflection).")
+    ] = None,
+    gamma: Annotated[
+        Optional[Path], typer.Option("--gamma", help="gamma.h5 (or folder) from 'identify gamma', for H(jw).")
+    ] = None,
+    model: Annotated[
+        Optional[Path], typer.Option("--model", help="thermal_sensor.json (or folder) supplying g(T) without --iv.")
+    ] = None,
+    breakdown_temperature: Annotated[
+        Optional[float], typer.Option("--breakdown-temperature", help="T_k in degC (default 550).")
+    ] = None,
+    room_temperature: Annotated[
+        Optional[float], typer.Option("--room-temperature", help="T_r in degC (default 25).")
+    ] = None,
+    out: OutOpt = Path("thermal"),
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+) -> None:
+    """Thermal sensor from its current alone: g(T), K_TP, K_TP(t_s), C(jw), H(jw) (thesis 6.5.2, 6.6.2).
+
+    --iv: R = V/I and P = V^2/R, the breakdown knee P_k, K_TP = (T_k - T_r)/P_k and
+    g(T) as a table and a polynomial fit.  --z-curve: K_TP against t_s with the
+    snap-in as t_s = 0.  --vr-sweep: C(jw) by eq. 6.11 and, with --gamma, H(jw)
+    by eq. 6.12.  Writes thermal_sensor.json (for 'identify electrostatic'),
+    tables (CSV, thermal.h5), plots and report.json.
+    """
+    from contextlib import ExitStack
+
+    from afmtool.analyses.thermal_outputs import run_thermal_command
+
+    flags = {"breakdown_temperature_c": breakdown_temperature, "room_temperature_c": room_temperature}
+    sources = {"iv": iv, "z": z_curve, "vr": vr_sweep, "gamma": gamma, "model": model}
+    with ExitStack() as stack:
+        readers = {
+            key: stack.enter_context(open_input(path, channel, topic, sample_rate)) if path else None
+            for key, path in (("iv", iv), ("z", z_curve), ("vr", vr_sweep))
+        }
+        total = sum((r.info.n_samples or 0) for r in readers.values() if r is not None)
+        with progress_bar("identify thermal", total or None, quiet) as update:
+            report = run_thermal_command(readers, sources, out, config, flags, update)
+    finish_command(report, out, json_output, quiet)
+
+
+def identify_electrostatic(
+    capture: Annotated[
+        str, typer.Argument(help="Quasi-static V_sub ramp up and down: v_sub and deflection, or v_r and thermal_current.")
+    ],
+    out: OutOpt = Path("electrostatic"),
+    sensor: Annotated[
+        Optional[str], typer.Option("--sensor", help="optical (eq. 6.6), thermal (eq. 6.7) or auto.")
+    ] = None,
+    thermal_model: Annotated[
+        Optional[Path], typer.Option("--thermal-model", help="thermal_sensor.json (or folder) from 'identify thermal'.")
+    ] = None,
+    spring_constant: Annotated[
+        Optional[float], typer.Option("--spring-constant", help="k in N/m if known; then K_esf is reported.")
+    ] = None,
+    v_r: Annotated[Optional[float], typer.Option("--v-r", help="V_R in V (default: mean of the v_r channel).")] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+) -> None:
+    """Electrostatic parameters from an approach curve before snap-in (thesis eqs. 6.6, 6.7).
+
+    Selects the approach before snap-in, fits l0, K_esf/k, alpha_R (and t_h, thermal)
+    by nonlinear least squares, and reports uncertainties and which parameter
+    combinations the curve cannot identify (k and K_esf separately: only their
+    ratio, unless --spring-constant is given).  Writes electrostatic.json, fit.csv,
+    electrostatic_fit.png and report.json.
+    """
+    from afmtool.analyses.electrostatic_outputs import run_electrostatic_command
+
+    flags = {"sensor": sensor, "spring_constant_n_per_m": spring_constant, "v_r_v": v_r}
+    with open_input(capture, channel, topic, sample_rate) as reader:
+        report = run_electrostatic_command(reader, capture, out, config, flags, thermal_model)
+    finish_command(report, out, json_output, quiet)
+
+
+def register(identify: typer.Typer) -> None:
+    identify.command("gamma")(identify_gamma)
+    identify.command("thermal")(identify_thermal)
+    identify.command("electrostatic")(identify_electrostatic)

@@ -1,0 +1,98 @@
+"""``afmtool kalman-bank``: REEP checked by a bank of Kalman filters and an adaptive observer."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from afmtool.cli.common import open_input
+from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.progress import progress_bar
+
+__all__ = ["register"]
+
+
+def kalman_bank(
+    capture: CaptureArg,
+    out: OutOpt = Path("kalman_bank"),
+    reep: Annotated[
+        Optional[Path], typer.Option("--reep", help="A finished 'afmtool reep' folder or reep.h5 (default: run REEP).")
+    ] = None,
+    at_z: Annotated[
+        Optional[str], typer.Option("--at-z", help="Design points z1,z2,... in z_piezo units (default: 5 spread).")
+    ] = None,
+    models: Annotated[
+        Optional[str], typer.Option("--models", help="Bank models f0_hz:q,f0_hz:q,... instead of REEP's.")
+    ] = None,
+    n_filters: Annotated[
+        Optional[int], typer.Option("--n-filters", help="Filters spread automatically.", min=1)
+    ] = None,
+    free_air: Annotated[
+        Optional[str], typer.Option("--free-air", help="Off-sample segment START:END (s) for the free-air model.")
+    ] = None,
+    model: Annotated[
+        Optional[Path], typer.Option("--model", help="free_air.json from 'afmtool identify freeair' (or its folder).")
+    ] = None,
+    noise_ratio: Annotated[
+        Optional[float], typer.Option("--noise-ratio", help="Kalman σ_w/σ_v (default 0.03: ~10-period error decay).")
+    ] = None,
+    window_periods: Annotated[
+        Optional[float], typer.Option("--window-periods", help="Innovation RMS window, drive periods (default 10).")
+    ] = None,
+    z_bin: Annotated[Optional[float], typer.Option("--z-bin", help="RMS-against-z bin width (z_piezo units).")] = None,
+    f0_scale: Annotated[
+        Optional[float], typer.Option("--f0-scale", help="Multiply the bank's f0 (negative control, e.g. 1.02).")
+    ] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+) -> None:
+    """Validate REEP's on-sample f0', Q' on a force curve by minimum innovation RMS (thesis §3.4.2).
+
+    Builds steady-state Kalman filters from REEP's model at N points of the
+    force curve (sharing the free-air numerator) and runs them in one fused
+    loop beside an adaptive observer whose model follows REEP.  Verdict: each
+    filter's least RMS must fall in its design z bin, and the adaptive
+    observer must have the least RMS most of the time (tolerances in
+    report.json).  Writes bank.h5, bank_rms_vs_z.png, report.json and
+    config.toml.  Needs dither, deflection and z_piezo.
+    """
+    from afmtool.analyses.kalman_bank_outputs import run_kalman_bank_command
+    from afmtool.cli.options import parse_mapping
+    from afmtool.cli.reep_cmd import finish_command
+    from afmtool.io.registry import open_capture
+
+    flags = {
+        "reep": str(reep) if reep else None,
+        "at_z": at_z,
+        "models": models,
+        "n_filters": n_filters,
+        "free_air": free_air,
+        "model": str(model) if model else None,
+        "noise_ratio": noise_ratio,
+        "rms_window_periods": window_periods,
+        "z_bin": z_bin,
+        "f0_scale": f0_scale,
+    }
+
+    def reopen():
+        return open_capture(
+            capture,
+            channel_map=parse_mapping(channel, "--channel"),
+            topic_map=parse_mapping(topic, "--topic"),
+            sample_rate_hz=sample_rate,
+        )
+
+    with open_input(capture, channel, topic, sample_rate) as reader:
+        with progress_bar("kalman-bank", reader.info.n_samples, quiet) as update:
+            report = run_kalman_bank_command(reader, capture, out, config, flags, update, reopen)
+    finish_command(report, out, json_output, quiet)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("kalman-bank")(kalman_bank)

@@ -1,0 +1,239 @@
+"""Setting up the ch. 7 EKF from a nominal segment: ℓ0 (§7.4) and the noise levels.
+
+A nominal segment is a stretch of the capture with the lever over the
+nominal sample (no bits, no potential change), with the voltage and the
+deflection recorded together.
+
+* :func:`estimate_l0` — §7.4: ℓ0 minimises the RMS of the EKF innovation
+  over the segment.  A coarse grid over a bracket finds the basin, golden-
+  section search refines the minimum, and the grid curve is checked for a
+  unique minimum (one interior local minimum, a clear dip).
+* :func:`estimate_measurement_noise` — the white floor of the deflection's
+  Welch PSD far above the resonance (band 0.3-0.45 f_s by default), where
+  neither the thermal motion nor the actuation lines reach: σ_ν = √(S·f_s/2).
+* :func:`estimate_process_noise` — the force-noise level that makes the
+  filter consistent on the segment: mean ε²/S = 1 (the normalised innovation
+  squared; larger process noise makes S larger and ε smaller, so the mean
+  is monotone and bisection on log σ_F finds it).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from afmtool.errors import ConfigError, InputError
+from afmtool.estimators.ekf import EkfDesign, EkfModel, InnovationStats, discretise, ekf_run
+
+__all__ = [
+    "L0Search",
+    "estimate_l0",
+    "innovation_stats",
+    "estimate_measurement_noise",
+    "ProcessNoiseFit",
+    "estimate_process_noise",
+]
+
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+#: A dip is "clear" when the curve rises by this factor over its minimum somewhere in the bracket.
+_MIN_DIP_RATIO = 1.05
+#: Other local minima of the grid within this factor of the best make the minimum non-unique.
+_RIVAL_RATIO = 1.10
+
+
+def _check_segment(y, v) -> tuple[np.ndarray, np.ndarray]:
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    v = np.ascontiguousarray(v, dtype=np.float64)
+    if y.ndim != 1 or y.shape != v.shape:
+        raise ConfigError(f"deflection and voltage must be 1-D of one length, got {y.shape} and {v.shape}")
+    if not (np.isfinite(y).all() and np.isfinite(v).all()):
+        raise InputError("the nominal segment has NaN or inf samples")
+    return y, v
+
+
+def innovation_stats(
+    model: EkfModel, deflection_nm, voltage_v, sample_rate_hz: float, warmup: int
+) -> InnovationStats:
+    """Innovation RMS (nm) and mean ε²/S of the EKF over a segment, after ``warmup`` samples."""
+    y, v = _check_segment(deflection_nm, voltage_v)
+    _check_warmup(warmup, y.size)
+    return _stats(discretise(model, sample_rate_hz), y, v, warmup)
+
+
+def _check_warmup(warmup: int, size: int) -> None:
+    if not (isinstance(warmup, (int, np.integer)) and 0 <= warmup < size):
+        raise ConfigError(f"warmup={warmup!r} must leave samples in a segment of {size}")
+
+
+def _stats(design: EkfDesign, y: np.ndarray, v: np.ndarray, warmup: int) -> InnovationStats:
+    return ekf_run(design, y, v, stats_from=int(warmup)).state.stats()
+
+
+class L0Search(NamedTuple):
+    """Result of :func:`estimate_l0`; lengths in m, RMS in nm."""
+
+    l0_m: float  #: the minimiser
+    rms_nm: float  #: innovation RMS at the minimiser
+    curve_l0_m: np.ndarray  #: every ℓ0 evaluated (grid and golden section), sorted
+    curve_rms_nm: np.ndarray  #: innovation RMS at each
+    grid_points: int
+    unique: bool  #: one interior minimum with a clear dip
+    note: str  #: why the minimum is not unique ("" if it is)
+
+
+def _grid_check(grid: np.ndarray, rms: np.ndarray) -> str:
+    k = int(np.argmin(rms))
+    if k in (0, grid.size - 1):
+        return f"the innovation RMS is smallest at the edge of the bracket ({grid[k] * 1e9:.1f} nm); widen it"
+    if rms.max() < _MIN_DIP_RATIO * rms[k]:
+        return "the innovation RMS hardly changes with l0 over the bracket (no clear minimum)"
+    interior = np.flatnonzero((rms[1:-1] <= rms[:-2]) & (rms[1:-1] <= rms[2:])) + 1
+    rivals = [int(j) for j in interior if j != k and rms[j] <= _RIVAL_RATIO * rms[k]]
+    if rivals:
+        where = ", ".join(f"{grid[j] * 1e9:.1f} nm" for j in rivals)
+        return f"other local minima of the innovation RMS come close to the best one (at {where})"
+    return ""
+
+
+def estimate_l0(
+    model: EkfModel,
+    deflection_nm,
+    voltage_v,
+    sample_rate_hz: float,
+    *,
+    bracket_m: tuple[float, float],
+    grid_points: int = 41,
+    tolerance_m: float = 1e-11,
+    warmup: int = 0,
+) -> L0Search:
+    """ℓ0 that minimises the innovation RMS over a nominal segment (§7.4).
+
+    Parameters
+    ----------
+    model : EkfModel
+        The EKF; its own ℓ0 is ignored.
+    deflection_nm, voltage_v : array_like
+        The nominal segment: deflection (nm) and lever-sample voltage (V).
+    sample_rate_hz : float
+        f_s, Hz.
+    bracket_m : (float, float)
+        Search bracket for ℓ0, m; both above the tip height.
+    grid_points : int, optional
+        Coarse grid size (≥ 5).
+    tolerance_m : float, optional
+        Final bracket width of the golden-section search, m.
+    warmup : int, optional
+        Samples left out of the RMS at the start (the filter's transient).
+
+    Returns
+    -------
+    L0Search
+    """
+    y, v = _check_segment(deflection_nm, voltage_v)
+    low, high = (float(b) for b in bracket_m)
+    if not (math.isfinite(low) and math.isfinite(high) and model.electrostatic.tip_height_m < low < high):
+        raise ConfigError(f"bracket_m={bracket_m!r} must be finite, increasing and above the tip height")
+    if not (isinstance(grid_points, int) and grid_points >= 5):
+        raise ConfigError(f"grid_points={grid_points!r} must be an integer >= 5")
+    if not tolerance_m > 0:
+        raise ConfigError(f"tolerance_m={tolerance_m!r} must be > 0")
+    _check_warmup(warmup, y.size)
+    design = discretise(model, sample_rate_hz)
+    evaluated: dict[float, float] = {}
+
+    def rms(l0: float) -> float:
+        if l0 not in evaluated:
+            evaluated[l0] = _stats(design.with_l0(l0), y, v, warmup).rms_nm
+        return evaluated[l0]
+
+    grid = np.linspace(low, high, grid_points)
+    grid_rms = np.array([rms(float(g)) for g in grid])
+    note = _grid_check(grid, grid_rms)
+    k = int(np.argmin(grid_rms))
+    a, b = float(grid[max(k - 1, 0)]), float(grid[min(k + 1, grid.size - 1)])
+    c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
+    while b - a > tolerance_m:
+        if rms(c) < rms(d):
+            b, d = d, c
+            c = b - _GOLDEN * (b - a)
+        else:
+            a, c = c, d
+            d = a + _GOLDEN * (b - a)
+    best = min(evaluated, key=evaluated.get)
+    order = sorted(evaluated)
+    return L0Search(
+        float(best), float(evaluated[best]), np.array(order), np.array([evaluated[x] for x in order]),
+        grid_points, not note, note,
+    )
+
+
+def estimate_measurement_noise(
+    deflection_nm, sample_rate_hz: float, *, band: tuple[float, float] = (0.3, 0.45), nperseg: int = 1024
+) -> float:
+    """Rms white measurement noise per sample (nm) from the PSD floor in ``band`` × f_s.
+
+    The one-sided Welch PSD S of white noise of variance σ² is 2σ²/f_s, so
+    σ = √(S̄·f_s/2), with S̄ the mean PSD over the band after leaving out
+    bins above three times the band's median (spectral lines).
+    """
+    from scipy.signal import welch
+
+    y = np.asarray(deflection_nm, dtype=np.float64)
+    if y.size < 2 * nperseg:
+        raise InputError(f"the segment has {y.size} samples; the noise floor needs at least {2 * nperseg}")
+    freqs, power = welch(y, fs=sample_rate_hz, nperseg=nperseg)
+    lo, hi = band
+    in_band = (freqs >= lo * sample_rate_hz) & (freqs <= hi * sample_rate_hz)
+    values = power[in_band]
+    values = values[values <= 3.0 * np.median(values)]
+    return float(math.sqrt(values.mean() * sample_rate_hz / 2.0))
+
+
+class ProcessNoiseFit(NamedTuple):
+    """Result of :func:`estimate_process_noise`."""
+
+    asd_n_per_rthz: float  #: force-noise ASD σ_F, N/√Hz
+    mean_nis: float  #: mean ε²/S at σ_F (1 when not clamped)
+    clamped: bool  #: the consistent level is outside the search range; σ_F is at its end
+
+
+def estimate_process_noise(
+    model: EkfModel,
+    deflection_nm,
+    voltage_v,
+    sample_rate_hz: float,
+    *,
+    warmup: int = 0,
+    search_n_per_rthz: tuple[float, float] = (1e-19, 1e-9),
+    iterations: int = 40,
+) -> ProcessNoiseFit:
+    """Force-noise ASD that makes the mean normalised innovation squared equal 1.
+
+    Bisection on log σ_F within ``search_n_per_rthz``; the model's
+    measurement noise and ℓ0 are used as they are.
+    """
+    y, v = _check_segment(deflection_nm, voltage_v)
+    _check_warmup(warmup, y.size)
+    low, high = (math.log(float(s)) for s in search_n_per_rthz)
+    if not low < high:
+        raise ConfigError(f"search_n_per_rthz={search_n_per_rthz!r} must be two increasing levels > 0")
+    design = discretise(model, sample_rate_hz)
+
+    def nis(log_asd: float) -> float:
+        return _stats(design.with_noise(math.exp(log_asd), model.measurement_noise_nm), y, v, warmup).mean_nis
+
+    at_low, at_high = nis(low), nis(high)
+    if at_low <= 1.0:
+        return ProcessNoiseFit(math.exp(low), at_low, True)
+    if at_high >= 1.0:
+        return ProcessNoiseFit(math.exp(high), at_high, True)
+    for _ in range(iterations):
+        middle = 0.5 * (low + high)
+        if nis(middle) > 1.0:
+            low = middle
+        else:
+            high = middle
+    best = 0.5 * (low + high)
+    return ProcessNoiseFit(math.exp(best), nis(best), False)

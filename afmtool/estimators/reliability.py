@@ -1,0 +1,584 @@
+"""Reliability index and switching signal of ch. 2 (probe-loss detection).
+
+The observer of eqs. 2.10/3.49 runs on the free-air model
+(:mod:`afmtool.estimators.observer`); its innovation e(n) = y(n) − ŷ(n) is
+small when the free-air model fits (tip off the sample) and large when the
+tip-sample force drives the forcing term of eq. 2.13 (tip on the sample).
+
+Reliability index
+-----------------
+The index is the innovation's window RMS (W samples, one drive period by
+default) divided by its free-air level::
+
+    index(n) = RMS_W(e)(n) / ρ_fa,        ρ_fa = √(mean of RMS_W(e)² over a free-air segment)
+
+so it reads about 1 off the sample and several times more on it.  Probe loss
+means the index is **low** (NOTES.md, ch. 2).
+
+Switching signal
+----------------
+A two-threshold (hysteresis) comparator on the index, 0 < on < off::
+
+    s(n) = 1  if s(n−1) = 0 and index(n) < on        (loss declared)
+    s(n) = 0  if s(n−1) = 1 and index(n) > off       (tip back on the sample)
+    s(n) = s(n−1) otherwise (NaN keeps the state)
+
+1 means probe loss.  The same comparator, with the inequalities reversed
+(``loss_when="above"``), is the amplitude baseline of Ando et al. (thesis
+§2.2): loss while the lock-in amplitude exceeds A_upper (on = off = A_upper).
+
+Automatic thresholds
+--------------------
+:func:`calibrate_index` sets them from free-air statistics of the index
+itself: ``on`` is the ``quantile`` quantile of the free-air index (by default
+0.999: a free-air stretch reads "loss" 99.9 % of the time) times
+``on_margin``, and ``off = off_ratio · on``, far enough above every free-air
+sample that noise does not end a loss event.  With Gaussian white
+innovations and W = 7 the 0.999 quantile of the index is √(χ²₇(0.999)/7) ≈
+1.86.
+
+Choosing the observer gain
+--------------------------
+Off the sample the index is about 1 whatever the gain.  On the sample, for
+a steady oscillation, the innovation's part at the drive frequency is the
+equation error A(z)(p − p_fa) of eq. 3.40 passed through 1/C(z) (the error
+dynamics, :class:`~afmtool.estimators.observer.InnovationFilters`), whose
+gains at resonance are (1 − ρ)·2 sin θ and (1 − r)·2 sin θ::
+
+    |e| ≈ |p − p_fa|·(1 − ρ)/(1 − r) ≈ |p − p_fa|·τ_obs/τ_cant
+
+with p_fa the free-air response to the same dither, ρ = e^{−ω0T/2Q} the
+model's pole radius, r the error poles' (:func:`~afmtool.estimators.observer.gain_for_decay`),
+τ_obs = −1/ln r and τ_cant = 2Q/(ω0T) samples.  The on-sample contrast grows
+with the observer's memory; the latency after the tip leaves grows as
+τ_obs·ln(contrast/on) plus about a window.  At Q ≈ 200 the amplitude needs
+only a weak interaction to fall to its set point (a frequency shift of
+0.2 % brings it to 0.8·A0), so the contrast is set by |p − p_fa|/σ_noise:
+with a 30 nm free amplitude, a set point of 0.7·A0 and 0.02 nm of
+measurement noise, ``decay_cycles = 1`` reads about 10 on the sample and
+detects loss within about one drive period (tests/test_probeloss.py).  The
+steady-state Kalman gain weighs the same two noises instead; with the
+thermal force of a 2 N/m lever at 300 K (about 0.005 nm per sample as
+static deflection) and 0.02 nm of measurement noise its error time constant
+is 1 to 2 drive periods.
+
+Everything streams: each update takes a state and returns ``(block, state)``;
+chunked runs equal one call bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from afmtool.errors import ConfigError, InputError
+from afmtool.estimators._common import JIT_OPTIONS, as_signal
+from afmtool.estimators.observer import (
+    ObserverDesign,
+    ObserverState,
+    WindowState,
+    _check_signals,
+    _predict,
+    _window_block_end,
+    _window_push,
+    _window_resync,
+    _window_rms,
+)
+
+__all__ = [
+    "LOSS_WHEN",
+    "Thresholds",
+    "check_thresholds",
+    "FreeAirCalibration",
+    "calibrate_index",
+    "index_window",
+    "settle_samples",
+    "HysteresisStep",
+    "hysteresis_update",
+    "ReliabilityBlock",
+    "ReliabilityState",
+    "ReliabilityStep",
+    "reliability_update",
+]
+
+#: Directions of :func:`hysteresis_update`: loss while the signal is below
+#: the thresholds (the reliability index) or above them (the amplitude).
+LOSS_WHEN = ("below", "above")
+
+#: Defaults of :func:`calibrate_index`.
+DEFAULT_QUANTILE = 0.999
+DEFAULT_ON_MARGIN = 1.0
+DEFAULT_OFF_RATIO = 2.0
+
+
+class Thresholds(NamedTuple):
+    """Hysteresis thresholds of the switching signal, in index units (dimensionless).
+
+    Attributes
+    ----------
+    on : float
+        Loss is declared when the index falls below ``on``.
+    off : float
+        Loss ends when the index rises above ``off`` (> ``on``).
+    """
+
+    on: float
+    off: float
+
+
+class FreeAirCalibration(NamedTuple):
+    """Free-air statistics of the innovation RMS and the thresholds set from them.
+
+    Attributes
+    ----------
+    level : float
+        ρ_fa, the free-air innovation RMS the index is divided by,
+        deflection units.
+    thresholds : Thresholds
+        The switching thresholds (given or automatic), index units.
+    samples : int
+        Free-air samples the statistics use.
+    index_median, index_quantile, index_max : float
+        Median, ``quantile`` quantile and maximum of the free-air index.
+    quantile : float
+        The quantile the automatic ``on`` is based on.
+    """
+
+    level: float
+    thresholds: Thresholds
+    samples: int
+    index_median: float
+    index_quantile: float
+    index_max: float
+    quantile: float
+
+
+def index_window(sample_rate_hz: float, drive_frequency_hz: float, periods: float = 1.0) -> int:
+    """Index window W = max(1, round(periods·fs/f_drive)) samples.
+
+    Parameters
+    ----------
+    sample_rate_hz, drive_frequency_hz : float
+        fs and the drive frequency, Hz (0 < f ≤ fs/2).
+    periods : float, optional
+        Window length in drive periods, > 0; 1 gives
+        :func:`~afmtool.estimators.observer.drive_period_window`.
+    """
+    from afmtool.estimators.observer import drive_period_window
+
+    if not (isinstance(periods, (int, float)) and math.isfinite(periods) and periods > 0):
+        raise ConfigError(f"periods={periods!r} must be a finite number > 0")
+    one = drive_period_window(sample_rate_hz, drive_frequency_hz)  # validates fs and f
+    if periods == 1:
+        return one
+    return max(1, round(periods * sample_rate_hz / drive_frequency_hz))
+
+
+def settle_samples(design: ObserverDesign, window_samples: int, residual: float = 1e-6) -> int:
+    """Samples after an observer's start before its window RMS is free of the start-up error.
+
+    Parameters
+    ----------
+    design : ObserverDesign
+        The observer; its error poles have radius r < 1.
+    window_samples : int
+        W of the window RMS.
+    residual : float, optional
+        Envelope factor the start-up error must have decayed by, in (0, 1).
+
+    Returns
+    -------
+    int
+        ⌈ln(residual)/ln r⌉ + W: the error envelope r^n has fallen by
+        ``residual`` and the window holds no earlier sample.
+    """
+    if not isinstance(design, ObserverDesign):
+        raise ConfigError(f"design must be an ObserverDesign, got {type(design).__name__}")
+    if not (isinstance(window_samples, (int, np.integer)) and window_samples >= 1):
+        raise ConfigError(f"window_samples={window_samples!r} must be an integer >= 1")
+    if not (0.0 < residual < 1.0):
+        raise ConfigError(f"residual={residual!r} must be in (0, 1)")
+    radius = float(np.max(np.abs(design.error_poles)))
+    decay = 0 if radius == 0.0 else math.ceil(math.log(residual) / math.log(radius))
+    return int(decay + window_samples)
+
+
+def _check_threshold(name: str, value) -> float | None:
+    if value is None:
+        return None
+    if not (isinstance(value, (int, float, np.floating, np.integer)) and math.isfinite(value) and value > 0):
+        raise ConfigError(f"{name}={value!r} must be a finite number > 0 (or None for automatic)")
+    return float(value)
+
+
+def check_thresholds(on: float, off: float) -> Thresholds:
+    """``Thresholds(on, off)`` after checking 0 < on < off; ConfigError otherwise."""
+    on_v = _check_threshold("on", on)
+    off_v = _check_threshold("off", off)
+    if on_v is None or off_v is None or not on_v < off_v:
+        raise ConfigError(f"thresholds on={on!r}, off={off!r} must satisfy 0 < on < off")
+    return Thresholds(on_v, off_v)
+
+
+def calibrate_index(
+    free_air_rms,
+    *,
+    on: float | None = None,
+    off: float | None = None,
+    quantile: float = DEFAULT_QUANTILE,
+    on_margin: float = DEFAULT_ON_MARGIN,
+    off_ratio: float = DEFAULT_OFF_RATIO,
+) -> FreeAirCalibration:
+    """Free-air level of the innovation RMS and the switching thresholds.
+
+    Parameters
+    ----------
+    free_air_rms : array_like, shape (T,)
+        Window RMS of the innovation over a free-air stretch, after the
+        observer's start-up transient, deflection units.
+    on, off : float, optional
+        Thresholds in index units; None sets them automatically (module
+        docstring).  Given together they must satisfy 0 < on < off.
+    quantile : float, optional
+        Quantile of the free-air index behind the automatic ``on``, in (0, 1).
+    on_margin : float, optional
+        Factor > 0 on that quantile.
+    off_ratio : float, optional
+        Automatic ``off`` = ``off_ratio`` · on, > 1.
+
+    Returns
+    -------
+    FreeAirCalibration
+
+    Raises
+    ------
+    InputError
+        If fewer than 16 finite samples are given or their RMS is zero.
+    ConfigError
+        If a parameter is out of range.
+
+    Notes
+    -----
+    ρ_fa = √(mean RMS_W²) equals the RMS of the innovation over the stretch
+    (every sample enters W windows), so the free-air index has unit mean
+    square.
+    """
+    rms = as_signal("free_air_rms", free_air_rms)
+    rms = rms[np.isfinite(rms)]
+    if rms.size < 16:
+        raise InputError(f"the free-air stretch has {rms.size} usable samples; need at least 16")
+    if not (0.0 < quantile < 1.0):
+        raise ConfigError(f"quantile={quantile!r} must be in (0, 1)")
+    if not (math.isfinite(on_margin) and on_margin > 0):
+        raise ConfigError(f"on_margin={on_margin!r} must be > 0")
+    if not (math.isfinite(off_ratio) and off_ratio > 1):
+        raise ConfigError(f"off_ratio={off_ratio!r} must be > 1")
+    on_v = _check_threshold("on", on)
+    off_v = _check_threshold("off", off)
+    # ρ_fa = √(mean RMS_W²)
+    level = math.sqrt(float(np.mean(np.square(rms))))
+    if not level > 0:
+        raise InputError("the free-air innovation RMS is zero; the index cannot be normalised")
+    index = rms / level
+    q_value = float(np.quantile(index, quantile))
+    if on_v is None:
+        on_v = on_margin * q_value
+    if off_v is None:
+        off_v = off_ratio * on_v
+    return FreeAirCalibration(
+        level,
+        check_thresholds(on_v, off_v),
+        int(rms.size),
+        float(np.median(index)),
+        q_value,
+        float(index.max()),
+        float(quantile),
+    )
+
+
+# ---------------------------------------------------------------------------
+# Hysteresis comparator
+# ---------------------------------------------------------------------------
+
+
+@njit(**JIT_OPTIONS)
+def hysteresis_step(x, state, on, off):
+    """One step of the loss-when-below comparator (module docstring); returns s(n).
+
+    Shared by :func:`hysteresis_update` and the closed-loop scan simulator.
+    ``x`` NaN keeps the state (both comparisons are false).
+    """
+    if state == 0:
+        if x < on:
+            return 1
+        return 0
+    if x > off:
+        return 0
+    return 1
+
+
+@njit(**JIT_OPTIONS)
+def _hysteresis_kernel(x, sign, on, off, carried, out):
+    """s(n) over a chunk; ``sign`` −1 turns loss-when-above into loss-when-below."""
+    state = carried[0]
+    for i in range(x.shape[0]):
+        state = hysteresis_step(sign * x[i], state, sign * on, sign * off)
+        out[i] = state
+    carried[0] = state
+
+
+@njit(**JIT_OPTIONS)
+def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, off, carried, first_keep, keep_every,
+                        out_switch, out_index):  # noqa: PLR0913
+    """Observer, window RMS, index and switch in one pass over a chunk.
+
+    The observer and window steps are the shared helpers of
+    :mod:`afmtool.estimators.observer` in the order of its bank kernel, so
+    the RMS is bit for bit ``observer_update``'s.  ``obs`` = [a2, b1, b0,
+    bb1, bb2, L1, L2]; ``xhat`` (1, 2), ``ring`` (1, W), ``sums`` (1,),
+    ``counters`` [pos, filled, since] and ``carried`` [s] are read at entry
+    and written at exit.  ``out_switch`` gets s(n) for every sample,
+    ``out_index`` index(n) at the samples first_keep, first_keep +
+    keep_every, ...
+    """
+    n_samples = y.shape[0]
+    width = ring.shape[1]
+    d, b1, b0, bb1, bb2, l1, l2 = obs[0], obs[1], obs[2], obs[3], obs[4], obs[5], obs[6]
+    x1 = xhat[0, 0]
+    x2 = xhat[0, 1]
+    state = carried[0]
+    pos = counters[0]
+    filled = counters[1]
+    since = counters[2]
+    inv_count = 1.0 / filled if filled > 0 else 0.0
+    next_keep = first_keep
+    k = 0
+    start = 0
+    while start < n_samples:
+        stop = _window_block_end(start, n_samples, since)
+        for i in range(start, stop):
+            g_n = g[i]
+            e, x1, x2 = _predict(x1, x2, y[i] - d * g_n, g_n, b1, b0, bb1, bb2, l1, l2)
+            if filled < width:
+                filled += 1
+                inv_count = 1.0 / filled
+            # index(n) = RMS_W(e)(n)·(1/ρ_fa)
+            v = _window_rms(_window_push(ring, sums, 0, pos, e * e), inv_count) * inv_level
+            pos += 1
+            if pos == width:
+                pos = 0
+            state = hysteresis_step(v, state, on, off)
+            out_switch[i] = state
+            if i == next_keep:
+                out_index[k] = v
+                k += 1
+                next_keep += keep_every
+        since = _window_resync(ring, sums, since + (stop - start))
+        start = stop
+    xhat[0, 0] = x1
+    xhat[0, 1] = x2
+    counters[0] = pos
+    counters[1] = filled
+    counters[2] = since
+    carried[0] = state
+
+
+class HysteresisStep(NamedTuple):
+    """What :func:`hysteresis_update` returns.
+
+    Attributes
+    ----------
+    switch : numpy.ndarray of int8, shape (T,)
+        s(n): 1 = loss.
+    state : int
+        s of the last sample, the state for the next chunk.
+    """
+
+    switch: np.ndarray
+    state: int
+
+
+def _check_state(state) -> int:
+    if state not in (0, 1) or isinstance(state, bool):
+        raise ConfigError(f"state={state!r} must be 0 or 1")
+    return int(state)
+
+
+def hysteresis_update(state: int, x, on: float, off: float, *, loss_when: str = "below") -> HysteresisStep:
+    """Two-threshold comparator over one chunk, with carried state.
+
+    Parameters
+    ----------
+    state : int
+        s before the chunk: 0 (on the sample) or 1 (loss).
+    x : array_like, shape (T,)
+        The signal (index units for the index, deflection units for the
+        amplitude).
+    on, off : float
+        ``loss_when="below"``: loss starts below ``on`` and ends above
+        ``off``, on ≤ off.  ``"above"``: loss starts above ``on`` and ends
+        below ``off``, on ≥ off.  on = off is a single threshold.
+    loss_when : {"below", "above"}
+        Direction (module docstring).
+
+    Returns
+    -------
+    HysteresisStep
+
+    Raises
+    ------
+    ConfigError
+        If the thresholds are not finite or in the wrong order.
+    """
+    state = _check_state(state)
+    if loss_when not in LOSS_WHEN:
+        raise ConfigError(f"loss_when={loss_when!r} must be one of {LOSS_WHEN}")
+    if not (math.isfinite(on) and math.isfinite(off)):
+        raise ConfigError(f"on={on!r} and off={off!r} must be finite")
+    sign = 1.0 if loss_when == "below" else -1.0
+    if sign * on > sign * off:
+        relation = "<=" if loss_when == "below" else ">="
+        raise ConfigError(f"on={on!r} must be {relation} off={off!r} for loss_when={loss_when!r}")
+    values = as_signal("x", x)
+    out = np.empty(values.shape[0], dtype=np.int8)
+    carried = np.array([state], dtype=np.int64)
+    _hysteresis_kernel(values, sign, float(on), float(off), carried, out)
+    return HysteresisStep(out, int(carried[0]))
+
+
+# ---------------------------------------------------------------------------
+# Observer + index + switch, streaming
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ReliabilityState:
+    """Carried state of the probe-loss detector.
+
+    Attributes
+    ----------
+    observer : ObserverState
+        The free-air observer and its innovation window.
+    level : float
+        ρ_fa, deflection units.
+    thresholds : Thresholds
+        Switching thresholds, index units.
+    switch : int
+        s of the last sample (0 before the first).
+    samples_seen : int
+        Samples processed so far (fixes which samples are kept).
+    """
+
+    observer: ObserverState
+    level: float
+    thresholds: Thresholds
+    switch: int = 0
+    samples_seen: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.observer, ObserverState):
+            raise ConfigError(f"observer must be an ObserverState, got {type(self.observer).__name__}")
+        if not (isinstance(self.level, float) and math.isfinite(self.level) and self.level > 0):
+            raise ConfigError(f"level={self.level!r} must be a finite float > 0")
+        object.__setattr__(self, "thresholds", check_thresholds(*self.thresholds))
+        object.__setattr__(self, "switch", _check_state(self.switch))
+        if not (isinstance(self.samples_seen, (int, np.integer)) and self.samples_seen >= 0):
+            raise ConfigError(f"samples_seen={self.samples_seen!r} must be an integer >= 0")
+
+
+class ReliabilityBlock(NamedTuple):
+    """Detector output for one chunk.
+
+    Attributes
+    ----------
+    switch : numpy.ndarray of int8, shape (T,)
+        Switching signal at every sample, 1 = probe loss.
+    index : numpy.ndarray
+        Reliability index (dimensionless, about 1 in free air) at the kept
+        samples n, (n + 1) % keep_every == 0 (n counted from the stream's
+        first sample); every sample when keep_every = 1.
+    """
+
+    switch: np.ndarray
+    index: np.ndarray
+
+
+class ReliabilityStep(NamedTuple):
+    """What :func:`reliability_update` returns: this chunk's output and the next state."""
+
+    block: ReliabilityBlock
+    state: ReliabilityState
+
+
+def reliability_update(state: ReliabilityState, deflection, dither, *, keep_every: int = 1) -> ReliabilityStep:
+    """Reliability index and switching signal over one chunk (ch. 2).
+
+    Parameters
+    ----------
+    state : ReliabilityState
+        From the previous chunk, or built from an ``ObserverState.initial``
+        and a :func:`calibrate_index` result.
+    deflection : array_like, shape (T,)
+        y(n), deflection units.
+    dither : array_like, shape (T,)
+        g(n), dither units.
+    keep_every : int, optional
+        Return the index at one sample in ``keep_every`` (the samples n with
+        (n + 1) % keep_every == 0, as the lock-in keeps them); the switch is
+        returned at every sample.
+
+    Returns
+    -------
+    ReliabilityStep
+        ``(block, state)``; chunked runs equal one call bit for bit.
+
+    Raises
+    ------
+    InputError
+        If the signals are not 1-D or differ in length.
+    ConfigError
+        If ``state`` or ``keep_every`` is invalid.
+
+    Notes
+    -----
+    Per sample, one fused loop: the observer step and window RMS of
+    :func:`~afmtool.estimators.observer.observer_update` (the same shared
+    helpers, so the RMS is the same bit for bit), then
+    index(n) = RMS(n)·(1/ρ_fa) and the comparator of
+    :func:`hysteresis_update` (loss when below).  Causal: s(n) uses samples
+    up to n only.  Nothing of full rate but the int8 switch is written, so
+    the pass runs at the speed of the observer alone.
+    """
+    if not isinstance(state, ReliabilityState):
+        raise ConfigError(f"state must be a ReliabilityState, got {type(state).__name__}")
+    if not (isinstance(keep_every, (int, np.integer)) and not isinstance(keep_every, bool) and keep_every >= 1):
+        raise ConfigError(f"keep_every={keep_every!r} must be an integer >= 1")
+    y, g = _check_signals(deflection, dither)
+    observer = state.observer
+    design = observer.design
+    a2, a1, a0 = design.numerator
+    b1, b0 = design.denominator
+    l1, l2 = design.gain
+    # B = [a1 − a2 b1, a0 − a2 b0]
+    obs = np.array([a2, b1, b0, a1 - a2 * b1, a0 - a2 * b0, l1, l2])
+    xhat = np.array(observer.estimate, dtype=np.float64).reshape(1, 2)
+    ring, sums, counters = observer.window._unpack()
+    n = y.shape[0]
+    first_keep = (-(state.samples_seen + 1)) % keep_every
+    n_kept = 0 if first_keep >= n else (n - 1 - first_keep) // keep_every + 1
+    switch = np.empty(n, dtype=np.int8)
+    index = np.empty(n_kept, dtype=np.float64)
+    carried = np.array([state.switch], dtype=np.int64)
+    on, off = state.thresholds
+    _reliability_kernel(y, g, obs, xhat, ring, sums, counters, 1.0 / state.level, on, off, carried,
+                        first_keep, int(keep_every), switch, index)
+    estimate = xhat[0]
+    estimate.setflags(write=False)
+    new_observer = ObserverState(design, estimate, WindowState._pack(ring, sums, counters))
+    new_state = ReliabilityState(new_observer, state.level, state.thresholds, int(carried[0]),
+                                 state.samples_seen + n)
+    return ReliabilityStep(ReliabilityBlock(switch, index), new_state)

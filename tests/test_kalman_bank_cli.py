@@ -1,0 +1,88 @@
+"""``afmtool kalman-bank`` end to end: files, report, routes, golden report on the bundled force curve."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from tests.conftest import SAMPLE_DATA, run_cli, validate_report
+from tests.golden import assert_matches_golden
+
+CAPTURE = SAMPLE_DATA / "tapping_force_curve.h5"
+
+
+@pytest.fixture(scope="module")
+def internal(tmp_path_factory):
+    out = tmp_path_factory.mktemp("kb") / "bank"
+    result = run_cli("kalman-bank", CAPTURE, "--out", out, "--json", "--quiet")
+    assert result.returncode == 0, result.stderr.decode()
+    return out, json.loads(result.stdout)
+
+
+def test_golden_report(internal):
+    out, report = internal
+    validate_report(report)
+    assert json.loads((out / "report.json").read_text()) == report
+    assert_matches_golden(report, "kalman_bank_tapping_force_curve")
+
+
+def test_outputs(internal):
+    out, report = internal
+    assert set(report["outputs"]) == {"bank.h5", "bank_rms_vs_z.png", "config.toml", "report.json"}
+    assert (out / "bank_rms_vs_z.png").stat().st_size > 20_000
+    n_filters = len(report["results"]["filters"])
+    with h5py.File(out / "bank.h5") as f:
+        n = f["t"].shape[0]
+        assert f["rms"].shape == (n_filters, n)
+        for name in ("z", "adaptive_rms", "reep_f0_hz", "reep_q"):
+            assert f[name].shape == (n,)
+        assert f["z"].attrs["units"] == "nm" and f["rms"].attrs["units"] == "nm"
+        assert f["models/f0_hz"].shape == (n_filters,)
+        assert f["force_curve/approach/rms"].shape[0] == n_filters
+        np.testing.assert_allclose(f["models/design_z"][()], [g["design_z"] for g in report["results"]["filters"]])
+        assert n == report["results"]["n_samples"] // report["results"]["decimate"]
+    # the bundled capture ramps 28 nm in 24 ms: REEP's 200-sample window spans about a bin of z there,
+    # and the report says so when the adaptive observer misses the 90 % criterion
+    adaptive = report["results"]["adaptive"]
+    if not adaptive["pass"]:
+        assert any("spans" in r and "bins" in r for r in report["results"]["verdict"]["reasons"])
+
+
+def test_reep_file_route_matches_internal(internal, tmp_path):
+    _, inner = internal
+    assert run_cli("reep", CAPTURE, "--out", tmp_path / "reep", "-q").returncode == 0
+    result = run_cli("kalman-bank", CAPTURE, "--reep", tmp_path / "reep", "--out", tmp_path / "kb", "--json", "-q")
+    assert result.returncode == 0, result.stderr.decode()
+    report = json.loads(result.stdout)
+    validate_report(report)
+    # the same REEP estimates and the same binning give the same design points and models
+    for a, b in zip(report["results"]["filters"], inner["results"]["filters"], strict=True):
+        assert a["design_z"] == b["design_z"]
+        assert a["f0_hz"] == pytest.approx(b["f0_hz"], rel=1e-12)
+    assert report["results"]["reep"]["coefficients"].startswith("held")
+    # holding the decimated estimates changes the adaptive observer's RMS only a little
+    assert report["results"]["adaptive"]["fraction_lowest"] == pytest.approx(
+        inner["results"]["adaptive"]["fraction_lowest"], abs=0.05
+    )
+    assert {"capture", "reep series"} <= {i["role"] for i in report["inputs"]}
+
+
+def test_negative_control_fails_with_reasons(tmp_path):
+    result = run_cli("kalman-bank", CAPTURE, "--out", tmp_path / "kb", "--json", "-q", "--f0-scale", "1.02")
+    assert result.returncode == 0, result.stderr.decode()
+    report = json.loads(result.stdout)
+    verdict = report["results"]["verdict"]
+    assert verdict["pass"] is False
+    assert report["results"]["design"]["f0_scale"] == 1.02
+    assert any(w.startswith("verdict FAIL") for w in report["warnings"])
+    assert all("design bin" in r for r in verdict["reasons"][:5])
+
+
+def test_stdin_needs_reep_or_models():
+    rows = b"# sample_rate_hz: 500000\ndeflection,dither,z_piezo\n0,0,0\n1,1,0\n"
+    result = run_cli("kalman-bank", "-", "--out", "/nonexistent/x", input=rows)
+    assert result.returncode == 2
+    assert b"stdin cannot be re-read" in result.stderr
