@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import DecodeParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
-from afmtool.report.json_report import input_record
+from afmtool.report.json_report import PendingInputRecord
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -30,12 +29,16 @@ def run_decode_command(
     config: Path | None,
     flags: Mapping,
     progress: Callable[[int], None],
+    capture_record: PendingInputRecord | None = None,
 ) -> dict:
-    """Resolve parameters, decode, write every output atomically; return the report."""
+    """Resolve parameters, decode, write every output atomically; return the report.
+
+    ``capture_record`` is the capture's hash already under way (started by
+    the CLI before its imports); by default it starts here.
+    """
     params = resolve_from(DecodeParams, "decode", load_toml(config) if config else None, flags)
-    # hash the input in a thread while the decoder streams it (hashlib releases the GIL on large blocks)
-    with ThreadPoolExecutor(max_workers=1) as pool, OutputDir(out) as staged:
-        record = pool.submit(input_record, capture)
+    record = capture_record or PendingInputRecord(capture)
+    with OutputDir(out) as staged:
         with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, {"afmtool_command": "decode"}) as writer:
             result = run_decode(reader, params, writer, progress=progress)
             if result.psd:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -14,7 +13,7 @@ from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import load_free_air_model
-from afmtool.report.json_report import input_record
+from afmtool.report.json_report import PendingInputRecord, input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -39,12 +38,16 @@ def run_probeloss_command(
     config: Path | None,
     flags: Mapping,
     progress: Callable[[int], None],
+    capture_record: PendingInputRecord | None = None,
 ) -> dict:
-    """Resolve parameters, run the probe-loss analysis, write every output atomically; return the report."""
+    """Resolve parameters, run the probe-loss analysis, write every output atomically; return the report.
+
+    ``capture_record`` is the capture's hash already under way (started by
+    the CLI before its imports); by default it starts here.
+    """
     params = resolve_from(ProbeLossParams, "probeloss", load_toml(config) if config else None, flags)
     model = load_free_air_model(Path(params.model)) if params.model else None
-    # the input's sha256 for report.json is computed beside the analysis (hashlib releases the GIL)
-    capture_record = _Background(input_record, capture)
+    capture_record = capture_record or PendingInputRecord(capture)
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"}) as writer:
             result = run_probeloss(reader, params, writer, model=model, progress=progress)
@@ -58,29 +61,6 @@ def run_probeloss_command(
             model_file = model_path if model_path.is_file() else model_path / "free_air.json"
             inputs.append(input_record(model_file, "model"))
         return finish_run(staged, "probeloss", inputs, "probeloss", params, results, result.warnings)
-
-
-class _Background:
-    """Run ``fn(*args)`` in a daemon thread; ``result()`` joins it (an interrupted run never waits for it)."""
-
-    def __init__(self, fn: Callable, *args) -> None:
-        self._value = None
-        self._error: BaseException | None = None
-
-        def run() -> None:
-            try:
-                self._value = fn(*args)
-            except BaseException as exc:  # noqa: BLE001 - re-raised by result() in the caller's thread
-                self._error = exc
-
-        self._thread = threading.Thread(target=run, name="afmtool-sha256", daemon=True)
-        self._thread.start()
-
-    def result(self):
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self._value
 
 
 def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:

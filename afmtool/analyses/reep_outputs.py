@@ -13,7 +13,7 @@ from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import load_free_air_model
-from afmtool.report.json_report import input_record
+from afmtool.report.json_report import PendingInputRecord, input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -32,15 +32,22 @@ def run_reep_command(
     config: Path | None,
     flags: Mapping,
     progress: Callable[[int], None],
+    capture_record: PendingInputRecord | None = None,
 ) -> dict:
-    """Resolve parameters, run REEP, write every output atomically; return the report."""
+    """Resolve parameters, run REEP, write every output atomically; return the report.
+
+    ``capture_record`` is the capture's hash already under way (started by
+    the CLI before its imports); by default it starts here.
+    """
     params = resolve_from(ReepParams, "reep", load_toml(config) if config else None, flags)
     model = load_free_air_model(Path(params.model)) if params.model else None
     deflection_units = reader.info.units("deflection") if "deflection" in reader.info.channel_names else ""
     units = dict(SERIES_UNITS, amplitude=deflection_units, sigma2=f"{deflection_units}^2" if deflection_units else "")
-    inputs = [input_record(capture)]
+    capture_record = capture_record or PendingInputRecord(capture)
+    model_records = []
     if params.model:
-        inputs.append(input_record(params.model if Path(params.model).is_file() else Path(params.model) / "free_air.json", "model"))
+        model_path = Path(params.model)
+        model_records.append(input_record(model_path if model_path.is_file() else model_path / "free_air.json", "model"))
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}) as writer:
             result = run_reep(reader, params, writer, model=model, progress=progress)
@@ -57,6 +64,7 @@ def run_reep_command(
             from afmtool.models.free_air import FreeAirModel
 
             FreeAirModel(**result.results["free_air_model"]).save(staged.path("free_air.json"))
+        inputs = [capture_record.result(), *model_records]
         return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
 
 

@@ -61,6 +61,10 @@ def decode(
     report.json (l0, noise, clock, bits; BER and confusion counts when /truth has bits,
     also for the lock-in amplitude baseline), config.toml, eye.png, psd.png, l0_search.png.
     """
+    from afmtool.report.json_report import PendingInputRecord
+
+    # started before the imports below, so that hashing a large capture overlaps them
+    capture_record = None if out is None else PendingInputRecord(capture)
     from afmtool.analyses.decode_outputs import run_decode_command
     from afmtool.cli.reep_cmd import finish_command
 
@@ -78,7 +82,7 @@ def decode(
     }
     with open_input(capture, channel, topic, sample_rate) as reader:
         with progress_bar("decode", reader.info.n_samples, quiet) as update:
-            report = run_decode_command(reader, capture, out, config, flags, update)
+            report = run_decode_command(reader, capture, out, config, flags, update, capture_record)
     finish_command(report, out, json_output, quiet)
 
 

@@ -90,6 +90,16 @@ def main(argv: list[str] | None = None) -> None:
     """Console-script entry point with afmtool's exit-code contract."""
     # SIGTERM unwinds like Ctrl-C, so staged outputs are cleaned up.
     signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        _run(argv)
+    finally:
+        # Outputs are committed or cleaned up by now; a signal during interpreter
+        # shutdown should end the process, not print a traceback from a finaliser.
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _run(argv: list[str] | None) -> None:
     command = typer.main.get_command(app)
     try:
         result = command.main(args=argv, prog_name="afmtool", standalone_mode=False)

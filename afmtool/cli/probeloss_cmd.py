@@ -80,6 +80,10 @@ def probeloss(
     with /truth/contact precision, recall and latency of both) and config.toml;
     with scan metadata, probe-loss mask and index images (PNG and .gsf).
     """
+    from afmtool.report.json_report import PendingInputRecord
+
+    # started before the imports below, so that hashing a large capture overlaps them
+    capture_record = None if stream or out is None else PendingInputRecord(capture)
     from afmtool.analyses.probeloss_outputs import run_probeloss_command, run_probeloss_stream
     from afmtool.cli.reep_cmd import finish_command
     from afmtool.errors import ConfigError
@@ -111,7 +115,7 @@ def probeloss(
         raise ConfigError("--out is required (or use --stream)")
     with open_input(capture, channel, topic, sample_rate) as reader:
         with progress_bar("probeloss", reader.info.n_samples, quiet) as update:
-            report = run_probeloss_command(reader, capture, out, config, flags, update)
+            report = run_probeloss_command(reader, capture, out, config, flags, update, capture_record)
     finish_command(report, out, json_output, quiet)
 
 

@@ -68,6 +68,10 @@ def reep(
     the decimated rows go to stdout as they are computed, e.g.
     afmtool simulate ltv -o - --format csv | afmtool reep - --stream --free-air 0:0.01 | head
     """
+    from afmtool.report.json_report import PendingInputRecord
+
+    # started before the imports below, so that hashing a large capture overlaps them
+    capture_record = None if stream or out is None else PendingInputRecord(capture)
     from afmtool.analyses.reep_outputs import run_reep_command, run_reep_stream
     from afmtool.errors import ConfigError
 
@@ -91,7 +95,7 @@ def reep(
         raise ConfigError("--out is required (or use --stream)")
     with open_input(capture, channel, topic, sample_rate) as reader:
         with progress_bar("reep", reader.info.n_samples, quiet) as update:
-            report = run_reep_command(reader, capture, out, config, flags, update)
+            report = run_reep_command(reader, capture, out, config, flags, update, capture_record)
     finish_command(report, out, json_output, quiet)
 
 

@@ -11,13 +11,14 @@ import dataclasses
 import hashlib
 import json
 import math
+import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import afmtool
 
-__all__ = ["sha256_file", "input_record", "build_report", "to_jsonable", "dumps"]
+__all__ = ["sha256_file", "input_record", "PendingInputRecord", "build_report", "to_jsonable", "dumps"]
 
 _HASH_BLOCK = 1 << 22
 
@@ -39,6 +40,36 @@ def input_record(path: Path | str, role: str = "capture") -> dict:
     if str(path) == "-":
         return {"path": "-", "role": role, "sha256": None}
     return {"path": str(path), "role": role, "sha256": sha256_file(Path(path))}
+
+
+class PendingInputRecord:
+    """:func:`input_record` computed in a daemon thread, started at construction.
+
+    Hashing a 1.6 GB capture takes about 2 s of CPU; hashlib releases the GIL
+    on large blocks, so started before the analysis imports its modules the
+    hash overlaps the imports and the pass instead of following them.  An
+    interrupted run never waits for it (the thread is a daemon).
+    """
+
+    def __init__(self, path: Path | str, role: str = "capture") -> None:
+        self._value: dict | None = None
+        self._error: BaseException | None = None
+
+        def run() -> None:
+            try:
+                self._value = input_record(path, role)
+            except BaseException as exc:  # noqa: BLE001 - re-raised by result() in the caller's thread
+                self._error = exc
+
+        self._thread = threading.Thread(target=run, name="afmtool-sha256", daemon=True)
+        self._thread.start()
+
+    def result(self) -> dict:
+        """The record; re-raises whatever hashing raised."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
 
 
 def to_jsonable(value: Any) -> Any:
