@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from afmtool.analyses.decode import SERIES_UNITS, DecodeResult, run_decode
+from afmtool.analyses.stream import run_stream
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import DecodeParams
 from afmtool.io.capture import CaptureReader
@@ -16,7 +17,7 @@ from afmtool.report.json_report import PendingInputRecord
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
-__all__ = ["run_decode_command", "write_eye_png", "write_psd_png", "write_l0_png"]
+__all__ = ["run_decode_command", "run_decode_stream", "write_eye_png", "write_psd_png", "write_l0_png"]
 
 #: Eye-diagram trace style: thin, translucent, one colour.
 _EYE_STYLE = {"color": "C0", "linewidth": 0.6, "alpha": 0.25}
@@ -47,6 +48,15 @@ def run_decode_command(
                     writer.put(f"psd/{name}", result.psd[name], units)
         _write_figures(staged, result)
         return finish_run(staged, "decode", [record.result()], "decode", params, result.results, result.warnings)
+
+
+def run_decode_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:
+    """Decode with the innovation running mean (t_mean, innovation_mean) as rows on stdout (``--stream``).
+
+    Per-sample innovation rows at MHz rates would swamp a pipe; one row per
+    actuation period is what a live display needs.
+    """
+    run_stream(run_decode, DecodeParams, "decode", reader, config, flags, fmt, rows_with="innovation_mean")
 
 
 def _write_figures(staged: OutputDir, result: DecodeResult) -> None:

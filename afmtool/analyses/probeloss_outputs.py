@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from afmtool.analyses.probeloss import SERIES_UNITS, ProbeLossResult, run_probeloss
+from afmtool.analyses.stream import run_stream
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
@@ -18,9 +19,6 @@ from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
 __all__ = ["run_probeloss_command", "run_probeloss_stream"]
-
-#: Chunk size for --stream: small, so rows follow the input closely.
-STREAM_CHUNK_SAMPLES = 4096
 
 _IMAGE_TITLES = {"loss": ("probe-loss fraction", ""), "index": ("reliability index", "")}
 _IMAGE_STEMS = {"loss": "loss_mask", "index": "index"}
@@ -65,17 +63,12 @@ def run_probeloss_command(
 
 def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:
     """Run the analysis and write decimated rows to stdout as each chunk completes (``--stream``)."""
-    import sys
 
-    from afmtool.io.rows import RowWriter
+    def analysis(reader: CaptureReader, params: ProbeLossParams, writer) -> ProbeLossResult:
+        model = load_free_air_model(Path(params.model)) if params.model else None
+        return run_probeloss(reader, params, writer, model=model)
 
-    flags = {"chunk_samples": STREAM_CHUNK_SAMPLES, **{k: v for k, v in flags.items() if v is not None}}
-    params = resolve_from(ProbeLossParams, "probeloss", load_toml(config) if config else None, flags)
-    model = load_free_air_model(Path(params.model)) if params.model else None
-    with RowWriter(sys.stdout, fmt) as writer:
-        result = run_probeloss(reader, params, writer, model=model)
-    for warning in result.warnings:
-        print(f"afmtool: warning: {warning}", file=sys.stderr)
+    run_stream(analysis, ProbeLossParams, "probeloss", reader, config, flags, fmt)
 
 
 def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResult) -> None:

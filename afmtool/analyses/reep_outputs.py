@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from afmtool.analyses.reep import SERIES_UNITS, ReepResult, run_reep
+from afmtool.analyses.stream import run_stream
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
@@ -18,9 +19,6 @@ from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
 __all__ = ["run_reep_command", "run_reep_stream"]
-
-#: Chunk size for --stream: small, so rows follow the input closely.
-STREAM_CHUNK_SAMPLES = 4096
 
 _IMAGE_TITLES = {"f0_hz": ("f0'", "Hz"), "q": ("Q'", ""), "amplitude": ("amplitude", None), "phase_deg": ("phase", "deg")}
 
@@ -70,17 +68,12 @@ def run_reep_command(
 
 def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:
     """Run REEP and write decimated rows to stdout as each chunk completes (``--stream``)."""
-    import sys
 
-    from afmtool.io.rows import RowWriter
+    def analysis(reader: CaptureReader, params: ReepParams, writer) -> ReepResult:
+        model = load_free_air_model(Path(params.model)) if params.model else None
+        return run_reep(reader, params, writer, model=model)
 
-    flags = {"chunk_samples": STREAM_CHUNK_SAMPLES, **{k: v for k, v in flags.items() if v is not None}}
-    params = resolve_from(ReepParams, "reep", load_toml(config) if config else None, flags)
-    model = load_free_air_model(Path(params.model)) if params.model else None
-    with RowWriter(sys.stdout, fmt) as writer:
-        result = run_reep(reader, params, writer, model=model)
-    for warning in result.warnings:
-        print(f"afmtool: warning: {warning}", file=sys.stderr)
+    run_stream(analysis, ReepParams, "reep", reader, config, flags, fmt)
 
 
 def _finite_mean(values: np.ndarray) -> float | None:

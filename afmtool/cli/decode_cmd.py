@@ -7,8 +7,20 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import open_input
-from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, JsonOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.common import open_input, stdout_pipe
+from afmtool.cli.options import (
+    CaptureArg,
+    ChannelOpt,
+    ConfigOpt,
+    JsonOpt,
+    QuietOpt,
+    SampleRateOpt,
+    StreamFormatOpt,
+    StreamOpt,
+    StreamOutOpt,
+    TopicOpt,
+    check_stream_format,
+)
 from afmtool.cli.progress import progress_bar
 
 __all__ = ["register"]
@@ -31,7 +43,9 @@ _HELP = {
 
 def decode(
     capture: CaptureArg,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder; created if missing.")],
+    out: StreamOutOpt = None,
+    stream: StreamOpt = False,
+    stream_format: StreamFormatOpt = "csv",
     bit_rate: Annotated[Optional[float], typer.Option("--bit-rate", help=_HELP["bit_rate_hz"], min=0.0)] = None,
     nominal: Annotated[Optional[str], typer.Option("--nominal", help=_HELP["nominal"])] = None,
     l0: Annotated[Optional[float], typer.Option("--l0", help=_HELP["l0_nm"], min=0.0)] = None,
@@ -60,13 +74,18 @@ def decode(
     Writes decode.h5 (t, innovation, innovation_mean, bit_times_s, bits, soft, baseline),
     report.json (l0, noise, clock, bits; BER and confusion counts when /truth has bits,
     also for the lock-in amplitude baseline), config.toml, eye.png, psd.png, l0_search.png.
+    With --stream the EKF innovation's running mean over each actuation period
+    (t_mean, innovation_mean in nm: the signal the bits are sliced from) goes to
+    stdout as it is computed; the bits themselves need the whole record's
+    two-class threshold and are written only to decode.h5.
     """
     from afmtool.report.json_report import PendingInputRecord
 
     # started before the imports below, so that hashing a large capture overlaps them
-    capture_record = None if out is None else PendingInputRecord(capture)
-    from afmtool.analyses.decode_outputs import run_decode_command
+    capture_record = None if stream or out is None else PendingInputRecord(capture)
+    from afmtool.analyses.decode_outputs import run_decode_command, run_decode_stream
     from afmtool.cli.reep_cmd import finish_command
+    from afmtool.errors import ConfigError
 
     flags = {
         "bit_rate_hz": bit_rate,
@@ -80,6 +99,13 @@ def decode(
         "clock_window_s": clock_window,
         "polarity": polarity,
     }
+    if stream:
+        check_stream_format(stream_format)
+        with open_input(capture, channel, topic, sample_rate) as reader, stdout_pipe():
+            run_decode_stream(reader, config, flags, stream_format)
+        return
+    if out is None:
+        raise ConfigError("--out is required (or use --stream)")
     with open_input(capture, channel, topic, sample_rate) as reader:
         with progress_bar("decode", reader.info.n_samples, quiet) as update:
             report = run_decode_command(reader, capture, out, config, flags, update, capture_record)

@@ -19,6 +19,10 @@ __all__ = [
     "TopicOpt",
     "SampleRateOpt",
     "ChunkOpt",
+    "StreamOutOpt",
+    "StreamOpt",
+    "StreamFormatOpt",
+    "check_stream_format",
     "parse_mapping",
 ]
 
@@ -46,6 +50,19 @@ SampleRateOpt = Annotated[
 ChunkOpt = Annotated[
     int, typer.Option("--chunk-samples", help="Samples per streamed chunk (memory vs overhead).", min=1)
 ]
+
+StreamOutOpt = Annotated[
+    Optional[Path], typer.Option("--out", "-o", help="Output folder; created if missing (optional with --stream).")
+]
+StreamOpt = Annotated[
+    bool, typer.Option("--stream", help="Write result rows to stdout as they are computed (live pipelines).")
+]
+StreamFormatOpt = Annotated[str, typer.Option("--stream-format", help="Rows on stdout: csv or jsonl.")]
+
+
+def check_stream_format(stream_format: str) -> None:
+    if stream_format not in ("csv", "jsonl"):
+        raise ConfigError(f"--stream-format {stream_format!r} must be csv or jsonl")
 
 
 def parse_mapping(items: list[str] | None, option: str) -> dict[str, str]:

@@ -8,7 +8,19 @@ from typing import Annotated, Optional
 import typer
 
 from afmtool.cli.common import open_input, stdout_pipe
-from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, JsonOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.options import (
+    CaptureArg,
+    ChannelOpt,
+    ConfigOpt,
+    JsonOpt,
+    QuietOpt,
+    SampleRateOpt,
+    StreamFormatOpt,
+    StreamOpt,
+    StreamOutOpt,
+    TopicOpt,
+    check_stream_format,
+)
 from afmtool.cli.progress import progress_bar
 
 __all__ = ["register"]
@@ -16,13 +28,9 @@ __all__ = ["register"]
 
 def probeloss(
     capture: CaptureArg,
-    out: Annotated[
-        Optional[Path], typer.Option("--out", "-o", help="Output folder; created if missing (optional with --stream).")
-    ] = None,
-    stream: Annotated[
-        bool, typer.Option("--stream", help="Write result rows to stdout as they are computed (live pipelines).")
-    ] = False,
-    stream_format: Annotated[str, typer.Option("--stream-format", help="Rows on stdout: csv or jsonl.")] = "csv",
+    out: StreamOutOpt = None,
+    stream: StreamOpt = False,
+    stream_format: StreamFormatOpt = "csv",
     free_air: Annotated[
         Optional[str],
         typer.Option("--free-air", help="Off-sample segment START:END (s): model, index level, thresholds, A0."),
@@ -106,8 +114,7 @@ def probeloss(
     if kalman and decay_cycles is not None:
         raise ConfigError("--kalman and --decay-cycles choose the gain two ways; give one")
     if stream:
-        if stream_format not in ("csv", "jsonl"):
-            raise ConfigError(f"--stream-format {stream_format!r} must be csv or jsonl")
+        check_stream_format(stream_format)
         with open_input(capture, channel, topic, sample_rate) as reader, stdout_pipe():
             run_probeloss_stream(reader, config, flags, stream_format)
         return

@@ -16,7 +16,11 @@ from afmtool.cli.options import (
     OutOpt,
     QuietOpt,
     SampleRateOpt,
+    StreamFormatOpt,
+    StreamOpt,
+    StreamOutOpt,
     TopicOpt,
+    check_stream_format,
 )
 from afmtool.cli.progress import progress_bar, stderr_console
 
@@ -25,16 +29,9 @@ __all__ = ["register", "finish_command"]
 
 def reep(
     capture: CaptureArg,
-    out: Annotated[
-        Optional[Path], typer.Option("--out", "-o", help="Output folder; created if missing (optional with --stream).")
-    ] = None,
-    stream: Annotated[
-        bool,
-        typer.Option("--stream", help="Write result rows to stdout as they are computed (live pipelines)."),
-    ] = False,
-    stream_format: Annotated[
-        str, typer.Option("--stream-format", help="Rows on stdout: csv or jsonl.")
-    ] = "csv",
+    out: StreamOutOpt = None,
+    stream: StreamOpt = False,
+    stream_format: StreamFormatOpt = "csv",
     free_air: Annotated[
         Optional[str], typer.Option("--free-air", help="Off-sample segment START:END (s) for the free-air model.")
     ] = None,
@@ -86,8 +83,7 @@ def reep(
         "z_bin": z_bin,
     }
     if stream:
-        if stream_format not in ("csv", "jsonl"):
-            raise ConfigError(f"--stream-format {stream_format!r} must be csv or jsonl")
+        check_stream_format(stream_format)
         with open_input(capture, channel, topic, sample_rate) as reader, stdout_pipe():
             run_reep_stream(reader, config, flags, stream_format)
         return

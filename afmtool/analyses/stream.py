@@ -1,0 +1,73 @@
+"""``--stream``: run an analysis with its result rows on stdout as each chunk completes.
+
+The analysis writes to a :class:`afmtool.io.rows.RowWriter` instead of an
+HDF5 file; small chunks keep the rows close behind the input.  Whole arrays
+(tables, images, bits decided at the end) have no place in a row stream and
+are dropped; warnings go to stderr.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from afmtool.config import load_toml, resolve_from
+from afmtool.io.rows import RowWriter
+
+__all__ = ["STREAM_CHUNK_SAMPLES", "run_stream"]
+
+#: Chunk size for --stream: small, so rows follow the input closely.
+STREAM_CHUNK_SAMPLES = 4096
+
+
+class _Selected:
+    """Pass on only the appended blocks that hold column ``key`` (one row schema per stream)."""
+
+    def __init__(self, rows: RowWriter, key: str) -> None:
+        self._rows = rows
+        self._key = key
+
+    def append(self, columns: Mapping) -> None:
+        if self._key in columns:
+            self._rows.append(columns)
+
+    def put(self, *args, **kwargs) -> None:
+        """Whole arrays are dropped, as by :meth:`RowWriter.put`."""
+
+
+def run_stream(
+    analysis: Callable[[Any, Any, Any], Any],
+    params_cls: type,
+    section: str,
+    reader,
+    config: Path | None,
+    flags: Mapping,
+    fmt: str,
+    *,
+    rows_with: str | None = None,
+) -> None:
+    """Resolve ``[section]`` parameters and run ``analysis(reader, params, writer)`` into stdout rows.
+
+    Parameters
+    ----------
+    analysis : callable
+        ``(reader, params, writer) -> result``; ``result.warnings`` is printed to stderr.
+    params_cls, section : type, str
+        The parameters dataclass and its config-file section.
+    reader, config, flags
+        As for the command's file output; ``chunk_samples`` is
+        :data:`STREAM_CHUNK_SAMPLES` unless a flag sets it.
+    fmt : str
+        ``"csv"`` or ``"jsonl"``.
+    rows_with : str, optional
+        For analyses that append blocks of more than one shape: only blocks
+        holding this column become rows.
+    """
+    flags = {"chunk_samples": STREAM_CHUNK_SAMPLES, **{k: v for k, v in flags.items() if v is not None}}
+    params = resolve_from(params_cls, section, load_toml(config) if config else None, flags)
+    with RowWriter(sys.stdout, fmt) as rows:
+        result = analysis(reader, params, rows if rows_with is None else _Selected(rows, rows_with))
+    for warning in result.warnings:
+        print(f"afmtool: warning: {warning}", file=sys.stderr)
