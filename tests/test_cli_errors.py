@@ -146,7 +146,6 @@ def test_analysis_missing_channel(tmp_path):
 def test_late_bad_sample_leaves_no_partial_output(tmp_path):
     """A NaN deep in the capture stops the run after work began: nothing is published."""
     from afmtool import sim
-    from afmtool.io.capture import ChannelSpec
     from afmtool.io.hdf5 import Hdf5Writer
 
     captured = sim.simulate("ltv", {"duration_s": 0.03, "step_time_s": 1.0}, seed=0)

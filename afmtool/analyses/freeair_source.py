@@ -1,4 +1,4 @@
-"""Where an analysis gets its free-air model and segment: shared by ``reep`` and ``probeloss``.
+"""Where an analysis gets its free-air model, segment and drive frequency (``reep``, ``probeloss``, ``kalman-bank``).
 
 The off-sample segment is ``--free-air START:END`` or the capture metadata
 ``free_air``; it is read ahead from the single-pass chunk stream
@@ -21,7 +21,7 @@ from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
 
-__all__ = ["FreeAirSegment", "free_air_interval", "read_free_air", "identify_from_segment"]
+__all__ = ["FreeAirSegment", "free_air_interval", "read_free_air", "identify_from_segment", "drive_frequency"]
 
 
 class FreeAirSegment(NamedTuple):
@@ -71,3 +71,24 @@ def identify_from_segment(segment: FreeAirSegment, sample_rate_hz: float) -> Fre
             f"free-air segment {start:g}:{end:g} s: {exc}; or give --model free_air.json "
             "(identify freeair --psd / --sweep)"
         ) from None
+
+
+def drive_frequency(reader: CaptureReader, given_hz: float, model: FreeAirModel) -> float:
+    """The drive frequency, Hz: ``given_hz`` if non-zero, else metadata ``drive.frequency_hz``, else f0.
+
+    Raises
+    ------
+    InputError
+        If it is not below the Nyquist frequency.
+    """
+    fs = reader.info.sample_rate_hz
+    drive = reader.info.metadata.get("drive", {})
+    if given_hz:
+        hz = given_hz
+    elif "frequency_hz" in drive:
+        hz = float(drive["frequency_hz"])
+    else:
+        hz = model.f0_hz
+    if not 0 < hz < fs / 2:
+        raise InputError(f"drive frequency {hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
+    return hz

@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ForceCurveTable
-from afmtool.analyses.freeair_source import free_air_interval, identify_from_segment, read_free_air
+from afmtool.analyses.freeair_source import drive_frequency, free_air_interval, identify_from_segment, read_free_air
 from afmtool.analyses.kalman_bank_reep import (
     DelayLine,
     HeldReepCoefficients,
@@ -225,20 +225,6 @@ class BankSetup:
         return (self.window - 1) // 2 + round(-1.0 / math.log(self.radius))
 
 
-def _drive_frequency(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel) -> float:
-    fs = reader.info.sample_rate_hz
-    drive = reader.info.metadata.get("drive", {})
-    if params.drive_frequency_hz:
-        hz = params.drive_frequency_hz
-    elif "frequency_hz" in drive:
-        hz = float(drive["frequency_hz"])
-    else:
-        hz = model.f0_hz
-    if not 0 < hz < fs / 2:
-        raise InputError(f"drive frequency {hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
-    return hz
-
-
 def _design_points(params: KalmanBankParams, tables: dict[str, ModelTable] | None, model: FreeAirModel):
     if tables is None:  # --models with REEP alongside: design points once REEP's model is binned
         return tuple(DesignPoint(f, q, math.nan, "models", math.nan) for f, q in parse_model_list(params.models))
@@ -273,7 +259,7 @@ def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: 
 
 def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
     fs = reader.info.sample_rate_hz
-    drive_hz = _drive_frequency(reader, params, model)
+    drive_hz = drive_frequency(reader, params.drive_frequency_hz, model)
     window = max(1, round(params.rms_window_periods * fs / drive_hz))
     points = _design_points(params, tables, model)
     designs = build_bank(

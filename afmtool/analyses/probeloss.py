@@ -29,6 +29,7 @@ import numpy as np
 from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
 from afmtool.analyses.freeair_source import (
     FreeAirSegment,
+    drive_frequency,
     free_air_interval,
     identify_from_segment,
     read_free_air,
@@ -125,20 +126,6 @@ class ProbeLossResult:
 # --------------------------------------------------------------------------- set-up
 
 
-def _drive_frequency(reader: CaptureReader, params: ProbeLossParams, model: FreeAirModel) -> float:
-    fs = reader.info.sample_rate_hz
-    drive = reader.info.metadata.get("drive", {})
-    if params.drive_frequency_hz:
-        hz = params.drive_frequency_hz
-    elif "frequency_hz" in drive:
-        hz = float(drive["frequency_hz"])
-    else:
-        hz = model.f0_hz
-    if not 0 < hz < fs / 2:
-        raise InputError(f"drive frequency {hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
-    return hz
-
-
 def _design(params: ProbeLossParams, model: FreeAirModel, fs: float, period_samples: float):
     from afmtool.estimators.observer import ObserverDesign
 
@@ -226,7 +213,7 @@ def prepare_probeloss(
                 "or capture metadata free_air"
             )
         model, source = identify_from_segment(segment, fs), "segment"
-    drive_hz = _drive_frequency(reader, params, model)
+    drive_hz = drive_frequency(reader, params.drive_frequency_hz, model)
     period = fs / drive_hz
     design = _design(params, model, fs, period)
     window = index_window(fs, drive_hz, params.window_periods)
