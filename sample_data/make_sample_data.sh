@@ -39,3 +39,11 @@ afmtool convert thermal_sweep_contact.tmp.h5 thermal_sweep_contact.h5 --compress
 afmtool simulate raster -o raster_grating_raw.h5 --seed 4 \
   --set line_rate_hz=30.0 --set lines=3 --set pixels_per_line=32
 afmtool convert raster_grating_raw.h5 raster_grating.h5 --compression gzip && rm raster_grating_raw.h5
+
+# A force curve at the thesis's rate for 'kalman-bank' (§3.4.3 attractive set: f0 80,318 Hz, Q 168,
+# 0.4 s, side lines at a quarter): slow enough that REEP's window spans well under a 0.5 nm bin.
+afmtool simulate tapping -o force_curve_thesis_raw.h5 --seed 1 \
+  --set duration_s=0.4 --set f0_hz=80318.0 --set q=168.0 --set force_set=attractive \
+  --set program=force-curve --set separation_nm=30.0 --set turn_separation_nm=2.0 \
+  --set amplitude_nm=20.0 --set sideband_scale=0.25
+afmtool convert force_curve_thesis_raw.h5 force_curve_thesis.h5 --compression gzip && rm force_curve_thesis_raw.h5
