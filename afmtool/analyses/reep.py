@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -229,43 +230,48 @@ def run_reep(
     image_acc = ImageAccumulator(geometry, _IMAGE_QUANTITIES) if geometry else None
     curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if z_mode else None
 
-    for chunk in chunks:
-        p = chunk.data["deflection"]
-        g = chunk.data.get("dither")
-        p_for_rls = bandpass(p) if bandpass is not None else p
-        block, state = reep_update(
-            state, p_for_rls, g, numerator, bias_compensation=params.bias_compensation, use_input=params.use_input
-        )
-        # Everything below runs on the kept samples only: n with (n + 1) % decimate == 0.
-        keep = slice((-(chunk.start + 1)) % decimate, None, decimate)
-        f0, q, valid = resonance_from_denominator(block.b1[keep], block.b0[keep], fs)
-        flagged += int(valid.size - np.count_nonzero(valid))
-        demodulated, lock_state = lockin.process((p, g) if params.use_input else (p,), lock_state, decimate)
-        demod = demodulated[0]
-        phase = demod.phase_rad if not params.use_input else demod.phase_rad - demodulated[1].phase_rad
-        phase_deg = np.degrees(np.angle(np.exp(1j * phase)))
-        kept_index = np.arange(chunk.start, chunk.start + len(p))[keep]
-        columns = {
-            "t": kept_index / fs,
-            "f0_hz": f0,
-            "q": q,
-            "b1": block.b1[keep],
-            "b0": block.b0[keep],
-            "sigma2": block.sigma2[keep],
-            "amplitude": demod.amplitude,
-            "phase_deg": phase_deg,
-        }
-        if z_mode:
-            columns["z"] = chunk.data["z_piezo"][keep]
-        writer.append(columns)
-        settled = kept_index >= warmup
-        for name, summary in summaries.items():
-            summary.add(columns[name][settled])
-        if image_acc is not None:
-            image_acc.add(columns["t"], columns)
-        if curve_acc is not None:
-            curve_acc.add(columns["z"], {k: np.where(settled, columns[k], np.nan) for k in _CURVE_QUANTITIES})
-        n_total = chunk.start + len(p)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for chunk in chunks:
+            p = chunk.data["deflection"]
+            g = chunk.data.get("dither")
+            # the lock-in runs in the worker thread beside REEP (both kernels release the GIL)
+            demodulating = pool.submit(lockin.process, (p, g) if params.use_input else (p,), lock_state, decimate)
+            try:
+                p_for_rls = bandpass(p) if bandpass is not None else p
+                block, state = reep_update(
+                    state, p_for_rls, g, numerator, bias_compensation=params.bias_compensation, use_input=params.use_input
+                )
+            finally:
+                demodulated, lock_state = demodulating.result()
+            # Everything below runs on the kept samples only: n with (n + 1) % decimate == 0.
+            keep = slice((-(chunk.start + 1)) % decimate, None, decimate)
+            f0, q, valid = resonance_from_denominator(block.b1[keep], block.b0[keep], fs)
+            flagged += int(valid.size - np.count_nonzero(valid))
+            demod = demodulated[0]
+            phase = demod.phase_rad if not params.use_input else demod.phase_rad - demodulated[1].phase_rad
+            phase_deg = np.degrees(np.angle(np.exp(1j * phase)))
+            kept_index = np.arange(chunk.start, chunk.start + len(p))[keep]
+            columns = {
+                "t": kept_index / fs,
+                "f0_hz": f0,
+                "q": q,
+                "b1": block.b1[keep],
+                "b0": block.b0[keep],
+                "sigma2": block.sigma2[keep],
+                "amplitude": demod.amplitude,
+                "phase_deg": phase_deg,
+            }
+            if z_mode:
+                columns["z"] = chunk.data["z_piezo"][keep]
+            writer.append(columns)
+            settled = kept_index >= warmup
+            for name, summary in summaries.items():
+                summary.add(columns[name][settled])
+            if image_acc is not None:
+                image_acc.add(columns["t"], columns)
+            if curve_acc is not None:
+                curve_acc.add(columns["z"], {k: np.where(settled, columns[k], np.nan) for k in _CURVE_QUANTITIES})
+            n_total = chunk.start + len(p)
 
     window = 1.0 / (1.0 - params.lam)
     results = {

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+import h5py
 import numpy as np
 
 from afmtool.io.results import ResultWriter
@@ -26,28 +27,17 @@ class MatrixResultWriter(ResultWriter):
 
     def append(self, columns: Mapping[str, np.ndarray]) -> None:
         """Append blocks with one length T: 1-D (T,) series or 2-D (N, T) matrices."""
-        flat = {}
         for name, values in columns.items():
-            values = np.asarray(values)
-            if values.ndim != 2:
-                flat[name] = values
-                continue
             ds = self._series.get(name)
-            if ds is None:
-                rows = values.shape[0]
-                ds = self._file.create_dataset(
-                    name,
-                    shape=(rows, 0),
-                    maxshape=(rows, None),
-                    dtype=values.dtype,
-                    chunks=(rows, _CHUNK_COLUMNS),
-                )
-                ds.attrs["units"] = self._units.get(name, "")
-                self._series[name] = ds
-            if values.shape[0] != ds.shape[0]:
-                raise ValueError(f"{name}: block has {values.shape[0]} rows, the dataset {ds.shape[0]}")
-            start = ds.shape[1]
-            ds.resize((ds.shape[0], start + values.shape[1]))
-            ds[:, start:] = values
-        if flat:
-            super().append(flat)
+            rows = np.shape(values)[0] if np.ndim(values) == 2 else None
+            if ds is not None and ds.ndim == 2 and rows != ds.shape[0]:
+                raise ValueError(f"{name}: block has {rows} rows, the dataset {ds.shape[0]}")
+        super().append(columns)
+
+    def _create(self, name: str, values: np.ndarray) -> h5py.Dataset:
+        if values.ndim != 2:
+            return super()._create(name, values)
+        rows = values.shape[0]
+        return self._file.create_dataset(
+            name, shape=(rows, 0), maxshape=(rows, None), dtype=values.dtype, chunks=(rows, _CHUNK_COLUMNS)
+        )
