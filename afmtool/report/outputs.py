@@ -56,8 +56,11 @@ class OutputDir:
 
     def __enter__(self) -> OutputDir:
         parent = self.out.resolve().parent
-        if not parent.is_dir():
-            raise AfmtoolError(f"--out {self.out}: parent folder {parent} does not exist")
+        # "created if missing" includes its parents: `--out results/reep` on a fresh checkout
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise AfmtoolError(f"--out {self.out}: cannot create parent folder {parent}: {exc.strerror}") from None
         self._staging = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.staging-", dir=parent))
         return self
 
