@@ -9,9 +9,12 @@ import subprocess
 import sys
 import threading
 
+import pytest
+
 from afmtool import sim
 from afmtool.io.csv import CsvWriter
-from tests.conftest import REPO
+from afmtool.io.registry import open_capture
+from tests.conftest import REPO, SAMPLE_DATA
 
 
 def _csv_text(duration_s: float) -> str:
@@ -22,10 +25,34 @@ def _csv_text(duration_s: float) -> str:
     return buffer.getvalue()
 
 
-def test_first_row_before_producer_finishes():
-    lines = _csv_text(0.1).splitlines(keepends=True)
+def _sample_csv_text(name: str) -> str:
+    """A bundled capture as CSV text (metadata kept, /truth dropped), as a live source would send it."""
+    with open_capture(SAMPLE_DATA / name) as reader:
+        info = reader.info
+        buffer = io.StringIO()
+        writer = CsvWriter(buffer, info.sample_rate_hz, info.channels, info.metadata)
+        for chunk in reader.blocks(info.channel_names, 1 << 16):
+            writer.write(chunk.data)
+    return buffer.getvalue()
+
+
+# Each live source is long enough that its first third holds the segment the command needs before
+# its first row (the free-air segment, 10 ms of 122 ms for probeloss; the 2 ms nominal segment of
+# 12 ms for decode), and the rest is held back until that row has arrived.
+STREAMS = {
+    "reep": (lambda: _csv_text(0.1), ["--free-air", "0:0.01"], {"t", "f0_hz", "q", "amplitude", "phase_deg"}),
+    "probeloss": (lambda: _sample_csv_text("raster_grating.h5"), [],
+                  {"t", "index", "switch", "amplitude", "amplitude_switch"}),
+    "decode": (lambda: _sample_csv_text("bits_30khz.h5"), ["--bit-rate", "30000"], {"t_mean", "innovation_mean"}),
+}
+
+
+@pytest.mark.parametrize("command", sorted(STREAMS))
+def test_first_row_before_producer_finishes(command):
+    make_text, args, columns = STREAMS[command]
+    lines = make_text().splitlines(keepends=True)
     consumer = subprocess.Popen(
-        [sys.executable, "-m", "afmtool", "reep", "-", "--stream", "--stream-format", "jsonl", "--free-air", "0:0.01"],
+        [sys.executable, "-m", "afmtool", command, "-", "--stream", "--stream-format", "jsonl", *args],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -38,10 +65,14 @@ def test_first_row_before_producer_finishes():
     third = len(lines) // 3
     consumer.stdin.write("".join(lines[:third]))
     consumer.stdin.flush()
-    first = rows.get(timeout=120)  # arrives while stdin is still open
+    try:
+        first = rows.get(timeout=120)  # arrives while stdin is still open
+    except queue.Empty:
+        consumer.kill()
+        raise AssertionError(f"{command} --stream wrote no row from the first third: {consumer.stderr.read()}")
     assert consumer.poll() is None
     record = json.loads(first)
-    assert set(record) >= {"t", "f0_hz", "q", "amplitude", "phase_deg"}
+    assert set(record) >= columns
     consumer.stdin.write("".join(lines[third:]))
     consumer.stdin.close()
     assert consumer.wait(timeout=120) == 0, consumer.stderr.read()
@@ -57,4 +88,23 @@ def test_closed_pipe_is_quiet_success():
     out = result.stdout.splitlines()
     assert out[0].startswith("t,f0_hz,q")
     assert out[-1] == "status 0 0"
+    assert result.stderr == ""
+
+
+@pytest.mark.parametrize(
+    ("command", "args", "header"),
+    [
+        ("probeloss", "sample_data/raster_grating.h5", "t,index,switch"),
+        ("decode", "sample_data/bits_30khz.h5 --bit-rate 30000", "t_mean,innovation_mean"),
+    ],
+)
+def test_closed_pipe_is_quiet_success_from_file(command, args, header):
+    pipeline = (
+        f"{sys.executable} -m afmtool {command} {args} --stream | head -3; "
+        'echo "status ${PIPESTATUS[0]}"'
+    )
+    result = subprocess.run(["bash", "-c", pipeline], capture_output=True, text=True, cwd=REPO, timeout=300)
+    out = result.stdout.splitlines()
+    assert out[0].startswith(header)
+    assert out[-1] == "status 0"
     assert result.stderr == ""
