@@ -97,3 +97,26 @@ def test_existing_scheduler(tmp_path, captures):
                 proc.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 proc.kill()
+
+
+@pytest.mark.parametrize(
+    ("command", "capture", "extra", "column"),
+    [
+        ("probeloss", "raster_grating.h5", [], "loss_fraction"),
+        ("decode", "bits_30khz.h5", ["--arg=--bit-rate", "--arg=30000"], "ber"),
+    ],
+)
+def test_batch_runs_the_other_analyses(tmp_path, command, capture, extra, column):
+    from tests.conftest import SAMPLE_DATA
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    (folder / capture).symlink_to(SAMPLE_DATA / capture)
+    out = tmp_path / "batch"
+    result = run_cli("batch", command, folder, "--out", out, "--workers", "1", "--quiet", *extra)
+    assert result.returncode == 0, result.stderr.decode()
+    row = _summary(out)[capture]
+    assert row["status"] == "ok"
+    report = json.loads((out / capture.replace(".", "_") / "report.json").read_text())
+    assert report["command"] == command
+    assert row[column] != ""

@@ -103,6 +103,24 @@ def headline(command: str, report: dict) -> dict:
             "amplitude_mean": summary.get("amplitude", {}).get("mean"),
             "flagged_samples": results.get("flagged_samples"),
         }
+    if command == "probeloss":
+        return {
+            "loss_fraction": results.get("loss_fraction"),
+            "events": results.get("events_total"),
+            "median_amplitude_lead_s": results.get("median_amplitude_lead_s"),
+        }
+    if command == "decode":
+        truth = results.get("truth") or {}
+        return {
+            "bits": results.get("bits", {}).get("count"),
+            "l0_nm": results.get("l0", {}).get("estimate_nm"),
+            "ber": (truth.get("decoder") or {}).get("ber"),
+        }
+    if command == "kalman-bank":
+        return {
+            "verdict_pass": results.get("verdict", {}).get("pass"),
+            "adaptive_fraction_lowest": results.get("adaptive", {}).get("fraction_lowest"),
+        }
     if "free_air_model" in results and results["free_air_model"]:
         return {"f0_hz": results["free_air_model"]["f0_hz"], "q": results["free_air_model"]["q"]}
     return {k: v for k, v in results.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}

@@ -13,7 +13,14 @@ from afmtool.cli.options import QuietOpt
 __all__ = ["register"]
 
 #: Commands batch can run: (words, takes a capture argument).
-_COMMANDS = {"reep": ("reep",), "freeair": ("identify", "freeair"), "info": ("info",)}
+#: Analyses that take one capture and write an output folder.
+_COMMANDS = {
+    "reep": ("reep",),
+    "freeair": ("identify", "freeair"),
+    "probeloss": ("probeloss",),
+    "kalman-bank": ("kalman-bank",),
+    "decode": ("decode",),
+}
 
 
 def batch(
@@ -43,8 +50,6 @@ def batch(
 
     if command not in _COMMANDS:
         raise ConfigError(f"batch command {command!r} must be one of {', '.join(_COMMANDS)}")
-    if command == "info":
-        raise ConfigError("info writes no output folder; batch runs reep or freeair")
     items = plan_batch(expand_inputs(inputs), out)
     out.mkdir(parents=True, exist_ok=True)
     console = stderr_console(quiet)

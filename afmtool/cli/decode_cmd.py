@@ -27,15 +27,15 @@ __all__ = ["register"]
 # Help texts are literal (not read from DecodeParams) so that `afmtool --help` does not import
 # the parameter models; `afmtool config init` shows the full help of every [decode] parameter.
 _HELP = {
-    "bit_rate_hz": "Bit rate [Hz]; default: recover the clock from the transitions.",
-    "nominal": "Bit-free nominal segment START:END [s] for l0 and the noise levels; default: metadata nominal.",
-    "l0_nm": "Lever-sample separation l0 [nm]; default: estimated on the nominal segment (thesis 7.4).",
-    "voltage_channel": "Channel holding the lever-sample voltage V [V]; default: V = alpha_R*v_r - v_sub.",
-    "process_noise": "EKF force-noise ASD [N/sqrt(Hz)]; default: estimated (mean NIS = 1 on the nominal segment).",
-    "measurement_noise": "EKF measurement noise [nm rms]; default: the PSD floor of the nominal segment.",
-    "actuation_hz": "Actuation frequency [Hz]; default: metadata drive, else the strongest line of V^2.",
-    "bits_from": "Start of the bit stream [s]; default: the end of the nominal segment.",
-    "clock_window": "Clock acquisition window at the start of the bit stream [s] (default 0.005).",
+    "bit_rate_hz": "Bit rate (Hz); default: recover the clock from the transitions.",
+    "nominal": "Bit-free nominal segment START:END (s) for l0 and the noise levels; default: metadata nominal.",
+    "l0_nm": "Lever-sample separation l0 (nm); default: estimated on the nominal segment (thesis 7.4).",
+    "voltage_channel": "Channel holding the lever-sample voltage V (V); default: V = alpha_R*v_r - v_sub.",
+    "process_noise": "EKF force-noise ASD (N/sqrt(Hz)); default: estimated (mean NIS = 1 on the nominal segment).",
+    "measurement_noise": "EKF measurement noise (nm rms); default: the PSD floor of the nominal segment.",
+    "actuation_hz": "Actuation frequency (Hz); default: metadata drive, else the strongest line of V^2.",
+    "bits_from": "Start of the bit stream (s); default: the end of the nominal segment.",
+    "clock_window": "Clock acquisition window at the start of the bit stream (s) (default 0.005).",
     "polarity": "Innovation sign of a 1 bit: negative (default: a raised sample attracts more) or positive.",
 }
 
