@@ -50,7 +50,7 @@ def simulate(
 ) -> None:
     """Simulate a capture (tapping, ltv, ...) with ground truth stored in /truth (HDF5).
 
-    Parameters come from the scenario's defaults, then [simulate.SCENARIO] of
+    Parameters come from the scenario's defaults, then the simulate.SCENARIO table of
     --config, then --set.  Only HDF5 keeps the ground truth.
     """
     from afmtool import sim
