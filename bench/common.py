@@ -30,6 +30,7 @@ class Measurement:
     seconds: float
     peak_rss_mb: float
     returncode: int
+    cpu_seconds: float = float("nan")  #: user + system time of the command
 
 
 def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
@@ -42,18 +43,39 @@ def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
     return min(times)
 
 
+#: Runs the measured command as its own child and reports that child's wall time and rusage.
+#: A process started straight from the benchmark inherits the benchmark's resident set as its
+#: own peak (Linux keeps the pre-exec mm's high-water mark in ru_maxrss), so a benchmark that
+#: holds a few hundred MB of arrays would see that in every command; this small launcher has a
+#: resident set of about 10 MB, which bounds what it passes on.
+_LAUNCHER = """
+import os, subprocess, sys, time
+report, args = sys.argv[1], sys.argv[2:]
+start = time.perf_counter()
+proc = subprocess.Popen(args, stdout=subprocess.DEVNULL)
+_, status, usage = os.wait4(proc.pid, 0)
+seconds = time.perf_counter() - start
+code = os.waitstatus_to_exitcode(status)
+with open(report, "w") as handle:
+    handle.write(f"{seconds} {usage.ru_maxrss} {usage.ru_utime + usage.ru_stime} {code}")
+sys.exit(0)
+"""
+
+
 def run_command(args: list[str], *, drop_cache_of: Path | None = None, env: dict | None = None) -> Measurement:
-    """Run a command in a fresh process; peak RSS from wait4's rusage (MB)."""
+    """Run a command in a fresh process: wall time, peak RSS (MB) and CPU time of that process alone."""
+    import tempfile
+
     if drop_cache_of is not None:
         _evict(drop_cache_of)
-    start = time.perf_counter()
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=REPO, env=env)
-    _, status, usage = os.wait4(proc.pid, 0)
-    seconds = time.perf_counter() - start
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.returncode != 0:
-        sys.stderr.write(proc.stderr.read().decode())
-    return Measurement(seconds, usage.ru_maxrss / 1024.0, proc.returncode)
+    with tempfile.NamedTemporaryFile("r", suffix=".rusage") as report:
+        proc = subprocess.run(
+            [sys.executable, "-c", _LAUNCHER, report.name, *args], stderr=subprocess.PIPE, cwd=REPO, env=env
+        )
+        seconds, maxrss_kb, cpu, code = report.read().split()
+    if int(code) != 0 or proc.returncode != 0:
+        sys.stderr.write(proc.stderr.decode(errors="replace"))
+    return Measurement(float(seconds), int(maxrss_kb) / 1024.0, int(code), float(cpu))
 
 
 def _evict(path: Path) -> None:

@@ -486,7 +486,8 @@ def test_decode_command_and_golden_report(tmp_path):
     assert truth["decoder"]["errors"] == 0 and abs(truth["l0_error_percent"]) < 1
     with h5py.File(out / "decode.h5") as h5:
         n = report["results"]["n_samples"]
-        assert h5["t"].shape == h5["innovation"].shape == (n,)
+        assert h5["innovation"].shape == (n,) and "t" not in h5
+        assert h5.attrs["sample_rate_hz"] == report["results"]["ekf"]["sample_rate_hz"]
         assert h5["bits"].dtype == np.uint8 and h5["bits"].shape == h5["soft"].shape == h5["bit_times_s"].shape
         assert h5["innovation"].attrs["units"] == "nm"
         window = report["results"]["ekf"]["mean_window_samples"]

@@ -51,7 +51,7 @@ __all__ = [
 
 #: Series written, with units: ``t`` and ``innovation`` per sample; the running mean of the
 #: innovation (over one actuation period) at the end of each period, ``t_mean`` and ``innovation_mean``.
-SERIES_UNITS = {"t": "s", "innovation": "nm", "t_mean": "s", "innovation_mean": "nm"}
+SERIES_UNITS = {"innovation": "nm", "t_mean": "s", "innovation_mean": "nm"}
 
 #: Hysteresis levels of the transition detector, as shares of the two-class span.
 _HYSTERESIS = (0.3, 0.7)
@@ -694,7 +694,8 @@ def _stream(chunks, design, baseline: _Baseline, stage: _BitStage, psd: _PsdBuff
             step = ekf_update(design, ekf_state, y, _voltage(chunk.data, params, setup.electrostatic.alpha_r))
             ekf_state = step.state
             innovation, mean = step.block
-            writer.append({"t": np.arange(chunk.start, chunk.start + n) * (1.0 / fs), "innovation": innovation})
+            # per sample, t = n / sample_rate_hz (a root attribute of decode.h5): a t column would double the file
+            writer.append({"innovation": innovation})
             kept = np.arange((-(chunk.start + 1)) % window, n, window)
             writer.append({"t_mean": (chunk.start + kept) / fs, "innovation_mean": mean[kept]})
             psd.feed(chunk.start, y, innovation)

@@ -40,7 +40,8 @@ def run_decode_command(
     params = resolve_from(DecodeParams, "decode", load_toml(config) if config else None, flags)
     record = capture_record or PendingInputRecord(capture)
     with OutputDir(out) as staged:
-        with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, {"afmtool_command": "decode"}) as writer:
+        attrs = {"afmtool_command": "decode", "sample_rate_hz": reader.info.sample_rate_hz}
+        with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs) as writer:
             result = run_decode(reader, params, writer, progress=progress)
             if result.psd:
                 for name in ("frequency_hz", "deflection", "innovation"):
