@@ -28,6 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+#: Beyond a case's own timeout, how long the parent waits before it kills a worker, s.
+_GRACE_S = 20.0
+
 READERS = ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", "psd", "toml", "metadata")
 _SUFFIX = {"csv": ".csv", "hdf5": ".h5", "ros1": ".bag", "psd": ".csv", "toml": ".toml", "metadata": ".json"}
 
@@ -213,8 +216,17 @@ def fuzz_reader(reader: str, cases: int, seed: int = 0, timeout: float = 10.0) -
             proc = context.Process(target=_worker, args=(reader, seed_dir, start, cases, seed, timeout, child))
             proc.start()
             child.close()
-            current, data = start, b""
+            current, data, running = start, b"", False
             while True:
+                # A case stuck inside C code holding the GIL never sees its SIGALRM: the parent
+                # waits a little longer, then kills the worker and records a hang.
+                if running and not parent.poll(timeout + _GRACE_S):
+                    proc.kill()
+                    counts["hang"] += 1
+                    findings.append({"reader": reader, "case": current, "kind": "hang", "detail": "killed by the parent",
+                                     "input_hex": data[:4096].hex()})
+                    start = current + 1
+                    break
                 try:
                     kind, case, detail = parent.recv()
                 except EOFError:  # the interpreter died on `current`
@@ -222,6 +234,7 @@ def fuzz_reader(reader: str, cases: int, seed: int = 0, timeout: float = 10.0) -
                     findings.append({"reader": reader, "case": current, "kind": "died", "input_hex": data[:4096].hex()})
                     start = current + 1
                     break
+                running = kind == "start"
                 if kind == "start":
                     current, data = case, detail
                     continue

@@ -71,3 +71,47 @@ def test_inputs_opened_read_only(tmp_path, shared):
     source.chmod(0o444)
     result = run_cli("info", source)
     assert result.returncode == 0, result.stderr.decode()
+
+
+def _corrupt_global_heap(path):
+    """A capture whose global heap (where the metadata string lives) starts with a zero-size free object.
+
+    Found by the long fuzz run (hdf5, case 6914): libhdf5 loops forever
+    reading the metadata attribute, inside one C call that holds the GIL.
+    """
+    with h5py.File(path, "w") as f:
+        f.attrs["sample_rate_hz"] = 1e6
+        f.attrs["metadata"] = '{"scenario": "x"}'
+        f.create_dataset("channels/deflection", data=np.zeros(16))
+    data = bytearray(path.read_bytes())
+    heap = data.find(b"GCOL")
+    assert heap > 0
+    data[heap + 16 : heap + 32] = bytes(16)  # the first object's index, reference count and size
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_attribute_reading_that_never_ends_is_refused(tmp_path):
+    from afmtool.io.hdf5 import check_attributes_terminate
+
+    path = _corrupt_global_heap(tmp_path / "heap.h5")
+    with pytest.raises(InputError, match="did not finish in 0.5 s"):
+        check_attributes_terminate(path, timeout_s=0.5)
+    check_attributes_terminate(_good(tmp_path), timeout_s=5.0)  # a sound file passes
+
+
+def _good(tmp_path):
+    path = tmp_path / "good.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["sample_rate_hz"] = 1e6
+        f.attrs["metadata"] = '{"scenario": "x"}'
+        f.create_dataset("channels/deflection", data=np.zeros(16)).attrs["units"] = "nm"
+    return path
+
+
+def test_cli_refuses_a_file_whose_attributes_hang(tmp_path):
+    path = _corrupt_global_heap(tmp_path / "heap.h5")
+    result = run_cli("info", path)
+    assert result.returncode == 2
+    lines = result.stderr.decode().strip().splitlines()
+    assert len(lines) == 1 and "did not finish" in lines[0] and "Traceback" not in lines[0]

@@ -14,6 +14,9 @@ sample rate.  Files are written without ``libver='latest'`` so that
 from __future__ import annotations
 
 import json
+import os
+import signal
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
@@ -28,6 +31,9 @@ __all__ = ["Hdf5Reader", "Hdf5Writer"]
 
 _WRITE_CHUNK = 1 << 16
 
+#: How long reading every attribute of a file may take before the file is refused, s.
+ATTRIBUTE_TIMEOUT_S = 10.0
+
 
 def _open_h5(path: Path) -> h5py.File:
     try:
@@ -37,6 +43,70 @@ def _open_h5(path: Path) -> h5py.File:
     except OSError as exc:
         reason = str(exc).split("(")[0].strip() or "unreadable"
         raise InputError(f"{path}: not a readable HDF5 file ({reason})") from None
+
+
+def _read_every_attribute(h5: h5py.File) -> None:
+    for key in h5.attrs:
+        h5.attrs[key]
+
+    def visit(name: str, obj) -> None:
+        for key in obj.attrs:
+            obj.attrs[key]
+
+    h5.visititems(visit)
+
+
+def check_attributes_terminate(path: Path, timeout_s: float = ATTRIBUTE_TIMEOUT_S) -> None:
+    """Read every attribute of ``path`` in a forked child; refuse the file if that hangs or crashes.
+
+    Variable-length strings (``metadata``, ``units``) live in the file's
+    global heap.  A damaged heap can send libhdf5 into an endless loop
+    inside one ``H5Aread`` (a free-space object of size 0 is never
+    stepped over), which holds the GIL: no signal handler or thread of
+    this process can stop it.  A child process can be stopped.  Errors the
+    child meets are left to the reader, which reads the same attributes
+    and reports them; only a child that does not finish, or dies by a
+    signal, condemns the file.  Costs a fork and a few milliseconds.
+
+    Raises
+    ------
+    InputError
+        If the child runs longer than ``timeout_s`` or is killed by a signal.
+    """
+    if not hasattr(os, "fork"):
+        return
+    pid = os.fork()
+    if pid == 0:  # the child: only os._exit leaves, so no parent state is flushed or cleaned twice
+        code = 0
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            with h5py.File(path, "r") as h5:
+                _read_every_attribute(h5)
+        except BaseException:  # noqa: BLE001 - the parent reads the attributes again and reports errors
+            code = 1
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + timeout_s
+    pause = 0.001
+    try:
+        while True:
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done:
+                break
+            if time.monotonic() > deadline:
+                raise InputError(
+                    f"{path}: reading its attributes did not finish in {timeout_s:g} s; the file is damaged "
+                    "(e.g. a corrupt global heap)"
+                )
+            time.sleep(pause)
+            pause = min(2 * pause, 0.05)
+    except BaseException:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        raise
+    if os.WIFSIGNALED(status):
+        raise InputError(f"{path}: libhdf5 crashed reading its attributes (signal {os.WTERMSIG(status)}); the file is damaged")
 
 
 def _refuse_external_link(path: Path, h5: h5py.File, dataset_path: str) -> None:
@@ -84,6 +154,11 @@ class Hdf5Reader(ReaderBase):
     ) -> None:
         self._path = Path(path)
         self._file = _open_h5(self._path)
+        try:
+            check_attributes_terminate(self._path)
+        except BaseException:
+            self._file.close()
+            raise
         try:
             self._datasets = self._find_datasets(channel_map)
             self.info = self._make_info(sample_rate_hz)
