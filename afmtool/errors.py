@@ -11,7 +11,22 @@ __all__ = ["AfmtoolError", "InputError", "ConfigError"]
 
 
 class AfmtoolError(Exception):
-    """Bad input or usage; the CLI maps it to exit status 2."""
+    """Bad input or usage; the CLI maps it to exit status 2.
+
+    The message is kept to one line: control characters that come from the
+    input itself (a topic name with a newline in a damaged bag, say) are
+    written as escapes, so the user sees all of it on one line.
+    """
+
+    def __init__(self, message: object = "", *args: object) -> None:
+        super().__init__(_one_line(str(message)), *args)
+
+
+def _one_line(text: str) -> str:
+    text = text.strip()
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 class InputError(AfmtoolError):

@@ -55,3 +55,13 @@ def test_hdf5_with_damaged_btree_is_an_input_error(tmp_path):
     with pytest.raises(InputError):
         with open_capture(path) as reader:
             list(reader.blocks(reader.info.channel_names, 10))
+
+
+def test_error_messages_stay_on_one_line():
+    """Long run, ros1 case 7474: a damaged bag's topic name held a newline, and the message split."""
+    from afmtool.errors import InputError
+
+    message = str(InputError("case.bag: topic /afm/metadat\n (channel metadat\n) has message type x\x00"))
+    assert "\n" not in message and message.isprintable()
+    assert message == "case.bag: topic /afm/metadat\\n (channel metadat\\n) has message type x\\x00"
+    assert str(InputError("  Γ_IR,ts in µA/nm  ")) == "Γ_IR,ts in µA/nm"  # printable text is left alone

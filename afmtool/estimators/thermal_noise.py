@@ -80,7 +80,10 @@ def sho_psd(frequency_hz, f0_hz: float, q: float, dc_psd: float, floor_psd: floa
     """
     f = np.asarray(frequency_hz, dtype=np.float64)
     f02 = f0_hz * f0_hz
-    return dc_psd * f02 * f02 / ((f02 - f * f) ** 2 + (f * f0_hz / q) ** 2) + floor_psd
+    # A fit's trial parameters (or a hostile spectrum's frequencies) can reach inf/NaN; callers
+    # check finiteness, so numpy's warnings would only be noise on the user's terminal.
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        return dc_psd * f02 * f02 / ((f02 - f * f) ** 2 + (f * f0_hz / q) ** 2) + floor_psd
 
 
 @dataclass(frozen=True)
