@@ -32,7 +32,7 @@ __all__ = ["Hdf5Reader", "Hdf5Writer"]
 _WRITE_CHUNK = 1 << 16
 
 #: How long reading every attribute of a file may take before the file is refused, s.
-ATTRIBUTE_TIMEOUT_S = 10.0
+ATTRIBUTE_TIMEOUT_S = 5.0
 
 
 def _open_h5(path: Path) -> h5py.File:
