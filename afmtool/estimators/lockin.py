@@ -96,6 +96,76 @@ def _lockin_kernel(signals, start, cycles_per_sample, sos, zi, keep_every, out):
     return k
 
 
+@njit(**JIT_OPTIONS)
+def _two_sections(v, s1, s2, t1, t2, c):  # noqa: PLR0913
+    """One real lane through a 4th-order cascade (direct form II transposed); c = the 2×6 SOS flattened."""
+    y = c[0] * v + s1
+    s1 = c[1] * v - c[4] * y + s2
+    s2 = c[2] * v - c[5] * y
+    z = c[6] * y + t1
+    t1 = c[7] * y - c[10] * z + t2
+    t2 = c[8] * y - c[11] * z
+    return z, s1, s2, t1, t2
+
+
+@njit(**JIT_OPTIONS)
+def _lockin_order4_kernel(signals, start, cycles_per_sample, sos, zi, keep_every, out):  # noqa: PLR0913, PLR0915
+    """:func:`_lockin_kernel` for one or two signals and two sections, with every state a scalar.
+
+    The same operations in the same order (bit-for-bit equal results), but
+    the real and imaginary lanes of each signal are separate scalar chains
+    the compiler keeps in registers: about three times the generic kernel's
+    rate for the two signals of REEP.
+    """
+    two = signals.shape[0] == 2
+    two_pi = 2.0 * math.pi
+    step_re = math.cos(two_pi * cycles_per_sample)
+    step_im = -math.sin(two_pi * cycles_per_sample)
+    synced = start - start % _RESYNC_SAMPLES
+    frac = (synced * cycles_per_sample) % 1.0
+    rot_re = math.cos(two_pi * frac)
+    rot_im = -math.sin(two_pi * frac)
+    for _ in range(start - synced):
+        rot_re, rot_im = rot_re * step_re - rot_im * step_im, rot_re * step_im + rot_im * step_re
+    c = sos.ravel()
+    # lanes: signal 0 real (a) and imaginary (b), signal 1 real (p) and imaginary (q)
+    a1, a2, a3, a4 = zi[0, 0, 0].real, zi[0, 0, 1].real, zi[0, 1, 0].real, zi[0, 1, 1].real
+    b1, b2, b3, b4 = zi[0, 0, 0].imag, zi[0, 0, 1].imag, zi[0, 1, 0].imag, zi[0, 1, 1].imag
+    p1 = p2 = p3 = p4 = q1 = q2 = q3 = q4 = 0.0
+    if two:
+        p1, p2, p3, p4 = zi[1, 0, 0].real, zi[1, 0, 1].real, zi[1, 1, 0].real, zi[1, 1, 1].real
+        q1, q2, q3, q4 = zi[1, 0, 0].imag, zi[1, 0, 1].imag, zi[1, 1, 0].imag, zi[1, 1, 1].imag
+    k = 0
+    until_keep = (keep_every - (start + 1) % keep_every) % keep_every
+    for i in range(signals.shape[1]):
+        if (start + i) % _RESYNC_SAMPLES == 0:
+            frac = ((start + i) * cycles_per_sample) % 1.0
+            rot_re = math.cos(two_pi * frac)
+            rot_im = -math.sin(two_pi * frac)
+        x = signals[0, i]
+        ya, a1, a2, a3, a4 = _two_sections(x * rot_re, a1, a2, a3, a4, c)
+        yb, b1, b2, b3, b4 = _two_sections(x * rot_im, b1, b2, b3, b4, c)
+        if two:
+            x = signals[1, i]
+            yp, p1, p2, p3, p4 = _two_sections(x * rot_re, p1, p2, p3, p4, c)
+            yq, q1, q2, q3, q4 = _two_sections(x * rot_im, q1, q2, q3, q4, c)
+        if until_keep == 0:
+            out[0, k] = complex(ya, yb)
+            if two:
+                out[1, k] = complex(yp, yq)
+            k += 1
+            until_keep = keep_every - 1
+        else:
+            until_keep -= 1
+        rot_re, rot_im = rot_re * step_re - rot_im * step_im, rot_re * step_im + rot_im * step_re
+    zi[0, 0, 0], zi[0, 0, 1], zi[0, 1, 0], zi[0, 1, 1] = complex(a1, b1), complex(a2, b2), complex(a3, b3), complex(a4, b4)
+    if two:
+        zi[1, 0, 0], zi[1, 0, 1], zi[1, 1, 0], zi[1, 1, 1] = (
+            complex(p1, q1), complex(p2, q2), complex(p3, q3), complex(p4, q4)
+        )
+    return k
+
+
 class LockIn:
     """Complex demodulator at ``frequency_hz`` with an order-``order`` Butterworth low-pass.
 
@@ -140,7 +210,9 @@ class LockIn:
         n = rows.shape[1]
         n_kept = 0 if first_kept >= n else (n - 1 - first_kept) // keep_every + 1
         out = np.empty((rows.shape[0], n_kept), dtype=np.complex128)
-        _lockin_kernel(
+        fast = self._sos.shape[0] == 2 and rows.shape[0] <= 2  # the default order 4, one or two signals
+        kernel = _lockin_order4_kernel if fast else _lockin_kernel
+        kernel(
             np.ascontiguousarray(rows), state.samples_seen, self.frequency_hz / self.sample_rate_hz,
             self._sos, zi, keep_every, out,
         )
