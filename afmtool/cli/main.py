@@ -76,10 +76,6 @@ app.add_typer(theory_cmd.app, name="theory")
 app.add_typer(config_cmd.app, name="config")
 
 
-def _raise_interrupt(signum, frame):  # noqa: ARG001
-    raise KeyboardInterrupt
-
-
 def _error(message: str, code: int) -> None:
     first_line = str(message).strip().splitlines()[0] if str(message).strip() else "error"
     print(f"afmtool: error: {first_line}", file=sys.stderr)
@@ -88,20 +84,41 @@ def _error(message: str, code: int) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point with afmtool's exit-code contract."""
-    # SIGTERM unwinds like Ctrl-C, so staged outputs are cleaned up.
-    signal.signal(signal.SIGTERM, _raise_interrupt)
+    # SIGINT and SIGTERM unwind as KeyboardInterrupt, so staged outputs are cleaned up.
+    signals: list[int] = []
+
+    def interrupt(signum, frame) -> None:  # noqa: ARG001
+        signals.append(signum)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, interrupt)
+    signal.signal(signal.SIGTERM, interrupt)
+    default_unraisable = sys.unraisablehook
+
+    def unraisable(info) -> None:
+        # A signal that lands in a finaliser or weakref callback cannot unwind anything;
+        # Python would print it as 'Exception ignored' with a traceback. The run goes on
+        # and ends normally, with complete outputs.
+        if info.exc_type is not None and issubclass(info.exc_type, KeyboardInterrupt):
+            return
+        default_unraisable(info)
+
+    sys.unraisablehook = unraisable
     try:
-        _run(argv)
+        _run(argv, signals)
     finally:
         # Outputs are committed or cleaned up by now; a signal during interpreter
         # shutdown should end the process, not print a traceback from a finaliser.
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        sys.unraisablehook = default_unraisable
 
 
-def _run(argv: list[str] | None) -> None:
-    command = typer.main.get_command(app)
+def _run(argv: list[str] | None, signals: list[int]) -> None:
     try:
+        # inside the try: building the command evaluates every option's annotations, a
+        # moment a signal can land in
+        command = typer.main.get_command(app)
         result = command.main(args=argv, prog_name="afmtool", standalone_mode=False)
     except AfmtoolError as exc:
         _error(str(exc), 2)
@@ -120,6 +137,11 @@ def _run(argv: list[str] | None) -> None:
         os.dup2(devnull, sys.stdout.fileno())
         sys.exit(0)
     except Exception as exc:  # noqa: BLE001 - the one place unexpected errors are reported
+        if signals:
+            # the interrupt surfaced as another exception, e.g. an extension module whose
+            # import it cut short reports 'ImportError: initialization failed'
+            print("afmtool: interrupted", file=sys.stderr)
+            sys.exit(130)
         if os.environ.get("AFMTOOL_DEBUG"):
             raise
         _error(f"internal error ({type(exc).__name__}: {exc}); rerun with AFMTOOL_DEBUG=1 for a traceback", 1)

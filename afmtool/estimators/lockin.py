@@ -189,6 +189,26 @@ class LockIn:
         self.lowpass_hz = float(lowpass_hz)
         self.order = int(order)
         self._sos = np.ascontiguousarray(butter(order, lowpass_hz, fs=sample_rate_hz, output="sos"))
+        self._dispatch()
+
+    def _kernel(self, n_signals: int):
+        """The order-4 scalar kernel for one or two signals, else the generic one."""
+        return _lockin_order4_kernel if self._sos.shape[0] == 2 and n_signals <= 2 else _lockin_kernel
+
+    def _dispatch(self) -> None:
+        """Compile or load the kernel now, in the constructing thread.
+
+        The analyses call :meth:`process` from a worker thread.  Were its first
+        call to find the kernel not yet loaded, it would wait for numba's
+        compiler lock; a Ctrl-C or SIGTERM that lands while the main thread
+        holds that lock (between its acquire and its ``with``) can leave it
+        held for good, and the interrupted run would then wait for the
+        worker forever.
+        """
+        rows = np.zeros((1, 1))
+        zi = np.zeros((1, self._sos.shape[0], 2), dtype=np.complex128)
+        self._kernel(1)(rows, 0, self.frequency_hz / self.sample_rate_hz, self._sos, zi, 1,
+                        np.empty((1, 1), dtype=np.complex128))
 
     def initial_state(self, n_signals: int = 1) -> LockInState:
         """Zero filter state for ``n_signals`` signals demodulated together."""
@@ -210,9 +230,7 @@ class LockIn:
         n = rows.shape[1]
         n_kept = 0 if first_kept >= n else (n - 1 - first_kept) // keep_every + 1
         out = np.empty((rows.shape[0], n_kept), dtype=np.complex128)
-        fast = self._sos.shape[0] == 2 and rows.shape[0] <= 2  # the default order 4, one or two signals
-        kernel = _lockin_order4_kernel if fast else _lockin_kernel
-        kernel(
+        self._kernel(rows.shape[0])(
             np.ascontiguousarray(rows), state.samples_seen, self.frequency_hz / self.sample_rate_hz,
             self._sos, zi, keep_every, out,
         )
