@@ -1,3 +1,3 @@
-from afmtool.cli.main import main
+from afmtool.cli.entry import main
 
 main()
