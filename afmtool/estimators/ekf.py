@@ -69,6 +69,7 @@ actuation frequency and its harmonics; the "mean of the error signal" of
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from typing import NamedTuple
@@ -257,6 +258,20 @@ class EkfDesign:
         return np.array([[c[_QD00], c[_QD01]], [c[_QD01], c[_QD11]]])
 
 
+@functools.lru_cache(maxsize=64)
+def _expm_of(matrix: bytes, size: int) -> np.ndarray:
+    from scipy.linalg import expm
+
+    e = expm(np.frombuffer(matrix).reshape(size, size))
+    e.flags.writeable = False
+    return e
+
+
+def _expm(m: np.ndarray) -> np.ndarray:
+    """e^M (read-only), remembered: the ℓ0 and noise searches discretise the same plant dozens of times."""
+    return _expm_of(np.ascontiguousarray(m, dtype=np.float64).tobytes(), m.shape[0])
+
+
 def _moments(a: np.ndarray, period: float, order: int) -> tuple[np.ndarray, np.ndarray]:
     """Φ = e^{AT} and the moments M_k = ∫₀ᵀ e^{A(T−s)}B s^k ds, k = 0 … order (rows).
 
@@ -264,15 +279,13 @@ def _moments(a: np.ndarray, period: float, order: int) -> tuple[np.ndarray, np.n
     integrators behind B (ż2 = z3, …, z_{order+2} constant) started at the
     unit vector of z_{k+2} feeds B with s^k/k!, so e^{MT}[:2, 2 + k] = M_k/k!.
     """
-    from scipy.linalg import expm
-
     size = 3 + order
     m = np.zeros((size, size))
     m[:2, :2] = a
     m[1, 2] = 1.0  # B = [0, 1]ᵀ
     for k in range(2, size - 1):
         m[k, k + 1] = 1.0
-    e = expm(m * period)
+    e = _expm(m * period)
     moments = np.array([e[:2, 2 + k] * math.factorial(k) for k in range(order + 1)])
     return e[:2, :2], moments
 
@@ -296,15 +309,13 @@ def interpolation_weights(a: np.ndarray, period: float, nodes=V2_NODES) -> np.nd
 
 def _van_loan(a: np.ndarray, qc: float, period: float) -> np.ndarray:
     """Q_d = ∫₀ᵀ e^{Aτ}B q_c Bᵀ e^{Aᵀτ} dτ (Van Loan, 1978)."""
-    from scipy.linalg import expm
-
     g = np.zeros((2, 2))
     g[1, 1] = qc
     m = np.zeros((4, 4))
     m[:2, :2] = -a
     m[:2, 2:] = g
     m[2:, 2:] = a.T
-    e = expm(m * period)
+    e = _expm(m * period)
     qd = e[2:, 2:].T @ e[:2, 2:]
     return 0.5 * (qd + qd.T)
 
