@@ -40,6 +40,8 @@ CRITERIA = [
     ("probeloss", "runs.-1.fraction_of_read_ceiling", "probeloss >= 5% of the raw-read ceiling", lambda v: v >= 0.05),
     ("kalman_bank", "bank5_streaming_ms_per_s", "kalman-bank: bank of 5 streaming >= 40 MS/s", lambda v: v >= 40),
     ("kalman_bank", "ratio_bank5_to_filterpy_bank5", "kalman-bank: bank of 5 >= 500x filterpy", lambda v: v >= 500),
+    ("kalman_bank", "rss_ratio_largest_to_smallest", "kalman-bank RSS at 1e8 <= 1.5x RSS at 1e6", lambda v: v <= 1.5),
+    ("kalman_bank", "fraction_of_read_ceiling", "kalman-bank >= 5% of the raw-read ceiling", lambda v: v >= 0.05),
     ("decode", "kernel_ms_per_s", "EKF kernel >= 30 MS/s", lambda v: v >= 30),
     ("decode", "ratio_kernel_to_pure_python", "EKF vs pure Python (ratio)", lambda v: v > 1),
     ("decode", "largest_ms_per_s", "decode end to end >= 15 MS/s", lambda v: v >= 15),

@@ -122,7 +122,7 @@ def generate_h5(path: Path, n_samples: int, channels: tuple[str, ...] = ("dither
         f.attrs["metadata"] = json.dumps({"free_air": {"start_s": 0.002, "end_s": 0.02}})
         datasets = {c: f.create_dataset(f"channels/{c}", shape=(n_samples,), dtype="f8") for c in channels}
         for c, ds in datasets.items():
-            ds.attrs["units"] = "nm" if c == "deflection" else "V"
+            ds.attrs["units"] = "nm" if c in ("deflection", "z_piezo") else "V"
         for start in range(0, n_samples, block):
             n = min(block, n_samples - start)
             t = (start + np.arange(n)) / fs
@@ -133,6 +133,8 @@ def generate_h5(path: Path, n_samples: int, channels: tuple[str, ...] = ("dither
             )
             deflection, zi = lfilter(b, a, dither, zi=zi)
             values = {"dither": dither, "deflection": deflection + 0.05 * rng.standard_normal(n)}
+            if "z_piezo" in datasets:  # one triangular approach-retract to -30 nm over the capture
+                values["z_piezo"] = -30.0 * (1.0 - np.abs(2.0 * (start + np.arange(n)) / n_samples - 1.0))
             for c, ds in datasets.items():
                 ds[start : start + n] = values.get(c, dither)
     return path
