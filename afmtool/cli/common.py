@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from afmtool.cli.options import parse_mapping
+from afmtool.cli.options import check_stream_format, parse_mapping
+from afmtool.cli.progress import progress_bar, stderr_console
 
-__all__ = ["open_input", "output_target", "stdout_pipe"]
+__all__ = ["open_input", "output_target", "stdout_pipe", "finish_command", "run_capture_analysis"]
 
 
 @contextmanager
@@ -61,3 +63,62 @@ def output_target(output: str, fmt: str) -> Iterator[Path | object]:
 
     with atomic_path(Path(output), directory=fmt.startswith("ros2")) as temp:
         yield temp
+
+
+def finish_command(report: dict, out: Path, json_output: bool, quiet: bool) -> None:
+    """Print the report (``--json``), its warnings and where the outputs went."""
+    import typer
+
+    from afmtool.report.json_report import dumps
+
+    if json_output:
+        typer.echo(dumps(report), nl=False)
+    for warning in report["warnings"]:
+        stderr_console(quiet).print(f"[yellow]warning:[/] {warning}", highlight=False)
+    if not json_output:
+        stderr_console(quiet).print(f"wrote {', '.join(report['outputs'])} to {out}", highlight=False)
+
+
+def run_capture_analysis(
+    name: str,
+    capture: str,
+    source: tuple[list[str] | None, list[str] | None, float | None],
+    out: Path | None,
+    stream: tuple[bool, str],
+    json_output: bool,
+    quiet: bool,
+    *,
+    to_rows: Callable[[object], None],
+    to_folder: Callable[[object, Callable[[int], None]], dict],
+) -> None:
+    """Open the capture and run an analysis into stdout rows (``--stream``) or into ``--out``.
+
+    Parameters
+    ----------
+    name : str
+        The command, for the progress bar.
+    capture, source
+        The capture and its ``(--channel, --topic, --sample-rate)``.
+    out : Path or None
+        ``--out``; required without ``--stream``.
+    stream : (bool, str)
+        ``--stream`` and ``--stream-format``.
+    to_rows : callable
+        ``to_rows(reader)`` writes the rows to stdout.
+    to_folder : callable
+        ``to_folder(reader, progress) -> report`` writes the output folder.
+    """
+    from afmtool.errors import ConfigError
+
+    streaming, stream_format = stream
+    if streaming:
+        check_stream_format(stream_format)
+        with open_input(capture, *source) as reader, stdout_pipe():
+            to_rows(reader)
+        return
+    if out is None:
+        raise ConfigError("--out is required (or use --stream)")
+    with open_input(capture, *source) as reader:
+        with progress_bar(name, reader.info.n_samples, quiet) as update:
+            report = to_folder(reader, update)
+    finish_command(report, out, json_output, quiet)

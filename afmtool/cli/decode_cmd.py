@@ -6,7 +6,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import open_input, stdout_pipe
+from afmtool.cli.common import run_capture_analysis
 from afmtool.cli.options import (
     CaptureArg,
     ChannelOpt,
@@ -18,9 +18,7 @@ from afmtool.cli.options import (
     StreamOpt,
     StreamOutOpt,
     TopicOpt,
-    check_stream_format,
 )
-from afmtool.cli.progress import progress_bar
 
 __all__ = ["register"]
 
@@ -83,8 +81,6 @@ def decode(
     # started before the imports below, so that hashing a large capture overlaps them
     capture_record = None if stream or out is None else PendingInputRecord(capture)
     from afmtool.analyses.decode_outputs import run_decode_command, run_decode_stream
-    from afmtool.cli.reep_cmd import finish_command
-    from afmtool.errors import ConfigError
 
     flags = {
         "bit_rate_hz": bit_rate,
@@ -98,17 +94,11 @@ def decode(
         "clock_window_s": clock_window,
         "polarity": polarity,
     }
-    if stream:
-        check_stream_format(stream_format)
-        with open_input(capture, channel, topic, sample_rate) as reader, stdout_pipe():
-            run_decode_stream(reader, config, flags, stream_format)
-        return
-    if out is None:
-        raise ConfigError("--out is required (or use --stream)")
-    with open_input(capture, channel, topic, sample_rate) as reader:
-        with progress_bar("decode", reader.info.n_samples, quiet) as update:
-            report = run_decode_command(reader, capture, out, config, flags, update, capture_record)
-    finish_command(report, out, json_output, quiet)
+    run_capture_analysis(
+        "decode", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        to_rows=lambda reader: run_decode_stream(reader, config, flags, stream_format),
+        to_folder=lambda reader, update: run_decode_command(reader, capture, out, config, flags, update, capture_record),
+    )
 
 
 def register(app: typer.Typer) -> None:

@@ -7,10 +7,9 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import open_input
+from afmtool.cli.common import finish_command, open_input
 from afmtool.cli.options import ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
 from afmtool.cli.progress import progress_bar
-from afmtool.cli.reep_cmd import finish_command
 
 __all__ = ["register"]
 

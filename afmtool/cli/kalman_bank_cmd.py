@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import open_input
+from afmtool.cli.common import finish_command, open_input
 from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
 from afmtool.cli.progress import progress_bar
 
@@ -64,7 +64,6 @@ def kalman_bank(
     """
     from afmtool.analyses.kalman_bank_outputs import run_kalman_bank_command
     from afmtool.cli.options import parse_mapping
-    from afmtool.cli.reep_cmd import finish_command
     from afmtool.io.registry import open_capture
 
     flags = {

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import open_input, stdout_pipe
+from afmtool.cli.common import run_capture_analysis
 from afmtool.cli.options import (
     CaptureArg,
     ChannelOpt,
@@ -19,9 +19,7 @@ from afmtool.cli.options import (
     StreamOpt,
     StreamOutOpt,
     TopicOpt,
-    check_stream_format,
 )
-from afmtool.cli.progress import progress_bar
 
 __all__ = ["register"]
 
@@ -93,7 +91,6 @@ def probeloss(
     # started before the imports below, so that hashing a large capture overlaps them
     capture_record = None if stream or out is None else PendingInputRecord(capture)
     from afmtool.analyses.probeloss_outputs import run_probeloss_command, run_probeloss_stream
-    from afmtool.cli.reep_cmd import finish_command
     from afmtool.errors import ConfigError
 
     flags = {
@@ -113,17 +110,11 @@ def probeloss(
     }
     if kalman and decay_cycles is not None:
         raise ConfigError("--kalman and --decay-cycles choose the gain two ways; give one")
-    if stream:
-        check_stream_format(stream_format)
-        with open_input(capture, channel, topic, sample_rate) as reader, stdout_pipe():
-            run_probeloss_stream(reader, config, flags, stream_format)
-        return
-    if out is None:
-        raise ConfigError("--out is required (or use --stream)")
-    with open_input(capture, channel, topic, sample_rate) as reader:
-        with progress_bar("probeloss", reader.info.n_samples, quiet) as update:
-            report = run_probeloss_command(reader, capture, out, config, flags, update, capture_record)
-    finish_command(report, out, json_output, quiet)
+    run_capture_analysis(
+        "probeloss", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        to_rows=lambda reader: run_probeloss_stream(reader, config, flags, stream_format),
+        to_folder=lambda reader, update: run_probeloss_command(reader, capture, out, config, flags, update, capture_record),
+    )
 
 
 def register(app: typer.Typer) -> None:

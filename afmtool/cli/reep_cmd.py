@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import open_input, stdout_pipe
+from afmtool.cli.common import finish_command, open_input, run_capture_analysis
 from afmtool.cli.options import (
     CaptureArg,
     ChannelOpt,
@@ -20,11 +20,10 @@ from afmtool.cli.options import (
     StreamOpt,
     StreamOutOpt,
     TopicOpt,
-    check_stream_format,
 )
-from afmtool.cli.progress import progress_bar, stderr_console
+from afmtool.cli.progress import progress_bar
 
-__all__ = ["register", "finish_command"]
+__all__ = ["register"]
 
 
 def reep(
@@ -70,7 +69,6 @@ def reep(
     # started before the imports below, so that hashing a large capture overlaps them
     capture_record = None if stream or out is None else PendingInputRecord(capture)
     from afmtool.analyses.reep_outputs import run_reep_command, run_reep_stream
-    from afmtool.errors import ConfigError
 
     flags = {
         "free_air": free_air,
@@ -82,17 +80,11 @@ def reep(
         "vs": vs,
         "z_bin": z_bin,
     }
-    if stream:
-        check_stream_format(stream_format)
-        with open_input(capture, channel, topic, sample_rate) as reader, stdout_pipe():
-            run_reep_stream(reader, config, flags, stream_format)
-        return
-    if out is None:
-        raise ConfigError("--out is required (or use --stream)")
-    with open_input(capture, channel, topic, sample_rate) as reader:
-        with progress_bar("reep", reader.info.n_samples, quiet) as update:
-            report = run_reep_command(reader, capture, out, config, flags, update, capture_record)
-    finish_command(report, out, json_output, quiet)
+    run_capture_analysis(
+        "reep", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        to_rows=lambda reader: run_reep_stream(reader, config, flags, stream_format),
+        to_folder=lambda reader, update: run_reep_command(reader, capture, out, config, flags, update, capture_record),
+    )
 
 
 def identify_freeair(
@@ -143,17 +135,6 @@ def identify_freeair(
             with progress_bar("identify", reader.info.n_samples, quiet) as update:
                 report = run_freeair_command(reader, capture, out, config, flags, update)
     finish_command(report, out, json_output, quiet)
-
-
-def finish_command(report: dict, out: Path, json_output: bool, quiet: bool) -> None:
-    from afmtool.report.json_report import dumps
-
-    if json_output:
-        typer.echo(dumps(report), nl=False)
-    for warning in report["warnings"]:
-        stderr_console(quiet).print(f"[yellow]warning:[/] {warning}", highlight=False)
-    if not json_output:
-        stderr_console(quiet).print(f"wrote {', '.join(report['outputs'])} to {out}", highlight=False)
 
 
 def register(app: typer.Typer, identify: typer.Typer) -> None:

@@ -7,8 +7,9 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.common import finish_command
+
 from afmtool.cli.options import ConfigOpt, JsonOpt, OutOpt, QuietOpt
-from afmtool.cli.reep_cmd import finish_command
 
 __all__ = ["app"]
 
