@@ -85,22 +85,34 @@ class ReepResult:
 def excitation_lines(dither: np.ndarray, sample_rate_hz: float, f0_hz: float) -> list[float]:
     """Frequencies (Hz) of the distinct spectral lines of the dither near resonance.
 
-    A line is a local maximum of the periodogram within ±25 % of f0 and
-    within 30 dB of the strongest one.  REEP's five-parameter free-air
+    A line is a local maximum of the Hann-windowed periodogram within ±25 %
+    of f0 and within 30 dB of the strongest one; of two maxima closer than
+    500 Hz only the higher counts.  REEP's five-parameter free-air
     identification needs three (§3.3.2).
-    """
-    from scipy.signal import find_peaks, periodogram
 
+    numpy only (``scipy.signal.periodogram``/``find_peaks`` would import
+    scipy.signal, the largest part of REEP's start-up).
+    """
     n = min(len(dither), 1 << 16)
     if n < 64:
         return []
-    freqs, power = periodogram(dither[:n], fs=sample_rate_hz, window="hann")
+    x = np.asarray(dither[:n], dtype=np.float64)
+    window = np.hanning(n + 1)[:-1]  # periodic Hann, as scipy's periodogram uses
+    power = np.abs(np.fft.rfft((x - x.mean()) * window)) ** 2
+    freqs = np.fft.rfftfreq(n, 1.0 / sample_rate_hz)
     band = (freqs > 0.75 * f0_hz) & (freqs < 1.25 * f0_hz)
     if not band.any() or power[band].max() <= 0:
         return []
-    threshold = power[band].max() * 1e-3
-    peaks, _ = find_peaks(np.where(band, power, 0.0), height=threshold, distance=max(1, int(500 * n / sample_rate_hz)))
-    return [float(freqs[p]) for p in peaks]
+    power = np.where(band, power, 0.0)
+    threshold = power.max() * 1e-3
+    inner = power[1:-1]
+    maxima = np.flatnonzero((inner > power[:-2]) & (inner >= power[2:]) & (inner >= threshold)) + 1
+    min_bins = max(1, int(500 * n / sample_rate_hz))
+    kept: list[int] = []
+    for index in sorted(maxima, key=lambda i: -power[i]):  # highest first, as find_peaks(distance=...)
+        if all(abs(index - other) >= min_bins for other in kept):
+            kept.append(index)
+    return [float(freqs[i]) for i in sorted(kept)]
 
 
 def _spectral_peak_hz(x: np.ndarray, sample_rate_hz: float) -> float:
@@ -235,42 +247,44 @@ def run_reep(
             p = chunk.data["deflection"]
             g = chunk.data.get("dither")
             # the lock-in runs in the worker thread beside REEP (both kernels release the GIL)
-            demodulating = pool.submit(lockin.process, (p, g) if params.use_input else (p,), lock_state, decimate)
+            if params.use_input:
+                demodulating = pool.submit(lockin.process_against, p, g, lock_state, decimate)
+            else:
+                demodulating = pool.submit(lockin.process, p, lock_state, decimate)
             try:
                 p_for_rls = bandpass(p) if bandpass is not None else p
                 block, state = reep_update(
-                    state, p_for_rls, g, numerator, bias_compensation=params.bias_compensation, use_input=params.use_input
+                    state, p_for_rls, g, numerator, bias_compensation=params.bias_compensation,
+                    use_input=params.use_input, keep_every=decimate,
                 )
             finally:
                 demodulated, lock_state = demodulating.result()
+            demod = demodulated if params.use_input else demodulated[0]
             # Everything below runs on the kept samples only: n with (n + 1) % decimate == 0.
-            keep = slice((-(chunk.start + 1)) % decimate, None, decimate)
-            f0, q, valid = resonance_from_denominator(block.b1[keep], block.b0[keep], fs)
+            first_kept = (-(chunk.start + 1)) % decimate
+            kept_index = np.arange(chunk.start + first_kept, chunk.start + len(p), decimate)
+            f0, q, valid = resonance_from_denominator(block.b1, block.b0, fs)
             flagged += int(valid.size - np.count_nonzero(valid))
-            demod = demodulated[0]
-            phase = demod.phase_rad if not params.use_input else demod.phase_rad - demodulated[1].phase_rad
-            # wrapped into [-180, 180) deg; angle(exp(jφ)) costs seven times as much per kept sample
-            phase_deg = np.degrees((phase + np.pi) % (2.0 * np.pi) - np.pi)
-            kept_index = np.arange(chunk.start, chunk.start + len(p))[keep]
             columns = {
                 "t": kept_index / fs,
                 "f0_hz": f0,
                 "q": q,
-                "b1": block.b1[keep],
-                "b0": block.b0[keep],
-                "sigma2": block.sigma2[keep],
+                "b1": block.b1,
+                "b0": block.b0,
+                "sigma2": block.sigma2,
                 "amplitude": demod.amplitude,
-                "phase_deg": phase_deg,
+                "phase_deg": np.degrees(demod.phase_rad),
             }
             if z_mode:
-                columns["z"] = chunk.data["z_piezo"][keep]
+                columns["z"] = chunk.data["z_piezo"][first_kept::decimate]
             writer.append(columns)
-            settled = kept_index >= warmup
+            first_settled = int(np.searchsorted(kept_index, warmup))
             for name, summary in summaries.items():
-                summary.add(columns[name][settled])
+                summary.add(columns[name][first_settled:])
             if image_acc is not None:
                 image_acc.add(columns["t"], columns)
             if curve_acc is not None:
+                settled = kept_index >= warmup
                 curve_acc.add(columns["z"], {k: np.where(settled, columns[k], np.nan) for k in _CURVE_QUANTITIES})
             n_total = chunk.start + len(p)
 

@@ -32,8 +32,6 @@ from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
-import scipy.linalg
-import scipy.signal
 from numba import njit
 
 from afmtool.errors import ConfigError, InputError
@@ -89,12 +87,13 @@ _STATE_LEN = 15
 
 @njit(**JIT_OPTIONS)
 def _reep_kernel(  # noqa: PLR0913, PLR0915
-    p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, state, out_b1, out_b0, out_sigma2
+    p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, state, out_b1, out_b0, out_sigma2
 ):
     """Run REEP (eq. 3.39 with θ = [b1, b0], Λ = I₂) over one chunk.
 
     ``state`` is read at entry and overwritten at exit.  ``out_*`` are
-    preallocated, one value per sample.  Two guards, both inactive in normal
+    preallocated, one value per kept sample: those whose index n in the
+    stream has (n + 1) % keep_every == 0.  Two guards, both inactive in normal
     operation, extend eq. 3.39:
 
     * anti-windup: while trace P(n−1) ≥ ``trace_cap`` (= trace P(0)) this
@@ -126,6 +125,10 @@ def _reep_kernel(  # noqa: PLR0913, PLR0915
     n_past = state[_N_PAST]
     inv_lam = 1.0 / lam
     nan = np.nan
+    # countdown to the next kept sample; samples seen so far = n + n_past
+    seen = int(n + n_past)
+    until_keep = (keep_every - (seen + 1) % keep_every) % keep_every
+    k = 0
 
     for i in range(p.shape[0]):
         p_n = p[i]
@@ -138,9 +141,14 @@ def _reep_kernel(  # noqa: PLR0913, PLR0915
             if use_input:
                 g_2 = g_1
                 g_1 = g[i]
-            out_b1[i] = c_b1 if bias_compensation else th_b1
-            out_b0[i] = c_b0 if bias_compensation else th_b0
-            out_sigma2[i] = nan
+            if until_keep == 0:
+                out_b1[k] = c_b1 if bias_compensation else th_b1
+                out_b0[k] = c_b0 if bias_compensation else th_b0
+                out_sigma2[k] = nan
+                k += 1
+                until_keep = keep_every - 1
+            else:
+                until_keep -= 1
             continue
         if use_input:
             g_n = g[i]
@@ -204,13 +212,18 @@ def _reep_kernel(  # noqa: PLR0913, PLR0915
             c_b0 = th_b0
         p_2 = p_1
         p_1 = p_n
-        if bias_compensation:
-            out_b1[i] = c_b1
-            out_b0[i] = c_b0
+        if until_keep == 0:
+            if bias_compensation:
+                out_b1[k] = c_b1
+                out_b0[k] = c_b0
+            else:
+                out_b1[k] = th_b1
+                out_b0[k] = th_b0
+            out_sigma2[k] = sigma2
+            k += 1
+            until_keep = keep_every - 1
         else:
-            out_b1[i] = th_b1
-            out_b0[i] = th_b0
-        out_sigma2[i] = sigma2
+            until_keep -= 1
 
     state[_TH_LS_B1] = th_b1
     state[_TH_LS_B0] = th_b0
@@ -346,7 +359,7 @@ class ReepState:
 
 
 class ReepBlock(NamedTuple):
-    """REEP output for one chunk, one value per input sample.
+    """REEP output for one chunk, one value per kept input sample (all of them by default).
 
     Attributes
     ----------
@@ -378,6 +391,7 @@ def reep_update(
     *,
     bias_compensation: bool = True,
     use_input: bool = True,
+    keep_every: int = 1,
 ) -> ReepStep:
     """Advance REEP over one chunk of samples (§3.3.3, eq. 3.39).
 
@@ -398,13 +412,18 @@ def reep_update(
         always computed; this only selects the output.
     use_input : bool, optional
         If False, track the output-only AR(2) model z(n) = p(n).
+    keep_every : int, optional
+        Output only the samples whose index n in the stream (counted from
+        the stream's first sample, across chunks) has
+        (n + 1) % keep_every == 0.  Every sample still updates the
+        estimate; 1 (default) outputs them all.
 
     Returns
     -------
     ReepStep
-        ``(block, state)``: the per-sample :class:`ReepBlock` and the state
-        to pass with the next chunk.  Splitting a record into chunks of any
-        sizes gives bit-for-bit the output of one call.
+        ``(block, state)``: the :class:`ReepBlock` of the kept samples and
+        the state to pass with the next chunk.  Splitting a record into
+        chunks of any sizes gives bit-for-bit the output of one call.
 
     Raises
     ------
@@ -458,13 +477,17 @@ def reep_update(
     else:
         g = np.empty(0, dtype=np.float64)
         a2 = a1 = a0 = 0.0
+    if not (isinstance(keep_every, (int, np.integer)) and keep_every >= 1):
+        raise ConfigError(f"keep_every={keep_every!r} must be an integer >= 1")
     carried = state._to_array()
-    n_samples = p.shape[0]
-    b1 = np.empty(n_samples, dtype=np.float64)
-    b0 = np.empty(n_samples, dtype=np.float64)
-    sigma2 = np.empty(n_samples, dtype=np.float64)
+    first_kept = (-(state.n_samples + state.n_past + 1)) % keep_every
+    n_kept = max(0, (p.shape[0] - 1 - first_kept) // keep_every + 1)
+    b1 = np.empty(n_kept, dtype=np.float64)
+    b0 = np.empty(n_kept, dtype=np.float64)
+    sigma2 = np.empty(n_kept, dtype=np.float64)
     _reep_kernel(
-        p, g, a2, a1, a0, bool(use_input), state.lam, 2.0 * state.p0, bool(bias_compensation), carried, b1, b0, sigma2
+        p, g, a2, a1, a0, bool(use_input), state.lam, 2.0 * state.p0, bool(bias_compensation), int(keep_every),
+        carried, b1, b0, sigma2,
     )
     return ReepStep(ReepBlock(b1, b0, sigma2), state._from_array(carried))
 
@@ -741,14 +764,26 @@ def _noise_pair_covariance(b1: float, b0: float) -> np.ndarray:
     return k
 
 
+@njit(**JIT_OPTIONS)
+def _arx_output_kernel(g, a2, a1, a0, b1, b0, out, first, second):  # noqa: PLR0913
+    """ARX model output (eq. 3.40 without noise) from ŝ(0) = ``first``, ŝ(1) = ``second``.
+
+    ŝ(n) = −b1 ŝ(n−1) − b0 ŝ(n−2) + a2 g(n) + a1 g(n−1) + a0 g(n−2): what
+    ``lfilter`` with ``lfiltic`` gives, without importing scipy.signal
+    (the largest part of REEP's start-up) for this one short run.
+    """
+    out[0] = first
+    out[1] = second
+    for n in range(2, g.shape[0]):
+        out[n] = -b1 * out[n - 1] - b0 * out[n - 2] + a2 * g[n] + a1 * g[n - 1] + a0 * g[n - 2]
+
+
 def _arx_covariance(p, g, theta, sigma2, m_inv):
     """Asymptotic covariance of an ARX fit (see :func:`identify_arx`, Notes)."""
     b1, b0, a2, a1, a0 = (float(v) for v in theta)
     # noise-free model output ŝ(n), started from the measured p(0), p(1)
-    zi = scipy.signal.lfiltic([a2, a1, a0], [1.0, b1, b0], y=[p[1], p[0]], x=[g[1], g[0]])
     s_hat = np.empty_like(p)
-    s_hat[:2] = p[:2]
-    s_hat[2:], _ = scipy.signal.lfilter([a2, a1, a0], [1.0, b1, b0], g[2:], zi=zi)
+    _arx_output_kernel(g, a2, a1, a0, b1, b0, s_hat, p[0], p[1])
     phi_s = np.column_stack((-s_hat[1:-1], -s_hat[:-2], g[2:], g[1:-1], g[:-2]))
     n_rows = phi_s.shape[0]
     # ψ(n) = φ_s(n) + b1 φ_s(n+1) + b0 φ_s(n+2): Σ_n φ_s(n)e(n) = Σ_n ϑ(n)ψ(n)
@@ -857,13 +892,14 @@ def identify_arx(
     lam_diag = _ARX_BIAS_MASK
 
     # Φ = Q U (economic QR), so R = ΦᵀΦ/N = UᵀU/N and R⁻¹ v = N·U⁻¹U⁻ᵀ v.
-    _, upper = scipy.linalg.qr(phi, mode="economic")
+    upper = np.linalg.qr(phi, mode="r")
     if np.min(np.abs(np.diag(upper))) <= np.max(np.abs(np.diag(upper))) * 1e-13:
         raise InputError("the regressors are rank deficient: the dither must hold at least three sines")
 
     def r_inv(v: np.ndarray) -> np.ndarray:
-        w = scipy.linalg.solve_triangular(upper, v, trans="T")
-        return n_rows * scipy.linalg.solve_triangular(upper, w)
+        # U is 5 × 5: a general solve costs nothing here, and numpy spares the scipy.linalg import
+        w = np.linalg.solve(upper.T, v)
+        return n_rows * np.linalg.solve(upper, w)
 
     r_vec = phi.T @ y / n_rows
     # θ̂_LS = R⁻¹ r

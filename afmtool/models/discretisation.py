@@ -36,6 +36,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 from afmtool.errors import ConfigError
 
@@ -181,6 +182,29 @@ def is_underdamped(b1, b0) -> np.ndarray:
     return (b0a > 0) & (b0a < 1) & (b1a * b1a < 4.0 * b0a)
 
 
+@njit(cache=True, nogil=True)
+def _resonance_kernel(b1, b0, period, f0_out, q_out):  # noqa: PLR0913
+    """Eq. 3.48 sample by sample; NaN where (b1, b0) is not under-damped.  Returns that count."""
+    flagged = 0
+    for i in range(b1.shape[0]):
+        x1 = b1[i]
+        x0 = b0[i]
+        # is_underdamped, written so that NaN lands in the else branch
+        if x0 > 0.0 and x0 < 1.0 and x1 * x1 < 4.0 * x0:
+            decay = -math.log(x0) / (2.0 * period)
+            # rounding can put the ratio a hair outside [-1, 1] at the edge
+            ratio = min(max(-x1 / (2.0 * math.sqrt(x0)), -1.0), 1.0)
+            damped = math.acos(ratio) / period
+            f0 = math.sqrt(decay * decay + damped * damped) / (2.0 * math.pi)
+            f0_out[i] = f0
+            q_out[i] = math.pi * f0 / decay
+        else:
+            f0_out[i] = np.nan
+            q_out[i] = np.nan
+            flagged += 1
+    return flagged
+
+
 def resonance_from_denominator(b1, b0, sample_rate_hz: float) -> ResonanceFromDenominator:
     """Resonant frequency and quality factor from (b1, b0), eq. 3.48.
 
@@ -197,22 +221,21 @@ def resonance_from_denominator(b1, b0, sample_rate_hz: float) -> ResonanceFromDe
         p = −ln(b0)/(2T), q = arccos(−b1/(2√b0))/T, f0 = √(p² + q²)/(2π) (Hz),
         Q = π·f0/p.  Valid only where 0 < b0 < 1 and |b1| < 2√b0; elsewhere
         f0 and Q are NaN and ``valid`` is False.
+
+    Notes
+    -----
+    One numba pass with no temporaries: REEP converts every kept sample,
+    and the numpy expression cost as much as the estimator itself.
     """
     if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
         raise ConfigError(f"sample_rate_hz={sample_rate_hz!r} must be a finite number > 0")
-    b1a = np.asarray(b1, dtype=np.float64)
-    b0a = np.asarray(b0, dtype=np.float64)
-    b1a, b0a = np.broadcast_arrays(b1a, b0a)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        root = np.sqrt(b0a)
-        valid = is_underdamped(b1a, b0a)
-        period = 1.0 / sample_rate_hz
-        decay = -np.log(b0a) / (2 * period)
-        damped = np.arccos(np.clip(-b1a / (2 * root), -1.0, 1.0)) / period
-        f0 = np.sqrt(decay * decay + damped * damped) / (2 * np.pi)
-        qf = np.pi * f0 / decay
-    f0 = np.where(valid, f0, np.nan)
-    qf = np.where(valid, qf, np.nan)
-    if valid.ndim == 0:
-        return ResonanceFromDenominator(float(f0), float(qf), bool(valid))
-    return ResonanceFromDenominator(f0, qf, valid)
+    b1a, b0a = np.broadcast_arrays(np.asarray(b1, dtype=np.float64), np.asarray(b0, dtype=np.float64))
+    flat_b1 = np.ascontiguousarray(b1a).ravel()
+    flat_b0 = np.ascontiguousarray(b0a).ravel()
+    f0 = np.empty_like(flat_b1)
+    qf = np.empty_like(flat_b1)
+    _resonance_kernel(flat_b1, flat_b0, 1.0 / sample_rate_hz, f0, qf)
+    if b1a.ndim == 0:
+        return ResonanceFromDenominator(float(f0[0]), float(qf[0]), bool(np.isfinite(f0[0])))
+    f0 = f0.reshape(b1a.shape)
+    return ResonanceFromDenominator(f0, qf.reshape(b1a.shape), np.isfinite(f0))

@@ -20,7 +20,7 @@ import afmtool
 
 __all__ = ["sha256_file", "input_record", "PendingInputRecord", "build_report", "to_jsonable", "dumps"]
 
-_HASH_BLOCK = 1 << 22
+_HASH_BLOCK = 1 << 20
 
 
 def sha256_file(path: Path) -> str:
@@ -28,10 +28,14 @@ def sha256_file(path: Path) -> str:
     digest = hashlib.sha256()
     path = Path(path)
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    # One reused buffer that stays in cache: a fresh bytes object per read
+    # costs a page fault per 4 KiB, a fifth of the hashing time on a large capture.
+    buffer = bytearray(_HASH_BLOCK)
+    view = memoryview(buffer)
     for file in files:
-        with open(file, "rb") as handle:
-            while block := handle.read(_HASH_BLOCK):
-                digest.update(block)
+        with open(file, "rb", buffering=0) as handle:
+            while n := handle.readinto(buffer):
+                digest.update(view[:n])
     return digest.hexdigest()
 
 
