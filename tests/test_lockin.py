@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from afmtool.estimators.lockin import LockIn, _lockin_kernel, _lockin_order4_kernel, butterworth_lowpass_sos
+from afmtool.estimators.lockin import LockIn, _lockin_kernel, _lockin_order4_kernel
 
 FS_HZ = 500e3
 DRIVE_HZ = 70e3
@@ -50,25 +50,6 @@ def test_order4_kernel_is_bit_for_bit_the_generic_one(n_signals):
         outputs.append((out[:, :kept], zi))
     np.testing.assert_array_equal(outputs[0][0], outputs[1][0])
     np.testing.assert_array_equal(outputs[0][1], outputs[1][1])
-
-
-@pytest.mark.parametrize("order", range(1, 9))
-@pytest.mark.parametrize("cutoff_hz", [350.0, 7e3, 5e4, 2.2e5])
-def test_butterworth_design_matches_scipy(order, cutoff_hz):
-    """Our own design (no scipy.signal import at start-up) against scipy.signal.butter.
-
-    Even orders: the same sections to 1e-12.  Odd orders: scipy shares the
-    zeros between sections differently, so the frequency responses are compared.
-    """
-    from scipy.signal import butter, sosfreqz
-
-    ours = butterworth_lowpass_sos(order, cutoff_hz, FS_HZ)
-    theirs = butter(order, cutoff_hz, fs=FS_HZ, output="sos")
-    if order % 2 == 0:
-        np.testing.assert_allclose(ours, theirs, rtol=1e-12, atol=0)
-    _, h_ours = sosfreqz(ours, 2048, fs=FS_HZ)
-    _, h_theirs = sosfreqz(theirs, 2048, fs=FS_HZ)
-    np.testing.assert_allclose(h_ours, h_theirs, rtol=0, atol=1e-10)
 
 
 def test_phase_against_a_reference_channel():

@@ -32,6 +32,7 @@ from afmtool.config.params import DecodeParams, parse_bracket_nm, parse_interval
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
+from afmtool.io.prefetch import prefetch
 from afmtool.io.results import ResultWriter
 from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, actuation_voltage
 
@@ -59,6 +60,8 @@ _HYSTERESIS = (0.3, 0.7)
 _SMOOTH_SHARE = 0.25
 #: Welch segment of the PSD plot, samples.
 _PSD_NPERSEG = 4096
+#: Chunks read ahead in a background thread while the EKF runs on the current one.
+_READ_AHEAD = 2
 #: Smallest measurement noise the EKF assumes, nm (a noise-free capture would make R = 0).
 _MIN_MEASUREMENT_NOISE_NM = 1e-4
 
@@ -198,13 +201,13 @@ def ber_upper_bound(errors: int, compared: int, confidence: float = 0.95) -> flo
 
     For no errors it is 1 − (1 − confidence)^(1/n) ≈ 3/n at 95 % (the rule of three).
     """
-    from scipy.stats import beta
+    from scipy.special import betaincinv  # scipy.stats.beta.ppf is this, and scipy.stats costs 0.4 s to import
 
     if not 0 <= errors <= compared or compared < 1:
         raise ConfigError(f"errors={errors!r} and compared={compared!r} must satisfy 0 <= errors <= compared, compared >= 1")
     if errors == compared:
         return 1.0
-    return float(beta.ppf(confidence, errors + 1, compared - errors))
+    return float(betaincinv(errors + 1, compared - errors, confidence))
 
 
 # --------------------------------------------------------------------------- result
@@ -247,10 +250,10 @@ def _actuation_hz(info: CaptureInfo, params: DecodeParams, voltage: np.ndarray) 
     drive = info.metadata.get("drive", {})
     if isinstance(drive, Mapping) and "frequency_hz" in drive:
         return float(drive["frequency_hz"]), "metadata"
-    from scipy.signal import welch
+    from afmtool.estimators.filters import welch_psd
 
     v2 = voltage * voltage
-    freqs, power = welch(v2 - v2.mean(), fs=info.sample_rate_hz, nperseg=min(len(v2), 1 << 14))
+    freqs, power = welch_psd(v2 - v2.mean(), info.sample_rate_hz, min(len(v2), 1 << 14))
     power[freqs < 100.0] = 0.0
     if not power.any():
         raise InputError("the voltage has no AC line to take the actuation frequency from; give --actuation-hz")
@@ -356,11 +359,9 @@ def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: i
 
 def _group_delay_samples(lowpass_hz: float, order: int, fs: float) -> float:
     """Low-frequency group delay of the lock-in's Butterworth low-pass, samples."""
-    from scipy.signal import butter, group_delay
+    from afmtool.estimators.filters import butterworth_lowpass_sos, sos_group_delay
 
-    b, a = butter(order, lowpass_hz, fs=fs)
-    _, delay = group_delay((b, a), w=[lowpass_hz / 100.0], fs=fs)
-    return float(delay[0])
+    return sos_group_delay(butterworth_lowpass_sos(order, lowpass_hz, fs), lowpass_hz / 100.0, fs)
 
 
 # --------------------------------------------------------------------------- bit stage
@@ -514,15 +515,15 @@ class _PsdBuffer:
             self.n += take
 
     def spectra(self, fs: float) -> dict:
-        from scipy.signal import welch
+        from afmtool.estimators.filters import welch_psd
 
         if self.n < 2 * _PSD_NPERSEG // 4:
             return {}
         deflection = np.concatenate([d for d, _ in self.parts])
         innovation = np.concatenate([e for _, e in self.parts])
         nperseg = min(_PSD_NPERSEG, self.n)
-        freqs, p_defl = welch(deflection, fs=fs, nperseg=nperseg)
-        _, p_innov = welch(innovation, fs=fs, nperseg=nperseg)
+        freqs, p_defl = welch_psd(deflection, fs, nperseg)
+        _, p_innov = welch_psd(innovation, fs, nperseg)
         return {"frequency_hz": freqs, "deflection": p_defl, "innovation": p_innov, "samples": self.n}
 
 
@@ -687,7 +688,7 @@ def _stream(chunks, design, baseline: _Baseline, stage: _BitStage, psd: _PsdBuff
     held = _Hold(baseline.keep)
     n_total = 0
     with ThreadPoolExecutor(max_workers=1) as pool:
-        for chunk in chunks:
+        for chunk in prefetch(chunks, _READ_AHEAD):
             y = chunk.data["deflection"]
             n = len(y)
             demodulating = pool.submit(baseline.lockin.process, (y,), lock_state, baseline.keep)

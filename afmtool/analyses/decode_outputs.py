@@ -41,7 +41,7 @@ def run_decode_command(
     record = capture_record or PendingInputRecord(capture)
     with OutputDir(out) as staged:
         attrs = {"afmtool_command": "decode", "sample_rate_hz": reader.info.sample_rate_hz}
-        with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs) as writer:
+        with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs, write_behind=True) as writer:
             result = run_decode(reader, params, writer, progress=progress)
             if result.psd:
                 for name in ("frequency_hz", "deflection", "innovation"):

@@ -23,6 +23,7 @@ from afmtool.config.params import ReepParams
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
+from afmtool.io.prefetch import prefetch
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import FreeAirModel
 
@@ -40,6 +41,8 @@ SERIES_UNITS = {
     "phase_deg": "deg",
 }
 _IMAGE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
+#: Chunks read ahead in a background thread while the kernels run on the current one.
+_READ_AHEAD = 2
 _CURVE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
 
 
@@ -116,10 +119,9 @@ def excitation_lines(dither: np.ndarray, sample_rate_hz: float, f0_hz: float) ->
 
 
 def _spectral_peak_hz(x: np.ndarray, sample_rate_hz: float) -> float:
-    from scipy.signal import welch
+    from afmtool.estimators.filters import welch_psd
 
-    x = x - x.mean()
-    freqs, power = welch(x, fs=sample_rate_hz, nperseg=min(len(x), 1 << 14))
+    freqs, power = welch_psd(x, sample_rate_hz, min(len(x), 1 << 14))
     power[freqs < 1e3] = 0.0
     return float(freqs[int(np.argmax(power))])
 
@@ -243,7 +245,7 @@ def run_reep(
     curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if z_mode else None
 
     with ThreadPoolExecutor(max_workers=1) as pool:
-        for chunk in chunks:
+        for chunk in prefetch(chunks, _READ_AHEAD):
             p = chunk.data["deflection"]
             g = chunk.data.get("dither")
             # the lock-in runs in the worker thread beside REEP (both kernels release the GIL)

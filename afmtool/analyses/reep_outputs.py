@@ -47,7 +47,7 @@ def run_reep_command(
         model_path = Path(params.model)
         model_records.append(input_record(model_path if model_path.is_file() else model_path / "free_air.json", "model"))
     with OutputDir(out) as staged:
-        with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}) as writer:
+        with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
             result = run_reep(reader, params, writer, model=model, progress=progress)
             _write_force_curves(staged, writer, result)
             _write_images(staged, writer, result, deflection_units)

@@ -178,12 +178,12 @@ def estimate_measurement_noise(
     σ = √(S̄·f_s/2), with S̄ the mean PSD over the band after leaving out
     bins above three times the band's median (spectral lines).
     """
-    from scipy.signal import welch
+    from afmtool.estimators.filters import welch_psd
 
     y = np.asarray(deflection_nm, dtype=np.float64)
     if y.size < 2 * nperseg:
         raise InputError(f"the segment has {y.size} samples; the noise floor needs at least {2 * nperseg}")
-    freqs, power = welch(y, fs=sample_rate_hz, nperseg=nperseg)
+    freqs, power = welch_psd(y, sample_rate_hz, nperseg)
     lo, hi = band
     in_band = (freqs >= lo * sample_rate_hz) & (freqs <= hi * sample_rate_hz)
     values = power[in_band]

@@ -16,8 +16,9 @@ import numpy as np
 from numba import njit
 
 from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.estimators.filters import butterworth_lowpass_sos
 
-__all__ = ["LockIn", "LockInState", "LockInBlock", "default_lowpass_hz", "butterworth_lowpass_sos"]
+__all__ = ["LockIn", "LockInState", "LockInBlock", "default_lowpass_hz"]
 
 #: The oscillator is recomputed exactly every this many samples of the capture
 #: (aligned to the capture, not to chunks) and rotated recursively in between.
@@ -35,56 +36,6 @@ def default_lowpass_hz(frequency_hz: float, sideband_offset_hz: float | None = N
     if sideband_offset_hz:
         corner = min(corner, sideband_offset_hz / 2.0)
     return corner
-
-
-def butterworth_lowpass_sos(order: int, cutoff_hz: float, sample_rate_hz: float) -> np.ndarray:
-    """Digital Butterworth low-pass as second-order sections, like ``scipy.signal.butter(..., output="sos")``.
-
-    The analog prototype's poles s_k = −exp(jπm/(2N)), m = −N+1, −N+3, …, N−1,
-    are scaled to the pre-warped corner ω_a = 2fs·tan(πf_c/fs) and mapped by
-    the bilinear transform z = (2fs + s)/(2fs − s); all N zeros sit at z = −1.
-    Conjugate pole pairs become sections [1, 2, 1]/[1, −2Re z_p, |z_p|²],
-    ordered from the pole farthest from the unit circle to the nearest, and
-    the overall gain (unity at DC) multiplies the first: for even N these
-    are scipy's sections.  An odd N's real pole comes first, as
-    [1, 1, 0]/[1, −z_p, 0]; scipy shares the zeros out differently there,
-    for the same transfer function.
-
-    Written out here because importing ``scipy.signal`` costs more start-up
-    time (about 0.6 s) than a whole ``afmtool reep`` of a 1e7-sample capture.
-
-    Parameters
-    ----------
-    order : int
-        Filter order N ≥ 1.
-    cutoff_hz, sample_rate_hz : float
-        The −3 dB corner f_c and the sampling rate fs (Hz), 0 < f_c < fs/2.
-
-    Returns
-    -------
-    numpy.ndarray, shape (ceil(N/2), 6)
-        Rows [b0, b1, b2, 1, a1, a2].
-    """
-    if not (isinstance(order, (int, np.integer)) and order >= 1):
-        raise ValueError(f"{order=} must be an integer >= 1")
-    if not 0 < cutoff_hz < sample_rate_hz / 2:
-        raise ValueError(f"{cutoff_hz=} must be in (0, sample_rate_hz/2)")
-    two_fs = 2.0 * sample_rate_hz
-    warped = two_fs * math.tan(math.pi * cutoff_hz / sample_rate_hz)
-    m = np.arange(-order + 1, order, 2)
-    analog = warped * -np.exp(1j * np.pi * m / (2 * order))
-    digital = (two_fs + analog) / (two_fs - analog)
-    gain = warped**order * float(np.real(1.0 / np.prod(two_fs - analog)))
-    # one pole of each conjugate pair (upper half plane), farthest from the unit circle first
-    upper = sorted(digital[digital.imag > 0], key=lambda z: -abs(1.0 - abs(z)))
-    sections = []
-    if order % 2:
-        real_pole = float(digital[np.argmin(np.abs(digital.imag))].real)
-        sections.append([1.0, 1.0, 0.0, 1.0, -real_pole, 0.0])
-    sections += [[1.0, 2.0, 1.0, 1.0, -2.0 * z.real, abs(z) ** 2] for z in upper]
-    sos = np.array(sections)
-    sos[0, :3] *= gain
-    return sos
 
 
 @dataclass(frozen=True)

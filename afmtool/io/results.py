@@ -6,7 +6,9 @@ Columns are appended chunk by chunk to resizable datasets, each with a
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import queue
+import threading
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import h5py
@@ -20,7 +22,16 @@ _CHUNK = 1 << 14
 class ResultWriter:
     """Append-only writer of named 1-D series plus whole arrays and attributes."""
 
-    def __init__(self, path: Path, units: Mapping[str, str], attrs: Mapping | None = None) -> None:
+    def __init__(
+        self, path: Path, units: Mapping[str, str], attrs: Mapping | None = None, *, write_behind: bool = False
+    ) -> None:
+        """Open ``path`` for writing.
+
+        With ``write_behind``, :meth:`append` hands its blocks to a writer
+        thread and returns at once, so the file is written while the caller
+        computes the next chunk (HDF5 releases the GIL while it writes).
+        The caller must then not modify a block after appending it.
+        """
         # No raw-data chunk cache: with it, HDF5 keeps growing while series are
         # appended (about 15 % of what is written); without it memory is flat
         # and appends are no slower.
@@ -30,9 +41,16 @@ class ResultWriter:
         self._pending: dict[str, np.ndarray] = {}  # per series, less than one chunk not yet written
         for key, value in (attrs or {}).items():
             self._file.attrs[key] = value
+        self._behind = _WriteBehind(self._append_now) if write_behind else None
 
     def append(self, columns: Mapping[str, np.ndarray]) -> None:
         """Append equal-length blocks to the series named in ``columns``."""
+        if self._behind is not None:
+            self._behind.submit(columns)
+        else:
+            self._append_now(columns)
+
+    def _append_now(self, columns: Mapping[str, np.ndarray]) -> None:
         for name, values in columns.items():
             values = np.asarray(values)
             ds = self._series.get(name)
@@ -64,6 +82,8 @@ class ResultWriter:
 
     def put(self, name: str, values, units: str = "", attrs: Mapping | None = None) -> None:
         """Store a whole array (an image, a table column) at ``name`` (may contain '/')."""
+        if self._behind is not None:
+            self._behind.drain()
         ds = self._file.create_dataset(name, data=np.asarray(values))
         ds.attrs["units"] = units
         for key, value in (attrs or {}).items():
@@ -72,6 +92,8 @@ class ResultWriter:
     def close(self) -> None:
         """Write what is still pending and close the file."""
         try:
+            if self._behind is not None:
+                self._behind.stop()
             for name, rest in self._pending.items():
                 if rest.shape[-1]:
                     _write_at_end(self._series[name], rest)
@@ -91,3 +113,53 @@ def _write_at_end(ds: h5py.Dataset, block: np.ndarray) -> None:
     start = ds.shape[-1]
     ds.resize(start + block.shape[-1], axis=ds.ndim - 1)
     ds[..., start:] = block
+
+
+class _WriteBehind:
+    """Calls ``write(block)`` in a daemon thread, in order, holding at most ``depth`` blocks.
+
+    The first exception ``write`` raises is re-raised in the caller's thread
+    at its next :meth:`submit`, :meth:`drain` or :meth:`stop`; later blocks
+    are dropped, as the file is no good anyway.
+    """
+
+    def __init__(self, write: Callable[[Mapping[str, np.ndarray]], None], depth: int = 2) -> None:
+        self._write = write
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="afmtool-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            block = self._queue.get()
+            try:
+                if block is None:
+                    return
+                if self._error is None:
+                    self._write(block)
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread by _check
+                self._error = exc
+            finally:
+                self._queue.task_done()
+
+    def _check(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def submit(self, block: Mapping[str, np.ndarray]) -> None:
+        self._check()
+        self._queue.put(block)
+
+    def drain(self) -> None:
+        """Wait until every submitted block is written."""
+        self._queue.join()
+        self._check()
+
+    def stop(self) -> None:
+        """Write what was submitted, end the thread."""
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
+        self._check()
