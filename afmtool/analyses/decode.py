@@ -34,7 +34,7 @@ from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
 from afmtool.io.prefetch import prefetch
 from afmtool.io.results import ResultWriter
-from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, actuation_voltage
+from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, LeverVoltages, actuation_voltage
 
 if TYPE_CHECKING:  # numba and scipy load when a decode runs, not on import
     from afmtool.estimators.lockin import LockIn
@@ -242,6 +242,13 @@ def _voltage(data: Mapping[str, np.ndarray], params: DecodeParams, alpha_r: floa
     if params.voltage_channel:
         return data[params.voltage_channel]
     return actuation_voltage(data["v_r"], data["v_sub"], alpha_r)
+
+
+def _lever_voltages(data: Mapping[str, np.ndarray], params: DecodeParams, alpha_r: float):
+    """What the EKF kernel forms V from: the voltage channel itself, or V_R, V_sub and α_R (eq. 6.3)."""
+    if params.voltage_channel:
+        return data[params.voltage_channel]
+    return LeverVoltages(data["v_r"], data["v_sub"], alpha_r)
 
 
 def _actuation_hz(info: CaptureInfo, params: DecodeParams, voltage: np.ndarray) -> tuple[float, str]:
@@ -536,6 +543,7 @@ def run_decode(
     writer: ResultWriter,
     *,
     progress: Callable[[int], None] | None = None,
+    on_stream_start: Callable[[], None] | None = None,
 ) -> DecodeResult:
     """Decode the bits of a capture, streaming, and write the per-sample series.
 
@@ -551,6 +559,11 @@ def run_decode(
         ``innovation_mean`` once per running-mean window, and
         ``bit_times_s``, ``bits``, ``soft``, ``baseline_soft``,
         ``baseline_bits`` and the ℓ0 curve as whole arrays.
+    progress : callable, optional
+        Called with the samples read so far.
+    on_stream_start : callable, optional
+        Called once, when the model is tuned and the stream begins (the
+        command starts loading its plotting library then).
 
     Returns
     -------
@@ -592,6 +605,8 @@ def run_decode(
     baseline = _Baseline.create(params, fs, actuation_hz, mean_window)
     stage = _BitStage(fs, bits_start, params, actuation_hz, baseline.delay_primary, baseline.delay_aux)
     psd = _PsdBuffer(bits_start, int(round(params.psd_window_s * fs)))
+    if on_stream_start is not None:
+        on_stream_start()
     totals = _stream(replay_held([first], chunks), design, baseline, stage, psd, writer, params, setup, bits_start)
     warnings = list(tuning.warnings)
     decided = _decide(stage, params, mean_window, writer, warnings)
@@ -692,7 +707,7 @@ def _stream(chunks, design, baseline: _Baseline, stage: _BitStage, psd: _PsdBuff
             y = chunk.data["deflection"]
             n = len(y)
             demodulating = pool.submit(baseline.lockin.process, (y,), lock_state, baseline.keep)
-            step = ekf_update(design, ekf_state, y, _voltage(chunk.data, params, setup.electrostatic.alpha_r))
+            step = ekf_update(design, ekf_state, y, _lever_voltages(chunk.data, params, setup.electrostatic.alpha_r))
             ekf_state = step.state
             innovation, mean = step.block
             # Per sample, t = n / sample_rate_hz (a root attribute of decode.h5), and float32: its

@@ -37,12 +37,15 @@ def run_decode_command(
     ``capture_record`` is the capture's hash already under way (started by
     the CLI before its imports); by default it starts here.
     """
+    from afmtool.report.images import start_matplotlib_import
+
     params = resolve_from(DecodeParams, "decode", load_toml(config) if config else None, flags)
     record = capture_record or PendingInputRecord(capture)
     with OutputDir(out) as staged:
         attrs = {"afmtool_command": "decode", "sample_rate_hz": reader.info.sample_rate_hz}
         with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs, write_behind=True) as writer:
-            result = run_decode(reader, params, writer, progress=progress)
+            # matplotlib, for the eye, PSD and ℓ0 figures at the end, loads while the EKF streams
+            result = run_decode(reader, params, writer, progress=progress, on_stream_start=start_matplotlib_import)
             if result.psd:
                 for name in ("frequency_hz", "deflection", "innovation"):
                     units = "Hz" if name == "frequency_hz" else "nm^2/Hz"

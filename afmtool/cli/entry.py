@@ -1,26 +1,58 @@
-"""The ``afmtool`` console script: quiet exits for signals that arrive while afmtool starts.
+"""The ``afmtool`` console script: process-wide settings made before anything else.
 
-Importing the CLI (typer, rich, click) takes a noticeable fraction of a
-second.  A Ctrl-C or SIGTERM in that window would otherwise print a
-KeyboardInterrupt traceback from the middle of an import.  Nothing has been
-read or written yet, so the process just ends with status 130;
-:func:`afmtool.cli.main.main` then installs the handlers that unwind a
-running analysis.
+* Quiet exits for signals that arrive while afmtool starts.  Importing the
+  CLI (typer, rich, click) takes a noticeable fraction of a second.  A
+  Ctrl-C or SIGTERM in that window would otherwise print a
+  KeyboardInterrupt traceback from the middle of an import.  Nothing has
+  been read or written yet, so the process just ends with status 130;
+  :func:`afmtool.cli.main.main` then installs the handlers that unwind a
+  running analysis.
+* glibc keeps freed chunk buffers for reuse (:func:`_reuse_freed_memory`).
 """
 
 from __future__ import annotations
 
 import os
 import signal
+import sys
+
+#: glibc's mallopt parameters (malloc.h) and the values set.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_TRIM_THRESHOLD_BYTES = 64 << 20
+_MMAP_THRESHOLD_BYTES = 32 << 20
 
 
 def _while_starting(signum, frame) -> None:  # noqa: ARG001
     os._exit(130)
 
 
+def _reuse_freed_memory() -> None:
+    """Let glibc keep up to 64 MiB of freed memory instead of handing it back at once.
+
+    A streaming analysis allocates and frees the same few MB-sized arrays
+    for every chunk.  By default glibc serves blocks of that size with
+    fresh mmap()s or trims them off the heap as soon as they are freed, so
+    every chunk pays page faults and zeroing again: at 1e8 samples that was
+    0.6 s of system time in ``afmtool decode`` (of 1.7 s).  Blocks up to
+    32 MiB now come from the heap and stay there for the next chunk; peak
+    memory is unchanged.  No effect (and no error) off glibc.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_BYTES)
+        libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD_BYTES)
+    except (OSError, AttributeError):
+        pass
+
+
 def main() -> None:
     signal.signal(signal.SIGINT, _while_starting)
     signal.signal(signal.SIGTERM, _while_starting)
+    _reuse_freed_memory()
     from afmtool.cli.main import main as run
 
     run()

@@ -78,7 +78,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
-from afmtool.models.electrostatic import ElectrostaticParams
+from afmtool.models.electrostatic import ElectrostaticParams, LeverVoltages
 
 __all__ = [
     "BOLTZMANN_J_PER_K",
@@ -384,8 +384,11 @@ def discretise(
 
 
 @njit(**_JIT_OPTIONS)
-def _ekf_kernel(y, volts, coef, state, ring, out_e, out_mean):  # noqa: PLR0915
+def _ekf_kernel(y, volts_a, volts_b, alpha, beta, coef, state, ring, out_e, out_mean):  # noqa: PLR0913, PLR0915
     """Run the EKF over one chunk; ``state`` and ``ring`` are updated in place.
+
+    The voltage is V(n) = alpha·volts_a(n) − beta·volts_b(n): α_R, V_R, 1,
+    V_sub for eq. 6.3, or 1, V, 0, V for a voltage given directly (exactly V).
 
     One iteration per sample: predict from t_{n−1} (skipped for the first
     sample of the stream, which starts from x̂(0) = 0, P(0) = diag(σ1², σ2²)),
@@ -438,7 +441,8 @@ def _ekf_kernel(y, volts, coef, state, ring, out_e, out_mean):  # noqa: PLR0915
     until_resync = resync - n % resync
 
     for i in range(y.shape[0]):
-        v2 = volts[i] * volts[i]
+        volts = alpha * volts_a[i] - beta * volts_b[i]
+        v2 = volts * volts
         if n == 0:
             # x̂⁻(0) = 0, P⁻(0) = diag(σ1², σ2²) (eq. 7.14); V² before the stream = V²(0)
             xp1 = 0.0
@@ -620,7 +624,7 @@ class EkfStep(NamedTuple):
     state: EkfState
 
 
-def ekf_update(design: EkfDesign, state: EkfState, deflection_nm, voltage_v) -> EkfStep:
+def ekf_update(design: EkfDesign, state: EkfState, deflection_nm, voltage_v: np.ndarray | LeverVoltages) -> EkfStep:
     """Run the EKF (eqs. 7.14-7.15, module docstring) over one chunk.
 
     Parameters
@@ -631,8 +635,11 @@ def ekf_update(design: EkfDesign, state: EkfState, deflection_nm, voltage_v) -> 
         Carried state; not modified.
     deflection_nm : array_like
         Measured deflection y, nm.
-    voltage_v : array_like
-        Lever-sample voltage V at the same samples, V (only V² enters).
+    voltage_v : array_like or LeverVoltages
+        Lever-sample voltage V at the same samples, V (only V² enters), or
+        the V_R, V_sub series and α_R it is formed from (eq. 6.3), per sample
+        in the kernel with the same rounding as
+        :func:`afmtool.models.electrostatic.actuation_voltage`.
 
     Returns
     -------
@@ -641,16 +648,22 @@ def ekf_update(design: EkfDesign, state: EkfState, deflection_nm, voltage_v) -> 
         single-call runs give bit-for-bit equal results.
     """
     y = np.ascontiguousarray(deflection_nm, dtype=np.float64)
-    v = np.ascontiguousarray(voltage_v, dtype=np.float64)
-    if y.ndim != 1 or y.shape != v.shape:
-        raise ConfigError(f"deflection_nm and voltage_v must be 1-D of one length, got {y.shape} and {v.shape}")
+    if isinstance(voltage_v, LeverVoltages):
+        v_a = np.ascontiguousarray(voltage_v.v_r, dtype=np.float64)
+        v_b = np.ascontiguousarray(voltage_v.v_sub, dtype=np.float64)
+        alpha, beta = float(voltage_v.alpha_r), 1.0
+    else:
+        v_a = v_b = np.ascontiguousarray(voltage_v, dtype=np.float64)
+        alpha, beta = 1.0, 0.0
+    if y.ndim != 1 or y.shape != v_a.shape or y.shape != v_b.shape:
+        raise ConfigError(f"deflection_nm and voltage_v must be 1-D of one length, got {y.shape} and {v_a.shape}")
     if state.ring.shape != (design.mean_window,):
         raise ConfigError(f"state has a mean window of {state.ring.shape[0]}, the design {design.mean_window}")
     vector = state.vector.copy()
     ring = state.ring.copy()
     out_e = np.empty_like(y)
     out_mean = np.empty_like(y)
-    _ekf_kernel(y, v, design.coef, vector, ring, out_e, out_mean)
+    _ekf_kernel(y, v_a, v_b, alpha, beta, design.coef, vector, ring, out_e, out_mean)
     return EkfStep(EkfBlock(out_e, out_mean), EkfState(vector, ring))
 
 

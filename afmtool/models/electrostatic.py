@@ -56,6 +56,7 @@ __all__ = [
     "ElectrostaticParams",
     "THESIS_CH7_PARAMS",
     "actuation_voltage",
+    "LeverVoltages",
     "electrostatic_force_n",
     "electrostatic_force_scalar",
     "static_deflection_polynomial",
@@ -113,6 +114,19 @@ THESIS_CH7_PARAMS = ElectrostaticParams(
 def actuation_voltage(v_r, v_sub, alpha_r: float):
     """V = α_R·V_R − V_sub (eq. 6.3), V."""
     return alpha_r * np.asarray(v_r, dtype=np.float64) - np.asarray(v_sub, dtype=np.float64)
+
+
+class LeverVoltages(NamedTuple):
+    """The read-heater and substrate voltages V_R, V_sub (V) and α_R that form V (eq. 6.3).
+
+    Handed to a kernel as they are, which forms V = α_R·V_R − V_sub per
+    sample, rather than as a V series: at MHz rates that array costs more
+    to build than the filter spends on it.
+    """
+
+    v_r: np.ndarray
+    v_sub: np.ndarray
+    alpha_r: float
 
 
 @njit(cache=True)
