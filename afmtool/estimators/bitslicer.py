@@ -549,7 +549,9 @@ def slicer_update(config: SlicerConfig, state: SlicerState, primary, aux=None) -
         p, a, config.coefficients(), state.locked, vector, sring, dring_p, dring_a, out_c, out_p, out_a, out_t
     )
     shift = float(config.delay_primary)
-    block = SlicerBlock(out_c[:n_cells] - shift, out_p[:n_cells], out_a[:n_cells], out_t[:n_trans] - shift)
+    # copies, not views: a caller that keeps the cells of every chunk would otherwise
+    # keep each chunk's whole out_* buffers (twice the cells, and a sample per transition slot)
+    block = SlicerBlock(out_c[:n_cells] - shift, out_p[:n_cells].copy(), out_a[:n_cells].copy(), out_t[:n_trans] - shift)
     return SlicerStep(block, SlicerState(vector, sring, dring_p, dring_a, state.locked))
 
 
