@@ -510,7 +510,10 @@ class _Hold:
         out = np.empty(n)
         out[: min(first, n)] = self.last
         if kept.size:
-            out[first:] = np.repeat(kept, self.keep)[: n - first]
+            # every kept value fills `keep` samples, the last one what is left of the chunk
+            whole = (n - first) // self.keep
+            out[first : first + whole * self.keep].reshape(whole, self.keep)[:] = kept[:whole, None]
+            out[first + whole * self.keep :] = kept[-1]
             self.last = float(kept[-1])
         return out
 

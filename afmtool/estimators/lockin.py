@@ -110,15 +110,15 @@ def _two_sections(v, s1, s2, t1, t2, c):  # noqa: PLR0913
 
 
 @njit(**JIT_OPTIONS)
-def _lockin_order4_kernel(signals, start, cycles_per_sample, sos, zi, keep_every, out):  # noqa: PLR0913, PLR0915
+def _lockin_order4_kernel(first, second, two, start, cycles_per_sample, sos, zi, keep_every, out):  # noqa: PLR0913, PLR0915
     """:func:`_lockin_kernel` for one or two signals and two sections, with every state a scalar.
 
     The same operations in the same order (bit-for-bit equal results), but
     the real and imaginary lanes of each signal are separate scalar chains
     the compiler keeps in registers: about three times the generic kernel's
-    rate for the two signals of REEP.
+    rate for the two signals of REEP.  The signals come as two 1-D arrays
+    (``second`` is ignored unless ``two``), so the caller need not stack them.
     """
-    two = signals.shape[0] == 2
     two_pi = 2.0 * math.pi
     step_re = math.cos(two_pi * cycles_per_sample)
     step_im = -math.sin(two_pi * cycles_per_sample)
@@ -138,16 +138,16 @@ def _lockin_order4_kernel(signals, start, cycles_per_sample, sos, zi, keep_every
         q1, q2, q3, q4 = zi[1, 0, 0].imag, zi[1, 0, 1].imag, zi[1, 1, 0].imag, zi[1, 1, 1].imag
     k = 0
     until_keep = (keep_every - (start + 1) % keep_every) % keep_every
-    for i in range(signals.shape[1]):
+    for i in range(first.shape[0]):
         if (start + i) % _RESYNC_SAMPLES == 0:
             frac = ((start + i) * cycles_per_sample) % 1.0
             rot_re = math.cos(two_pi * frac)
             rot_im = -math.sin(two_pi * frac)
-        x = signals[0, i]
+        x = first[i]
         ya, a1, a2, a3, a4 = _two_sections(x * rot_re, a1, a2, a3, a4, c)
         yb, b1, b2, b3, b4 = _two_sections(x * rot_im, b1, b2, b3, b4, c)
         if two:
-            x = signals[1, i]
+            x = second[i]
             yp, p1, p2, p3, p4 = _two_sections(x * rot_re, p1, p2, p3, p4, c)
             yq, q1, q2, q3, q4 = _two_sections(x * rot_im, q1, q2, q3, q4, c)
         if until_keep == 0:
@@ -190,9 +190,13 @@ class LockIn:
         self._sos = np.ascontiguousarray(butterworth_lowpass_sos(order, lowpass_hz, sample_rate_hz))
         self._dispatch()
 
-    def _kernel(self, n_signals: int):
-        """The order-4 scalar kernel for one or two signals, else the generic one."""
-        return _lockin_order4_kernel if self._sos.shape[0] == 2 and n_signals <= 2 else _lockin_kernel
+    def _run(self, rows: list[np.ndarray], start: int, zi: np.ndarray, keep_every: int, out: np.ndarray) -> None:
+        """The order-4 scalar kernel for one or two signals, else the generic one on the stacked rows."""
+        cycles = self.frequency_hz / self.sample_rate_hz
+        if self._sos.shape[0] == 2 and len(rows) <= 2:
+            _lockin_order4_kernel(rows[0], rows[-1], len(rows) == 2, start, cycles, self._sos, zi, keep_every, out)
+        else:
+            _lockin_kernel(np.vstack(rows), start, cycles, self._sos, zi, keep_every, out)
 
     def _dispatch(self) -> None:
         """Compile or load the kernel now, in the constructing thread.
@@ -204,10 +208,8 @@ class LockIn:
         held for good, and the interrupted run would then wait for the
         worker forever.
         """
-        rows = np.zeros((1, 1))
         zi = np.zeros((1, self._sos.shape[0], 2), dtype=np.complex128)
-        self._kernel(1)(rows, 0, self.frequency_hz / self.sample_rate_hz, self._sos, zi, 1,
-                        np.empty((1, 1), dtype=np.complex128))
+        self._run([np.zeros(1)], 0, zi, 1, np.empty((1, 1), dtype=np.complex128))
 
     def initial_state(self, n_signals: int = 1) -> LockInState:
         """Zero filter state for ``n_signals`` signals demodulated together."""
@@ -240,16 +242,20 @@ class LockIn:
         self, signals: np.ndarray | tuple[np.ndarray, ...], state: LockInState, keep_every: int
     ) -> tuple[np.ndarray, LockInState]:
         """The kept complex outputs X (one row per signal) and the next state."""
-        rows = np.atleast_2d(np.asarray(signals, dtype=np.float64))
-        if rows.shape[0] != state.zi.shape[0]:
-            raise ValueError(f"state holds {state.zi.shape[0]} signals, got {rows.shape[0]}")
+        # one C-contiguous float64 row per signal, without stacking (a copy of the whole chunk)
+        if isinstance(signals, np.ndarray) and signals.ndim == 2:
+            signals = tuple(signals)
+        elif not isinstance(signals, (tuple, list)):
+            signals = (signals,)
+        rows = [np.ascontiguousarray(row, dtype=np.float64) for row in signals]
+        if len(rows) != state.zi.shape[0]:
+            raise ValueError(f"state holds {state.zi.shape[0]} signals, got {len(rows)}")
+        if any(row.ndim != 1 or row.shape != rows[0].shape for row in rows):
+            raise ValueError("the signals must be 1-D and of one length")
         zi = state.zi.copy()
         first_kept = (-(state.samples_seen + 1)) % keep_every
-        n = rows.shape[1]
+        n = rows[0].shape[0]
         n_kept = 0 if first_kept >= n else (n - 1 - first_kept) // keep_every + 1
-        out = np.empty((rows.shape[0], n_kept), dtype=np.complex128)
-        self._kernel(rows.shape[0])(
-            np.ascontiguousarray(rows), state.samples_seen, self.frequency_hz / self.sample_rate_hz,
-            self._sos, zi, keep_every, out,
-        )
+        out = np.empty((len(rows), n_kept), dtype=np.complex128)
+        self._run(rows, state.samples_seen, zi, keep_every, out)
         return out, LockInState(zi, state.samples_seen + n)
