@@ -61,7 +61,7 @@ _SMOOTH_SHARE = 0.25
 #: Welch segment of the PSD plot, samples.
 _PSD_NPERSEG = 4096
 #: Chunks read ahead in a background thread while the EKF runs on the current one.
-_READ_AHEAD = 2
+_READ_AHEAD = 1
 #: Smallest measurement noise the EKF assumes, nm (a noise-free capture would make R = 0).
 _MIN_MEASUREMENT_NOISE_NM = 1e-4
 
