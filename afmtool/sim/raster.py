@@ -606,7 +606,7 @@ class _Loop:
     """The kernel's carried state and constants; ``run`` advances it over a range of samples."""
 
     def __init__(self, params: RasterParams, seed: int) -> None:
-        from scipy.signal import butter
+        from afmtool.estimators.filters import butterworth_lowpass_sos
 
         self.params = params
         fs = params.sample_rate_hz
@@ -634,7 +634,8 @@ class _Loop:
         self.sums = np.zeros(1)
         self.counters = np.zeros(3, dtype=np.int64)
         self.cal = np.array([math.nan, 1.0, 2.0])
-        self.sos = np.ascontiguousarray(butter(params.lockin_order, params.lowpass_hz(), fs=fs, output="sos"))
+        # LockIn's own design, so the in-loop amplitude is LockIn.process's to the bit
+        self.sos = np.ascontiguousarray(butterworth_lowpass_sos(params.lockin_order, params.lowpass_hz(), fs))
         self.zi = np.zeros((1, self.sos.shape[0], 2), dtype=np.complex128)
         code = _CONTROLLER_CODE[params.controller]
         self.ctl = np.array([params.setpoint_nm, params.ki_low_per_s, params.kp_low, params.ki_high_per_s,
