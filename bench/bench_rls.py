@@ -70,7 +70,8 @@ def kernel_call(kernel, p, g, numerator, state0):
     def run():
         state = state0._to_array()
         a2, a1, a0 = numerator
-        kernel(p, g, a2, a1, a0, True, state0.lam, 2.0 * state0.p0, True, state, *out)
+        # keep_every = 1: an output every sample, the kernel's full per-sample work
+        kernel(p, g, a2, a1, a0, True, state0.lam, 2.0 * state0.p0, True, 1, state, *out)
 
     return run
 
