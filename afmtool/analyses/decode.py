@@ -244,7 +244,7 @@ def _voltage(data: Mapping[str, np.ndarray], params: DecodeParams, alpha_r: floa
     return actuation_voltage(data["v_r"], data["v_sub"], alpha_r)
 
 
-def _lever_voltages(data: Mapping[str, np.ndarray], params: DecodeParams, alpha_r: float):
+def _lever_voltages(data: Mapping[str, np.ndarray], params: DecodeParams, alpha_r: float) -> np.ndarray | LeverVoltages:
     """What the EKF kernel forms V from: the voltage channel itself, or V_R, V_sub and α_R (eq. 6.3)."""
     if params.voltage_channel:
         return data[params.voltage_channel]

@@ -41,9 +41,9 @@ SERIES_UNITS = {
     "phase_deg": "deg",
 }
 _IMAGE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
+_CURVE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
 #: Chunks read ahead in a background thread while the kernels run on the current one.
 _READ_AHEAD = 2
-_CURVE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
 
 
 @dataclass
