@@ -311,11 +311,8 @@ def resolve_free_air(  # noqa: PLR0913
         report["drive_hold_reason"] += "; the numerator is the data-driven ARX fit, which needs no hold"
     else:
         # continuous parameters and no segment to fit on: discretise with the hold, matched at the drive
-        from afmtool.models.discretisation import discrete_denominator, sampled_numerator
-
-        unit = sampled_numerator(model.f0_hz, model.q, fs, report["drive_hold"], match_hz=drive_hz)
+        numerator = model.numerator_at(fs, report["drive_hold"], match_hz=drive_hz)
         model = FreeAirModel(
-            **{**model.to_dict(), "sample_rate_hz": fs, "numerator": tuple(model.gain * a for a in unit),
-               "denominator": tuple(float(b) for b in discrete_denominator(model.f0_hz, model.q, fs))}
+            **{**model.to_dict(), "sample_rate_hz": fs, "numerator": numerator, "denominator": model.denominator_at(fs)}
         )
     return FreeAirRoute(model, route, segment, drive_hz, report, tuple(warnings)), chunks
