@@ -125,3 +125,13 @@ def test_kalman_bank_accepts_the_f0_q_route():
     assert res["free_air_model"]["source"] == "f0-q:flags"
     assert res["free_air_model"]["gain"] == pytest.approx(1.0, rel=2e-3)
     assert len(res["filters"]) == 3
+
+
+def test_a_phase_matching_neither_hold_is_reported():
+    """f0 60 Hz off shifts the phase at the drive (200 Hz above f0) by about 9 deg: neither hold fits; a warning says so."""
+    cap = _single_tone(metadata_f0_q=False)
+    route = _route(cap, given=None, f0_hz=F0 + 60.0, q=Q)
+    print(route.warnings)
+    assert len(route.warnings) == 1
+    assert "f0/Q may be off" in route.warnings[0]
+    assert not _route(cap, given=None, f0_hz=F0, q=Q).warnings
