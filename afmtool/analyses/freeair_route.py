@@ -308,6 +308,11 @@ def resolve_free_air(  # noqa: PLR0913
     elif segment is not None:
         try:
             model, route = identify_from_segment(segment, fs), "segment"
+            if _single_tone(metadata, segment, fs, model.f0_hz):
+                warnings.append(
+                    "the dither has fewer than three lines near resonance, so the five-parameter ARX free-air fit is "
+                    "not identifiable; give the cantilever's --f0 and --q (or metadata cantilever f0_hz/q)"
+                )
         except InputError:
             meta = _metadata_f0_q(metadata)
             if meta is None:
