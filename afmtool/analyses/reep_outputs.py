@@ -52,6 +52,7 @@ def run_reep_command(
             _write_force_curves(staged, writer, result)
             _write_images(staged, writer, result, deflection_units)
         results = dict(result.results)
+        results.update(_time_series(staged, reader, result, deflection_units))
         if result.force_curves:
             results["force_curve"] = _curve_summary(result)
         if result.geometry is not None:
@@ -74,6 +75,33 @@ def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, 
         return run_reep(reader, params, writer, model=model)
 
     run_stream(analysis, ReepParams, "reep", reader, config, flags, fmt)
+
+
+def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, deflection_units: str) -> dict:
+    """``reep_time_series.png`` and the results read back from the finished reep.h5.
+
+    ``segments``: f0', Q' in and after the free-air segment; with ``/truth``
+    f0_hz and q, ``truth_tracking``: the error against them after the warm-up.
+    """
+    from afmtool.analyses.reep_timeseries import segment_statistics, tracking_error, write_reep_time_series_png
+
+    fs = reader.info.sample_rate_hz
+    warmup_s = result.results["summary_after_warmup_samples"] / fs
+    segment = result.results.get("free_air_segment_s")
+    reep_h5 = staged.path("reep.h5")
+    wanted = ("f0_hz", "q", "amplitude", "phase_deg")
+    truth = {}
+    if any(name in reader.info.truth_names for name in wanted):
+        truth = {name: values for name, values in reader.truth().items() if name in wanted}
+    out: dict = {"segments": segment_statistics(reep_h5, warmup_s, segment)}
+    tracking = tracking_error(reep_h5, truth, fs, warmup_s)
+    if tracking is not None:
+        out["truth_tracking"] = tracking
+    write_reep_time_series_png(
+        staged.path("reep_time_series.png"), reep_h5, amplitude_units=deflection_units, truth=truth or None,
+        sample_rate_hz=fs, free_air_segment_s=segment, warmup_s=warmup_s,
+    )
+    return out
 
 
 def _finite_mean(values: np.ndarray) -> float | None:
