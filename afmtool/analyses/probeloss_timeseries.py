@@ -29,7 +29,7 @@ def _panels(rows: Mapping[str, np.ndarray], results: Mapping, amplitude_units: s
     for key, label, style in (("on", "switch-on threshold", threshold), ("off", "switch-off threshold", {**threshold, "linestyle": "--"})):
         if isinstance(index.get(key), (int, float)):
             index_series.append((span, np.full(2, float(index[key])), label, style))
-    switches = [(t, rows["switch"], "index switch", {"color": "C0", "drawstyle": "steps-post", "linewidth": 1.2})]
+    switches = [(t, rows["switch"], "index switch (1 = loss)", {"color": "C0", "drawstyle": "steps-post", "linewidth": 1.2})]
     if "amplitude_switch" in rows:
         # drawn at 0.9 so that the two switches stay apart where they agree
         switches.append((t, 0.9 * rows["amplitude_switch"], "amplitude switch (× 0.9)",
@@ -43,12 +43,12 @@ def _panels(rows: Mapping[str, np.ndarray], results: Mapping, amplitude_units: s
                           {**threshold, "linestyle": "--"}))
     panels = [
         # log axis: the thresholds sit near 1-4 where the index on the sample reaches hundreds
-        {"y_label": "reliability index (dimensionless)", "series": index_series, "y_scale": "log"},
-        {"y_label": "switch (0/1, 1 = probe loss)", "series": switches},
+        {"y_label": "index (dimensionless)", "series": index_series, "y_scale": "log"},
+        {"y_label": "switch (0/1)", "series": switches},
         {"y_label": f"amplitude ({units})", "series": amplitude},
     ]
     if contact is not None:
-        panels.append({"y_label": "truth contact (0/1, 1 = contact)", "series": [
+        panels.append({"y_label": "truth contact (0/1)", "series": [
             (t, contact, "truth: contact in the drive period", {"color": "k", "drawstyle": "steps-post", "linewidth": 1.0})]})
     return panels
 
