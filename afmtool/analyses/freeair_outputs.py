@@ -49,7 +49,30 @@ def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tupl
     return model, {"sweep_method": params.sweep_method, "samples": len(dither)}
 
 
-def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict]:
+def write_thermal_fit_png(path: Path, frequency_hz: np.ndarray, asd: np.ndarray, fit) -> None:
+    """The measured thermal ASD with the fitted oscillator-plus-floor model over it, fit band shaded."""
+    from afmtool.report.images import write_multi_panel_png
+
+    f = np.asarray(frequency_hz, dtype=np.float64)
+    measured = np.where(np.asarray(asd) > 0, asd, np.nan)
+    lo, hi = fit.band_hz
+    wide = (f >= max(f[0], lo - 2 * (hi - lo))) & (f <= hi + 2 * (hi - lo))
+    panels = [{
+        "y_label": "ASD (m/√Hz)",
+        "y_scale": "log",
+        "series": [
+            (f[wide] / 1e3, measured[wide], "measured", {"color": "C0", "linewidth": 0.8}),
+            (f[wide] / 1e3, fit.asd(f[wide]), f"fit: f0 = {fit.f0_hz:.1f} ± {fit.f0_std_hz:.2g} Hz, "
+             f"Q = {fit.q:.1f} ± {fit.q_std:.2g}", {"color": "C3", "linewidth": 1.4}),
+            (f[wide] / 1e3, np.full(np.count_nonzero(wide), fit.floor_asd_m_per_sqrt_hz), "white floor",
+             {"color": "0.4", "linestyle": ":"}),
+        ],
+    }]
+    write_multi_panel_png(path, panels, x_label="frequency (kHz)", spans=[(lo / 1e3, hi / 1e3, "fitted band")],
+                          title="Thermal-noise spectrum and its simple-harmonic-oscillator fit")
+
+
+def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict, Callable[[Path], None]]:
     from afmtool.estimators.thermal_noise import fit_thermal_spectrum
     from afmtool.io.psd import read_psd_csv
 
@@ -66,7 +89,7 @@ def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict
         "spring_constant_note": "equipartition, assuming the ASD is calibrated tip displacement (m/sqrt(Hz))",
         "temperature_k": params.temperature_k,
     }
-    return model, details
+    return model, details, lambda path: write_thermal_fit_png(path, frequency, asd, fit)
 
 
 def run_freeair_command(
@@ -79,8 +102,9 @@ def run_freeair_command(
 ) -> dict:
     """Identify the free-air model by the chosen route and write free_air.json + report."""
     params = resolve_from(FreeAirParams, "identify.freeair", load_toml(config) if config else None, flags)
+    plot = None
     if params.route == "thermal":
-        model, details = _thermal_route(Path(source), params)
+        model, details, plot = _thermal_route(Path(source), params)
         inputs = [input_record(source, "psd")]
     elif params.route == "sweep":
         model, details = _sweep_route(reader, params, progress)
@@ -90,5 +114,7 @@ def run_freeair_command(
         inputs = [input_record(source)]
     with OutputDir(out) as staged:
         model.save(staged.path("free_air.json"))
+        if plot is not None:
+            plot(staged.path("thermal_fit.png"))
         results = {"free_air_model": model.to_dict(), "route": params.route, **details}
         return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, [])

@@ -55,7 +55,7 @@ MAIN_FIGURES: Mapping[str, tuple[str, ...]] = {
     "decode": ("decode_time_series.png", "eye.png", "psd.png", "l0_search.png"),
     "kalman-bank": ("bank_rms_vs_time.png", "bank_rms_vs_z.png"),
     "identify gamma": ("gamma_ir_ts.png",),
-    "identify freeair": ("freeair_fit.png",),
+    "identify freeair": ("thermal_fit.png",),
 }
 
 #: Largest file embedded (bytes): a page stays mailable.
