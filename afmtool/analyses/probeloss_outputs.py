@@ -101,7 +101,7 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResu
         cmap = "gray_r" if quantity == "loss" else "afmhot"
         write_image_png(
             staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})",
-            cmap=cmap, z_range=z_range,
+            cmap=cmap, z_range=z_range, z_label=title,
         )
         write_gsf(
             staged.path(f"{stem}.gsf"), np.asarray(top_first), size, y_size, xy_units="m", z_units=units,

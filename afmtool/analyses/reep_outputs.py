@@ -49,7 +49,7 @@ def run_reep_command(
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
             result = run_reep(reader, params, writer, model=model, progress=progress)
-            _write_force_curves(staged, writer, result)
+            _write_force_curves(staged, writer, result, deflection_units)
             _write_images(staged, writer, result, deflection_units)
         results = dict(result.results)
         results.update(_time_series(staged, reader, result, deflection_units))
@@ -125,7 +125,7 @@ def _curve_summary(result: ReepResult) -> dict:
     return summary
 
 
-def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepResult) -> None:
+def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str) -> None:
     if not result.force_curves:
         return
     from afmtool.report.images import APPROACH_STYLE, RETRACT_STYLE, write_multi_panel_png
@@ -137,14 +137,21 @@ def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepRes
             writer.put(f"force_curve/{leg}/{name}", values, SERIES_UNITS.get(name, ""))
             writer.put(f"force_curve/{leg}/d_{name}_dz", table.sensitivities[name])
     styles = {"approach": APPROACH_STYLE, "retract": RETRACT_STYLE}
-    labels = {"f0_hz": "f0' (Hz)", "q": "Q'", "amplitude": "amplitude", "phase_deg": "phase (deg)"}
+    amplitude_units = deflection_units or "input units"
+    z_units = result.z_units or "z units"
+    # (quantity, units) per panel; a sensitivity's units are the quantity's per z unit
+    labels = {"f0_hz": ("f0'", "Hz"), "q": ("Q'", ""), "amplitude": ("amplitude", amplitude_units), "phase_deg": ("phase", "deg")}
     for prefix, key in (("", "means"), ("d", "sensitivities")):
         panels = []
-        for name, label in labels.items():
+        for name, (quantity, units) in labels.items():
             series = [
                 (table.z, getattr(table, key)[name], leg, styles[leg]) for leg, table in result.force_curves.items()
             ]
-            panels.append({"y_label": f"d{label}/dz" if prefix else label, "series": series})
+            if prefix:
+                label = f"d{quantity}/dz ({units or '1'}/{z_units})"
+            else:
+                label = f"{quantity} ({units or 'dimensionless'})"
+            panels.append({"y_label": label, "series": series})
         name = "force_curve.png" if not prefix else "force_curve_sensitivity.png"
         write_multi_panel_png(
             staged.path(name),
@@ -168,5 +175,6 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, d
         top_first = image[::-1]  # last line scanned at the top, as AFM viewers show it
         writer.put(f"images/{key}", image, units, {"row0": "first line scanned"})
         stem = f"{quantity}_{direction}"
-        write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})")
+        write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})",
+                        z_label=title)
         write_gsf(staged.path(f"{stem}.gsf"), top_first, size, y_size, xy_units="m", z_units=units, title=f"{title} {direction}")

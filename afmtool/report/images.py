@@ -388,9 +388,8 @@ def _z_scale(images: Sequence[np.ndarray], z_units: str, z_range: tuple[float, f
 
 
 def _colorbar_label(z_label: str, units: str) -> str:
-    if z_label and units:
-        return f"{z_label} ({units})"
-    return z_label or units
+    """``"height (nm)"``: every colour bar names a quantity and its units, ``dimensionless`` for none."""
+    return f"{z_label or 'value'} ({units or 'dimensionless'})"
 
 
 def _draw_image(
