@@ -35,6 +35,7 @@ from pathlib import Path
 from afmtool.errors import InputError
 
 __all__ = [
+    "BATCH_COLUMNS",
     "BATCH_SUMMARY",
     "MAIN_FIGURES",
     "format_measurement",
@@ -58,6 +59,9 @@ MAIN_FIGURES: Mapping[str, tuple[str, ...]] = {
     "identify freeair": ("thermal_fit.png",),
 }
 
+#: Headline numbers shown per row of a batch page (each run's own page has all of them).
+BATCH_COLUMNS = 4
+
 #: Largest file embedded (bytes): a page stays mailable.
 _MAX_EMBED_BYTES = 64 << 20
 
@@ -79,7 +83,8 @@ figcaption { font-size: .85em; color: #555; }
 table { border-collapse: collapse; } td, th { border: 1px solid #ddd; padding: .2em .55em; text-align: left; vertical-align: top; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; }
 details { margin: .4em 0; } summary { cursor: pointer; font-weight: 600; }
-img.thumb { max-width: 16em; height: auto; border: 1px solid #eee; }
+img.thumb { max-height: 7em; max-width: 14em; width: auto; height: auto; border: 1px solid #eee; }
+td.num { white-space: nowrap; }
 .status-failed { color: #b00020; font-weight: 600; } .status-ok, .status-skipped { color: #1b6e20; }
 """
 
@@ -333,7 +338,7 @@ def render_batch_html(folder: Path) -> str:
             if ordered:
                 figure = _img(*ordered[0], css="thumb")
         values = {}
-        for entry in (report or {}).get("headline") or []:
+        for entry in ((report or {}).get("headline") or [])[:BATCH_COLUMNS]:
             name = str(entry.get("name"))
             if name not in names:
                 names.append(name)
