@@ -27,7 +27,7 @@ PANELS = ("Input", "Model", "Estimator", "Output")
 
 _INPUT = frozenset({
     "--channel", "--topic", "--sample-rate", "--chunk-samples", "--contact", "--psd", "--iv", "--z-curve",
-    "--vr-sweep", "--reep", "--voltage-channel", "--sweep", "--stepped", "--config", "--arg",
+    "--vr-sweep", "--reep", "--voltage-channel", "--sweep", "--config", "--arg",
 })
 _MODEL = frozenset({
     "--model", "--models", "--free-air", "--thermal-model", "--spring-constant", "--temperature",
