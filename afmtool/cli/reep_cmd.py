@@ -37,7 +37,7 @@ def reep(
     model: Annotated[
         Optional[Path], typer.Option("--model", help="free_air.json from 'afmtool identify freeair' (or its folder).")
     ] = None,
-    lam: Annotated[Optional[float], typer.Option("--lambda", help="Forgetting factor λ (default 0.995).")] = None,
+    lam: Annotated[Optional[float], typer.Option("--lambda", help="Forgetting factor λ (dimensionless, default 0.995).")] = None,
     no_bias_compensation: Annotated[
         bool, typer.Option("--no-bias-compensation", help="Plain EWRLS, for comparison.")
     ] = False,
