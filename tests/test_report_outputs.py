@@ -49,6 +49,10 @@ RUNS = {
     "averaging": ["theory", "averaging", "--force-set", "attractive", "--out", "{out}"],
     "observer": ["theory", "observer", "--cycles", "4", "--out", "{out}"],
 }
+RUNS["sweep"] = ["identify", "freeair", "chirp.h5", "--sweep", "--out", "{out}"]
+#: Made before the runs, in their folder: a chirp sweep of the free-air cantilever.
+_CHIRP = ["simulate", "ltv", "-o", "chirp.h5", "--set", "step_time_s=10.0", "--set", "duration_s=0.1",
+          "--set", "sweep_span_hz=20000.0", "--set", "drive=chirp"]
 if (SHARED / "data" / "thermal_tune_acl_a.csv").is_file():
     RUNS["thermal"] = ["identify", "freeair", "--psd", str(SHARED / "data" / "thermal_tune_acl_a.csv"), "--out", "{out}"]
 
@@ -121,6 +125,7 @@ def runs(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(Figure, "savefig", inspecting_savefig)
         patch.chdir(base)
+        _invoke(_CHIRP)
         for run, args in RUNS.items():
             out = base / run
             current["run"] = run
@@ -193,12 +198,34 @@ def test_probeloss_decode_bank_identify_figures_exist(runs):
     assert {"decode_time_series.png", "eye.png", "psd.png", "l0_search.png"} <= _pngs(folders["decode"])
     assert {"bank_rms_vs_time.png", "bank_rms_vs_z.png"} <= _pngs(folders["bank"])
     assert "feedthrough.png" in _pngs(folders["gamma"])
+    assert "sweep_bode.png" in _pngs(folders["sweep"])
     if "thermal" in folders:
         assert "thermal_fit.png" in _pngs(folders["thermal"])
 
 
 def _pngs(folder: Path) -> set[str]:
     return {p.name for p in folder.glob("*.png")}
+
+
+def test_fitted_model_band_matches_monte_carlo():
+    from afmtool.analyses.freeair_outputs import model_magnitude_std, model_response
+    from afmtool.models.free_air import FreeAirModel
+
+    model = FreeAirModel(f0_hz=70_000.0, q=200.0, gain=1.0, f0_std_hz=3.0, q_std=2.0, gain_std=0.002,
+                         source="sweep", delay_s=1e-6)
+    f = np.linspace(69_000.0, 71_000.0, 81)
+    rng = np.random.default_rng(20261201)
+    draws = np.array([
+        np.abs(model_response(FreeAirModel(f0_hz=70_000.0 + 3.0 * a, q=200.0 + 2.0 * b, gain=1.0 + 0.002 * c,
+                                           source="sweep", delay_s=1e-6), f))
+        for a, b, c in rng.standard_normal((4000, 3))
+    ])
+    band = model_magnitude_std(model, f)
+    # first-order propagation: right to 15 % where |H| is locally linear in the parameters (off the peak's top)
+    flank = np.abs(f - 70_000.0) > 200.0
+    ratio = band[flank] / draws.std(axis=0)[flank]
+    print(f"band / Monte-Carlo std on the flanks: {ratio.min():.3f} .. {ratio.max():.3f}")
+    assert np.all(np.abs(ratio - 1.0) < 0.15)
 
 
 # --------------------------------------------------------------------------- headline

@@ -56,7 +56,7 @@ MAIN_FIGURES: Mapping[str, tuple[str, ...]] = {
     "decode": ("decode_time_series.png", "eye.png", "psd.png", "l0_search.png"),
     "kalman-bank": ("bank_rms_vs_time.png", "bank_rms_vs_z.png"),
     "identify gamma": ("gamma_ir_ts.png",),
-    "identify freeair": ("thermal_fit.png",),
+    "identify freeair": ("thermal_fit.png", "sweep_bode.png"),
 }
 
 #: Headline numbers shown per row of a batch page (each run's own page has all of them).
