@@ -415,3 +415,29 @@ def test_headline_and_first_figure_above_the_fold(runs, batch_folder, run, tmp_p
     assert pixels.shape[:2] == (800, 1280)
     assert float(np.std(pixels[..., :3])) > 0.05  # not a blank page
 
+
+
+def test_reep_rows_flagged_in_reep_h5_are_left_out_and_marked(tmp_path):
+    import h5py
+
+    from afmtool.analyses.reep_timeseries import _read_thinned, segment_statistics, tracking_error
+
+    fs, n = 500_000.0, 4000
+    t = (np.arange(n) * 7 + 6) / fs
+    f0 = np.full(n, 70_000.0)
+    q = np.full(n, 200.0)
+    flag = np.zeros(n, dtype=np.uint8)
+    flag[1000:1100] = 4  # a validity check failed there: the fitted values are kept but not trusted
+    f0[1000:1100], q[1000:1100] = 90_000.0, 5.0
+    path = tmp_path / "reep.h5"
+    with h5py.File(path, "w") as h5:
+        for name, values in {"t": t, "f0_hz": f0, "q": q, "amplitude": np.ones(n), "phase_deg": np.zeros(n),
+                             "flag": flag}.items():
+            h5[name] = values
+    stats = segment_statistics(path, 0.0, None)["settled"]
+    assert stats["f0_hz"]["mean"] == 70_000.0 and stats["f0_hz"]["count"] == n - 100
+    truth = {"f0_hz": np.full(n * 7 + 7, 70_000.0), "q": np.full(n * 7 + 7, 200.0)}
+    error = tracking_error(path, truth, fs, 0.0)
+    assert error["f0_hz"]["p95_abs"] == 0.0 and error["rows_compared"] == n - 100
+    marked = _read_thinned(path, ("f0_hz",))
+    np.testing.assert_array_equal(marked.flagged_t, t[1000:1100])

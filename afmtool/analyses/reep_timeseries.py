@@ -24,7 +24,7 @@ import numpy as np
 __all__ = [
     "MAX_PLOT_POINTS",
     "MAX_PERCENTILE_POINTS",
-    "FLAG_COLUMNS",
+    "FLAG_COLUMN",
     "segment_statistics",
     "tracking_error",
     "write_reep_time_series_png",
@@ -34,8 +34,8 @@ __all__ = [
 MAX_PLOT_POINTS = 20000
 #: Most rows over which the tracking-error percentiles are taken.
 MAX_PERCENTILE_POINTS = 1_000_000
-#: Per-row validity columns reep.h5 may carry (non-zero = valid); a row whose f0' is NaN is flagged too.
-FLAG_COLUMNS = ("valid", "validity")
+#: The per-row validity column reep.h5 may carry: bit flags, 0 = valid (a row whose f0' is NaN is flagged too).
+FLAG_COLUMN = "flag"
 #: Most flagged rows marked on the figure.
 _MAX_FLAG_MARKS = 5000
 _BLOCK_ROWS = 1 << 20
@@ -46,8 +46,12 @@ def _blocks(dataset, n: int):
         yield start, dataset[start : min(n, start + _BLOCK_ROWS)]
 
 
-def _flag_column(h5) -> str | None:
-    return next((name for name in FLAG_COLUMNS if name in h5), None)
+def _trusted(h5, name: str, rows) -> np.ndarray:
+    """Column ``name`` at ``rows`` (a slice or index array), NaN where the row is flagged."""
+    values = np.asarray(h5[name][rows], dtype=np.float64)
+    if FLAG_COLUMN in h5:
+        values = np.where(np.asarray(h5[FLAG_COLUMN][rows]) == 0, values, np.nan)
+    return values
 
 
 class _Moments:
@@ -99,7 +103,8 @@ def segment_statistics(
     dict
         ``{segment: {"t_s": [start, end], "f0_hz": {"mean", "std", "count"},
         "q": {...}}}``; std is the sample standard deviation of the rows (a
-        spread, not the error of the mean).
+        spread, not the error of the mean).  Rows flagged in reep.h5's
+        ``flag`` column (0 = valid) are left out, as the summary leaves them.
     """
     import h5py
 
@@ -115,7 +120,7 @@ def segment_statistics(
         n = len(h5["t"])
         for start_row, t in _blocks(h5["t"], n):
             stop_row = start_row + len(t)
-            columns = {name: h5[name][start_row:stop_row] for name in ("f0_hz", "q")}
+            columns = {name: _trusted(h5, name, slice(start_row, stop_row)) for name in ("f0_hz", "q")}
             for seg, (t0, t1) in bounds.items():
                 inside = (t >= t0) & (t < t1)
                 for name, values in columns.items():
@@ -158,7 +163,7 @@ def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_h
     dict or None
         ``{"f0_hz": {"median_abs", "p95_abs", "units": "Hz"}, "q": {...,
         "units": ""}, "after_s", "rows_compared"}``.  Flagged rows (NaN f0')
-        are left out.  Percentiles over more than
+        and rows with a non-zero ``flag`` are left out.  Percentiles over more than
         :data:`MAX_PERCENTILE_POINTS` rows use that many evenly spaced ones.
     """
     import h5py
@@ -171,8 +176,8 @@ def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_h
         n_rows = len(h5["t"])
         step = max(1, math.ceil(n_rows / MAX_PERCENTILE_POINTS))
         t = h5["t"][::step]
-        f0 = h5["f0_hz"][::step]
-        q = h5["q"][::step]
+        f0 = _trusted(h5, "f0_hz", slice(None, None, step))
+        q = _trusted(h5, "q", slice(None, None, step))
     index = np.rint(t * sample_rate_hz).astype(np.int64)
     keep = (t >= warmup_s) & (index >= 0) & (index < min(len(truth_f0), len(truth_q)))
     if not np.any(keep):
@@ -203,13 +208,13 @@ def _read_thinned(reep_h5: Path, names: tuple[str, ...]) -> _Thinned:
         step = max(1, math.ceil(n / MAX_PLOT_POINTS))
         t = h5["t"][::step]
         columns = {name: h5[name][::step] for name in names if name in h5}
-        flag_name = _flag_column(h5)
+        flag_name = FLAG_COLUMN if FLAG_COLUMN in h5 else None
         flagged_rows: list[np.ndarray] = []
         count = 0
         for start, f0 in _blocks(h5["f0_hz"], n):
             bad = ~np.isfinite(f0)
             if flag_name is not None:
-                bad |= h5[flag_name][start : start + len(f0)] == 0
+                bad |= h5[flag_name][start : start + len(f0)] != 0
             rows = np.flatnonzero(bad) + start
             flagged_rows.append(rows)
             count += rows.size
@@ -235,8 +240,9 @@ def write_reep_time_series_png(
 
     The free-air segment is shaded, the warm-up (before the forgetting
     window has passed) marked, and flagged rows ((b1, b0) outside the
-    under-damped region of eq. 3.48, or a zero in reep.h5's validity column)
-    marked with red crosses on the axis at the value their neighbours had.
+    under-damped region of eq. 3.48, or a non-zero ``flag`` in reep.h5)
+    marked with red crosses: at their value, or at the panel's median where
+    the value is NaN.
     """
     from afmtool.report.images import write_multi_panel_png
 
