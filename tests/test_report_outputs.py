@@ -50,6 +50,7 @@ RUNS = {
     "observer": ["theory", "observer", "--cycles", "4", "--out", "{out}"],
 }
 RUNS["sweep"] = ["identify", "freeair", "chirp.h5", "--sweep", "--out", "{out}"]
+RUNS["electrostatic"] = ["identify", "electrostatic", "es.h5", "--out", "{out}"]
 #: Made before the runs, in their folder: a chirp sweep of the free-air cantilever.
 _CHIRP = ["simulate", "ltv", "-o", "chirp.h5", "--set", "step_time_s=10.0", "--set", "duration_s=0.1",
           "--set", "sweep_span_hz=20000.0", "--set", "drive=chirp"]
@@ -126,6 +127,7 @@ def runs(tmp_path_factory):
         patch.setattr(Figure, "savefig", inspecting_savefig)
         patch.chdir(base)
         _invoke(_CHIRP)
+        _invoke(["simulate", "es-approach", "-o", "es.h5"])
         for run, args in RUNS.items():
             out = base / run
             current["run"] = run
@@ -288,7 +290,7 @@ def _page(folder: Path) -> str:
     return (folder / "report.html").read_text(encoding="utf-8")
 
 
-@pytest.mark.parametrize("run", ["readme", "probeloss", "decode", "bank", "gamma"])
+@pytest.mark.parametrize("run", ["readme", "probeloss", "decode", "bank", "gamma", "sweep", "electrostatic"])
 def test_rendered_numbers_match_report_json(runs, run):
     folders, _ = runs
     report = json.loads((folders[run] / "report.json").read_text())
@@ -301,15 +303,18 @@ def test_rendered_numbers_match_report_json(runs, run):
         if isinstance(value, bool):
             assert number == ("yes" if value else "no")
             continue
-        shown, _, shown_std = number.partition(" ± ")
         if entry["std"] is None:
-            assert not shown_std
-            assert math.isclose(float(shown), value, rel_tol=5e-6, abs_tol=1e-300), (entry, number)
+            assert " ± " not in number
+            assert math.isclose(float(number), value, rel_tol=5e-6, abs_tol=1e-300), (entry, number)
         else:
+            match = re.fullmatch(r"\(?(-?[\d.]+) ± ([\d.]+)\)?(?:e([-+]\d+))?", number)
+            assert match, number
+            shown, shown_std, exponent = match.group(1), match.group(2), int(match.group(3) or 0)
+            scale = 10.0**exponent
             decimals = len(shown.partition(".")[2])
             # rounded to the second significant digit of the deviation, value to the same decimal
-            assert abs(float(shown) - value) <= 0.5 * 10.0**-decimals + 1e-12, (entry, number)
-            assert abs(float(shown_std) - entry["std"]) <= 0.5 * 10.0**-decimals + 1e-12, (entry, number)
+            assert abs(float(shown) * scale - value) <= (0.5 * 10.0**-decimals + 1e-12) * scale, (entry, number)
+            assert abs(float(shown_std) * scale - entry["std"]) <= (0.5 * 10.0**-decimals + 1e-12) * scale, (entry, number)
             assert 10 <= float(shown_std) * 10.0**decimals < 100 or float(shown_std) >= 10, (entry, number)
 
 

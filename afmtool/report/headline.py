@@ -116,7 +116,24 @@ def _gamma(block: _Block) -> None:
     block.add("feed-through capacitance", "feedthrough_fit.capacitance_pf", "pF")
 
 
+def _electrostatic(block: _Block) -> None:
+    block.add("ℓ0", "parameters.l0_m.value", "m", "parameters.l0_m.std")
+    block.add("K_esf/k", "parameters.k_esf_over_k_m3_per_v2.value", "m³/V²", "parameters.k_esf_over_k_m3_per_v2.std")
+    block.add("α_R", "parameters.alpha_r.value", "", "parameters.alpha_r.std")
+    block.add("t_h", "parameters.tip_height_m.value", "m", "parameters.tip_height_m.std")
+    block.add("K_esf", "parameters.k_esf_f_m.value", "F·m", "parameters.k_esf_f_m.std")
+    block.add("RMS residual", "rms_residual_nm", "nm")
+
+
+def _thermal(block: _Block) -> None:
+    block.add("K_TP (I-V knee)", "iv.k_tp_k_per_mw", "K/mW")
+    block.add("knee power", "iv.knee_power_mw", "mW")
+    block.add("knee voltage", "iv.knee_voltage_v", "V")
+
+
 _BY_COMMAND: Mapping[str, Callable[[_Block], None]] = {
+    "identify electrostatic": _electrostatic,
+    "identify thermal": _thermal,
     "reep": _reep,
     "probeloss": _probeloss,
     "decode": _decode,

@@ -170,16 +170,23 @@ def format_measurement(value, std=None, units: str = "") -> tuple[str, str]:
     """``(number, units)`` as the page shows them: ``("70000.2 ± 1.0", "Hz")``.
 
     With a standard deviation, the value is rounded to the decimal of the
-    deviation's second significant digit (``200.12 ± 0.23``); without one,
-    to 6 significant digits.  Integers and text are shown as they are.
+    deviation's second significant digit (``200.12 ± 0.23``), both under a
+    shared power of ten when they are below 1e-3 or from 1e6 up
+    (``(1.24318 ± 0.00021)e-06``); without one, to 6 significant digits.  Integers and text are shown as they are.
     """
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return _format(value), units
     if isinstance(value, int) and std is None:
         return str(value), units
     if std is not None and isinstance(std, (int, float)) and math.isfinite(std) and std > 0 and math.isfinite(value):
+        exponent = 0
+        magnitude = max(abs(value), std)
+        if magnitude < 1e-3 or magnitude >= 1e6:  # a shared power of ten: (1.24318 ± 0.00021)e-06
+            exponent = int(math.floor(math.log10(magnitude)))
+            value, std = value / 10.0**exponent, std / 10.0**exponent
         decimals = max(0, 1 - int(math.floor(math.log10(std))))
-        return f"{value:.{decimals}f} ± {std:.{decimals}f}", units
+        text = f"{value:.{decimals}f} ± {std:.{decimals}f}"
+        return (f"({text})e{exponent:+03d}" if exponent else text), units
     return _format(float(value)), units
 
 
