@@ -21,6 +21,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from afmtool.report.timeseries import MAX_PLOT_POINTS
+
 __all__ = [
     "MAX_PLOT_POINTS",
     "MAX_PERCENTILE_POINTS",
@@ -30,8 +32,6 @@ __all__ = [
     "write_reep_time_series_png",
 ]
 
-#: Most rows drawn per line of the time-series figure (Agg draws a bounded number of vertices well).
-MAX_PLOT_POINTS = 20000
 #: Most rows over which the tracking-error percentiles are taken.
 MAX_PERCENTILE_POINTS = 1_000_000
 #: The per-row validity column reep.h5 may carry: bit flags, 0 = valid (a row whose f0' is NaN is flagged too).
