@@ -33,6 +33,7 @@ _MODEL = frozenset({
     "--model", "--models", "--free-air", "--thermal-model", "--spring-constant", "--temperature",
     "--room-temperature", "--breakdown-temperature", "--f0", "--q", "--f0-low", "--q-low", "--f0-scale",
     "--force-set", "--sensor", "--l0", "--nominal", "--actuation-hz", "--free-amplitude", "--at-z",
+    "--seed", "--set",  # simulate: the simulated plant and its noise
 })
 _OUTPUT = frozenset({
     "--out", "--output", "--json", "--quiet", "--stream", "--stream-format", "--format", "--compression",
