@@ -481,7 +481,8 @@ def test_decode_command_and_golden_report(tmp_path):
     report = json.loads(result.stdout)
     validate_report(report)
     assert json.loads((out / "report.json").read_text()) == report
-    assert sorted(report["outputs"]) == ["config.toml", "decode.h5", "eye.png", "l0_search.png", "psd.png", "report.json"]
+    assert sorted(report["outputs"]) == [
+        "config.toml", "decode.h5", "decode_time_series.png", "eye.png", "l0_search.png", "psd.png", "report.json"]
     truth = report["results"]["truth"]
     assert truth["decoder"]["errors"] == 0 and abs(truth["l0_error_percent"]) < 1
     with h5py.File(out / "decode.h5") as h5:

@@ -28,11 +28,13 @@ def test_report_is_self_contained(reep_folder):
     result = run_cli("report", reep_folder, "-q")
     assert result.returncode == 0, result.stderr.decode()
     page = (reep_folder / "report.html").read_text()
-    for section in ("inputs", "results", "warnings", "parameters", "figures", "files"):
-        assert f'<section id="{section}">' in page
+    for section in ("headline-block", "figures", "warnings", "details"):
+        assert f'<section id="{section}"' in page
+    for collapsed in ("inputs", "parameters", "results", "files"):
+        assert f'<details id="{collapsed}">' in page
     assert page.count("data:image/png;base64,") == len(list(reep_folder.glob("*.png"))) >= 2
     assert "src=\"http" not in page and "href=\"http" not in page  # nothing fetched from elsewhere
-    assert "summary.f0_hz.mean" in page
+    assert "summary.f0_hz.mean" in page  # every result, in the collapsed table
 
 
 def test_report_of_a_non_output_folder(tmp_path):
@@ -49,8 +51,10 @@ def test_report_renders_in_headless_chromium(reep_folder, tmp_path):
     url = (tmp_path / "page.html").as_uri()
     common = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}"]
     dom = subprocess.run([*common, "--dump-dom", url], capture_output=True, text=True, timeout=120).stdout
-    for heading in ("Inputs", "Results", "Warnings", "Parameters", "Plots and images", "Files"):
+    for heading in ("Figures", "Warnings", "Details"):
         assert f"<h2>{heading}</h2>" in dom
+    for summary in ("Inputs", "Parameters", "All results", "Files"):
+        assert f"<summary>{summary}</summary>" in dom
     shot = tmp_path / "shot.png"
     subprocess.run([*common, f"--screenshot={shot}", "--window-size=1200,1600", url],
                    capture_output=True, timeout=120)

@@ -36,7 +36,7 @@ def test_golden_report(internal):
 
 def test_outputs(internal):
     out, report = internal
-    assert set(report["outputs"]) == {"bank.h5", "bank_rms_vs_z.png", "config.toml", "report.json"}
+    assert set(report["outputs"]) == {"bank.h5", "bank_rms_vs_time.png", "bank_rms_vs_z.png", "config.toml", "report.json"}
     assert (out / "bank_rms_vs_z.png").stat().st_size > 20_000
     n_filters = len(report["results"]["filters"])
     with h5py.File(out / "bank.h5") as f:

@@ -51,6 +51,7 @@ def run_decode_command(
                     units = "Hz" if name == "frequency_hz" else "nm^2/Hz"
                     writer.put(f"psd/{name}", result.psd[name], units)
         _write_figures(staged, result)
+        _write_time_series(staged, reader, result.results)
         return finish_run(staged, "decode", [record.result()], "decode", params, result.results, result.warnings)
 
 
@@ -61,6 +62,15 @@ def run_decode_stream(reader: CaptureReader, config: Path | None, flags: Mapping
     actuation period is what a live display needs.
     """
     run_stream(run_decode, DecodeParams, "decode", reader, config, flags, fmt, rows_with="innovation_mean")
+
+
+def _write_time_series(staged: OutputDir, reader: CaptureReader, results: Mapping) -> None:
+    """decode_time_series.png: the running mean with the decided bits and, with /truth/bit, the truth."""
+    from afmtool.analyses.decode_timeseries import write_decode_time_series_png
+
+    truth_bit = reader.truth()["bit"] if "bit" in reader.info.truth_names else None
+    write_decode_time_series_png(staged.path, staged.path("decode.h5"), results, truth_bit=truth_bit,
+                                 sample_rate_hz=reader.info.sample_rate_hz)
 
 
 def _write_figures(staged: OutputDir, result: DecodeResult) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -36,20 +37,90 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tu
     return model, {"segment_s": list(interval), "segment_samples": end - start}
 
 
-def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tuple[FreeAirModel, dict]:
-    from afmtool.estimators.frequency_response import free_air_from_sweep
+def model_response(model: FreeAirModel, frequency_hz: np.ndarray) -> np.ndarray:
+    """gain·G(j2πf)·e^(−j2πfτ): eq. 3.1's second-order G with the model's gain and drive delay τ."""
+    s = 2j * np.pi * np.asarray(frequency_hz, dtype=np.float64)
+    w0 = 2 * np.pi * model.f0_hz
+    return model.gain * w0 * w0 / (s * s + (w0 / model.q) * s + w0 * w0) * np.exp(-s * model.delay_s)
+
+
+def model_magnitude_std(model: FreeAirModel, frequency_hz: np.ndarray) -> np.ndarray:
+    """±1σ of |H| of :func:`model_response` from the standard errors of f0, Q and gain.
+
+    First-order propagation with independent errors: σ² = Σ_k (|H(p + σ_k e_k)| − |H(p)|)²,
+    each parameter moved by its own standard error (a missing one counts as 0).
+    """
+    base = np.abs(model_response(model, frequency_hz))
+    variance = np.zeros_like(base)
+    for name, std_name in (("f0_hz", "f0_std_hz"), ("q", "q_std"), ("gain", "gain_std")):
+        std = getattr(model, std_name)
+        if std:
+            moved = dataclasses.replace(model, **{name: getattr(model, name) + std})
+            variance += (np.abs(model_response(moved, frequency_hz)) - base) ** 2
+    return np.sqrt(variance)
+
+
+def write_sweep_bode_png(path: Path, fr, model: FreeAirModel, units: str) -> None:
+    """Measured response (±1σ) with the fitted second-order model (±1σ from its parameters' errors)."""
+    from afmtool.report.bode import BodeCurve, write_bode_png
+
+    f = np.asarray(fr.frequency_hz, dtype=np.float64)
+    # the bins the fit may use (coherence >= 0.5, a finite response); elsewhere the drive put in no power
+    keep = (f > 0) & np.isfinite(fr.response) & (np.asarray(fr.coherence) >= 0.5)
+    if np.count_nonzero(keep) < 2:
+        keep = f > 0
+    fine = np.geomspace(f[keep][0], f[keep][-1], 2000)
+    write_bode_png(
+        path,
+        [BodeCurve(f[keep], fr.response[keep], f"measured ({fr.method})", {"color": "C0"}, fr.magnitude_std[keep]),
+         BodeCurve(fine, model_response(model, fine), f"fit: f0 = {model.f0_hz:.1f} Hz, Q = {model.q:.1f}",
+                   {"color": "C3", "linestyle": "--"}, model_magnitude_std(model, fine))],
+        title="Free-air frequency response and its second-order fit",
+        magnitude_label=f"|H| (dB re 1 {units})",
+        markers=[(model.f0_hz, "f0")],
+    )
+
+
+def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress):
+    from afmtool.estimators.frequency_response import free_air_from_response, sweep_frequency_response
 
     chunks = list(iter_chunks(reader, ("dither", "deflection"), 1 << 20, progress=progress))
     dither = np.concatenate([c.data["dither"] for c in chunks])
     deflection = np.concatenate([c.data["deflection"] for c in chunks])
     segments = reader.info.metadata.get("segments") if params.sweep_method == "stepped" else None
-    model = free_air_from_sweep(
-        dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method, segments=segments
-    )
-    return model, {"sweep_method": params.sweep_method, "samples": len(dither)}
+    fr = sweep_frequency_response(dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method,
+                                  segments=segments)
+    model = free_air_from_response(fr)
+    info = reader.info
+    units = f"{info.units('deflection')}/{info.units('dither')}".strip("/") or "input units"
+    plot = lambda path: write_sweep_bode_png(path, fr, model, units)  # noqa: E731 - drawn once the folder is staged
+    return model, {"sweep_method": params.sweep_method, "samples": len(dither)}, plot
 
 
-def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict]:
+def write_thermal_fit_png(path: Path, frequency_hz: np.ndarray, asd: np.ndarray, fit) -> None:
+    """The measured thermal ASD with the fitted oscillator-plus-floor model over it, fit band shaded."""
+    from afmtool.report.images import write_multi_panel_png
+
+    f = np.asarray(frequency_hz, dtype=np.float64)
+    measured = np.where(np.asarray(asd) > 0, asd, np.nan)
+    lo, hi = fit.band_hz
+    wide = (f >= max(f[0], lo - 2 * (hi - lo))) & (f <= hi + 2 * (hi - lo))
+    panels = [{
+        "y_label": "ASD (m/√Hz)",
+        "y_scale": "log",
+        "series": [
+            (f[wide] / 1e3, measured[wide], "measured", {"color": "C0", "linewidth": 0.8}),
+            (f[wide] / 1e3, fit.asd(f[wide]), f"fit: f0 = {fit.f0_hz:.1f} ± {fit.f0_std_hz:.2g} Hz, "
+             f"Q = {fit.q:.1f} ± {fit.q_std:.2g}", {"color": "C3", "linewidth": 1.4}),
+            (f[wide] / 1e3, np.full(np.count_nonzero(wide), fit.floor_asd_m_per_sqrt_hz), "white floor",
+             {"color": "0.4", "linestyle": ":"}),
+        ],
+    }]
+    write_multi_panel_png(path, panels, x_label="frequency (kHz)", spans=[(lo / 1e3, hi / 1e3, "fitted band")],
+                          title="Thermal-noise spectrum and its simple-harmonic-oscillator fit")
+
+
+def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict, Callable[[Path], None]]:
     from afmtool.estimators.thermal_noise import fit_thermal_spectrum
     from afmtool.io.psd import read_psd_csv
 
@@ -66,7 +137,7 @@ def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict
         "spring_constant_note": "equipartition, assuming the ASD is calibrated tip displacement (m/sqrt(Hz))",
         "temperature_k": params.temperature_k,
     }
-    return model, details
+    return model, details, lambda path: write_thermal_fit_png(path, frequency, asd, fit)
 
 
 def run_freeair_command(
@@ -79,16 +150,19 @@ def run_freeair_command(
 ) -> dict:
     """Identify the free-air model by the chosen route and write free_air.json + report."""
     params = resolve_from(FreeAirParams, "identify.freeair", load_toml(config) if config else None, flags)
+    plot = None
     if params.route == "thermal":
-        model, details = _thermal_route(Path(source), params)
+        model, details, plot = _thermal_route(Path(source), params)
         inputs = [input_record(source, "psd")]
     elif params.route == "sweep":
-        model, details = _sweep_route(reader, params, progress)
+        model, details, plot = _sweep_route(reader, params, progress)
         inputs = [input_record(source)]
     else:
         model, details = _segment_route(reader, params, progress)
         inputs = [input_record(source)]
     with OutputDir(out) as staged:
         model.save(staged.path("free_air.json"))
+        if plot is not None:
+            plot(staged.path("thermal_fit.png" if params.route == "thermal" else "sweep_bode.png"))
         results = {"free_air_model": model.to_dict(), "route": params.route, **details}
         return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, [])

@@ -200,6 +200,15 @@ def _write_tables(staged: OutputDir, gamma: GammaResponses, facts: dict) -> None
                     rows.append(frf_table(fr))
 
 
+def _feedthrough_model(fit, frequency_hz: np.ndarray) -> np.ndarray | None:
+    """The fitted feed-through (b1 s + b0)/(s + a0), s = j2πf in rad/s, µA/V; None without a fit."""
+    if not isinstance(fit, dict) or not fit.get("numerator_ua_per_v") or not fit.get("denominator"):
+        return None
+    (b1, b0), (_, a0) = fit["numerator_ua_per_v"], fit["denominator"]
+    s = 2j * np.pi * np.asarray(frequency_hz, dtype=np.float64)
+    return (b1 * s + b0) / (s + a0)
+
+
 def _write_plots(staged: OutputDir, gamma: GammaResponses, results: dict, mask: np.ndarray) -> None:
     """Bode plots; Γ_IR,ts and eq. 6.16 are drawn over the usable bins only (noise elsewhere)."""
     from afmtool.report.bode import BodeCurve, write_bode_png
@@ -213,7 +222,7 @@ def _write_plots(staged: OutputDir, gamma: GammaResponses, results: dict, mask: 
     write_bode_png(
         staged.path("gamma_ir_ts.png"),
         [
-            BodeCurve(f, usable(gamma.ir_ts), "corrected, eq. 6.15", {"color": "C0"}),
+            BodeCurve(f, usable(gamma.ir_ts), "corrected, eq. 6.15", {"color": "C0"}, gamma.ir_ts.magnitude_std),
             BodeCurve(f, usable(gamma.ir_ts_uncorrected), "uncorrected, eq. 6.16", {"color": "C3", "linestyle": "--"}),
         ],
         title="Sensing transfer function Gamma_IR,ts",
@@ -222,19 +231,28 @@ def _write_plots(staged: OutputDir, gamma: GammaResponses, results: dict, mask: 
     )
     lo, hi = results["usable_band_hz"]
     driven = (f >= lo) & (f <= hi)  # the feed-through's own coherence is low at low f: drawn, not masked
+    feedthrough_curves = [
+        BodeCurve(f[driven], gamma.ir_v.response[driven], "Gamma_IR,V near the sample", {"color": "C0"},
+                  gamma.ir_v.magnitude_std[driven]),
+        BodeCurve(f[driven], gamma.feedthrough.response[driven], "Gamma_sp in contact (feed-through)",
+                  {"color": "C3"}, gamma.feedthrough.magnitude_std[driven]),
+    ]
+    fit = results.get("feedthrough_fit")
+    fit_band = fit.get("band_hz") if isinstance(fit, dict) else None
+    in_fit_band = (f >= fit_band[0]) & (f <= fit_band[1]) if fit_band else driven
+    fitted = _feedthrough_model(fit, f[in_fit_band])
+    if fitted is not None and fitted.size:
+        feedthrough_curves.append(BodeCurve(f[in_fit_band], fitted, "fitted (b1 s + b0)/(s + a0), fit band",
+                                            {"color": "k", "linestyle": ":"}))
     write_bode_png(
         staged.path("feedthrough.png"),
-        [
-            BodeCurve(f[driven], gamma.ir_v.response[driven], "Gamma_IR,V near the sample", {"color": "C0"}),
-            BodeCurve(f[driven], gamma.feedthrough.response[driven], "Gamma_sp in contact (feed-through)",
-                      {"color": "C3"}),
-        ],
+        feedthrough_curves,
         title="V_sub to thermal current: near the sample and in contact",
         magnitude_label="|Gamma| (dB re 1 uA/V)",
     )
     write_bode_png(
         staged.path("gamma_ts_v.png"),
-        [BodeCurve(f[driven], gamma.ts_v.response[driven], "Gamma_ts,V", {"color": "C2"})],
+        [BodeCurve(f[driven], gamma.ts_v.response[driven], "Gamma_ts,V", {"color": "C2"}, gamma.ts_v.magnitude_std[driven])],
         title="V_sub to tip-sample separation (optical deflection)",
         magnitude_label="|Gamma_ts,V| (dB re 1 nm/V)",
     )

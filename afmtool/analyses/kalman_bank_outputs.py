@@ -2,7 +2,7 @@
 
 Writes ``bank.h5`` (decimated series ``t``, ``z``, ``rms`` (N × T),
 ``adaptive_rms``, ``reep_f0_hz``, ``reep_q``; ``models/...``; binned
-``force_curve/{approach,retract}/...``), ``bank_rms_vs_z.png``,
+``force_curve/{approach,retract}/...``), ``bank_rms_vs_z.png``, ``bank_rms_vs_time.png``,
 ``report.json`` and ``config.toml``.
 """
 
@@ -68,6 +68,7 @@ def run_kalman_bank_command(
                 )
                 _write_tables(writer, result, deflection_units)
             _plot_rms_vs_z(staged.path("bank_rms_vs_z.png"), result, deflection_units)
+            _plot_rms_vs_time(staged.path("bank_rms_vs_time.png"), staged.path("bank.h5"), result, deflection_units)
             warnings = list(result.warnings)
             if not result.verdict.passed:
                 warnings.append("verdict FAIL: " + "; ".join(result.verdict.reasons))
@@ -123,6 +124,43 @@ def _plot_rms_vs_z(path: Path, result: KalmanBankResult, deflection_units: str) 
         title=f"Innovation RMS of the Kalman bank and the adaptive observer (§3.4.2): {verdict}",
         markers=markers,
     )
+
+
+def _plot_rms_vs_time(path: Path, bank_h5: Path, result: KalmanBankResult, deflection_units: str) -> None:
+    """Each filter's innovation RMS and the adaptive observer's against time, z_piezo overlaid (thesis Fig. 3.9).
+
+    Read back from the finished bank.h5 with an HDF5 stride (at most
+    :data:`afmtool.report.timeseries.MAX_PLOT_POINTS` columns).
+    """
+    import math
+
+    import h5py
+
+    from afmtool.report.images import write_multi_panel_png
+    from afmtool.report.timeseries import MAX_PLOT_POINTS
+
+    with h5py.File(bank_h5, "r") as h5:
+        n = len(h5["t"])
+        if n < 2:
+            return
+        step = max(1, math.ceil(n / MAX_PLOT_POINTS))
+        t = h5["t"][::step]
+        rms = h5["rms"][:, ::step]
+        adaptive = h5["adaptive_rms"][::step]
+        z = h5["z"][::step] if "z" in h5 else None
+    units = deflection_units or "input units"
+    series = []
+    for k, row in enumerate(rms):
+        colour = _FILTER_COLOURS[k % len(_FILTER_COLOURS)]
+        series.append((t, np.where(row > 0, row, np.nan), f"z{k + 1}", {"color": colour, "linewidth": 0.9}))
+    series.append((t, np.where(adaptive > 0, adaptive, np.nan), "adaptive (REEP)", {"color": "k", "linewidth": 1.8, "zorder": 5}))
+    panel = {"series": series, "y_label": f"innovation RMS ({units})", "y_scale": "log"}
+    if z is not None:
+        z_label = f"z_piezo ({result.z_units})" if result.z_units else "z_piezo (input units)"
+        panel["twin"] = {"series": [(t, z, "z_piezo", {"color": "0.5", "linestyle": "--"})], "y_label": z_label}
+    verdict = "PASS" if result.verdict.passed else "FAIL"
+    write_multi_panel_png(path, [panel], x_label="time t (s)",
+                          title=f"Kalman bank innovation RMS against time, z overlaid (§3.4.2): {verdict}")
 
 
 def _log10(values: np.ndarray) -> np.ndarray:

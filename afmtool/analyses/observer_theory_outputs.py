@@ -261,8 +261,10 @@ def _plot_maps(path: Path, grid: ObserverMap, j: int, direction: Direction) -> N
             ax.plot(line_f, [direction.q_free, direction.q_low], "w--", linewidth=1)
             ax.plot(grid.nominal[0] / 1e3, grid.nominal[1], "r+", markersize=10)
             ax.set_xlabel("observer f_k (kHz)")
-            ax.set_ylabel("observer Q_k")
-            fig.colorbar(im, ax=ax, label=units)
+            ax.set_ylabel("observer Q_k (dimensionless)")
+            shown_units = units or "dimensionless"
+            fig.colorbar(im, ax=ax, label=f"{title} ({shown_units})" if name == "settling_cycles"
+                         else f"log10 {title} ({shown_units})")
         fig.suptitle(f"Observer design maps (ch. 5), plant at f {grid.nominal[0]:.0f} Hz, Q {grid.nominal[1]:.1f}; "
                      f"gain: 1/e in {grid.cycles[j]:g} drive periods")
 
@@ -280,8 +282,9 @@ def _plot_lines(path: Path, lines: DirectionalLines) -> None:
                 label = f"observer {fk:.0f} Hz, Q {qk:.0f}, {c:g} periods" if not panels else ""
                 series.append((lines.s, _log10(values), label, style))
         label, units = METRIC_UNITS[name]
-        panels.append({"series": series, "y_label": f"log10 {'|' + label + '|' if name == 'dae2_ds' else label}"[:40]})
+        quantity = f"log10 {'|' + label + '|' if name == 'dae2_ds' else label}"[:34]
+        panels.append({"series": series, "y_label": f"{quantity} ({units or 'dimensionless'})"})
     write_multi_panel_png(
-        path, panels, x_label="s along the force-curve direction (0 free air, 1 on-sample)",
+        path, panels, x_label="s along the force-curve direction (dimensionless: 0 free air, 1 on-sample)",
         title="Observer trade-offs along the force curve (Figs. 5.9-5.20)",
     )

@@ -51,6 +51,7 @@ def run_probeloss_command(
             result = run_probeloss(reader, params, writer, model=model, progress=progress)
             _write_images(staged, writer, result)
         results = dict(result.results)
+        _write_time_series(staged, reader, results)
         if result.setup is not None and result.setup.model_source == "segment":
             result.setup.model.save(staged.path("free_air.json"))
         inputs = [capture_record.result()]
@@ -71,6 +72,17 @@ def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapp
     run_stream(analysis, ProbeLossParams, "probeloss", reader, config, flags, fmt)
 
 
+def _write_time_series(staged: OutputDir, reader: CaptureReader, results: Mapping) -> None:
+    """The index, switches, amplitude and truth contact against time, from the finished probeloss.h5."""
+    from afmtool.analyses.probeloss_timeseries import write_probeloss_time_series
+
+    contact = reader.truth()["contact"] if "contact" in reader.info.truth_names else None
+    write_probeloss_time_series(
+        staged.path, staged.path("probeloss.h5"), results, amplitude_units=_units(reader)["amplitude"],
+        truth_contact=contact, sample_rate_hz=reader.info.sample_rate_hz,
+    )
+
+
 def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResult) -> None:
     """Probe-loss mask (fraction of each pixel's samples in loss) and index images, PNG and .gsf."""
     if result.geometry is None:
@@ -89,7 +101,7 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResu
         cmap = "gray_r" if quantity == "loss" else "afmhot"
         write_image_png(
             staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})",
-            cmap=cmap, z_range=z_range,
+            cmap=cmap, z_range=z_range, z_label=title,
         )
         write_gsf(
             staged.path(f"{stem}.gsf"), np.asarray(top_first), size, y_size, xy_units="m", z_units=units,

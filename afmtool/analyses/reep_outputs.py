@@ -49,9 +49,10 @@ def run_reep_command(
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
             result = run_reep(reader, params, writer, model=model, progress=progress)
-            _write_force_curves(staged, writer, result)
+            _write_force_curves(staged, writer, result, deflection_units)
             _write_images(staged, writer, result, deflection_units)
         results = dict(result.results)
+        results.update(_time_series(staged, reader, result, deflection_units))
         if result.force_curves:
             results["force_curve"] = _curve_summary(result)
         if result.geometry is not None:
@@ -76,6 +77,33 @@ def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, 
     run_stream(analysis, ReepParams, "reep", reader, config, flags, fmt)
 
 
+def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, deflection_units: str) -> dict:
+    """``reep_time_series.png`` and the results read back from the finished reep.h5.
+
+    ``segments``: f0', Q' in and after the free-air segment; with ``/truth``
+    f0_hz and q, ``truth_tracking``: the error against them after the warm-up.
+    """
+    from afmtool.analyses.reep_timeseries import segment_statistics, tracking_error, write_reep_time_series_png
+
+    fs = reader.info.sample_rate_hz
+    warmup_s = result.results["summary_after_warmup_samples"] / fs
+    segment = result.results.get("free_air_segment_s")
+    reep_h5 = staged.path("reep.h5")
+    wanted = ("f0_hz", "q", "amplitude", "phase_deg")
+    truth = {}
+    if any(name in reader.info.truth_names for name in wanted):
+        truth = {name: values for name, values in reader.truth().items() if name in wanted}
+    out: dict = {"segments": segment_statistics(reep_h5, warmup_s, segment)}
+    tracking = tracking_error(reep_h5, truth, fs, warmup_s)
+    if tracking is not None:
+        out["truth_tracking"] = tracking
+    write_reep_time_series_png(
+        staged.path("reep_time_series.png"), reep_h5, amplitude_units=deflection_units, truth=truth or None,
+        sample_rate_hz=fs, free_air_segment_s=segment, warmup_s=warmup_s,
+    )
+    return out
+
+
 def _finite_mean(values: np.ndarray) -> float | None:
     finite = values[np.isfinite(values)]
     return float(finite.mean()) if finite.size else None
@@ -97,7 +125,7 @@ def _curve_summary(result: ReepResult) -> dict:
     return summary
 
 
-def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepResult) -> None:
+def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str) -> None:
     if not result.force_curves:
         return
     from afmtool.report.images import APPROACH_STYLE, RETRACT_STYLE, write_multi_panel_png
@@ -109,14 +137,21 @@ def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepRes
             writer.put(f"force_curve/{leg}/{name}", values, SERIES_UNITS.get(name, ""))
             writer.put(f"force_curve/{leg}/d_{name}_dz", table.sensitivities[name])
     styles = {"approach": APPROACH_STYLE, "retract": RETRACT_STYLE}
-    labels = {"f0_hz": "f0' (Hz)", "q": "Q'", "amplitude": "amplitude", "phase_deg": "phase (deg)"}
+    amplitude_units = deflection_units or "input units"
+    z_units = result.z_units or "z units"
+    # (quantity, units) per panel; a sensitivity's units are the quantity's per z unit
+    labels = {"f0_hz": ("f0'", "Hz"), "q": ("Q'", ""), "amplitude": ("amplitude", amplitude_units), "phase_deg": ("phase", "deg")}
     for prefix, key in (("", "means"), ("d", "sensitivities")):
         panels = []
-        for name, label in labels.items():
+        for name, (quantity, units) in labels.items():
             series = [
                 (table.z, getattr(table, key)[name], leg, styles[leg]) for leg, table in result.force_curves.items()
             ]
-            panels.append({"y_label": f"d{label}/dz" if prefix else label, "series": series})
+            if prefix:
+                label = f"d{quantity}/dz ({units or '1'}/{z_units})"
+            else:
+                label = f"{quantity} ({units or 'dimensionless'})"
+            panels.append({"y_label": label, "series": series})
         name = "force_curve.png" if not prefix else "force_curve_sensitivity.png"
         write_multi_panel_png(
             staged.path(name),
@@ -140,5 +175,6 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, d
         top_first = image[::-1]  # last line scanned at the top, as AFM viewers show it
         writer.put(f"images/{key}", image, units, {"row0": "first line scanned"})
         stem = f"{quantity}_{direction}"
-        write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})")
+        write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})",
+                        z_label=title)
         write_gsf(staged.path(f"{stem}.gsf"), top_first, size, y_size, xy_units="m", z_units=units, title=f"{title} {direction}")

@@ -71,7 +71,7 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
                 ("amplitude (nm)", lambda c: c.amplitude_nm),
                 ("phase (deg)", lambda c: np.degrees(c.phase_rad)),
                 ("f0e (Hz)", lambda c: c.f0_e_hz),
-                ("Qe", lambda c: c.q_e),
+                ("Qe (dimensionless)", lambda c: c.q_e),
             )
         ]
         write_multi_panel_png(
@@ -143,7 +143,7 @@ def _plot_comparison(path: Path, series, separation, comparison) -> None:
     panels = [
         {"y_label": "f0' (Hz)", "series": [(separation[m], series["f0_hz"][m], "REEP", {"color": "C0", "linestyle": "none", "marker": ","}),
                                           (separation[m], comparison.f0_theory_hz[m], "averaging theory", {"color": "C3", "linestyle": "none", "marker": ","})]},
-        {"y_label": "Q'", "series": [(separation[m], series["q"][m], "REEP", {"color": "C0", "linestyle": "none", "marker": ","}),
+        {"y_label": "Q' (dimensionless)", "series": [(separation[m], series["q"][m], "REEP", {"color": "C0", "linestyle": "none", "marker": ","}),
                                     (separation[m], comparison.q_theory[m], "averaging theory", {"color": "C3", "linestyle": "none", "marker": ","})]},
     ]
     write_multi_panel_png(path, panels, x_label="separation l (nm)", title="REEP vs averaging theory (thesis Figs. 3.11-3.14)")

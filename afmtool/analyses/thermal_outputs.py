@@ -306,14 +306,16 @@ def _write_dynamics(staged: OutputDir, writer: ResultWriter, dyn: ThermalDynamic
     with open(staged.path("frf_c.csv"), "w", encoding="utf-8", newline="") as handle, RowWriter(handle, "csv") as rows:
         rows.append(frf_table(dyn.c))
     keep = f > 0
-    write_bode_png(staged.path("c.png"), [BodeCurve(f[keep], dyn.c.response[keep] * 1e-3, "C(jw), eq. 6.11")],
+    write_bode_png(staged.path("c.png"), [BodeCurve(f[keep], dyn.c.response[keep] * 1e-3, "C(jw), eq. 6.11", None,
+                                                         dyn.c.magnitude_std[keep] * 1e-3)],
                    title="Power to temperature C(jw)", magnitude_label="|C| (dB re 1 K/mW)")
     if dyn.h is not None:
         writer.put("dynamics/h", dyn.h.response, "K/m", {"description": "H(jw), eq. 6.12"})
         with open(staged.path("frf_h.csv"), "w", encoding="utf-8", newline="") as handle, RowWriter(handle, "csv") as rows:
             rows.append(frf_table(dyn.h))
         finite = keep & np.isfinite(dyn.h.response)
-        write_bode_png(staged.path("h.png"), [BodeCurve(f[finite], dyn.h.response[finite] * 1e-9, "H(jw), eq. 6.12")],
+        write_bode_png(staged.path("h.png"), [BodeCurve(f[finite], dyn.h.response[finite] * 1e-9, "H(jw), eq. 6.12", None,
+                                                             dyn.h.magnitude_std[finite] * 1e-9)],
                        title="Separation to temperature H(jw)", magnitude_label="|H| (dB re 1 K/nm)")
 
 

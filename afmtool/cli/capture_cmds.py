@@ -106,14 +106,21 @@ def report(
     ] = None,
     quiet: QuietOpt = False,
 ) -> None:
-    """One self-contained HTML page (plots embedded) from any analysis output folder."""
+    """One self-contained HTML page (plots embedded) from any analysis output folder.
+
+    The page opens with the headline numbers (units, uncertainties), then the
+    figures, the warnings, and the inputs and parameters collapsed.  A batch
+    folder gives one page with a row per input, linked to a page per run.
+    Only regular files inside FOLDER are read (no symbolic links, no FIFOs).
+    """
     from afmtool.cli.progress import stderr_console
     from afmtool.report.atomic import write_text_atomic
-    from afmtool.report.html import render_report_html
+    from afmtool.report.html import report_pages
 
-    target = output or folder / "report.html"
-    write_text_atomic(target, render_report_html(folder))
-    stderr_console(quiet).print(f"wrote {target}", highlight=False)
+    pages = report_pages(folder, output)
+    for path, page in pages:
+        write_text_atomic(path, page)
+    stderr_console(quiet).print(f"wrote {pages[-1][0]}", highlight=False)
 
 
 def register(app: typer.Typer) -> None:

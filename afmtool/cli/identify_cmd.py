@@ -27,7 +27,7 @@ def identify_gamma(
     ] = False,
     h1: Annotated[bool, typer.Option("--h1", help="Chirp or broadband drive (H1 estimate).")] = False,
     min_coherence: Annotated[
-        Optional[float], typer.Option("--min-coherence", help="Usable band threshold (default 0.9).")
+        Optional[float], typer.Option("--min-coherence", help="Usable band: coherence at least this (dimensionless, 0-1; default 0.9).")
     ] = None,
     json_output: JsonOpt = False,
     config: ConfigOpt = None,

@@ -40,14 +40,14 @@ def kalman_bank(
     q: QOpt = None,
     drive_hold: DriveHoldOpt = None,
     noise_ratio: Annotated[
-        Optional[float], typer.Option("--noise-ratio", help="Kalman σ_w/σ_v (default 0.03: ~10-period error decay).")
+        Optional[float], typer.Option("--noise-ratio", help="Kalman σ_w/σ_v (dimensionless, default 0.03: error decay in ~10 drive periods).")
     ] = None,
     window_periods: Annotated[
         Optional[float], typer.Option("--window-periods", help="Innovation RMS window, drive periods (default 10).")
     ] = None,
     z_bin: Annotated[Optional[float], typer.Option("--z-bin", help="RMS-against-z bin width (z_piezo units).")] = None,
     f0_scale: Annotated[
-        Optional[float], typer.Option("--f0-scale", help="Multiply the bank's f0 (negative control, e.g. 1.02).")
+        Optional[float], typer.Option("--f0-scale", help="Multiply the bank's f0 by this factor (dimensionless; negative control, e.g. 1.02).")
     ] = None,
     json_output: JsonOpt = False,
     config: ConfigOpt = None,

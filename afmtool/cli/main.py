@@ -32,6 +32,7 @@ from afmtool.cli import (
     simulate_cmd,
     theory_cmd,
 )
+from afmtool.cli.help import arrange_help
 from afmtool.errors import AfmtoolError
 
 __all__ = ["app", "main"]
@@ -119,6 +120,7 @@ def _run(argv: list[str] | None, signals: list[int]) -> None:
         # inside the try: building the command evaluates every option's annotations, a
         # moment a signal can land in
         command = typer.main.get_command(app)
+        arrange_help(command)
         result = command.main(args=argv, prog_name="afmtool", standalone_mode=False)
     except AfmtoolError as exc:
         _error(str(exc), 2)

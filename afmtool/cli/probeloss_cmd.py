@@ -49,7 +49,7 @@ def probeloss(
         bool, typer.Option("--kalman", help="Steady-state Kalman gain (DARE) instead of --decay-cycles.")
     ] = False,
     process_noise: Annotated[
-        Optional[float], typer.Option("--process-noise", help="Kalman: force noise as static deflection, rms.")
+        Optional[float], typer.Option("--process-noise", help="Kalman: force noise as static deflection, rms (deflection units).")
     ] = None,
     measurement_noise: Annotated[
         Optional[float], typer.Option("--measurement-noise", help="Kalman: measurement noise rms (deflection units).")
@@ -58,19 +58,19 @@ def probeloss(
         Optional[float], typer.Option("--window-periods", help="Index window in drive periods (default 1).")
     ] = None,
     on: Annotated[
-        Optional[float], typer.Option("--on", help="Loss when the index falls below this (default: automatic).")
+        Optional[float], typer.Option("--on", help="Loss when the index (dimensionless) falls below this (default: automatic).")
     ] = None,
     off: Annotated[
-        Optional[float], typer.Option("--off", help="Loss ends when the index rises above this (default: automatic).")
+        Optional[float], typer.Option("--off", help="Loss ends when the index (dimensionless) rises above this (default: automatic).")
     ] = None,
     index_level: Annotated[
-        Optional[float], typer.Option("--index-level", help="Free-air innovation RMS; default from the segment.")
+        Optional[float], typer.Option("--index-level", help="Free-air innovation RMS (deflection units); default from the segment.")
     ] = None,
     amplitude_upper: Annotated[
-        Optional[float], typer.Option("--amplitude-upper", help="Baseline: loss while the amplitude exceeds this.")
+        Optional[float], typer.Option("--amplitude-upper", help="Baseline: loss while the amplitude exceeds this (deflection units).")
     ] = None,
     setpoint: Annotated[
-        Optional[float], typer.Option("--setpoint", help="Amplitude set point for the automatic --amplitude-upper.")
+        Optional[float], typer.Option("--setpoint", help="Amplitude set point (deflection units) for the automatic --amplitude-upper.")
     ] = None,
     decimate: Annotated[
         Optional[int], typer.Option("--decimate", help="Keep one sample in N (default: one per drive period).", min=1)

@@ -43,7 +43,7 @@ def reep(
     f0: F0Opt = None,
     q: QOpt = None,
     drive_hold: DriveHoldOpt = None,
-    lam: Annotated[Optional[float], typer.Option("--lambda", help="Forgetting factor λ (default 0.995).")] = None,
+    lam: Annotated[Optional[float], typer.Option("--lambda", help="Forgetting factor λ (dimensionless, default 0.995).")] = None,
     no_bias_compensation: Annotated[
         bool, typer.Option("--no-bias-compensation", help="Plain EWRLS, for comparison.")
     ] = False,

@@ -22,7 +22,7 @@ app = typer.Typer(
 def averaging(
     out: OutOpt = Path("theory"),
     f0: Annotated[Optional[float], typer.Option("--f0", help="Free-air f0 (Hz).")] = None,
-    q: Annotated[Optional[float], typer.Option("--q", help="Free-air Q.")] = None,
+    q: Annotated[Optional[float], typer.Option("--q", help="Free-air Q (dimensionless).")] = None,
     force_set: Annotated[Optional[str], typer.Option("--force-set", help="Thesis force parameter set.")] = None,
     free_amplitude: Annotated[Optional[float], typer.Option("--free-amplitude", help="Free amplitude (nm).")] = None,
     json_output: JsonOpt = False,
@@ -66,14 +66,14 @@ def compare(
 def observer(
     out: OutOpt = Path("theory_observer"),
     f0: Annotated[Optional[float], typer.Option("--f0", help="Nominal (free-air) f0 (Hz).")] = None,
-    q: Annotated[Optional[float], typer.Option("--q", help="Nominal Q.")] = None,
+    q: Annotated[Optional[float], typer.Option("--q", help="Nominal Q (dimensionless).")] = None,
     model: Annotated[
         Optional[Path], typer.Option("--model", help="free_air.json (or its folder): f0, Q and gain of the plant.")
     ] = None,
     f0_low: Annotated[
         Optional[float], typer.Option("--f0-low", help="On-sample end of the direction, f0' (Hz).")
     ] = None,
-    q_low: Annotated[Optional[float], typer.Option("--q-low", help="On-sample end of the direction, Q'.")] = None,
+    q_low: Annotated[Optional[float], typer.Option("--q-low", help="On-sample end of the direction, Q' (dimensionless).")] = None,
     reep: Annotated[
         Optional[Path],
         typer.Option("--reep", help="REEP output folder or reep.h5: the direction from its force curve."),

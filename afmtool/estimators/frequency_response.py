@@ -60,6 +60,8 @@ __all__ = [
     "SecondOrderFit",
     "fit_second_order",
     "free_air_from_sweep",
+    "free_air_from_response",
+    "sweep_frequency_response",
     "frf_table",
 ]
 
@@ -1350,6 +1352,24 @@ def free_air_from_sweep(
         For bad records, no stepped-sine steps, or a band with fewer than
         5 usable bins (then give ``band`` or a larger ``nperseg``).
     """
+    fr = sweep_frequency_response(dither, deflection, sample_rate_hz, method=method, segments=segments, nperseg=nperseg)
+    return free_air_from_response(fr, band=band, delay=delay)
+
+
+def sweep_frequency_response(
+    dither,
+    deflection,
+    sample_rate_hz: float,
+    *,
+    method: str = "h1",
+    segments: Sequence | None = None,
+    nperseg: int | None = None,
+) -> FrequencyResponse:
+    """The measured frequency response of a sweep, as :func:`free_air_from_sweep` fits it.
+
+    Parameters are those of :func:`free_air_from_sweep`; the H1 segment
+    length defaults to the largest power of two ≤ n/16, at least 256.
+    """
     fs = _check_positive("sample_rate_hz", sample_rate_hz)
     if method == "h1":
         if segments is not None:
@@ -1357,15 +1377,20 @@ def free_air_from_sweep(
         n = np.shape(dither)[0] if np.ndim(dither) else 0
         if nperseg is None:
             nperseg = max(256, 1 << max(int(math.floor(math.log2(max(n, 1) / 16))), 0))
-        fr = h1_estimate(dither, deflection, fs, nperseg=nperseg)
-    elif method == "stepped":
+        return h1_estimate(dither, deflection, fs, nperseg=nperseg)
+    if method == "stepped":
         if segments is None:
             segments = detect_segments(dither, fs)
             if not segments:
                 raise InputError("no stepped-sine steps found in the dither; give segments from the metadata")
-        fr = stepped_sine_response(dither, deflection, fs, segments)
-    else:
-        raise ConfigError(f"method={method!r} must be 'h1' or 'stepped'")
+        return stepped_sine_response(dither, deflection, fs, segments)
+    raise ConfigError(f"method={method!r} must be 'h1' or 'stepped'")
+
+
+def free_air_from_response(
+    fr: FrequencyResponse, *, band: tuple[float, float] | None = None, delay: bool | float = True
+) -> FreeAirModel:
+    """The second-order fit of :func:`free_air_from_sweep` to a measured response ``fr``."""
     mask = _resonance_band(fr, band)
     if np.count_nonzero(mask) < 5:
         raise InputError(

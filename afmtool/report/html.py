@@ -1,38 +1,162 @@
 """``afmtool report DIR``: one self-contained HTML page from any output folder.
 
-The page holds the headline numbers, the warnings, the effective parameters,
-every PNG of the folder (embedded as data URIs, so the file can be mailed or
-archived alone) and the list of files.  It reads only ``report.json`` and the
-PNGs; nothing is recomputed.
+The page is laid out for a reader, not as a dump of ``report.json``: first
+the headline block (the few numbers that matter, with units and
+uncertainties: ``report.json``'s ``headline``), then the figures (the
+command's main figure first and full width), then the warnings, made
+prominent, and last, collapsed in ``<details>``, the inputs (path, sha256),
+the parameters, every result and the list of files.  Every PNG is embedded
+as a data URI, so the file can be mailed or archived alone.  Nothing is
+recomputed.
+
+A batch folder (``summary.csv`` and one subfolder per input) gives one page
+with a row per input: its status, its headline numbers, a thumbnail of its
+main figure and a link to its own page (written beside it).
+
+Only regular files directly inside the folder are read: never through a
+symbolic link (a link could pull any file of the machine into a page that
+is then mailed), never a FIFO or device (reading one would block or never
+end).
 """
 
 from __future__ import annotations
 
 import base64
+import csv
 import html
+import io
 import json
 import math
-from collections.abc import Iterator, Mapping
+import os
+import stat
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 from afmtool.errors import InputError
 
-__all__ = ["render_report_html", "headline_rows"]
+__all__ = [
+    "BATCH_COLUMNS",
+    "BATCH_SUMMARY",
+    "MAIN_FIGURES",
+    "format_measurement",
+    "headline_rows",
+    "read_regular_file",
+    "render_batch_html",
+    "render_report_html",
+    "report_pages",
+]
+
+#: The file a batch folder holds (``afmtool batch``).
+BATCH_SUMMARY = "summary.csv"
+
+#: Each command's figures in reading order; figures not named follow, sorted.
+MAIN_FIGURES: Mapping[str, tuple[str, ...]] = {
+    "reep": ("reep_time_series.png", "force_curve.png", "force_curve_sensitivity.png"),
+    "probeloss": ("probeloss_time_series.png",),
+    "decode": ("decode_time_series.png", "eye.png", "psd.png", "l0_search.png"),
+    "kalman-bank": ("bank_rms_vs_time.png", "bank_rms_vs_z.png"),
+    "identify gamma": ("gamma_ir_ts.png",),
+    "identify freeair": ("thermal_fit.png", "sweep_bode.png"),
+}
+
+#: Headline numbers shown per row of a batch page (each run's own page has all of them).
+BATCH_COLUMNS = 4
+
+#: Largest file embedded (bytes): a page stays mailable.
+_MAX_EMBED_BYTES = 64 << 20
 
 _STYLE = """
-body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 72em; color: #222; }
-h1 { font-size: 1.6em; } h2 { border-bottom: 1px solid #ccc; padding-bottom: .2em; margin-top: 1.6em; }
-table { border-collapse: collapse; } td, th { border: 1px solid #ddd; padding: .25em .6em; text-align: left; }
+body { font-family: system-ui, sans-serif; margin: 0 auto; padding: 0 1.5em 2em; max-width: 76em; color: #222; }
+header { display: flex; align-items: baseline; gap: 1em; flex-wrap: wrap; margin: .8em 0 .4em; }
+h1 { font-size: 1.45em; margin: 0; } h2 { font-size: 1.15em; border-bottom: 1px solid #ccc; padding-bottom: .15em; margin: 1.2em 0 .5em; }
+.meta { color: #555; font-size: .9em; }
+.warning-flag { background: #b00020; color: #fff; border-radius: .3em; padding: .1em .6em; font-size: .9em; text-decoration: none; }
+#headline { display: grid; grid-template-columns: repeat(auto-fill, minmax(14.5em, 1fr)); gap: .4em; margin: .3em 0 .8em; }
+.card { border: 1px solid #d6dde6; border-radius: .35em; padding: .3em .6em; background: #f7f9fc; }
+.card .name { font-size: .8em; color: #445; } .card .value { font-size: 1.15em; font-variant-numeric: tabular-nums; }
+.card .units { color: #445; }
+figure { display: inline-block; margin: .4em; vertical-align: top; }
+figure.main { display: block; margin: .3em 0; } figure.main img { max-width: 100%; max-height: 88vh; }
+figure img { max-width: 34em; height: auto; border: 1px solid #eee; }
+figcaption { font-size: .85em; color: #555; }
+.warning { background: #fde7e9; border-left: 6px solid #b00020; padding: .5em .9em; margin: .35em 0; font-weight: 500; }
+table { border-collapse: collapse; } td, th { border: 1px solid #ddd; padding: .2em .55em; text-align: left; vertical-align: top; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; }
-.warning { background: #fff4ce; border-left: 4px solid #e0a800; padding: .4em .8em; margin: .3em 0; }
-figure { display: inline-block; margin: .5em; vertical-align: top; }
-figure img { max-width: 34em; border: 1px solid #eee; }
-figcaption { font-size: .9em; color: #555; }
-.meta { color: #555; }
+details { margin: .4em 0; } summary { cursor: pointer; font-weight: 600; }
+img.thumb { max-height: 7em; max-width: 14em; width: auto; height: auto; border: 1px solid #eee; }
+td.num { white-space: nowrap; }
+.status-failed { color: #b00020; font-weight: 600; } .status-ok, .status-skipped { color: #1b6e20; }
 """
 
 
+# --------------------------------------------------------------------------- reading files safely
+
+
+def read_regular_file(path: Path, limit: int = _MAX_EMBED_BYTES) -> bytes | None:
+    """The bytes of ``path`` if it is a regular file reached without a symbolic link, else None.
+
+    ``O_NOFOLLOW`` refuses a link at the last component and ``O_NONBLOCK``
+    keeps a FIFO from blocking the open; the type is checked on the open
+    descriptor, so a file swapped after a check cannot slip in.
+    """
+    try:
+        if stat.S_ISLNK(os.lstat(path).st_mode):
+            return None
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+    except OSError:
+        return None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_size > limit:
+            return None
+        with os.fdopen(fd, "rb", closefd=False) as handle:
+            return handle.read(limit + 1)[:limit]
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+
+
+def _pngs(folder: Path) -> list[tuple[str, bytes]]:
+    """(name, bytes) of the regular PNG files directly in ``folder``, by name."""
+    found = []
+    for entry in sorted(os.scandir(folder), key=lambda e: e.name):
+        if entry.name.lower().endswith(".png") and not entry.name.startswith("."):
+            data = read_regular_file(Path(entry.path))
+            if data is not None and data.startswith(b"\x89PNG\r\n\x1a\n"):
+                found.append((entry.name, data))
+    return found
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) in pixels from the IHDR chunk, so the page lays out before the images decode."""
+    if len(data) >= 24 and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return None
+
+
+def _load_report(folder: Path) -> dict:
+    report_path = folder / "report.json"
+    if not os.path.lexists(report_path):
+        raise InputError(f"{folder}: no report.json (not an afmtool output folder)")
+    data = read_regular_file(report_path)
+    if data is None:
+        raise InputError(f"{report_path}: not a regular file (a symbolic link, FIFO or device is not read)")
+    try:
+        report = json.loads(data.decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{report_path}: not valid JSON ({exc})") from None
+    if not isinstance(report, Mapping) or "command" not in report:
+        raise InputError(f"{report_path}: not an afmtool report")
+    return dict(report)
+
+
+# --------------------------------------------------------------------------- numbers
+
+
 def _format(value) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
     if isinstance(value, float):
         if not math.isfinite(value):
             return "—"
@@ -40,6 +164,30 @@ def _format(value) -> str:
     if value is None:
         return "—"
     return str(value)
+
+
+def format_measurement(value, std=None, units: str = "") -> tuple[str, str]:
+    """``(number, units)`` as the page shows them: ``("70000.2 ± 1.0", "Hz")``.
+
+    With a standard deviation, the value is rounded to the decimal of the
+    deviation's second significant digit (``200.12 ± 0.23``), both under a
+    shared power of ten when they are below 1e-3 or from 1e6 up
+    (``(1.24318 ± 0.00021)e-06``); without one, to 6 significant digits.  Integers and text are shown as they are.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return _format(value), units
+    if isinstance(value, int) and std is None:
+        return str(value), units
+    if std is not None and isinstance(std, (int, float)) and math.isfinite(std) and std > 0 and math.isfinite(value):
+        exponent = 0
+        magnitude = max(abs(value), std)
+        if magnitude < 1e-3 or magnitude >= 1e6:  # a shared power of ten: (1.24318 ± 0.00021)e-06
+            exponent = int(math.floor(math.log10(magnitude)))
+            value, std = value / 10.0**exponent, std / 10.0**exponent
+        decimals = max(0, 1 - int(math.floor(math.log10(std))))
+        text = f"{value:.{decimals}f} ± {std:.{decimals}f}"
+        return (f"({text})e{exponent:+03d}" if exponent else text), units
+    return _format(float(value)), units
 
 
 def headline_rows(results: Mapping, prefix: str = "", depth: int = 0) -> Iterator[tuple[str, str]]:
@@ -62,43 +210,201 @@ def _table(rows: Iterator[tuple[str, str]], numeric: bool = True) -> str:
     return "<table>" + "".join(cells) + "</table>" if cells else "<p>none</p>"
 
 
+def _headline_cards(entries: Sequence[Mapping]) -> str:
+    cards = []
+    for entry in entries:
+        number, units = format_measurement(entry.get("value"), entry.get("std"), str(entry.get("units", "")))
+        source = html.escape(str(entry.get("source", "")))
+        cards.append(
+            f'<div class="card" data-source="{source}"><div class="name">{html.escape(str(entry.get("name")))}</div>'
+            f'<div class="value"><span class="number">{html.escape(number)}</span>'
+            f'{" " if units else ""}<span class="units">{html.escape(units)}</span></div></div>'
+        )
+    return "".join(cards)
+
+
+# --------------------------------------------------------------------------- one run
+
+
+def _ordered_figures(command: str, pngs: list[tuple[str, bytes]]) -> list[tuple[str, bytes]]:
+    preferred = MAIN_FIGURES.get(command, ())
+    rank = {name: i for i, name in enumerate(preferred)}
+    return sorted(pngs, key=lambda item: (rank.get(item[0], len(rank)), item[0]))
+
+
+def _img(name: str, data: bytes, css: str = "") -> str:
+    size = _png_size(data)
+    dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
+    encoded = base64.b64encode(data).decode("ascii")
+    cls = f' class="{css}"' if css else ""
+    return f'<img{cls} alt="{html.escape(Path(name).stem)}"{dims} src="data:image/png;base64,{encoded}">'
+
+
+def _figures(command: str, folder: Path) -> str:
+    figures = []
+    for i, (name, data) in enumerate(_ordered_figures(command, _pngs(folder))):
+        css = ' class="main"' if i == 0 else ""
+        figures.append(f"<figure{css}>{_img(name, data)}<figcaption>{html.escape(name)}</figcaption></figure>")
+    return "".join(figures)
+
+
+def _inputs(report: Mapping) -> str:
+    rows = []
+    for item in report.get("inputs", []):
+        rows.append(
+            f"<tr><td><code>{html.escape(str(item.get('path')))}</code></td><td>{html.escape(str(item.get('role')))}</td>"
+            f"<td><code>{html.escape(str(item.get('sha256')))}</code></td></tr>"
+        )
+    if not rows:
+        return "<p>none</p>"
+    return "<table><tr><th>path</th><th>role</th><th>sha256</th></tr>" + "".join(rows) + "</table>"
+
+
 def render_report_html(folder: Path) -> str:
     """The HTML page for the analysis output ``folder``."""
-    report_path = folder / "report.json"
-    try:
-        report = json.loads(report_path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{folder}: no report.json (not an afmtool output folder)") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{report_path}: not valid JSON ({exc})") from None
-    if not isinstance(report, Mapping) or "command" not in report:
-        raise InputError(f"{report_path}: not an afmtool report")
-    title = f"afmtool {report['command']}"
-    inputs = "".join(
-        f"<li><code>{html.escape(str(i.get('path')))}</code> ({html.escape(str(i.get('role')))}; sha256 "
-        f"<code>{html.escape(str(i.get('sha256'))[:16])}…</code>)</li>"
-        for i in report.get("inputs", [])
+    folder = Path(folder)
+    report = _load_report(folder)
+    command = str(report["command"])
+    inputs = report.get("inputs", [])
+    subject = Path(str(inputs[0].get("path"))).name if inputs else ""
+    title = f"afmtool {command}" + (f" — {subject}" if subject else "")
+    warnings = [str(w) for w in report.get("warnings", [])]
+    warning_flag = (
+        f'<a class="warning-flag" href="#warnings">{len(warnings)} warning{"s" if len(warnings) != 1 else ""}</a>'
+        if warnings else ""
     )
-    warnings = "".join(f'<div class="warning">{html.escape(w)}</div>' for w in report.get("warnings", []))
-    figures = []
-    for png in sorted(folder.glob("*.png")):
-        data = base64.b64encode(png.read_bytes()).decode("ascii")
-        figures.append(
-            f'<figure><img alt="{html.escape(png.stem)}" src="data:image/png;base64,{data}">'
-            f"<figcaption>{html.escape(png.name)}</figcaption></figure>"
-        )
-    files = "".join(f"<li><code>{html.escape(name)}</code></li>" for name in report.get("outputs", []))
+    headline = report.get("headline") or []
+    cards = _headline_cards(headline) or '<p class="meta">no headline numbers for this command; see Details.</p>'
+    figures = _figures(command, folder) or "<p>none</p>"
+    warning_boxes = "".join(f'<div class="warning">{html.escape(w)}</div>' for w in warnings) or "<p>none</p>"
+    files = "".join(f"<li><code>{html.escape(str(name))}</code></li>" for name in report.get("outputs", []))
     return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
+<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{html.escape(title)}</title>
 <style>{_STYLE}</style></head>
 <body>
-<h1>{html.escape(title)}</h1>
-<p class="meta">afmtool {html.escape(str(report.get('afmtool_version')))}</p>
-<section id="inputs"><h2>Inputs</h2><ul>{inputs or '<li>none</li>'}</ul></section>
-<section id="results"><h2>Results</h2>{_table(headline_rows(report.get('results', {})))}</section>
-<section id="warnings"><h2>Warnings</h2>{warnings or '<p>none</p>'}</section>
-<section id="parameters"><h2>Parameters</h2>{_table(headline_rows(report.get('parameters', {})))}</section>
-<section id="figures"><h2>Plots and images</h2>{''.join(figures) or '<p>none</p>'}</section>
-<section id="files"><h2>Files</h2><ul>{files}</ul></section>
+<header><h1>{html.escape(title)}</h1><span class="meta">afmtool {html.escape(str(report.get('afmtool_version')))}</span>{warning_flag}</header>
+<section id="headline-block" aria-label="headline"><div id="headline">{cards}</div></section>
+<section id="figures"><h2>Figures</h2>{figures}</section>
+<section id="warnings"><h2>Warnings</h2>{warning_boxes}</section>
+<section id="details"><h2>Details</h2>
+<details id="inputs"><summary>Inputs</summary>{_inputs(report)}</details>
+<details id="parameters"><summary>Parameters</summary>{_table(headline_rows(report.get('parameters', {})))}</details>
+<details id="results"><summary>All results</summary>{_table(headline_rows(report.get('results', {})))}</details>
+<details id="files"><summary>Files</summary><ul>{files}</ul></details>
+</section>
 </body></html>
 """
+
+
+# --------------------------------------------------------------------------- a batch
+
+
+def _batch_rows(folder: Path) -> list[dict]:
+    data = read_regular_file(folder / BATCH_SUMMARY)
+    if data is None:
+        raise InputError(f"{folder / BATCH_SUMMARY}: not a regular file")
+    try:
+        return list(csv.DictReader(io.StringIO(data.decode("utf-8"))))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{folder / BATCH_SUMMARY}: not a batch summary ({exc})") from None
+
+
+def _subfolder(folder: Path, output: str) -> Path | None:
+    """The run's subfolder if it lies directly inside ``folder`` and is a real directory (no link)."""
+    candidate = folder / Path(output).name
+    try:
+        if stat.S_ISDIR(os.lstat(candidate).st_mode):
+            return candidate
+    except OSError:
+        pass
+    return None
+
+
+def render_batch_html(folder: Path) -> str:
+    """The page of a batch folder: a row per input, with its headline, main figure and a link."""
+    folder = Path(folder)
+    rows = _batch_rows(folder)
+    names: list[str] = []
+    cells = []
+    counts = {"ok": 0, "skipped": 0, "failed": 0}
+    command = ""
+    for row in rows:
+        status = row.get("status", "")
+        counts[status] = counts.get(status, 0) + 1
+        sub = _subfolder(folder, row.get("output", ""))
+        report, figure = None, ""
+        if sub is not None and os.path.lexists(sub / "report.json"):
+            try:
+                report = _load_report(sub)
+            except InputError:
+                report = None
+        if report is not None:
+            command = command or str(report["command"])
+            ordered = _ordered_figures(str(report["command"]), _pngs(sub))
+            if ordered:
+                figure = _img(*ordered[0], css="thumb")
+        values = {}
+        for entry in ((report or {}).get("headline") or [])[:BATCH_COLUMNS]:
+            name = str(entry.get("name"))
+            if name not in names:
+                names.append(name)
+            number, units = format_measurement(entry.get("value"), entry.get("std"), str(entry.get("units", "")))
+            values[name] = f"{number} {units}".strip()
+        link = (
+            f'<a href="{html.escape(sub.name)}/report.html">{html.escape(sub.name)}</a>' if report is not None
+            else html.escape(row.get("output", ""))
+        )
+        cells.append((row, status, link, figure, values))
+    head = "".join(f"<th>{html.escape(n)}</th>" for n in names)
+    body = []
+    for row, status, link, figure, values in cells:
+        reason = html.escape(row.get("reason", ""))
+        numbers = "".join(f'<td class="num">{html.escape(values.get(n, ""))}</td>' for n in names)
+        body.append(
+            f"<tr><td><code>{html.escape(row.get('input', ''))}</code></td>"
+            f'<td class="status-{html.escape(status)}">{html.escape(status)}{(": " + reason) if reason else ""}</td>'
+            f"<td>{link}</td><td>{figure}</td>{numbers}</tr>"
+        )
+    summary_cards = _headline_cards([
+        {"name": "inputs", "value": len(rows), "units": "runs"},
+        {"name": "done", "value": counts.get("ok", 0) + counts.get("skipped", 0), "units": "runs"},
+        {"name": "failed", "value": counts.get("failed", 0), "units": "runs"},
+    ])
+    title = f"afmtool batch {command}".rstrip() + f" — {folder.name}"
+    failed = counts.get("failed", 0)
+    flag = f'<a class="warning-flag" href="#runs">{failed} failed</a>' if failed else ""
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{html.escape(title)}</title>
+<style>{_STYLE}</style></head>
+<body>
+<header><h1>{html.escape(title)}</h1>{flag}</header>
+<section id="headline-block" aria-label="headline"><div id="headline">{summary_cards}</div></section>
+<section id="runs"><h2>Runs</h2>
+<table><tr><th>input</th><th>status</th><th>report</th><th>main figure</th>{head}</tr>{''.join(body)}</table></section>
+</body></html>
+"""
+
+
+def report_pages(folder: Path, output: Path | None = None) -> list[tuple[Path, str]]:
+    """Every page ``afmtool report FOLDER`` writes: ``(path, html)``, the folder's own page last.
+
+    An analysis folder gives one page; a batch folder (``summary.csv``, no
+    ``report.json``) gives a page per finished run, in its subfolder, and
+    the batch page that links to them.
+    """
+    folder = Path(folder)
+    target = Path(output) if output is not None else folder / "report.html"
+    if not os.path.lexists(folder / "report.json") and os.path.lexists(folder / BATCH_SUMMARY):
+        pages = []
+        for row in _batch_rows(folder):
+            sub = _subfolder(folder, row.get("output", ""))
+            if sub is not None and os.path.lexists(sub / "report.json"):
+                try:
+                    pages.append((sub / "report.html", render_report_html(sub)))
+                except InputError:
+                    continue
+        pages.append((target, render_batch_html(folder)))
+        return pages
+    return [(target, render_report_html(folder))]

@@ -60,7 +60,7 @@ APPROACH_STYLE: Mapping[str, Any] = MappingProxyType({"color": "C0", "linestyle"
 RETRACT_STYLE: Mapping[str, Any] = MappingProxyType({"color": "C3", "linestyle": "--"})
 
 _STYLE_KEYS = frozenset({"color", "linestyle", "linewidth", "marker", "markersize", "alpha", "zorder", "drawstyle"})
-_PANEL_KEYS = frozenset({"series", "y_label", "title"})
+_PANEL_KEYS = frozenset({"series", "y_label", "title", "twin", "y_scale"})
 
 # Units that take an SI prefix on a colour bar; anything else is shown as given.
 _PREFIXABLE = frozenset({"m", "V", "A", "N", "Hz", "s", "W", "Pa", "F", "S", "rad"})
@@ -388,9 +388,8 @@ def _z_scale(images: Sequence[np.ndarray], z_units: str, z_range: tuple[float, f
 
 
 def _colorbar_label(z_label: str, units: str) -> str:
-    if z_label and units:
-        return f"{z_label} ({units})"
-    return z_label or units
+    """``"height (nm)"``: every colour bar names a quantity and its units, ``dimensionless`` for none."""
+    return f"{z_label or 'value'} ({units or 'dimensionless'})"
 
 
 def _draw_image(
@@ -562,6 +561,10 @@ class PanelSpec(TypedDict, total=False):
     series: Sequence[Series | tuple]
     y_label: str
     title: str
+    #: ``{"series": [...], "y_label": "z (nm)"}``: lines on a second y axis at the right
+    twin: Mapping[str, Any]
+    #: ``"linear"`` (default) or ``"log"``
+    y_scale: str
 
 
 def _as_series(item: Series | tuple, name: str) -> tuple[np.ndarray, np.ndarray, str, dict[str, Any]]:
@@ -619,6 +622,35 @@ def _draw_markers(ax: Axes, markers: Sequence[tuple[float, str]], *, labelled: b
             )
 
 
+def _check_spans(spans: Sequence[tuple[float, float, str]] | None) -> list[tuple[float, float, str]]:
+    checked = []
+    for i, (x0, x1, label) in enumerate(spans or ()):
+        x0, x1 = float(x0), float(x1)
+        if not (math.isfinite(x0) and math.isfinite(x1) and x0 < x1):
+            raise ValueError(f"spans[{i}]: ({x0!r}, {x1!r}) must be finite with start < end")
+        checked.append((x0, x1, str(label)))
+    return checked
+
+
+def _draw_spans(ax: Axes, spans: Sequence[tuple[float, float, str]], *, labelled: bool) -> None:
+    """Shaded x intervals (a free-air segment), labelled once in the legend of the top panel."""
+    for x0, x1, label in spans:
+        ax.axvspan(x0, x1, color="0.85", alpha=0.6, zorder=0, label=label if labelled and label else None)
+
+
+def _draw_twin(ax: Axes, twin: Mapping[str, Any], p: int) -> None:
+    """Lines of ``twin`` on a second y axis at the right of ``ax``, greyed so that the panel's own lines lead."""
+    lines = [_as_series(item, f"panels[{p}]['twin']['series'][{i}]") for i, item in enumerate(twin.get("series", ()))]
+    if not lines:
+        raise ValueError(f"panels[{p}]['twin'] must hold a non-empty 'series'")
+    right = ax.twinx()
+    for x, y, label, style in lines:
+        right.plot(x, y, label=label or None, **{"color": "0.45", "linewidth": 1.0, **style})
+    right.set_ylabel(str(twin.get("y_label", "")))
+    if any(label for _, _, label, _ in lines):
+        right.legend(fontsize="small", loc="lower right")
+
+
 def write_line_plot_png(
     path: Path,
     series: Sequence[Series | tuple],
@@ -667,8 +699,10 @@ def write_multi_panel_png(
     x_label: str = "",
     title: str = "",
     markers: Sequence[tuple[float, str]] | None = None,
+    spans: Sequence[tuple[float, float, str]] | None = None,
+    x_limits: tuple[float, float] | None = None,
 ) -> None:
-    """Stack panels that share one x axis: force-curve style plots.
+    """Stack panels that share one x axis: force-curve and time-series plots.
 
     Parameters
     ----------
@@ -677,8 +711,10 @@ def write_multi_panel_png(
     panels : sequence of dict
         Top to bottom.  Each holds ``series`` (as for
         :func:`write_line_plot_png`), and optionally ``y_label`` and
-        ``title``.  Give approach and retract the same style in every panel
-        (:data:`APPROACH_STYLE`, :data:`RETRACT_STYLE`).
+        ``title``, ``y_scale`` (``"linear"`` or ``"log"``) and ``twin``
+        (``{"series": ..., "y_label": ...}``, lines on a right-hand y axis,
+        e.g. z over an RMS).  Give approach and retract the same style in
+        every panel (:data:`APPROACH_STYLE`, :data:`RETRACT_STYLE`).
     x_label : str, optional
         Shared x label, under the bottom panel, e.g. ``"z (nm)"``.
     title : str, optional
@@ -686,6 +722,11 @@ def write_multi_panel_png(
     markers : sequence of (float, str), optional
         ``(x, label)`` dotted vertical lines through every panel, labelled
         in the top one.
+    spans : sequence of (float, float, str), optional
+        ``(x0, x1, label)`` shaded intervals through every panel (a
+        free-air segment), in the top panel's legend.
+    x_limits : (float, float), optional
+        The x range shown (a zoomed segment); default: the data's.
 
     Examples
     --------
@@ -707,17 +748,26 @@ def write_multi_panel_png(
         if not panel.get("series"):
             raise ValueError(f"panels[{p}] must hold a non-empty 'series'")
         lines = [_as_series(item, f"panels[{p}]['series'][{i}]") for i, item in enumerate(panel["series"])]
+        if panel.get("y_scale", "linear") not in ("linear", "log"):
+            raise ValueError(f"panels[{p}]['y_scale']={panel['y_scale']!r} must be 'linear' or 'log'")
         checked.append((lines, str(panel.get("y_label", "")), str(panel.get("title", ""))))
     marks = _check_markers(markers)
+    shaded = _check_spans(spans)
 
     with _png_figure(path, 7.0, 1.9 * len(checked) + 1.1) as fig:
         axes = fig.subplots(len(checked), 1, sharex=True, squeeze=False)[:, 0]
         for i, (ax, (lines, y_label, panel_title)) in enumerate(zip(axes, checked, strict=True)):
+            _draw_spans(ax, shaded, labelled=i == 0)
             _draw_series(ax, lines)
             _draw_markers(ax, marks, labelled=i == 0)
             ax.set_ylabel(y_label)
+            ax.set_yscale(panels[i].get("y_scale", "linear"))
             if panel_title:
                 ax.set_title(panel_title, fontsize="medium")
+            if panels[i].get("twin"):
+                _draw_twin(ax, panels[i]["twin"], i)
         axes[-1].set_xlabel(x_label)
+        if x_limits is not None:
+            axes[-1].set_xlim(*(float(v) for v in x_limits))
         if title:
             fig.suptitle(title)

@@ -101,13 +101,21 @@ def build_report(
     outputs: Sequence[str],
     warnings: Sequence[str] = (),
 ) -> dict:
-    """Assemble a report dict in the order of ``schemas/report.schema.json``."""
+    """Assemble a report dict in the order of ``schemas/report.schema.json``.
+
+    ``headline`` is :func:`afmtool.report.headline.headline` of the results:
+    the few numbers with units and uncertainties that the HTML page shows first.
+    """
+    from afmtool.report.headline import headline
+
+    jsonable_results = to_jsonable(results)
     return {
         "afmtool_version": afmtool.__version__,
         "command": command,
+        "headline": headline(command, jsonable_results),
         "inputs": to_jsonable(list(inputs)),
         "parameters": to_jsonable(parameters),
-        "results": to_jsonable(results),
+        "results": jsonable_results,
         "outputs": sorted(outputs),
         "warnings": list(warnings),
     }

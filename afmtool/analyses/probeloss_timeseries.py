@@ -1,0 +1,113 @@
+"""Probe loss against time: the index with its thresholds, the switches, the amplitude, the truth.
+
+Drawn from the finished ``probeloss.h5`` (thinned rows, :mod:`afmtool.report.timeseries`)
+after the run, beside the mask and index images.  A long capture also gets a
+few zoomed segments, centred on the first, middle and last detected loss
+events, where single drive periods can be told apart.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["ZOOM_PERIODS", "write_probeloss_time_series"]
+
+#: Width of a zoomed segment, in drive periods.
+ZOOM_PERIODS = 300
+
+
+def _panels(rows: Mapping[str, np.ndarray], results: Mapping, amplitude_units: str, contact: np.ndarray | None) -> list[dict]:
+    t = rows["t"]
+    span = np.array([t[0], t[-1]]) if len(t) else np.zeros(2)
+    index = results.get("index") or {}
+    baseline = results.get("amplitude_baseline") or {}
+    threshold = {"color": "0.3", "linestyle": ":", "linewidth": 1.0}
+    index_series = [(t, rows["index"], "index", {"color": "C0", "linewidth": 0.9})]
+    for key, label, style in (("on", "switch-on threshold", threshold), ("off", "switch-off threshold", {**threshold, "linestyle": "--"})):
+        if isinstance(index.get(key), (int, float)):
+            index_series.append((span, np.full(2, float(index[key])), label, style))
+    switches = [(t, rows["switch"], "index switch (1 = loss)", {"color": "C0", "drawstyle": "steps-post", "linewidth": 1.2})]
+    if "amplitude_switch" in rows:
+        # drawn at 0.9 so that the two switches stay apart where they agree
+        switches.append((t, 0.9 * rows["amplitude_switch"], "amplitude switch (× 0.9)",
+                         {"color": "C1", "drawstyle": "steps-post", "linestyle": "--", "linewidth": 1.0}))
+    units = amplitude_units or "input units"
+    amplitude = [(t, rows["amplitude"], "lock-in amplitude", {"color": "C2", "linewidth": 0.9})]
+    if isinstance(baseline.get("upper"), (int, float)):
+        amplitude.append((span, np.full(2, float(baseline["upper"])), "loss threshold A_upper", threshold))
+    if isinstance(baseline.get("free_amplitude"), (int, float)):
+        amplitude.append((span, np.full(2, float(baseline["free_amplitude"])), "free amplitude A0",
+                          {**threshold, "linestyle": "--"}))
+    panels = [
+        # log axis: the thresholds sit near 1-4 where the index on the sample reaches hundreds
+        {"y_label": "index (dimensionless)", "series": index_series, "y_scale": "log"},
+        {"y_label": "switch (0/1)", "series": switches},
+        {"y_label": f"amplitude ({units})", "series": amplitude},
+    ]
+    if contact is not None:
+        panels.append({"y_label": "truth contact (0/1)", "series": [
+            (t, contact, "truth: contact in the drive period", {"color": "k", "drawstyle": "steps-post", "linewidth": 1.0})]})
+    return panels
+
+
+def write_probeloss_time_series(
+    directory_path,
+    probeloss_h5: Path,
+    results: Mapping,
+    *,
+    amplitude_units: str,
+    truth_contact: np.ndarray | None,
+    sample_rate_hz: float,
+) -> list[str]:
+    """Write ``probeloss_time_series.png`` and, for a long capture, ``probeloss_zoom_<k>.png``.
+
+    Parameters
+    ----------
+    directory_path : callable
+        ``name -> Path`` where to write each file (``OutputDir.path``).
+    probeloss_h5 : Path
+        The finished result file (``t``, ``index``, ``switch``, ``amplitude``, ``amplitude_switch``).
+    results : mapping
+        The run's results: the thresholds (``index.on``, ``index.off``,
+        ``amplitude_baseline.upper``), the drive frequency and the events.
+    amplitude_units : str
+        The deflection's units.
+    truth_contact : ndarray or None
+        ``/truth/contact`` per input sample; drawn as its maximum over each
+        row's drive period.
+    sample_rate_hz : float
+        The capture's rate, to place the truth at the rows.
+
+    Returns
+    -------
+    list of str
+        The names written.
+    """
+    from afmtool.report.images import write_multi_panel_png
+    from afmtool.report.timeseries import read_rows, truth_per_row, zoom_windows
+
+    names = ("index", "switch", "amplitude", "amplitude_switch")
+    written = []
+
+    def draw(name: str, t_range, title: str) -> None:
+        rows = read_rows(probeloss_h5, names, t_range=t_range)
+        if len(rows["t"]) < 2:
+            return
+        contact = truth_per_row(truth_contact, rows["t"], sample_rate_hz, reduce="max") if truth_contact is not None else None
+        write_multi_panel_png(
+            directory_path(name), _panels(rows, results, amplitude_units, contact), x_label="time t (s)", title=title,
+            x_limits=t_range,
+        )
+        written.append(name)
+
+    draw("probeloss_time_series.png", None, "Probe loss against time (thesis ch. 2)")
+    drive_hz = results.get("drive_frequency_hz")
+    duration = results.get("duration_s")
+    if isinstance(drive_hz, (int, float)) and isinstance(duration, (int, float)) and drive_hz > 0:
+        centres = [e["start_s"] for e in results.get("events") or [] if isinstance(e.get("start_s"), (int, float))]
+        for k, window in enumerate(zoom_windows(float(duration), ZOOM_PERIODS / float(drive_hz), centres), start=1):
+            draw(f"probeloss_zoom_{k}.png", window, f"Probe loss, zoom {k}: {window[0] * 1e3:.2f}–{window[1] * 1e3:.2f} ms")
+    return written

@@ -1,0 +1,281 @@
+"""REEP's decimated series against time: segment statistics, tracking error, the figure.
+
+Everything here reads the finished ``reep.h5`` (the decimated ``t``,
+``f0_hz``, ``q``, ``amplitude``, ``phase_deg``) in blocks, so memory stays
+flat however long the capture: the statistics are running sums, the
+figure draws at most :data:`MAX_PLOT_POINTS` evenly spaced rows per line, and
+the percentiles of the tracking error use at most
+:data:`MAX_PERCENTILE_POINTS` evenly spaced rows.
+
+The truth (``/truth/f0_hz``, ``/truth/q`` of a simulated capture, one value
+per input sample) is never seen by the estimator; it is compared here, after
+the run, at each output row's sample index n = round(t·fs).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from afmtool.report.timeseries import MAX_PLOT_POINTS
+
+__all__ = [
+    "MAX_PLOT_POINTS",
+    "MAX_PERCENTILE_POINTS",
+    "FLAG_COLUMN",
+    "segment_statistics",
+    "tracking_error",
+    "write_reep_time_series_png",
+]
+
+#: Most rows over which the tracking-error percentiles are taken.
+MAX_PERCENTILE_POINTS = 1_000_000
+#: The per-row validity column reep.h5 may carry: bit flags, 0 = valid (a row whose f0' is NaN is flagged too).
+FLAG_COLUMN = "flag"
+#: Most flagged rows marked on the figure.
+_MAX_FLAG_MARKS = 5000
+_BLOCK_ROWS = 1 << 20
+
+
+def _blocks(dataset, n: int):
+    for start in range(0, n, _BLOCK_ROWS):
+        yield start, dataset[start : min(n, start + _BLOCK_ROWS)]
+
+
+def _trusted(h5, name: str, rows) -> np.ndarray:
+    """Column ``name`` at ``rows`` (a slice or index array), NaN where the row is flagged."""
+    values = np.asarray(h5[name][rows], dtype=np.float64)
+    if FLAG_COLUMN in h5:
+        values = np.where(np.asarray(h5[FLAG_COLUMN][rows]) == 0, values, np.nan)
+    return values
+
+
+class _Moments:
+    """Count, mean and standard deviation of the finite values added (Chan's parallel update)."""
+
+    def __init__(self) -> None:
+        self.count, self.mean, self.m2 = 0, 0.0, 0.0
+
+    def add(self, values: np.ndarray) -> None:
+        values = values[np.isfinite(values)]
+        if values.size == 0:
+            return
+        n_b, mean_b = values.size, float(values.mean())
+        m2_b = float(np.sum((values - mean_b) ** 2))
+        n = self.count + n_b
+        delta = mean_b - self.mean
+        self.mean += delta * n_b / n
+        self.m2 += m2_b + delta * delta * self.count * n_b / n
+        self.count = n
+
+    def as_dict(self) -> dict:
+        if self.count == 0:
+            return {"mean": None, "std": None, "count": 0}
+        std = math.sqrt(self.m2 / (self.count - 1)) if self.count > 1 else None
+        return {"mean": self.mean, "std": std, "count": self.count}
+
+
+def segment_statistics(
+    reep_h5: Path, warmup_s: float, free_air_segment_s: tuple[float, float] | None
+) -> dict:
+    """Mean and standard deviation of f0' (Hz) and Q' per time segment, after the warm-up.
+
+    Parameters
+    ----------
+    reep_h5 : Path
+        A finished ``reep.h5``.
+    warmup_s : float
+        Rows with t < warmup_s (s) are left out: the EW-RLS of eq. 3.39 has
+        not forgotten its initial P yet.
+    free_air_segment_s : (float, float) or None
+        The off-sample segment (s).  With it, the segments are ``free_air``
+        (inside it) and ``after_free_air`` (t ≥ its end + warmup_s, the same
+        settling allowed after the change as at the start): f0' and Q'
+        before and after the tip meets the sample, or a step.  Without it, one
+        segment ``settled`` (every row after the warm-up).
+
+    Returns
+    -------
+    dict
+        ``{segment: {"t_s": [start, end], "f0_hz": {"mean", "std", "count"},
+        "q": {...}}}``; std is the sample standard deviation of the rows (a
+        spread, not the error of the mean).  Rows flagged in reep.h5's
+        ``flag`` column (0 = valid) are left out, as the summary leaves them.
+    """
+    import h5py
+
+    if free_air_segment_s:
+        start, end = (float(v) for v in free_air_segment_s)
+        # after the segment, REEP needs the same settling as at the start to forget the change
+        bounds = {"free_air": (max(start, warmup_s), end), "after_free_air": (end + warmup_s, math.inf)}
+    else:
+        bounds = {"settled": (warmup_s, math.inf)}
+    moments = {seg: {"f0_hz": _Moments(), "q": _Moments()} for seg in bounds}
+    last_t = None
+    with h5py.File(reep_h5, "r") as h5:
+        n = len(h5["t"])
+        for start_row, t in _blocks(h5["t"], n):
+            stop_row = start_row + len(t)
+            columns = {name: _trusted(h5, name, slice(start_row, stop_row)) for name in ("f0_hz", "q")}
+            for seg, (t0, t1) in bounds.items():
+                inside = (t >= t0) & (t < t1)
+                for name, values in columns.items():
+                    moments[seg][name].add(values[inside])
+            if len(t):
+                last_t = float(t[-1])
+    out = {}
+    for seg, (t0, t1) in bounds.items():
+        if moments[seg]["f0_hz"].count == 0:
+            continue
+        end = last_t if math.isinf(t1) else t1
+        out[seg] = {"t_s": [t0, end], **{name: m.as_dict() for name, m in moments[seg].items()}}
+    return out
+
+
+def _percentiles(values: np.ndarray) -> dict:
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return {"median_abs": None, "p95_abs": None}
+    return {"median_abs": float(np.median(finite)), "p95_abs": float(np.percentile(finite, 95.0))}
+
+
+def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_hz: float, warmup_s: float) -> dict | None:
+    """Median and 95th percentile of |f0' − f0| (Hz) and |Q' − Q| after the warm-up.
+
+    Parameters
+    ----------
+    reep_h5 : Path
+        A finished ``reep.h5``.
+    truth : mapping
+        The capture's ``/truth``; needs ``f0_hz`` and ``q`` (one value per
+        input sample), else None is returned.
+    sample_rate_hz : float
+        The capture's rate: row t belongs to input sample n = round(t·fs).
+    warmup_s : float
+        Rows before it (s) are left out, as in the report's summary.
+
+    Returns
+    -------
+    dict or None
+        ``{"f0_hz": {"median_abs", "p95_abs", "units": "Hz"}, "q": {...,
+        "units": ""}, "after_s", "rows_compared"}``.  Flagged rows (NaN f0')
+        and rows with a non-zero ``flag`` are left out.  Percentiles over more than
+        :data:`MAX_PERCENTILE_POINTS` rows use that many evenly spaced ones.
+    """
+    import h5py
+
+    if "f0_hz" not in truth or "q" not in truth:
+        return None
+    truth_f0 = np.asarray(truth["f0_hz"], dtype=np.float64)
+    truth_q = np.asarray(truth["q"], dtype=np.float64)
+    with h5py.File(reep_h5, "r") as h5:
+        n_rows = len(h5["t"])
+        step = max(1, math.ceil(n_rows / MAX_PERCENTILE_POINTS))
+        t = h5["t"][::step]
+        f0 = _trusted(h5, "f0_hz", slice(None, None, step))
+        q = _trusted(h5, "q", slice(None, None, step))
+    index = np.rint(t * sample_rate_hz).astype(np.int64)
+    keep = (t >= warmup_s) & (index >= 0) & (index < min(len(truth_f0), len(truth_q)))
+    if not np.any(keep):
+        return None
+    err_f0 = np.abs(f0[keep] - truth_f0[index[keep]])
+    err_q = np.abs(q[keep] - truth_q[index[keep]])
+    return {
+        "f0_hz": {**_percentiles(err_f0), "units": "Hz"},
+        "q": {**_percentiles(err_q), "units": ""},
+        "after_s": float(warmup_s),
+        "rows_compared": int(np.count_nonzero(np.isfinite(err_f0))),
+        "row_step": step,
+    }
+
+
+class _Thinned(NamedTuple):
+    t: np.ndarray
+    columns: dict[str, np.ndarray]
+    flagged_t: np.ndarray
+    flagged: dict[str, np.ndarray]
+
+
+def _read_thinned(reep_h5: Path, names: tuple[str, ...]) -> _Thinned:
+    import h5py
+
+    with h5py.File(reep_h5, "r") as h5:
+        n = len(h5["t"])
+        step = max(1, math.ceil(n / MAX_PLOT_POINTS))
+        t = h5["t"][::step]
+        columns = {name: h5[name][::step] for name in names if name in h5}
+        flag_name = FLAG_COLUMN if FLAG_COLUMN in h5 else None
+        flagged_rows: list[np.ndarray] = []
+        count = 0
+        for start, f0 in _blocks(h5["f0_hz"], n):
+            bad = ~np.isfinite(f0)
+            if flag_name is not None:
+                bad |= h5[flag_name][start : start + len(f0)] != 0
+            rows = np.flatnonzero(bad) + start
+            flagged_rows.append(rows)
+            count += rows.size
+        rows = np.concatenate(flagged_rows) if flagged_rows else np.zeros(0, dtype=np.int64)
+        if rows.size > _MAX_FLAG_MARKS:
+            rows = rows[:: math.ceil(rows.size / _MAX_FLAG_MARKS)]
+        flagged_t = h5["t"][rows] if rows.size else np.zeros(0)
+        flagged = {name: (h5[name][rows] if rows.size else np.zeros(0)) for name in columns}
+    return _Thinned(t, columns, flagged_t, flagged)
+
+
+def write_reep_time_series_png(
+    path: Path,
+    reep_h5: Path,
+    *,
+    amplitude_units: str,
+    truth: Mapping[str, np.ndarray] | None = None,
+    sample_rate_hz: float | None = None,
+    free_air_segment_s: tuple[float, float] | None = None,
+    warmup_s: float = 0.0,
+) -> None:
+    """f0', Q', amplitude and phase against time, the truth drawn over them (thesis Figs. 3.6-3.8).
+
+    The free-air segment is shaded, the warm-up (before the forgetting
+    window has passed) marked, and flagged rows ((b1, b0) outside the
+    under-damped region of eq. 3.48, or a non-zero ``flag`` in reep.h5)
+    marked with red crosses: at their value, or at the panel's median where
+    the value is NaN.
+    """
+    from afmtool.report.images import write_multi_panel_png
+
+    data = _read_thinned(reep_h5, ("f0_hz", "q", "amplitude", "phase_deg"))
+    reep_style = {"color": "C0", "linewidth": 1.0}
+    truth_style = {"color": "k", "linestyle": "--", "linewidth": 1.2}
+    labels = {
+        "f0_hz": "f0' (Hz)",
+        "q": "Q' (dimensionless)",
+        "amplitude": f"amplitude ({amplitude_units})" if amplitude_units else "amplitude (input units)",
+        "phase_deg": "phase (deg)",
+    }
+    panels = []
+    for name, label in labels.items():
+        if name not in data.columns:
+            continue
+        series = [(data.t, data.columns[name], "REEP" if name in ("f0_hz", "q") else "lock-in", reep_style)]
+        if truth is not None and sample_rate_hz and name in truth:
+            index = np.rint(data.t * sample_rate_hz).astype(np.int64)
+            inside = (index >= 0) & (index < len(truth[name]))
+            if np.any(inside):
+                series.append((data.t[inside], np.asarray(truth[name])[index[inside]], "truth", truth_style))
+        if data.flagged_t.size:
+            # flagged rows are NaN in f0', Q': mark them at the panel's median so they show on the axis
+            finite = data.columns[name][np.isfinite(data.columns[name])]
+            level = float(np.median(finite)) if finite.size else 0.0
+            y = np.where(np.isfinite(data.flagged[name]), data.flagged[name], level)
+            series.append((data.flagged_t, y, "flagged", {"color": "C3", "linestyle": "none", "marker": "x", "markersize": 4}))
+        panels.append({"y_label": label, "series": series})
+    spans = []
+    if free_air_segment_s:
+        start, end = (float(v) for v in free_air_segment_s)
+        if end > start:
+            spans.append((start, end, "free-air segment"))
+    markers = [(float(warmup_s), "end of warm-up")] if warmup_s > 0 else []
+    write_multi_panel_png(path, panels, x_label="time t (s)", title="REEP against time", spans=spans, markers=markers)

@@ -1,0 +1,125 @@
+"""How ``--help`` reads: options in panels, no type after a flag, the terminal's width, examples.
+
+Applied once to the click command tree that typer builds (:func:`arrange_help`),
+so every command, including ones added later, gets the same layout without
+each option restating it:
+
+* options are grouped into the panels Input, Model, Estimator and Output
+  (an option named in none of the tables below is an estimator setting,
+  the commands' own tuning knobs), after the arguments;
+* a boolean flag shows no ``<bool>`` metavar: it takes no value;
+* the help uses the terminal's full width (``COLUMNS`` or the terminal's
+  size; 120 columns when the output is not a terminal), not rich's 80;
+* each command's help ends with example lines (:data:`EXAMPLES`).
+
+Nothing here imports scipy, numba or matplotlib: ``afmtool --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Mapping
+
+__all__ = ["PANELS", "EXAMPLES", "arrange_help", "panel_of"]
+
+#: The option panels, in the order they are shown.
+PANELS = ("Input", "Model", "Estimator", "Output")
+
+_INPUT = frozenset({
+    "--channel", "--topic", "--sample-rate", "--chunk-samples", "--contact", "--psd", "--iv", "--z-curve",
+    "--vr-sweep", "--reep", "--voltage-channel", "--sweep", "--config", "--arg",
+})
+_MODEL = frozenset({
+    "--model", "--models", "--free-air", "--thermal-model", "--spring-constant", "--temperature",
+    "--room-temperature", "--breakdown-temperature", "--f0", "--q", "--f0-low", "--q-low", "--f0-scale",
+    "--force-set", "--sensor", "--l0", "--nominal", "--actuation-hz", "--free-amplitude", "--at-z",
+    "--drive-hold",
+    "--seed", "--set",  # simulate: the simulated plant and its noise
+})
+_OUTPUT = frozenset({
+    "--out", "--output", "--json", "--quiet", "--stream", "--stream-format", "--format", "--compression",
+    "--params", "--help", "--version", "--force",
+})
+
+#: Example lines closing each command's help, by command path.
+EXAMPLES: Mapping[str, tuple[str, ...]] = {
+    "info": ("afmtool info sample_data/ltv_step.h5", "afmtool info sample_data/ltv_step.csv --json"),
+    "convert": ("afmtool convert sample_data/ltv_step.h5 /tmp/ltv_step.bag",),
+    "report": ("afmtool report results/reep   # results/reep/report.html",
+               "afmtool report results/batch  # one page, a row per input"),
+    "simulate": ("afmtool simulate list", "afmtool simulate tapping -o /tmp/tapping.h5 --set duration_s=0.01"),
+    "reep": ("afmtool reep sample_data/ltv_step.h5 --out results/reep",
+             "afmtool reep sample_data/tapping_force_curve.h5 --lambda 0.99 --out results/force_curve",
+             "afmtool reep sample_data/ltv_step.h5 --stream --stream-format jsonl | head -3"),
+    "decode": ("afmtool decode sample_data/bits_30khz.h5 --bit-rate 30000 --out results/decode",),
+    "batch": ("afmtool batch reep sample_data/ltv_step.h5 sample_data/tapping_force_curve.h5 --out results/batch",),
+    "kalman-bank": ("afmtool kalman-bank sample_data/force_curve_thesis.h5 --out results/bank_thesis",
+                    "afmtool kalman-bank sample_data/tapping_force_curve.h5 --reep results/force_curve --out results/bank"),
+    "probeloss": ("afmtool probeloss sample_data/raster_grating.h5 --out results/probeloss",),
+    "identify freeair": ("afmtool identify freeair sample_data/ltv_step.h5 --out results/freeair",
+                         "afmtool identify freeair --psd ../shared/data/thermal_tune_acl_a.csv --out results/thermal"),
+    "identify gamma": ("afmtool identify gamma sample_data/thermal_sweep_near.h5 "
+                       "--contact sample_data/thermal_sweep_contact.h5 --out results/gamma",),
+    "identify thermal": ("afmtool identify thermal --iv /tmp/iv.h5 --z-curve /tmp/z.h5 --out results/thermal_sensor",),
+    "identify electrostatic": ("afmtool identify electrostatic /tmp/es.h5 --out results/es",),
+    "theory averaging": ("afmtool theory averaging --force-set attractive --out results/averaging",),
+    "theory compare": ("afmtool theory compare results/force_curve --out results/theory_compare",),
+    "theory observer": ("afmtool theory observer --recommend --cycles 2,4,8,16,50 --out results/observer",),
+    "config init": ("afmtool config init afmtool.toml",),
+}
+
+
+def panel_of(param) -> str:
+    """The panel of an option: by name, else an estimator setting."""
+    names = set(getattr(param, "opts", ())) | set(getattr(param, "secondary_opts", ()))
+    for panel, members in (("Input", _INPUT), ("Model", _MODEL), ("Output", _OUTPUT)):
+        if names & members:
+            return panel
+    return "Estimator"
+
+
+def _options(command, settings: Mapping) -> list:
+    """The command's parameters and its help option (created now with the root's names, -h and --help)."""
+    # the command's own Context class: typer vendors its click, which need not be the installed one
+    ctx = command.context_class(command, info_name=command.name, **{**settings, **(command.context_settings or {})})
+    help_option = command.get_help_option(ctx)  # click caches it on the command: what is set here sticks
+    return [*command.params, *([help_option] if help_option is not None else [])]
+
+
+def _unflag(params) -> None:
+    for param in params:
+        if getattr(param, "is_flag", False) and getattr(param, "param_type_name", "") == "option":
+            param.metavar = ""  # a flag takes no value: no "<bool>" after it
+
+
+def _arrange_command(command, path: str, settings: Mapping) -> None:
+    params = _options(command, settings)
+    _unflag(params)
+    for param in params:
+        if getattr(param, "param_type_name", "") == "option" and not getattr(param, "rich_help_panel", None):
+            param.rich_help_panel = panel_of(param)
+    rank = {panel: i for i, panel in enumerate(PANELS)}
+    # stable, arguments first (their own panel) in their order; then the panels in PANELS order
+    command.params.sort(key=lambda p: -1 if p.param_type_name == "argument" else rank.get(p.rich_help_panel, len(rank)))
+    examples = EXAMPLES.get(path)
+    if examples and not command.epilog:
+        command.epilog = "Examples:\n" + "\n".join(f"  {line}" for line in examples)
+
+
+def _walk(command, path: str, settings: Mapping) -> None:
+    subcommands = getattr(command, "commands", None)
+    if subcommands is None:
+        _arrange_command(command, path, settings)
+        return
+    _unflag(_options(command, settings))  # a group's own flags (--version)
+    for name, sub in subcommands.items():
+        _walk(sub, f"{path} {name}".strip(), settings)
+
+
+def arrange_help(root) -> None:
+    """Panels, flag metavars, examples on every command under ``root``; the help's width."""
+    import typer.rich_utils
+
+    if typer.rich_utils.MAX_WIDTH is None:  # TERMINAL_WIDTH, when set, still wins
+        typer.rich_utils.MAX_WIDTH = shutil.get_terminal_size(fallback=(120, 24)).columns
+    _walk(root, "", dict(root.context_settings or {}))

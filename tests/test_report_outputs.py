@@ -1,0 +1,448 @@
+"""What a scientist reads (issue 18): figures with units and the truth, the headline, the HTML page.
+
+The analyses run once, in this process, with ``Figure.savefig`` wrapped so
+that every figure is inspected just before it is saved: every axis that
+shows ticks has a label ending in its units in parentheses (a stacked
+panel may leave its x label to the shared bottom axis), every colour bar
+names its quantity and units.  The same output folders then feed the HTML
+tests: the headline against report.json, the numbers the page renders
+against report.json, and, in headless Chromium, the headline and the first
+figure above the fold of a 1280×800 window.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+
+from tests.conftest import SAMPLE_DATA, SHARED, run_cli, validate_report
+
+#: A label ends in its units: "f0' (Hz)", "Q' (dimensionless)", "PSD (dB re 1 nm²/Hz)".
+UNITS_AT_END = re.compile(r"\(([^()]*[^()\s][^()]*)\)\s*$")
+_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.tmp-[0-9a-f]+\.png$")
+
+CHROMIUM_FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]
+
+#: Runs made in process: name -> arguments after ``afmtool`` (``{out}`` is the run's folder).
+RUNS = {
+    # the README's first command, verbatim (run in a folder where sample_data/ links to the bundled data)
+    "readme": ["reep", "sample_data/ltv_step.h5", "--out", "results/reep"],
+    "reep_scan": ["reep", str(SAMPLE_DATA / "raster_grating.h5"), "--out", "{out}"],
+    "probeloss": ["probeloss", str(SAMPLE_DATA / "raster_grating.h5"), "--out", "{out}"],
+    "decode": ["decode", str(SAMPLE_DATA / "bits_30khz.h5"), "--bit-rate", "30000", "--out", "{out}"],
+    "bank": ["kalman-bank", str(SAMPLE_DATA / "tapping_force_curve.h5"), "--out", "{out}"],
+    "gamma": ["identify", "gamma", str(SAMPLE_DATA / "thermal_sweep_near.h5"), "--contact",
+              str(SAMPLE_DATA / "thermal_sweep_contact.h5"), "--out", "{out}"],
+    "averaging": ["theory", "averaging", "--force-set", "attractive", "--out", "{out}"],
+    "observer": ["theory", "observer", "--cycles", "4", "--out", "{out}"],
+}
+RUNS["sweep"] = ["identify", "freeair", "chirp.h5", "--sweep", "--out", "{out}"]
+RUNS["electrostatic"] = ["identify", "electrostatic", "es.h5", "--out", "{out}"]
+#: Made before the runs, in their folder: a chirp sweep of the free-air cantilever.
+_CHIRP = ["simulate", "ltv", "-o", "chirp.h5", "--set", "step_time_s=10.0", "--set", "duration_s=0.1",
+          "--set", "sweep_span_hz=20000.0", "--set", "drive=chirp"]
+if (SHARED / "data" / "thermal_tune_acl_a.csv").is_file():
+    RUNS["thermal"] = ["identify", "freeair", "--psd", str(SHARED / "data" / "thermal_tune_acl_a.csv"), "--out", "{out}"]
+
+
+class FigureRecord(NamedTuple):
+    run: str
+    name: str
+    problems: tuple[str, ...]
+    lines: dict  # y label -> {legend label: (x, y)}
+
+
+def _label_problems(fig, name: str) -> list[str]:
+    problems = []
+    for ax in fig.axes:
+        if not ax.axison:
+            continue
+        for which in ("x", "y"):
+            axis = ax.xaxis if which == "x" else ax.yaxis
+            if not axis.get_visible() or len(axis.get_majorticklocs()) == 0:
+                continue  # no ticks shown (a colour bar's short side, a twin's hidden x axis)
+            label = ax.get_xlabel() if which == "x" else ax.get_ylabel()
+            if label:
+                if not UNITS_AT_END.search(label):
+                    problems.append(f"{name}: {which} label {label!r} has no units in parentheses")
+                continue
+            shared = (ax.get_shared_x_axes() if which == "x" else ax.get_shared_y_axes()).get_siblings(ax)
+            others = [s.get_xlabel() if which == "x" else s.get_ylabel() for s in shared if s is not ax]
+            if not any(UNITS_AT_END.search(text) for text in others):
+                problems.append(f"{name}: {which} axis of {ax.get_title()!r} has ticks but no label")
+    return problems
+
+
+def _lines(fig) -> dict:
+    out = {}
+    for ax in fig.axes:
+        out.setdefault(ax.get_ylabel(), {}).update(
+            {line.get_label(): (np.asarray(line.get_xdata()), np.asarray(line.get_ydata())) for line in ax.get_lines()}
+        )
+    return out
+
+
+def _invoke(args: list[str]) -> None:
+    from typer.testing import CliRunner
+
+    from afmtool.cli.main import app
+
+    result = CliRunner().invoke(app, [*args, "--quiet"], catch_exceptions=True)
+    assert result.exit_code == 0, f"afmtool {' '.join(args)}: {result.output} {result.exception!r}"
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Every run of RUNS in process, each figure inspected as it is saved: (folders, figure records)."""
+    from matplotlib.figure import Figure
+
+    base = tmp_path_factory.mktemp("report_outputs")
+    (base / "sample_data").symlink_to(SAMPLE_DATA, target_is_directory=True)
+    records: list[FigureRecord] = []
+    current = {"run": ""}
+    original = Figure.savefig
+
+    def inspecting_savefig(self, fname, *args, **kwargs):
+        raw = Path(str(fname)).name
+        match = _TEMP_NAME.match(raw)
+        name = match.group("name") if match else raw
+        records.append(FigureRecord(current["run"], name, tuple(_label_problems(self, name)), _lines(self)))
+        return original(self, fname, *args, **kwargs)
+
+    folders = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Figure, "savefig", inspecting_savefig)
+        patch.chdir(base)
+        _invoke(_CHIRP)
+        _invoke(["simulate", "es-approach", "-o", "es.h5"])
+        for run, args in RUNS.items():
+            out = base / run
+            current["run"] = run
+            _invoke([a.format(out=out) for a in args])
+            folders[run] = base / "results" / "reep" if run == "readme" else out
+    return folders, records
+
+
+def test_readme_first_command_writes_f0_q_against_time_with_the_truth(runs):
+    import matplotlib.image
+
+    folders, records = runs
+    png = folders["readme"] / "reep_time_series.png"
+    assert png.is_file()
+    pixels = matplotlib.image.imread(png)
+    assert pixels.shape[0] > 600 and pixels.shape[1] > 600
+    assert float(np.std(pixels[..., :3])) > 0.05  # not blank
+    (figure,) = [r for r in records if r.run == "readme" and r.name == "reep_time_series.png"]
+    truth = _truth("ltv_step.h5")
+    for label, key in (("f0' (Hz)", "f0_hz"), ("Q' (dimensionless)", "q")):
+        lines = figure.lines[label]
+        assert {"REEP", "truth"} <= set(lines), lines.keys()
+        t, drawn = lines["truth"]
+        expected = truth[key][np.rint(t * 500000.0).astype(int)]
+        np.testing.assert_array_equal(drawn, expected)  # the truth line is the capture's /truth, sample for sample
+        assert np.ptp(drawn) > 0  # ltv_step's step is drawn
+    # and the report gives the tracking error after the warm-up: f0' follows the step within a few Hz
+    report = json.loads((folders["readme"] / "report.json").read_text())
+    tracking = report["results"]["truth_tracking"]
+    print("median |f0' - f0| =", tracking["f0_hz"]["median_abs"], "Hz; p95 =", tracking["f0_hz"]["p95_abs"], "Hz")
+    assert 0 < tracking["f0_hz"]["median_abs"] < 3.0 and tracking["f0_hz"]["p95_abs"] < 30.0
+    assert 0 < tracking["q"]["median_abs"] < 2.0
+
+
+def _truth(name: str) -> dict:
+    import h5py
+
+    with h5py.File(SAMPLE_DATA / name, "r") as h5:
+        return {key: ds[()] for key, ds in h5["truth"].items()}
+
+
+def test_every_figure_has_units_on_every_axis(runs):
+    folders, records = runs
+    problems = [p for r in records for p in r.problems]
+    print(f"{len(records)} figures inspected, {len(problems)} problems")
+    assert not problems, "\n".join(problems)
+    for run, folder in folders.items():
+        saved = {r.name for r in records if r.run == run}
+        on_disk = {p.name for p in folder.glob("*.png")}
+        assert on_disk and on_disk <= saved, f"{run}: {sorted(on_disk - saved)} not inspected"
+
+
+def test_the_inspection_can_fail():
+    from matplotlib.figure import Figure
+
+    fig = Figure()
+    ax = fig.add_subplot()
+    ax.plot([0, 1], [0, 1])
+    ax.set_xlabel("time t (s)")
+    ax.set_ylabel("amplitude")
+    problems = _label_problems(fig, "bad.png")
+    assert problems == ["bad.png: y label 'amplitude' has no units in parentheses"]
+    ax.set_xlabel("")
+    assert len(_label_problems(fig, "bad.png")) == 2
+
+
+def test_probeloss_decode_bank_identify_figures_exist(runs):
+    folders, _ = runs
+    assert {"probeloss_time_series.png", "probeloss_zoom_1.png", "index_trace.png"} <= _pngs(folders["probeloss"])
+    assert {"decode_time_series.png", "eye.png", "psd.png", "l0_search.png"} <= _pngs(folders["decode"])
+    assert {"bank_rms_vs_time.png", "bank_rms_vs_z.png"} <= _pngs(folders["bank"])
+    assert "feedthrough.png" in _pngs(folders["gamma"])
+    assert "sweep_bode.png" in _pngs(folders["sweep"])
+    if "thermal" in folders:
+        assert "thermal_fit.png" in _pngs(folders["thermal"])
+
+
+def _pngs(folder: Path) -> set[str]:
+    return {p.name for p in folder.glob("*.png")}
+
+
+def test_fitted_model_band_matches_monte_carlo():
+    from afmtool.analyses.freeair_outputs import model_magnitude_std, model_response
+    from afmtool.models.free_air import FreeAirModel
+
+    model = FreeAirModel(f0_hz=70_000.0, q=200.0, gain=1.0, f0_std_hz=3.0, q_std=2.0, gain_std=0.002,
+                         source="sweep", delay_s=1e-6)
+    f = np.linspace(69_000.0, 71_000.0, 81)
+    rng = np.random.default_rng(20261201)
+    draws = np.array([
+        np.abs(model_response(FreeAirModel(f0_hz=70_000.0 + 3.0 * a, q=200.0 + 2.0 * b, gain=1.0 + 0.002 * c,
+                                           source="sweep", delay_s=1e-6), f))
+        for a, b, c in rng.standard_normal((4000, 3))
+    ])
+    band = model_magnitude_std(model, f)
+    # first-order propagation: right to 15 % where |H| is locally linear in the parameters (off the peak's top)
+    flank = np.abs(f - 70_000.0) > 200.0
+    ratio = band[flank] / draws.std(axis=0)[flank]
+    print(f"band / Monte-Carlo std on the flanks: {ratio.min():.3f} .. {ratio.max():.3f}")
+    assert np.all(np.abs(ratio - 1.0) < 0.15)
+
+
+# --------------------------------------------------------------------------- headline
+
+
+def test_headline_repeats_results(runs):
+    from afmtool.report.headline import lookup
+
+    folders, _ = runs
+    for run, folder in folders.items():
+        report = json.loads((folder / "report.json").read_text())
+        validate_report(report)
+        for entry in report["headline"]:
+            assert lookup(report["results"], entry["source"]) == entry["value"], (run, entry)
+            if entry["std_source"]:
+                assert lookup(report["results"], entry["std_source"]) == entry["std"], (run, entry)
+    names = {run: [e["name"] for e in json.loads((f / "report.json").read_text())["headline"]] for run, f in folders.items()}
+    assert "f0' in the free-air segment" in names["readme"] and "Q' after the free-air segment" in names["readme"]
+    assert {"probe-loss fraction (index)", "precision (index)", "recall (index)"} <= set(names["probeloss"])
+    assert {"BER (EKF decoder)", "BER 95 % upper bound (EKF decoder)"} <= set(names["decode"])
+
+
+def test_json_output_carries_the_headline(tmp_path):
+    result = run_cli("identify", "freeair", SAMPLE_DATA / "ltv_step.h5", "--out", tmp_path / "fa", "--json", "-q")
+    assert result.returncode == 0, result.stderr.decode()
+    printed = json.loads(result.stdout)
+    assert printed["headline"] == json.loads((tmp_path / "fa" / "report.json").read_text())["headline"]
+    assert [e["name"] for e in printed["headline"]] == ["f0 (free air)", "Q (free air)", "gain"]
+    assert all(e["std"] is not None and e["std"] > 0 for e in printed["headline"])
+
+
+# --------------------------------------------------------------------------- the page
+
+
+class _Cards(HTMLParser):
+    """(data-source, rendered number, rendered units) of every headline card."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cards: list[list[str]] = []
+        self._field: str | None = None
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if attrs.get("class") == "card":
+            self.cards.append([attrs.get("data-source", ""), "", ""])
+        elif attrs.get("class") in ("number", "units") and self.cards:
+            self._field = attrs["class"]
+
+    def handle_endtag(self, tag):
+        self._field = None
+
+    def handle_data(self, data):
+        if self._field and self.cards:
+            self.cards[-1][1 if self._field == "number" else 2] += data
+
+
+def _page(folder: Path) -> str:
+    _invoke(["report", str(folder)])
+    return (folder / "report.html").read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("run", ["readme", "probeloss", "decode", "bank", "gamma", "sweep", "electrostatic"])
+def test_rendered_numbers_match_report_json(runs, run):
+    folders, _ = runs
+    report = json.loads((folders[run] / "report.json").read_text())
+    parser = _Cards()
+    parser.feed(_page(folders[run]))
+    assert len(parser.cards) == len(report["headline"]) > 0
+    for (source, number, units), entry in zip(parser.cards, report["headline"], strict=True):
+        assert source == entry["source"] and units == entry["units"]
+        value = entry["value"]
+        if isinstance(value, bool):
+            assert number == ("yes" if value else "no")
+            continue
+        if entry["std"] is None:
+            assert " ± " not in number
+            assert math.isclose(float(number), value, rel_tol=5e-6, abs_tol=1e-300), (entry, number)
+        else:
+            match = re.fullmatch(r"\(?(-?[\d.]+) ± ([\d.]+)\)?(?:e([-+]\d+))?", number)
+            assert match, number
+            shown, shown_std, exponent = match.group(1), match.group(2), int(match.group(3) or 0)
+            scale = 10.0**exponent
+            decimals = len(shown.partition(".")[2])
+            # rounded to the second significant digit of the deviation, value to the same decimal
+            assert abs(float(shown) * scale - value) <= (0.5 * 10.0**-decimals + 1e-12) * scale, (entry, number)
+            assert abs(float(shown_std) * scale - entry["std"]) <= (0.5 * 10.0**-decimals + 1e-12) * scale, (entry, number)
+            assert 10 <= float(shown_std) * 10.0**decimals < 100 or float(shown_std) >= 10, (entry, number)
+
+
+def test_page_order_headline_figures_warnings_details(runs):
+    folders, _ = runs
+    page = _page(folders["bank"])  # the bundled force curve fails the bank's verdict: a warning
+    order = [page.index(marker) for marker in (
+        'id="headline"', 'id="figures"', 'id="warnings"', '<details id="inputs">', '<details id="parameters">')]
+    assert order == sorted(order)
+    assert 'class="warning-flag" href="#warnings"' in page and 'class="warning"' in page
+    main = re.search(r'<figure class="main"><img alt="([^"]+)"', page)
+    assert main and main.group(1) == "bank_rms_vs_time"
+    sha = json.loads((folders["bank"] / "report.json").read_text())["inputs"][0]["sha256"]
+    assert sha in page  # the full hash, in the collapsed inputs
+    assert "src=\"http" not in page and "href=\"http" not in page
+
+
+def test_a_symlinked_png_is_not_embedded_and_a_fifo_is_not_read(runs, tmp_path):
+    folders, _ = runs
+    folder = tmp_path / "run"
+    folder.mkdir()
+    for name in ("report.json", "decode_time_series.png"):
+        shutil.copy(folders["decode"] / name, folder / name)
+    outside = tmp_path / "private.png"
+    shutil.copy(folders["decode"] / "eye.png", outside)
+    (folder / "linked.png").symlink_to(outside)
+    os.mkfifo(folder / "fifo.png")  # nobody writes it: reading it would block forever
+    result = run_cli("report", folder, "-q")  # a hang would hit run_cli's timeout
+    assert result.returncode == 0, result.stderr.decode()
+    page = (folder / "report.html").read_text()
+    assert page.count("data:image/png;base64,") == 1
+    assert 'alt="linked"' not in page and 'alt="fifo"' not in page
+    # a report.json that is a link is refused as a whole
+    (folder / "report.json").rename(tmp_path / "report.json")
+    (folder / "report.json").symlink_to(tmp_path / "report.json")
+    refused = run_cli("report", folder)
+    assert refused.returncode == 2 and "not a regular file" in refused.stderr.decode()
+
+
+@pytest.fixture(scope="module")
+def batch_folder(tmp_path_factory):
+    pytest.importorskip("dask.distributed")
+    out = tmp_path_factory.mktemp("batch") / "batch"
+    result = run_cli("batch", "reep", SAMPLE_DATA / "ltv_step.h5", SAMPLE_DATA / "ltv_step.csv", "--out", out,
+                     "--workers", "1", "-q")
+    assert result.returncode == 0, result.stderr.decode()
+    assert run_cli("report", out, "-q").returncode == 0
+    return out
+
+
+def test_batch_page_has_a_row_per_input_with_links(batch_folder):
+    page = (batch_folder / "report.html").read_text()
+    links = re.findall(r'<a href="([^"]+)/report.html">', page)
+    assert sorted(links) == ["ltv_step_csv", "ltv_step_h5"]
+    for link in links:
+        assert (batch_folder / link / "report.html").is_file()
+    assert page.count("<tr><td><code>") == 2
+    assert page.count('class="thumb"') == 2
+    assert "f0&#x27; in the free-air segment" in page or "f0' in the free-air segment" in page
+
+
+def _chromium() -> str:
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("headless Chromium is not installed (Debian package chromium)")
+    return chromium
+
+
+_LAYOUT_SCRIPT = """<script>addEventListener("load", () => {
+  const box = (sel) => { const e = document.querySelector(sel); if (!e) return null;
+    const r = e.getBoundingClientRect(); return {top: r.top, bottom: r.bottom, height: r.height}; };
+  document.body.setAttribute("data-layout", JSON.stringify({headline: box("#headline"),
+    figure: box("#figures figure img, #runs img.thumb"), viewport: innerHeight}));
+});</script>"""
+
+
+@pytest.mark.parametrize("run", ["readme", "probeloss", "decode", "batch"])
+def test_headline_and_first_figure_above_the_fold(runs, batch_folder, run, tmp_path):
+    chromium = _chromium()
+    folders, _ = runs
+    folder = batch_folder if run == "batch" else folders[run]
+    page = (folder / "report.html") if run == "batch" else None
+    html_text = page.read_text() if page else _page(folder)
+    probe = folder / "layout_probe.html"  # beside the page, so that the batch page's thumbnails resolve alike
+    probe.write_text(html_text.replace("</body>", _LAYOUT_SCRIPT + "</body>"))
+    common = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1280,800"]
+    try:
+        dom = subprocess.run([*common, "--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=120).stdout
+    finally:
+        probe.unlink()
+    match = re.search(r'data-layout="([^"]+)"', dom)
+    assert match, "the page did not load"
+    layout = json.loads(match.group(1).replace("&quot;", '"'))
+    fold = min(800, layout["viewport"])
+    print(run, layout)
+    assert layout["headline"]["height"] > 0 and layout["headline"]["bottom"] <= fold
+    assert layout["figure"]["height"] > 100 and layout["figure"]["top"] < fold - 100  # at least 100 px of it shows
+    shot = tmp_path / "shot.png"
+    subprocess.run([*common, f"--screenshot={shot}", (folder / "report.html").as_uri()], capture_output=True, timeout=120)
+    import matplotlib.image
+
+    pixels = matplotlib.image.imread(shot)
+    assert pixels.shape[:2] == (800, 1280)
+    assert float(np.std(pixels[..., :3])) > 0.05  # not a blank page
+
+
+
+def test_reep_rows_flagged_in_reep_h5_are_left_out_and_marked(tmp_path):
+    import h5py
+
+    from afmtool.analyses.reep_timeseries import _read_thinned, segment_statistics, tracking_error
+
+    fs, n = 500_000.0, 4000
+    t = (np.arange(n) * 7 + 6) / fs
+    f0 = np.full(n, 70_000.0)
+    q = np.full(n, 200.0)
+    flag = np.zeros(n, dtype=np.uint8)
+    flag[1000:1100] = 4  # a validity check failed there: the fitted values are kept but not trusted
+    f0[1000:1100], q[1000:1100] = 90_000.0, 5.0
+    path = tmp_path / "reep.h5"
+    with h5py.File(path, "w") as h5:
+        for name, values in {"t": t, "f0_hz": f0, "q": q, "amplitude": np.ones(n), "phase_deg": np.zeros(n),
+                             "flag": flag}.items():
+            h5[name] = values
+    stats = segment_statistics(path, 0.0, None)["settled"]
+    assert stats["f0_hz"]["mean"] == 70_000.0 and stats["f0_hz"]["count"] == n - 100
+    truth = {"f0_hz": np.full(n * 7 + 7, 70_000.0), "q": np.full(n * 7 + 7, 200.0)}
+    error = tracking_error(path, truth, fs, 0.0)
+    assert error["f0_hz"]["p95_abs"] == 0.0 and error["rows_compared"] == n - 100
+    marked = _read_thinned(path, ("f0_hz",))
+    np.testing.assert_array_equal(marked.flagged_t, t[1000:1100])
