@@ -37,16 +37,31 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tu
 
 
 def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tuple[FreeAirModel, dict]:
-    from afmtool.estimators.frequency_response import free_air_from_sweep
+    from afmtool.estimators.sweep_record import identify_sweep
 
     chunks = list(iter_chunks(reader, ("dither", "deflection"), 1 << 20, progress=progress))
     dither = np.concatenate([c.data["dither"] for c in chunks])
     deflection = np.concatenate([c.data["deflection"] for c in chunks])
     segments = reader.info.metadata.get("segments") if params.sweep_method == "stepped" else None
-    model = free_air_from_sweep(
-        dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method, segments=segments
+    found = identify_sweep(
+        dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method, segments=segments,
+        hold=params.drive_hold,
     )
-    return model, {"sweep_method": params.sweep_method, "samples": len(dither)}
+    details = {
+        "sweep_method": params.sweep_method,
+        "samples": len(dither),
+        "drive_hold": found.hold,
+        "drive_hold_reason": found.hold_reason,
+    }
+    if params.sweep_method == "record":
+        details.update(
+            band_hz=list(found.fit.band_hz),
+            n_bins=found.fit.n_bins,
+            transient_order=found.fit.transient_order,
+            delay_std_s=found.fit.delay_std_s,
+            noise_std=found.fit.noise_std,
+        )
+    return found.model, details
 
 
 def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict]:
