@@ -182,3 +182,38 @@ def test_record_fit_does_not_modify_inputs_and_rejects_bad_arguments():
         fit_record_response(u[:400], y[:400], FS, **kwargs)
     with pytest.raises(InputError, match="constant"):
         record_start_values(np.zeros(1000), y[:1000], FS)
+
+
+def _hostile_records():
+    rng = np.random.default_rng(9)
+    n = 4000
+    t = np.arange(n) / FS
+    chirp = np.sin(2 * np.pi * (60e3 * t + 0.5 * 20e3 / t[-1] * t * t))
+    return {
+        "empty": (np.zeros(0), np.zeros(0)),
+        "ten samples": (rng.standard_normal(10), rng.standard_normal(10)),
+        "constant deflection": (chirp, np.zeros(n)),
+        "noise only": (rng.standard_normal(n), rng.standard_normal(n)),
+        "one sine": (np.sin(2 * np.pi * 70e3 * t), np.sin(2 * np.pi * 70e3 * t + 1)),
+        "no resonance, huge": (chirp * 1e300, chirp * 1e300),
+        "no resonance, tiny": (chirp * 1e-300, chirp * 1e-300),
+        "Nyquist line": (np.cos(np.pi * np.arange(n)), np.cos(np.pi * np.arange(n))),
+    }
+
+
+@pytest.mark.parametrize("name", sorted(_hostile_records()))
+def test_record_route_refuses_records_without_a_resonance(name):
+    u, y = _hostile_records()[name]
+    with pytest.raises(InputError):
+        identify_sweep(u, y, FS)
+
+
+def test_record_fit_is_scale_free():
+    capture = reference_capture("fast_chirp")
+    u, y = capture.channels["dither"], capture.channels["deflection"]
+    base = identify_sweep(u, y, FS).model
+    scaled = identify_sweep(u * 1e-3, y * 1e6, FS).model
+    assert scaled.f0_hz == pytest.approx(base.f0_hz, rel=1e-9)
+    assert scaled.q == pytest.approx(base.q, rel=1e-7)
+    assert scaled.gain == pytest.approx(base.gain * 1e9, rel=1e-7)
+    assert scaled.gain_std == pytest.approx(base.gain_std * 1e9, rel=1e-5)

@@ -59,7 +59,7 @@ drive: slow or fast chirps, stepped sines, noise.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -206,13 +206,11 @@ def record_start_values(dither, deflection, sample_rate_hz: float) -> StartValue
     from afmtool.estimators.frequency_response import fit_second_order
 
     fs = _check_positive("sample_rate_hz", sample_rate_hz)
-    x, y = _records(dither, deflection)
+    x, y, x_scale, y_scale = _records(dither, deflection)
     u = np.fft.rfft(x - x.mean())
     v = np.fft.rfft(y - y.mean())
     freq = np.fft.rfftfreq(x.size, 1.0 / fs)
     power = np.abs(u) ** 2
-    if not np.any(power > 0):
-        raise InputError("the dither is constant: nothing to identify a response from")
     driven = np.flatnonzero(power > _DRIVEN_FRACTION * power.max())
     first, last = int(driven[0]), int(driven[-1]) + 1
     m = max(1, (last - first) // _START_POINTS)
@@ -237,8 +235,11 @@ def record_start_values(dither, deflection, sample_rate_hz: float) -> StartValue
     if hi - lo + 1 < 3:
         raise InputError("the response has no resonance peak inside the driven band")
     fit = fit_second_order(f_mid[lo : hi + 1], h[lo : hi + 1], weights=auto[lo : hi + 1])
-    f0 = fit.f0_hz if 0 < fit.f0_hz < fs / 2 else float(f_mid[peak])
-    return StartValues(float(f0), float(max(fit.q, 0.6)), float(fit.gain), float(fit.delay_s))
+    f0 = fit.f0_hz if 0 < fit.f0_hz < fs / 2 * (1 - 1e-6) else float(f_mid[peak])
+    if not (0 < f0 < fs / 2 * (1 - 1e-6)):
+        raise InputError(f"the response peaks at {f0:g} Hz, not below the Nyquist frequency {fs / 2:g} Hz")
+    gain = fit.gain * y_scale / x_scale
+    return StartValues(float(f0), float(max(fit.q, 0.6)), float(gain), float(fit.delay_s))
 
 
 def _check_positive(name: str, value) -> float:
@@ -261,7 +262,22 @@ def _check_band(band) -> tuple[float, float] | None:
     return lo, hi
 
 
-def _records(dither, deflection) -> tuple[np.ndarray, np.ndarray]:
+#: A fit whose gain is within this many standard deviations of 0 found no response, only noise.
+_MIN_GAIN_SIGMAS = 5.0
+#: Fewest samples a record may hold.
+_MIN_SAMPLES = 16
+
+
+class _Records(NamedTuple):
+    """The records divided by their peak deviation from the mean (so no power overflows), and those scales."""
+
+    x: np.ndarray
+    y: np.ndarray
+    x_scale: float
+    y_scale: float
+
+
+def _records(dither, deflection) -> _Records:
     arrays = []
     for name, values in (("dither", dither), ("deflection", deflection)):
         try:
@@ -270,13 +286,24 @@ def _records(dither, deflection) -> tuple[np.ndarray, np.ndarray]:
             raise InputError(f"{name} must be a 1-D array of numbers") from None
         if arr.ndim != 1:
             raise InputError(f"{name} must be 1-D, got shape {arr.shape}")
+        if arr.size < _MIN_SAMPLES:
+            raise InputError(f"{name} has {arr.size} samples; a sweep needs at least {_MIN_SAMPLES}")
         if not np.all(np.isfinite(arr)):
             bad = int(np.flatnonzero(~np.isfinite(arr))[0])
             raise InputError(f"{name} has a non-finite value at index {bad} ({arr[bad]!r})")
         arrays.append(arr)
     if arrays[0].shape != arrays[1].shape:
         raise InputError(f"dither and deflection must have the same length, got {arrays[0].size} and {arrays[1].size}")
-    return arrays[0], arrays[1]
+    scales = []
+    for name, arr in zip(("dither", "deflection"), arrays):
+        # the mean first: max|x − mean| overflows only for |x| near the largest double
+        scale = float(np.max(np.abs(arr - arr.mean()))) if np.all(np.abs(arr) < 1e300) else math.inf
+        if scale == 0:
+            raise InputError(f"the {name} is constant: nothing to identify a response from")
+        if not (math.isfinite(scale) and scale > 1e-300):
+            raise InputError(f"the {name} spans {scale:g}, outside the range a fit can represent")
+        scales.append(scale)
+    return _Records(arrays[0] / scales[0], arrays[1] / scales[1], scales[0], scales[1])
 
 
 class _Band:
@@ -402,7 +429,7 @@ def fit_record_response(
     band = _check_band(band)
     if not f0_start < fs / 2:
         raise ConfigError(f"f0_start_hz={f0_start_hz!r} must be below the Nyquist frequency {fs / 2:g} Hz")
-    x, y = _records(dither, deflection)
+    x, y, x_scale, y_scale = _records(dither, deflection)
     n = x.size
     spectrum_u = np.fft.rfft(x)
     spectrum_y = np.fft.rfft(y)
@@ -432,7 +459,25 @@ def fit_record_response(
         else:
             fit = _fit_band(data, fs, hold, f0, q, tau, tau if fixed_delay is None else tau0, fixed_delay, n)
         f0, q, tau = fit.f0_hz, fit.q, fit.delay_s
-    return fit.result
+    result = fit.result
+    unit = y_scale / x_scale
+    result = replace(
+        result, gain=result.gain * unit, gain_std=result.gain_std * unit, noise_std=result.noise_std * y_scale
+    )
+    values = (result.f0_hz, result.q, result.gain, result.f0_std_hz, result.q_std, result.gain_std)
+    inside = result.band_hz[0] <= result.f0_hz <= result.band_hz[1] and result.f0_hz < fs / 2 * (1 - 1e-6)
+    if not (all(math.isfinite(v) for v in values) and inside and result.gain != 0 and result.f0_std_hz > 0
+            and result.q_std > 0):
+        raise InputError(
+            "the deflection shows no resonant response to the dither in the band "
+            f"{result.band_hz[0]:g}–{result.band_hz[1]:g} Hz (a degenerate fit)"
+        )
+    if abs(result.gain) < _MIN_GAIN_SIGMAS * result.gain_std or result.q_std > 0.5 * result.q:
+        raise InputError(
+            f"the deflection shows no significant resonant response to the dither: gain {result.gain:.3g} ± "
+            f"{result.gain_std:.2g}, Q {result.q:.3g} ± {result.q_std:.2g}"
+        )
+    return result
 
 
 class _BandFit(NamedTuple):
