@@ -386,6 +386,7 @@ def _drive_metadata(params: TappingParams, excitation, center_hz: float, amplitu
         "amplitude_v": float(amplitude_v),
         "free_amplitude_nm": float(params.amplitude_nm),
         "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
+        "hold": "continuous",
     }
     if params.drive == "three-sine":
         drive["sideband_offset_hz"] = float(params.sideband_offset_hz)
