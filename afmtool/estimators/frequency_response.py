@@ -1307,8 +1307,17 @@ def free_air_from_sweep(
 ) -> FreeAirModel:
     """Free-air model from a frequency sweep of the dither (the "sweep" route).
 
-    The model of :func:`afmtool.estimators.sweep_record.identify_sweep`;
-    see there for the parameters.
+    Parameters
+    ----------
+    dither, deflection : array_like
+        Drive (e.g. V) and deflection (e.g. nm) records, equal length.
+    sample_rate_hz : float
+        Sampling rate, Hz.
+    method, segments, band, nperseg, delay, hold
+        As :func:`afmtool.estimators.sweep_record.identify_sweep`: by
+        default the whole-record fit (exact at any sweep rate) with the
+        drive's hold told from its half-sample delay; ``method="h1"`` or
+        ``"stepped"`` for :func:`spectral_sweep_fit`.
 
     Returns
     -------
