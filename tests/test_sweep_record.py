@@ -216,3 +216,20 @@ def test_record_fit_is_scale_free():
     assert scaled.q == pytest.approx(base.q, rel=1e-7)
     assert scaled.gain == pytest.approx(base.gain * 1e9, rel=1e-7)
     assert scaled.gain_std == pytest.approx(base.gain_std * 1e9, rel=1e-5)
+
+
+@pytest.mark.parametrize("f0, q, f_start, f_end, duration, f0_rtol, q_rtol", [
+    (57185.0, 1.0148, 1e3, 200e3, 2e-3, 0.02, 0.04),  # the thesis's ch. 7 cantilever: no sharp peak
+    (70e3, 20.0, 40e3, 100e3, 4e-3, F0_RTOL, Q_RTOL),
+    (70e3, 1000.0, 65e3, 75e3, 0.05, F0_RTOL, Q_RTOL),  # a 1.4 ms-per-bandwidth chirp, τ = 4.5 ms
+])
+def test_record_fit_from_low_to_high_q(f0, q, f_start, f_end, duration, f0_rtol, q_rtol):
+    capture = ref.simulate(
+        f0_hz=f0, q=q, gain_nm_per_v=1.0, sample_rate_hz=FS, duration_s=duration,
+        drive=ref.LinearChirp(f_start, f_end, 0.5), noise_nm=0.05, seed=1,
+    )
+    model = identify_sweep(capture.channels["dither"], capture.channels["deflection"], FS).model
+    print(f"Q {q}: f0 {model.f0_hz / f0 - 1:+.2e}, Q {model.q / q - 1:+.2e}, gain {model.gain - 1:+.2e}")
+    assert model.f0_hz == pytest.approx(f0, rel=f0_rtol)
+    assert model.q == pytest.approx(q, rel=q_rtol)
+    assert abs(model.f0_hz - f0) < 3 * model.f0_std_hz + 1e-6 * f0

@@ -87,8 +87,10 @@ SWEEP_METHODS = ("record", "h1", "stepped")
 _MIN_BAND_BINS = 8
 #: The start values use at most about this many frequency-smoothed points across the driven band.
 _START_POINTS = 400
-#: Bins whose smoothed input power is below this fraction of its maximum are not driven.
+#: Bins whose input power is below this fraction of its maximum are not driven.
 _DRIVEN_FRACTION = 1e-3
+#: The start values' peak search keeps smoothed points with at least this fraction of the input power.
+_WELL_DRIVEN_FRACTION = 0.1
 
 
 @dataclass(frozen=True)
@@ -190,7 +192,8 @@ def record_start_values(dither, deflection, sample_rate_hz: float) -> StartValue
     -----
     The ratio Ĥ = Σ_M Y_k U_k* / Σ_M |U_k|² over blocks of M adjacent bins
     (a Daniell-smoothed empirical transfer function; M = 1 unless the driven
-    band holds more than 400 bins) needs no steady state within a segment,
+    band holds more than 400 bins), kept where the smoothed input power is at
+    least a tenth of its maximum, needs no steady state within a segment,
     unlike a Welch estimate, so its peak is near f0 even for a fast chirp or
     a short record; the transient only blurs it.  The delayed second-order
     model is fitted to Ĥ where |Ĥ| > |Ĥ|max/10 (:func:`~afmtool.estimators.
@@ -221,7 +224,9 @@ def record_start_values(dither, deflection, sample_rate_hz: float) -> StartValue
     cross = (v[first:stop] * np.conj(u[first:stop])).reshape(blocks, m).sum(axis=1)
     auto = power[first:stop].reshape(blocks, m).sum(axis=1)
     f_mid = freq[first:stop].reshape(blocks, m).mean(axis=1)
-    keep = auto > _DRIVEN_FRACTION * auto.max()
+    # the ratio is noise over little input where the drive is weak (a chirp's ends): search only
+    # where the smoothed input power is at least a tenth of its maximum
+    keep = auto > _WELL_DRIVEN_FRACTION * auto.max()
     h, f_mid, auto = cross[keep] / auto[keep], f_mid[keep], auto[keep]
     mag = np.abs(h)
     peak = int(np.argmax(mag))
