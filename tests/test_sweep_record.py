@@ -233,3 +233,14 @@ def test_record_fit_from_low_to_high_q(f0, q, f_start, f_end, duration, f0_rtol,
     assert model.f0_hz == pytest.approx(f0, rel=f0_rtol)
     assert model.q == pytest.approx(q, rel=q_rtol)
     assert abs(model.f0_hz - f0) < 3 * model.f0_std_hz + 1e-6 * f0
+
+
+@pytest.mark.parametrize("hold", ["continuous", "zoh"])
+def test_record_fit_is_exact_on_noise_free_fast_chirps(hold):
+    """No steady-state assumption: without noise only the integrator's and the aliasing errors remain."""
+    capture = reference_capture("fast_chirp", hold=hold, noise=0.0)
+    found = identify_sweep(capture.channels["dither"], capture.channels["deflection"], FS)
+    f0_err, q_err, gain_err = _errors(found.model, 2.0)
+    print(f"noise-free fast chirp ({hold}): f0 {f0_err:+.1e}, Q {q_err:+.1e}, gain {gain_err:+.1e}")
+    assert found.hold == hold
+    assert max(abs(f0_err), abs(q_err), abs(gain_err)) < 1e-5
