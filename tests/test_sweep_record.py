@@ -10,7 +10,8 @@ its time constant 2Q/ω0 is 0.82 ms and its half-power bandwidth 389 Hz.
   0.16 ms, a fifth of the time constant (the Welch H1 fit gives Q ~75 % off);
 * slow chirp: 67 → 73 kHz in 0.2 s: 13 ms across the bandwidth, 16 time
   constants;
-* stepped sine: 21 steps 68–72 kHz of 5 ms (6 time constants) each.
+* stepped sine: 21 steps 68–72 kHz of 5 ms (6 time constants) each;
+* burst chirp: the fast chirp's first millisecond, then the drive is off.
 
 Tolerances (issue 14 item 5): f0 within 0.05 %, Q within 2 %, gain within 1 %.
 """
@@ -24,7 +25,12 @@ import pytest
 
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.frequency_response import free_air_from_sweep, spectral_sweep_fit
-from afmtool.estimators.sweep_record import fit_record_response, identify_sweep, record_start_values
+from afmtool.estimators.sweep_record import (
+    drive_switch_times,
+    fit_record_response,
+    identify_sweep,
+    record_start_values,
+)
 from tests import reference_sim as ref
 from tests.conftest import run_cli, validate_report
 
@@ -37,6 +43,8 @@ DRIVES = {
     "fast_chirp": (ref.LinearChirp(60e3, 80e3, 0.1), 8e-3),
     "slow_chirp": (ref.LinearChirp(67e3, 73e3, 0.1), 0.2),
     "stepped_sine": (ref.SteppedSine(tuple(np.linspace(68e3, 72e3, 21)), 5e-3, 0.1), 0.105),
+    # the fast chirp as a burst: switched off after 1 ms (mid-sample), then 7 ms of ring-down
+    "burst_chirp": (ref.LinearChirp(60e3, 80e3, 0.1, 0.0, 1.00037e-3), 8e-3),
 }
 
 
@@ -244,3 +252,27 @@ def test_record_fit_is_exact_on_noise_free_fast_chirps(hold):
     print(f"noise-free fast chirp ({hold}): f0 {f0_err:+.1e}, Q {q_err:+.1e}, gain {gain_err:+.1e}")
     assert found.hold == hold
     assert max(abs(f0_err), abs(q_err), abs(gain_err)) < 1e-5
+
+
+def test_drive_switch_times_finds_burst_edges_only():
+    t = np.arange(5000) / FS
+    tone = np.sin(2 * np.pi * 70e3 * t)
+    assert drive_switch_times(tone, FS) == ()
+    burst = np.where((t >= 2e-3) & (t < 6e-3), tone, 0.0) + 1e-6 * np.random.default_rng(2).standard_normal(t.size)
+    edges = drive_switch_times(burst, FS)
+    assert len(edges) == 2
+    assert edges[0] == pytest.approx(2e-3, abs=2 / FS) and edges[1] == pytest.approx(6e-3, abs=2 / FS)
+    assert drive_switch_times(np.zeros(100), FS) == ()
+
+
+def test_burst_without_its_edge_terms_is_biased():
+    """The negative control of the edge terms: without them the burst's jump biases f0 by several σ."""
+    capture = reference_capture("burst_chirp", noise=0.0)
+    u, y = capture.channels["dither"], capture.channels["deflection"]
+    start = record_start_values(u, y, FS)
+    kwargs = dict(f0_start_hz=start.f0_hz, q_start=start.q, delay_start_s=start.delay_s)
+    without = fit_record_response(u, y, FS, **kwargs)
+    with_edges = fit_record_response(u, y, FS, drive_edges_s=drive_switch_times(u, FS), **kwargs)
+    print(f"burst, noise-free: Q error {without.q / Q - 1:+.1e} without, {with_edges.q / Q - 1:+.1e} with edge terms")
+    assert abs(without.q / Q - 1) > 1e-3
+    assert abs(with_edges.q / Q - 1) < 1e-5 and with_edges.drive_edges_s == drive_switch_times(u, FS)

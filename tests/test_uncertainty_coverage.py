@@ -9,7 +9,7 @@ residual-scaled variance).  Every standard deviation must be positive.
 * segment (ARX, eq. 3.40): three-sine free-air captures from
   ``tests/reference_sim.py`` (continuous drive), f0 60–80 kHz, Q 100–400,
   measurement noise 0.03–0.1 nm;
-* sweep (whole-record fit): fast chirps, slow chirps and stepped sines from
+* sweep (whole-record fit): fast chirps, slow chirps, stepped sines and chirp bursts from
   ``tests/reference_sim.py``, continuous and zero-order-held, with the hold
   detected automatically;
 * thermal (``--psd``): the spectrum of the physics, a simple harmonic
@@ -74,13 +74,16 @@ def test_segment_route_coverage():
 
 
 def _sweep_drive(kind: int, f0: float, rng):
-    """(drive, duration_s): a fast chirp, a slow chirp or a stepped sine around f0."""
+    """(drive, duration_s): a fast chirp, a slow chirp, a stepped sine or a chirp burst around f0."""
     if kind == 0:  # ±8 kHz in 16 ms: the bandwidth (≤ 800 Hz) in ≤ 0.8 ms, under a time constant (≥ 0.8 ms)
         return ref.LinearChirp(f0 - 8e3, f0 + 8e3, 0.1), 0.016
     if kind == 1:  # ±1.5 kHz in 60 ms: ≥ 4 ms across the bandwidth
         return ref.LinearChirp(f0 - 1.5e3, f0 + 1.5e3, 0.1), 0.06
-    steps = tuple(f0 + np.linspace(-1.5e3, 1.5e3, 16) + rng.uniform(-50.0, 50.0))
-    return ref.SteppedSine(steps, 3e-3, 0.1), 0.048
+    if kind == 2:
+        steps = tuple(f0 + np.linspace(-1.5e3, 1.5e3, 16) + rng.uniform(-50.0, 50.0))
+        return ref.SteppedSine(steps, 3e-3, 0.1), 0.048
+    # a burst: ±8 kHz in the first 2–4 ms, switched off between samples, then ring-down
+    return ref.LinearChirp(f0 - 8e3, f0 + 8e3, 0.2, 0.0, rng.uniform(2e-3, 4e-3)), 0.016
 
 
 @pytest.mark.slow  # ~10 s alone (60 captures of 16–60 ms, RK4 at 32×), more on a shared machine
@@ -89,8 +92,8 @@ def test_sweep_route_coverage():
     holds = []
     for k, rng in _draws(1402):
         f0, q = rng.uniform(60e3, 80e3), rng.uniform(100.0, 400.0)
-        drive, duration = _sweep_drive(k % 3, f0, rng)
-        hold = ("continuous", "zoh")[(k // 3) % 2]
+        drive, duration = _sweep_drive(k % 4, f0, rng)
+        hold = ("continuous", "zoh")[(k // 4) % 2]
         capture = ref.simulate(
             f0_hz=f0, q=q, gain_nm_per_v=rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 2.0), sample_rate_hz=FS,
             duration_s=duration, drive=drive, hold=hold, noise_nm=rng.uniform(0.03, 0.1), seed=k,

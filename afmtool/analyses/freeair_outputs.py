@@ -60,6 +60,7 @@ def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tupl
             transient_order=found.fit.transient_order,
             delay_std_s=found.fit.delay_std_s,
             noise_std=found.fit.noise_std,
+            drive_edges_s=list(found.fit.drive_edges_s),
         )
     return found.model, details
 

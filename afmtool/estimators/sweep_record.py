@@ -39,6 +39,11 @@ over a band around the resonance, where
   jumps, which vary slowly across the narrow band fitted; T is therefore a
   polynomial of degree ``transient_order`` (default 3) in the normalised
   offset from the band centre, with complex coefficients, which absorbs them.
+* a continuous drive switched on or off inside the record (a burst) jumps
+  somewhere between two samples, which the samples cannot place; each such
+  edge t_j (:func:`drive_switch_times`) adds
+  gain·G·e^{−j2πfτ}·e^{−j2πf t_j}·(e_0 + e_1·x), the spectrum of that
+  misplacement (a held drive needs none: its samples are exact);
 * E_k is the DFT of the measurement noise.  For white noise of variance σ²
   per sample and the rectangular window of the whole record, the E_k are
   independent complex Gaussians of variance N·σ², so ordinary least squares
@@ -74,6 +79,7 @@ __all__ = [
     "StartValues",
     "SweepIdentification",
     "identify_sweep",
+    "drive_switch_times",
     "record_start_values",
     "fit_record_response",
     "record_response_model",
@@ -116,6 +122,9 @@ class RecordFit:
     noise_std : float
         Output noise per sample implied by the residual, √(s²_complex/N),
         output units (for white noise, its standard deviation).
+    drive_edges_s : tuple of float
+        The drive's switch times modelled (``drive_edges_s`` of
+        :func:`fit_record_response`), s.
     """
 
     f0_hz: float
@@ -131,6 +140,7 @@ class RecordFit:
     n_bins: int
     transient_order: int
     noise_std: float
+    drive_edges_s: tuple[float, ...] = ()
 
     def response(self, frequency_hz, sample_rate_hz: float) -> np.ndarray:
         """gain·G(f)·e^{−j2πfτ} at ``frequency_hz`` (Hz) for this fit's hold."""
@@ -255,6 +265,45 @@ def _check_positive(name: str, value) -> float:
     return float(value)
 
 
+def drive_switch_times(dither, sample_rate_hz: float) -> tuple[float, ...]:
+    """Where a drive switches on or off inside the record (a burst), s from the first sample.
+
+    Parameters
+    ----------
+    dither : array_like
+        The drive record, 1-D, finite.
+    sample_rate_hz : float
+        Sampling rate fs, Hz.
+
+    Returns
+    -------
+    tuple of float
+        The boundaries between runs of at least 8 samples where
+        |u − median u| ≤ 1e-3·max|u − median u| (drive off) and the driven
+        samples, at the first sample of each new run, i/fs; the record's own
+        start and end are not edges.  Empty for a drive that stays on.
+    """
+    fs = _check_positive("sample_rate_hz", sample_rate_hz)
+    u = np.asarray(dither, dtype=np.float64)
+    if u.ndim != 1 or u.size < 2 * _OFF_SAMPLES:
+        return ()
+    centred = np.abs(u - np.median(u))
+    peak = float(centred.max())
+    if not peak > 0:
+        return ()
+    quiet = centred <= _OFF_FRACTION * peak
+    # runs of quiet samples; only long ones are "off" (a sine crosses zero in a sample or two)
+    change = np.flatnonzero(np.diff(quiet.astype(np.int8))) + 1
+    starts = np.concatenate(([0], change))
+    stops = np.concatenate((change, [u.size]))
+    off = np.zeros(u.size, dtype=bool)
+    for a, b in zip(starts, stops):
+        if quiet[a] and b - a >= _OFF_SAMPLES:
+            off[a:b] = True
+    edges = np.flatnonzero(np.diff(off.astype(np.int8))) + 1
+    return tuple(float(i) / fs for i in edges)
+
+
 def _check_band(band) -> tuple[float, float] | None:
     if band is None:
         return None
@@ -267,6 +316,11 @@ def _check_band(band) -> tuple[float, float] | None:
     return lo, hi
 
 
+#: Degree of the smooth factor of each drive-jump term (module docstring of fit_record_response).
+_EDGE_ORDER = 1
+#: A drive is off where |u| stays at most this fraction of max|u| for at least _OFF_SAMPLES samples.
+_OFF_FRACTION = 1e-3
+_OFF_SAMPLES = 8
 #: A fit whose gain is within this many standard deviations of 0 found no response, only noise.
 _MIN_GAIN_SIGMAS = 5.0
 #: Fewest samples a record may hold.
@@ -314,11 +368,14 @@ def _records(dither, deflection) -> _Records:
 class _Band:
     """The fitted bins: frequencies, input and output DFT values, and the normalised offset basis."""
 
-    def __init__(self, f: np.ndarray, u: np.ndarray, y: np.ndarray, order: int) -> None:
+    def __init__(self, f: np.ndarray, u: np.ndarray, y: np.ndarray, order: int, edges_s=()) -> None:
         self.f, self.u, self.y = f, u, y
         centre, half = 0.5 * (f[0] + f[-1]), 0.5 * (f[-1] - f[0])
         offset = (f - centre) / half  # in [−1, 1]
         self.powers = offset[None, :] ** np.arange(order + 1)[:, None]
+        # a jump of a continuous drive at t_j: the samples misplace it by a spectrum e^{−j2πf t_j}·(smooth)
+        self.edge_times = tuple(edges_s)
+        self.edges = [np.exp(-2j * np.pi * f * t) * offset**m for t in edges_s for m in range(_EDGE_ORDER + 1)]
         self.y_stacked = np.concatenate((y.real, y.imag))
 
 
@@ -328,6 +385,9 @@ def _design(band: _Band, f0: float, q: float, tau: float, fs: float, hold: str) 
     forced = g * np.exp(-2j * np.pi * band.f * tau) * band.u
     transient = band.powers / a[None, :]
     cols = [forced] + [c for t in transient for c in (t, 1j * t)]
+    if band.edges:
+        delayed = g * np.exp(-2j * np.pi * band.f * tau)
+        cols += [c for e in band.edges for c in (delayed * e, 1j * delayed * e)]
     m = np.array(cols).T
     return np.vstack((m.real, m.imag))
 
@@ -374,6 +434,8 @@ def fit_record_response(
     band: tuple[float, float] | None = None,
     band_halfwidths: float = 8.0,
     transient_order: int = 3,
+    drive_edges_s: tuple[float, ...] = (),
+    delay_search: bool = True,
 ) -> RecordFit:
     """Fit f0, Q, gain and delay to the whole record's DFT, with a transient term (module docstring).
 
@@ -403,6 +465,18 @@ def fit_record_response(
         See ``band``; default 8 (±4·f0/Q).
     transient_order : int, optional
         Degree of the transient polynomial T, ≥ 1.
+    drive_edges_s : tuple of float, optional
+        Times (s from the first sample) where a continuous drive switches on
+        or off abruptly inside the record (:func:`drive_switch_times`).  The
+        samples cannot say where between two samples the jump fell, so the
+        DFT of the sampled dither misses a term e^{−j2πf t_j}·(smooth in f);
+        each edge adds gain·G·e^{−j2πfτ}·e^{−j2πf t_j}·(e_0 + e_1·x) with
+        complex e_0, e_1 (x the normalised offset in the band) to the model.
+        Not needed for a held drive, whose samples are exact.
+    delay_search : bool, optional
+        True (default): also start from τ ± half a period and keep the best
+        (a rough start may sit on the sign-flipped branch).  False when
+        ``delay_start_s`` comes from a fit of the same record.
 
     Returns
     -------
@@ -440,7 +514,10 @@ def fit_record_response(
     spectrum_y = np.fft.rfft(y)
     freq = np.fft.rfftfreq(n, 1.0 / fs)
     order = int(transient_order)
-    n_linear = 1 + 2 * (order + 1)
+    edges = tuple(float(t) for t in drive_edges_s)
+    if not all(math.isfinite(t) for t in edges):
+        raise ConfigError(f"drive_edges_s={drive_edges_s!r} must be finite times in s")
+    n_linear = 1 + 2 * (order + 1) + 2 * (_EDGE_ORDER + 1) * len(edges)
     tau0 = float(delay_start_s) if fixed_delay is None else fixed_delay
 
     f0, q, tau = f0_start, max(q_start, 0.6), tau0
@@ -450,17 +527,18 @@ def fit_record_response(
         k = int(np.count_nonzero(mask))
         n_unknown = n_linear + 2 + (fixed_delay is None)
         if k < _MIN_BAND_BINS or 2 * k < 2 * n_unknown:
+            per_edge = f", {2 * (_EDGE_ORDER + 1)} per drive switch" if edges else ""
             raise InputError(
-                f"the fit band holds {k} frequency bins of {fs / n:g} Hz, too few for {n_unknown} unknowns; "
-                "a longer record (finer resolution) is needed"
+                f"the fit band holds {k} frequency bins of {fs / n:g} Hz, too few for {n_unknown} unknowns"
+                f"{per_edge}; a longer record (finer resolution) is needed"
             )
-        data = _Band(freq[mask], spectrum_u[mask], spectrum_y[mask], order)
-        if fixed_delay is None and fit is None:
+        data = _Band(freq[mask], spectrum_u[mask], spectrum_y[mask], order, edges)
+        if fixed_delay is None and fit is None and delay_search:
             # a delay of half a period is a sign flip of the gain at f0: only the phase slope across
             # the band tells the two apart, so start from both neighbours too and keep the best
             half = 0.5 / f0
             tries = [_fit_band(data, fs, hold, f0, q, tau + k * half, tau + k * half, None, n) for k in (0, -1, 1)]
-            fit = min(tries, key=lambda r: r.cost)
+            fit = _likeliest_branch(tries, 2 * data.f.size - n_unknown)
         else:
             fit = _fit_band(data, fs, hold, f0, q, tau, tau if fixed_delay is None else tau0, fixed_delay, n)
         f0, q, tau = fit.f0_hz, fit.q, fit.delay_s
@@ -483,6 +561,19 @@ def fit_record_response(
             f"{result.gain_std:.2g}, Q {result.q:.3g} ± {result.q_std:.2g}"
         )
     return result
+
+
+def _likeliest_branch(tries: list, dof: int):
+    """The fit with the smallest |τ| among those whose cost is within 25 s² of the best.
+
+    A drive path rarely delays by more than a fraction of a period, so a
+    branch farther from τ = 0 must earn its place: a likelihood-ratio
+    margin Δχ² = Δcost/s² > 25 (5σ) over the nearer one.
+    """
+    best = min(tries, key=lambda r: r.cost)
+    margin = 25.0 * best.cost / max(dof, 1)
+    close = [r for r in tries if r.cost <= best.cost + margin]
+    return min(close, key=lambda r: abs(r.delay_s))
 
 
 class _BandFit(NamedTuple):
@@ -565,6 +656,7 @@ def _fit_band(
         transient_order=int(data.powers.shape[0] - 1),
         # s2 is the variance of each real part; the complex DFT noise has 2·s2 = N·σ²
         noise_std=math.sqrt(2.0 * s2 / n),
+        drive_edges_s=tuple(float(t) for t in data.edge_times),
     )
     return _BandFit(result, float(resid @ resid), result.f0_hz, result.q, result.delay_s)
 
@@ -607,6 +699,38 @@ def _auto_hold(continuous: RecordFit, sample_rate_hz: float) -> tuple[str, str]:
     if abs(tau - period / 2) <= period / 4:
         return "zoh", f"{seen}, within a quarter sample of half a sample ({period * 5e5:.4g} µs): a zero-order-held drive"
     return "continuous", f"{seen}, neither 0 nor half a sample (an instrument delay); continuous assumed"
+
+
+def _record_route(dither, deflection, fs: float, delay, band, hold: str) -> tuple[RecordFit, str, str]:
+    """The record method of :func:`identify_sweep`: (fit, hold, reason).
+
+    A first fit without drive-edge terms (which could absorb part of a short
+    burst's forced response and blur the delay) fixes the delay branch and,
+    for ``hold="auto"``, the hold; the final fit starts from it, with the
+    edge terms when the drive is continuous and switches inside the record.
+    """
+    start = record_start_values(dither, deflection, fs)
+    first_hold = "continuous" if hold == "auto" else hold
+    first = fit_record_response(
+        dither, deflection, fs, f0_start_hz=start.f0_hz, q_start=start.q, delay_start_s=start.delay_s,
+        hold=first_hold, delay=delay, band=band,
+    )
+    if hold != "auto":
+        chosen, reason = hold, "given"
+    elif delay is not True:
+        chosen, reason = "continuous", "the delay was fixed, so the hold's half sample cannot be seen; continuous assumed"
+    else:
+        chosen, reason = _auto_hold(first, fs)
+    edges = drive_switch_times(dither, fs) if chosen == "continuous" else ()
+    if chosen == first_hold and not edges:
+        return first, chosen, reason
+    # the zero-order hold's own half sample leaves the drive-path delay
+    shift = 0.5 / fs if chosen != first_hold else 0.0
+    final = fit_record_response(
+        dither, deflection, fs, f0_start_hz=first.f0_hz, q_start=first.q, delay_start_s=first.delay_s - shift,
+        delay_search=False, hold=chosen, delay=delay, band=band, drive_edges_s=edges,
+    )
+    return final, chosen, reason
 
 
 def identify_sweep(
@@ -684,22 +808,7 @@ def identify_sweep(
         if segments is not None or nperseg is not None:
             raise ConfigError("segments and nperseg apply to method='h1' or 'stepped', not method='record'")
         band = _check_band(band)
-        start = record_start_values(dither, deflection, sample_rate_hz)
-        common = dict(f0_start_hz=start.f0_hz, q_start=start.q, delay=delay, band=band)
-        first = "continuous" if hold == "auto" else hold
-        fit = fit_record_response(dither, deflection, sample_rate_hz, delay_start_s=start.delay_s, hold=first, **common)
-        if hold != "auto":
-            chosen, reason = hold, "given"
-        elif delay is not True:
-            chosen, reason = "continuous", "the delay was fixed, so the hold's half sample cannot be seen; continuous assumed"
-        else:
-            chosen, reason = _auto_hold(fit, float(sample_rate_hz))
-            if chosen == "zoh":
-                fit = fit_record_response(
-                    dither, deflection, sample_rate_hz, hold="zoh",
-                    delay_start_s=fit.delay_s - 0.5 / float(sample_rate_hz),
-                    **{**common, "f0_start_hz": fit.f0_hz, "q_start": fit.q},
-                )
+        fit, chosen, reason = _record_route(dither, deflection, float(sample_rate_hz), delay, band, hold)
     model = FreeAirModel(
         f0_hz=fit.f0_hz,
         q=fit.q,
