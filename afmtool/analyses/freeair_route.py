@@ -52,6 +52,10 @@ __all__ = ["DRIVE_HOLD_CHOICES", "FreeAirRoute", "line_response", "resolve_free_
 
 #: ``--drive-hold`` values.
 DRIVE_HOLD_CHOICES = ("auto", "zoh", "continuous")
+#: Samples of the free-air segment the line fit uses (its end).
+_LINE_FIT_SAMPLES = 1 << 18
+#: A measured excess phase farther than this from both holds' predictions is reported (degrees).
+_HOLD_MISMATCH_DEG = 5.0
 
 
 class FreeAirRoute(NamedTuple):
@@ -90,6 +94,9 @@ def line_response(deflection: np.ndarray, dither: np.ndarray, sample_rate_hz: fl
     ratio of the two phasors at the first line is returned.  Side lines are
     fitted jointly so that their leakage does not bias the main one.
     """
+    # the last 2^18 samples (0.5 s at 500 kHz) are plenty, and keep the basis small
+    deflection = np.asarray(deflection, dtype=np.float64)[-_LINE_FIT_SAMPLES:]
+    dither = np.asarray(dither, dtype=np.float64)[-_LINE_FIT_SAMPLES:]
     n = len(deflection)
     t = np.arange(n) / sample_rate_hz
     columns = [np.ones(n)]
@@ -207,6 +214,18 @@ def _record_hold(model: FreeAirModel, segment: FreeAirSegment | None, fs: float,
             "zoh_excess_phase_deg": decision.zoh_excess_deg}
 
 
+def _hold_warning(report: dict) -> list[str]:
+    """A warning when the measured phase matches neither hold (f0/Q off, or a drive-path delay)."""
+    excess, zoh = report.get("measured_excess_phase_deg"), report.get("zoh_excess_phase_deg")
+    if excess is None or zoh is None or min(abs(excess), abs(excess - zoh)) <= _HOLD_MISMATCH_DEG:
+        return []
+    return [
+        f"the free-air phase at the drive is {excess:+.1f} deg from the continuous model and "
+        f"{excess - zoh:+.1f} deg from the zero-order hold's: f0/Q may be off, or the drive path has a delay; "
+        f"{report['drive_hold']} was chosen"
+    ]
+
+
 def resolve_free_air(  # noqa: PLR0913
     reader: CaptureReader,
     chunks: Iterator[Chunk],
@@ -281,6 +300,7 @@ def resolve_free_air(  # noqa: PLR0913
         drive_hz = drive_frequency(reader, drive_frequency_hz, probe)
         model, report = _fit_f0_q(f0_use, q_use, segment, fs, drive_hz, _drive_lines(metadata, drive_hz),
                                   drive_hold, origin)
+        warnings += _hold_warning(report)
         return FreeAirRoute(model, "f0-q", segment, drive_hz, report, tuple(warnings)), chunks
 
     if given is not None:
@@ -288,6 +308,11 @@ def resolve_free_air(  # noqa: PLR0913
     elif segment is not None:
         try:
             model, route = identify_from_segment(segment, fs), "segment"
+            if _single_tone(metadata, segment, fs, model.f0_hz):
+                warnings.append(
+                    "the dither has fewer than three lines near resonance, so the five-parameter ARX free-air fit is "
+                    "not identifiable; give the cantilever's --f0 and --q (or metadata cantilever f0_hz/q)"
+                )
         except InputError:
             meta = _metadata_f0_q(metadata)
             if meta is None:
@@ -311,11 +336,9 @@ def resolve_free_air(  # noqa: PLR0913
         report["drive_hold_reason"] += "; the numerator is the data-driven ARX fit, which needs no hold"
     else:
         # continuous parameters and no segment to fit on: discretise with the hold, matched at the drive
-        from afmtool.models.discretisation import discrete_denominator, sampled_numerator
-
-        unit = sampled_numerator(model.f0_hz, model.q, fs, report["drive_hold"], match_hz=drive_hz)
+        numerator = model.numerator_at(fs, report["drive_hold"], match_hz=drive_hz)
         model = FreeAirModel(
-            **{**model.to_dict(), "sample_rate_hz": fs, "numerator": tuple(model.gain * a for a in unit),
-               "denominator": tuple(float(b) for b in discrete_denominator(model.f0_hz, model.q, fs))}
+            **{**model.to_dict(), "sample_rate_hz": fs, "numerator": numerator, "denominator": model.denominator_at(fs)}
         )
+    warnings += _hold_warning(report)
     return FreeAirRoute(model, route, segment, drive_hz, report, tuple(warnings)), chunks

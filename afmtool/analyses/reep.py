@@ -144,7 +144,7 @@ class _Bandpass:
 
 
 def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirModel | None, chunks):
-    """Return (model or None, chunks to process, free-air segment seconds or None, route report or None).
+    """Return (model or None, chunks to process, free-air segment seconds or None, FreeAirRoute or None).
 
     The route (``f0-q``, ``model``, ``segment``) and the drive's hold are
     :func:`~afmtool.analyses.freeair_route.resolve_free_air`'s.
@@ -161,7 +161,7 @@ def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirMode
     if route is None:
         return model, chunks, None, None
     segment_s = route.segment.interval_s if route.segment is not None else None
-    return route.model, chunks, segment_s, route.report
+    return route.model, chunks, segment_s, route
 
 
 def run_reep(
@@ -197,7 +197,9 @@ def run_reep(
     z_mode = params.vs == "z" or (params.vs == "auto" and "z_piezo" in info.channel_names)
     channels = ["deflection"] + (["dither"] if params.use_input else []) + (["z_piezo"] if z_mode else [])
     chunks: Iterator[Chunk] = iter_chunks(reader, channels, params.chunk_samples, progress=progress)
-    model, chunks, segment_s, route = _resolve_model(reader, params, model, chunks)
+    model, chunks, segment_s, resolved = _resolve_model(reader, params, model, chunks)
+    route = resolved.report if resolved is not None else None
+    warnings.extend(resolved.warnings if resolved is not None else ())
     first = next(chunks, None)
     if first is None:
         raise InputError(f"{info.source}: the capture has no samples")

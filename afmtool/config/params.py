@@ -318,6 +318,10 @@ class ObserverTheoryParams:
     max_cycles: float = field(10.0, "Recommend: the error must settle (below residual) within this many drive periods")
     residual: float = field(0.36787944117144233, "Settled: the step response stays below this share of the step (1/e)")
     sample_rate_hz: float = field(500e3, "Recommend: also give the discrete observer (eq. 3.40) at this rate", "Hz")
+    drive_hold: str = field(
+        "continuous", "Recommend: the discrete observer's numerator for a continuous drive or one a DAC holds per sample",
+        choices=("continuous", "zoh"),
+    )
 
     def validate(self) -> None:
         for name in ("f0_hz", "q", "gain", "free_amplitude_nm", "spring_constant_n_per_m", "max_cycles", "sample_rate_hz"):

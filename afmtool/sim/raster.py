@@ -700,13 +700,15 @@ class _Loop:
             h_half = topography_nm(params, x, yy, self.strands)
             t = np.arange(start, stop) / self.fs
             dither = self.excitation(t)
-            forcing = params.dither_gain_nm_per_v * w0sq
+            gain = params.dither_gain_nm_per_v
             if params.drive_hold == "zoh":
-                g_rows = np.repeat((forcing * dither)[:, None], per_sample + 1, axis=1)
+                # (gain·g)·ω0², in the order the held forcing has always been formed
+                g_rows = np.repeat((gain * dither * w0sq)[:, None], per_sample + 1, axis=1)
             else:
                 # the continuous dither at every RK4 stage time of each sample period
                 offsets = np.arange(per_sample + 1) * half_step
-                g_rows = forcing * self.excitation((t[:, None] + offsets[None, :]).ravel()).reshape(t.size, -1)
+                stages = self.excitation((t[:, None] + offsets[None, :]).ravel()).reshape(t.size, -1)
+                g_rows = gain * stages * w0sq
             o = self.out
             sl = slice(start, stop)
             _raster_kernel(
