@@ -68,21 +68,6 @@ def test_sweep_routes(tmp_path, source, drive, settings, extra, f0_tol_hz, q_tol
     assert model["source"] == "sweep"
 
 
-def test_segment_route_on_reference_capture(tmp_path):
-    from tests import reference_sim as ref
-
-    capture = ref.simulate(
-        f0_hz=70e3, q=200.0, gain_nm_per_v=1.0, sample_rate_hz=500e3, duration_s=0.04,
-        drive=ref.three_sine(70e3, 6000.0, 25.0 / 200.0), noise_nm=0.05, seed=12,
-    )
-    path = ref.write_capture_h5(tmp_path / "three_sine.h5", capture)
-    model = _identify(tmp_path, path, "--free-air", "0:0.02")["free_air_model"]
-    assert model["f0_hz"] == pytest.approx(70_000.0, abs=2.0)
-    assert model["q"] == pytest.approx(200.0, rel=0.01)
-    assert model["gain"] == pytest.approx(1.0, rel=0.01)
-    assert model["f0_std_hz"] > 0 and model["q_std"] > 0 and model["gain_std"] > 0
-
-
 def test_segment_route_then_reep_with_model(tmp_path):
     capture = tmp_path / "ltv.h5"
     assert run_cli("simulate", "ltv", "-o", capture, "--set", "duration_s=0.04", "--set", "step_time_s=1.0").returncode == 0
