@@ -276,3 +276,17 @@ def test_burst_without_its_edge_terms_is_biased():
     print(f"burst, noise-free: Q error {without.q / Q - 1:+.1e} without, {with_edges.q / Q - 1:+.1e} with edge terms")
     assert abs(without.q / Q - 1) > 1e-3
     assert abs(with_edges.q / Q - 1) < 1e-5 and with_edges.drive_edges_s == drive_switch_times(u, FS)
+
+
+def test_many_drive_switches_are_not_modelled_and_say_so():
+    import scipy.signal
+
+    t = np.arange(20000) / FS
+    gate = (np.floor(t / 2e-3) % 2 == 0) & (t < 0.036)  # on 2 ms, off 2 ms, 9 bursts: 17 switches
+    u = np.where(gate, np.sin(2 * np.pi * (60e3 * t + 0.5 * 20e3 / 0.04 * t * t)), 0.0)
+    w0 = 2 * np.pi * F0
+    _, y, _ = scipy.signal.lsim(([w0 * w0], [1.0, w0 / Q, w0 * w0]), u, t)
+    found = identify_sweep(u, y + 1e-3 * np.random.default_rng(4).standard_normal(t.size), FS, hold="continuous")
+    assert found.fit.drive_edges_s == ()
+    assert len(found.warnings) == 1 and "switches on or off 17 times" in found.warnings[0]
+    assert found.model.f0_hz == pytest.approx(F0, rel=1e-3)

@@ -36,7 +36,7 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tu
     return model, {"segment_s": list(interval), "segment_samples": end - start}
 
 
-def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tuple[FreeAirModel, dict]:
+def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tuple[FreeAirModel, dict, list]:
     from afmtool.estimators.sweep_record import identify_sweep
 
     chunks = list(iter_chunks(reader, ("dither", "deflection"), 1 << 20, progress=progress))
@@ -62,7 +62,7 @@ def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tupl
             noise_std=found.fit.noise_std,
             drive_edges_s=list(found.fit.drive_edges_s),
         )
-    return found.model, details
+    return found.model, details, list(found.warnings)
 
 
 def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict]:
@@ -95,11 +95,12 @@ def run_freeair_command(
 ) -> dict:
     """Identify the free-air model by the chosen route and write free_air.json + report."""
     params = resolve_from(FreeAirParams, "identify.freeair", load_toml(config) if config else None, flags)
+    warnings: list[str] = []
     if params.route == "thermal":
         model, details = _thermal_route(Path(source), params)
         inputs = [input_record(source, "psd")]
     elif params.route == "sweep":
-        model, details = _sweep_route(reader, params, progress)
+        model, details, warnings = _sweep_route(reader, params, progress)
         inputs = [input_record(source)]
     else:
         model, details = _segment_route(reader, params, progress)
@@ -107,4 +108,4 @@ def run_freeair_command(
     with OutputDir(out) as staged:
         model.save(staged.path("free_air.json"))
         results = {"free_air_model": model.to_dict(), "route": params.route, **details}
-        return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, [])
+        return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, warnings)

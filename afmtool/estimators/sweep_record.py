@@ -54,11 +54,12 @@ over a band around the resonance, where
 gain and the transient coefficients enter linearly and are eliminated by
 linear least squares at each trial (f0, Q, τ) (variable projection); f0, Q,
 τ are found by :func:`scipy.optimize.least_squares` from the start values of
-a spectral fit.  This is the frequency-domain form of the time-domain
-output-error fit of the model to the measured deflection given the measured
-dither (Pintelon & Schoukens, *System Identification: A Frequency Domain
-Approach*, 2nd ed., 2012, §6.3, the transient term), and it holds for any
-drive: slow or fast chirps, stepped sines, noise.
+:func:`record_start_values`.  This is the frequency-domain form of the
+time-domain output-error fit of the model to the measured deflection given
+the measured dither, with the transient ("leakage") term of Pintelon &
+Schoukens (*System Identification: A Frequency Domain Approach*, 2nd ed.,
+2012), and it holds for any drive: slow or fast chirps, stepped sines,
+bursts, noise.
 """
 
 from __future__ import annotations
@@ -321,6 +322,8 @@ _EDGE_ORDER = 1
 #: A drive is off where |u| stays at most this fraction of max|u| for at least _OFF_SAMPLES samples.
 _OFF_FRACTION = 1e-3
 _OFF_SAMPLES = 8
+#: More drive switches than this are not modelled (4 unknowns each): a warning says so.
+_MAX_EDGES = 16
 #: A fit whose gain is within this many standard deviations of 0 found no response, only noise.
 _MIN_GAIN_SIGMAS = 5.0
 #: Fewest samples a record may hold.
@@ -678,6 +681,9 @@ class SweepIdentification(NamedTuple):
         Why that hold: given, or what the automatic choice saw.
     fit : RecordFit or SecondOrderFit
         The fit behind the model.
+    warnings : tuple of str
+        What the user should know about the fit (e.g. drive switches not
+        modelled).
     """
 
     model: object
@@ -685,6 +691,7 @@ class SweepIdentification(NamedTuple):
     hold: str
     hold_reason: str
     fit: object
+    warnings: tuple[str, ...] = ()
 
 
 def _auto_hold(continuous: RecordFit, sample_rate_hz: float) -> tuple[str, str]:
@@ -701,8 +708,8 @@ def _auto_hold(continuous: RecordFit, sample_rate_hz: float) -> tuple[str, str]:
     return "continuous", f"{seen}, neither 0 nor half a sample (an instrument delay); continuous assumed"
 
 
-def _record_route(dither, deflection, fs: float, delay, band, hold: str) -> tuple[RecordFit, str, str]:
-    """The record method of :func:`identify_sweep`: (fit, hold, reason).
+def _record_route(dither, deflection, fs: float, delay, band, hold: str) -> tuple[RecordFit, str, str, tuple]:
+    """The record method of :func:`identify_sweep`: (fit, hold, reason, warnings).
 
     A first fit without drive-edge terms (which could absorb part of a short
     burst's forced response and blur the delay) fixes the delay branch and,
@@ -722,15 +729,23 @@ def _record_route(dither, deflection, fs: float, delay, band, hold: str) -> tupl
     else:
         chosen, reason = _auto_hold(first, fs)
     edges = drive_switch_times(dither, fs) if chosen == "continuous" else ()
+    warnings: tuple[str, ...] = ()
+    if len(edges) > _MAX_EDGES:
+        warnings = (
+            f"the continuous drive switches on or off {len(edges)} times inside the record; only up to "
+            f"{_MAX_EDGES} switches are modelled, so each leaves a jump the samples cannot place and f0, Q may "
+            "be biased: give one burst per record, or a drive held by a DAC (--drive-hold zoh)",
+        )
+        edges = ()
     if chosen == first_hold and not edges:
-        return first, chosen, reason
+        return first, chosen, reason, warnings
     # the zero-order hold's own half sample leaves the drive-path delay
     shift = 0.5 / fs if chosen != first_hold else 0.0
     final = fit_record_response(
         dither, deflection, fs, f0_start_hz=first.f0_hz, q_start=first.q, delay_start_s=first.delay_s - shift,
         delay_search=False, hold=chosen, delay=delay, band=band, drive_edges_s=edges,
     )
-    return final, chosen, reason
+    return final, chosen, reason, warnings
 
 
 def identify_sweep(
@@ -803,12 +818,12 @@ def identify_sweep(
             dither, deflection, sample_rate_hz, method=method, segments=segments, band=band, nperseg=nperseg,
             delay=delay,
         )
-        chosen, reason = "continuous", "the spectral fit's delay absorbs any hold"
+        chosen, reason, warnings = "continuous", "the spectral fit's delay absorbs any hold", ()
     else:
         if segments is not None or nperseg is not None:
             raise ConfigError("segments and nperseg apply to method='h1' or 'stepped', not method='record'")
         band = _check_band(band)
-        fit, chosen, reason = _record_route(dither, deflection, float(sample_rate_hz), delay, band, hold)
+        fit, chosen, reason, warnings = _record_route(dither, deflection, float(sample_rate_hz), delay, band, hold)
     model = FreeAirModel(
         f0_hz=fit.f0_hz,
         q=fit.q,
@@ -819,4 +834,4 @@ def identify_sweep(
         source="sweep",
         delay_s=fit.delay_s,
     )
-    return SweepIdentification(model, method, chosen, reason, fit)
+    return SweepIdentification(model, method, chosen, reason, fit, warnings)
