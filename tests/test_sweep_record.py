@@ -153,6 +153,10 @@ def test_cli_sweep_route_on_reference_capture(tmp_path, name):
     assert "quarter sample of 0" in results["drive_hold_reason"]
     assert results["n_bins"] > 20 and results["noise_std"] == pytest.approx(0.05, rel=0.3)
     assert report["parameters"]["drive_hold"] == "auto"
+    assert {"sweep_frf.csv", "sweep_bode.png"} <= set(report["outputs"])
+    table = np.genfromtxt(out / "sweep_frf.csv", delimiter=",", names=True)
+    near = np.abs(table["frequency_hz"] - F0) < F0 / Q  # within a bandwidth: the measurement is well above noise
+    np.testing.assert_allclose(table["measured_magnitude"][near], table["model_magnitude"][near], rtol=0.02)
 
 
 def test_cli_rejects_contradictory_sweep_flags(tmp_path):

@@ -61,8 +61,38 @@ def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> tupl
             delay_std_s=found.fit.delay_std_s,
             noise_std=found.fit.noise_std,
             drive_edges_s=list(found.fit.drive_edges_s),
+            _fit=found.fit,
         )
     return found.model, details, list(found.warnings)
+
+
+def _write_sweep_fit(staged: OutputDir, fit, sample_rate_hz: float) -> None:
+    """sweep_frf.csv and sweep_bode.png: the transient-corrected measurement against the fitted model."""
+    from afmtool.io.rows import RowWriter
+    from afmtool.report.bode import BodeCurve, write_bode_png
+
+    f = np.asarray(fit.frequency_hz)
+    measured = np.asarray(fit.measured_response)
+    model = fit.response(f, sample_rate_hz)
+    table = {
+        "frequency_hz": f,
+        "measured_magnitude": np.abs(measured),
+        "measured_phase_deg": np.degrees(np.angle(measured)),
+        "model_magnitude": np.abs(model),
+        "model_phase_deg": np.degrees(np.angle(model)),
+    }
+    with open(staged.path("sweep_frf.csv"), "w", encoding="utf-8", newline="") as handle:
+        with RowWriter(handle, "csv") as rows:
+            rows.append(table)
+    write_bode_png(
+        staged.path("sweep_bode.png"),
+        [
+            BodeCurve(f, measured, "measured, transient removed", {"color": "C0", "marker": ".", "linestyle": "none"}),
+            BodeCurve(f, model, f"model ({fit.hold} drive): f0 {fit.f0_hz:.1f} Hz, Q {fit.q:.1f}", {"color": "C3"}),
+        ],
+        title="identify freeair --sweep: whole-record fit",
+        magnitude_label="|G| (dB re 1 unit/unit)",
+    )
 
 
 def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict]:
@@ -107,5 +137,7 @@ def run_freeair_command(
         inputs = [input_record(source)]
     with OutputDir(out) as staged:
         model.save(staged.path("free_air.json"))
+        if params.route == "sweep" and params.sweep_method == "record":
+            _write_sweep_fit(staged, details.pop("_fit"), reader.info.sample_rate_hz)
         results = {"free_air_model": model.to_dict(), "route": params.route, **details}
         return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, warnings)

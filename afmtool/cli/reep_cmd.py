@@ -139,7 +139,9 @@ def identify_freeair(
     a frequency sweep (--sweep: by default the second-order model with delay
     fitted to the whole record's spectra with a transient term, exact for fast
     or slow chirps and stepped sines), or a thermal-noise spectrum
-    (--psd FILE.csv).  Writes free_air.json for --model.
+    (--psd FILE.csv).  Writes free_air.json for --model; the sweep route also
+    writes sweep_frf.csv and sweep_bode.png (the data with the fitted transient
+    removed, beside the model).
     """
     from afmtool.analyses.freeair_outputs import run_freeair_command
     from afmtool.errors import ConfigError

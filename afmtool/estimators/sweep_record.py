@@ -100,7 +100,7 @@ _DRIVEN_FRACTION = 1e-3
 _WELL_DRIVEN_FRACTION = 0.1
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RecordFit:
     """The second-order model fitted to a whole record (:func:`fit_record_response`).
 
@@ -123,6 +123,13 @@ class RecordFit:
     noise_std : float
         Output noise per sample implied by the residual, √(s²_complex/N),
         output units (for white noise, its standard deviation).
+    frequency_hz : numpy.ndarray
+        The fitted bins, Hz.
+    measured_response : numpy.ndarray of complex
+        The data at those bins with the fitted transient and edge terms
+        removed, (Y_k − T_k/A_k − …)/U_k: what the model gain·G·e^{−j2πfτ}
+        was fitted to, for a Bode plot.  NaN where the bin holds less than
+        1e-3 of the band's largest input power.
     drive_edges_s : tuple of float
         The drive's switch times modelled (``drive_edges_s`` of
         :func:`fit_record_response`), s.
@@ -141,6 +148,8 @@ class RecordFit:
     n_bins: int
     transient_order: int
     noise_std: float
+    frequency_hz: np.ndarray
+    measured_response: np.ndarray
     drive_edges_s: tuple[float, ...] = ()
 
     def response(self, frequency_hz, sample_rate_hz: float) -> np.ndarray:
@@ -548,7 +557,8 @@ def fit_record_response(
     result = fit.result
     unit = y_scale / x_scale
     result = replace(
-        result, gain=result.gain * unit, gain_std=result.gain_std * unit, noise_std=result.noise_std * y_scale
+        result, gain=result.gain * unit, gain_std=result.gain_std * unit, noise_std=result.noise_std * y_scale,
+        measured_response=_frozen(result.measured_response * unit),
     )
     values = (result.f0_hz, result.q, result.gain, result.f0_std_hz, result.q_std, result.gain_std)
     inside = result.band_hz[0] <= result.f0_hz <= result.band_hz[1] and result.f0_hz < fs / 2 * (1 - 1e-6)
@@ -577,6 +587,24 @@ def _likeliest_branch(tries: list, dof: int):
     margin = 25.0 * best.cost / max(dof, 1)
     close = [r for r in tries if r.cost <= best.cost + margin]
     return min(close, key=lambda r: abs(r.delay_s))
+
+
+def _frozen(arr: np.ndarray) -> np.ndarray:
+    arr = np.array(arr)
+    arr.setflags(write=False)
+    return arr
+
+
+def _corrected_response(data: _Band, model_stacked: np.ndarray, f0, q, tau, fs, hold, gain) -> np.ndarray:
+    """(Y − (model − forced part))/U: the measurement with the fitted transient and edge terms removed."""
+    k = data.f.size
+    model = model_stacked[:k] + 1j * model_stacked[k:]
+    g, _ = record_response_model(data.f, f0, q, fs, hold)
+    forced = gain * g * np.exp(-2j * np.pi * data.f * tau) * data.u
+    power = np.abs(data.u) ** 2
+    driven = power >= 1e-3 * power.max()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(driven, (data.y - (model - forced)) / data.u, np.nan + 0j)
 
 
 class _BandFit(NamedTuple):
@@ -659,6 +687,8 @@ def _fit_band(
         transient_order=int(data.powers.shape[0] - 1),
         # s2 is the variance of each real part; the complex DFT noise has 2·s2 = N·σ²
         noise_std=math.sqrt(2.0 * s2 / n),
+        frequency_hz=_frozen(data.f),
+        measured_response=_frozen(_corrected_response(data, design @ linear, f0, q, tau, fs, hold, linear[0])),
         drive_edges_s=tuple(float(t) for t in data.edge_times),
     )
     return _BandFit(result, float(resid @ resid), result.f0_hz, result.q, result.delay_s)
