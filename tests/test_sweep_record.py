@@ -24,7 +24,10 @@ import numpy as np
 import pytest
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.frequency_response import free_air_from_sweep, spectral_sweep_fit
+from afmtool.estimators.frequency_response import (
+    free_air_from_sweep,
+    spectral_sweep_fit,
+)
 from afmtool.estimators.sweep_record import (
     drive_switch_times,
     fit_record_response,
@@ -176,7 +179,7 @@ def test_record_fit_does_not_modify_inputs_and_rejects_bad_arguments():
     fit_record_response(u, y, FS, f0_start_hz=F0, q_start=Q)
     np.testing.assert_array_equal(u, u_copy)
     np.testing.assert_array_equal(y, y_copy)
-    kwargs = dict(f0_start_hz=F0, q_start=Q)
+    kwargs = {"f0_start_hz": F0, "q_start": Q}
     with pytest.raises(ConfigError, match="hold='foh'"):
         fit_record_response(u, y, FS, hold="foh", **kwargs)
     with pytest.raises(ConfigError, match="transient_order=0"):
@@ -274,7 +277,7 @@ def test_burst_without_its_edge_terms_is_biased():
     capture = reference_capture("burst_chirp", noise=0.0)
     u, y = capture.channels["dither"], capture.channels["deflection"]
     start = record_start_values(u, y, FS)
-    kwargs = dict(f0_start_hz=start.f0_hz, q_start=start.q, delay_start_s=start.delay_s)
+    kwargs = {"f0_start_hz": start.f0_hz, "q_start": start.q, "delay_start_s": start.delay_s}
     without = fit_record_response(u, y, FS, **kwargs)
     with_edges = fit_record_response(u, y, FS, drive_edges_s=drive_switch_times(u, FS), **kwargs)
     print(f"burst, noise-free: Q error {without.q / Q - 1:+.1e} without, {with_edges.q / Q - 1:+.1e} with edge terms")

@@ -81,9 +81,11 @@ def _write_sweep_fit(staged: OutputDir, fit, sample_rate_hz: float) -> None:
         "model_magnitude": np.abs(model),
         "model_phase_deg": np.degrees(np.angle(model)),
     }
-    with open(staged.path("sweep_frf.csv"), "w", encoding="utf-8", newline="") as handle:
-        with RowWriter(handle, "csv") as rows:
-            rows.append(table)
+    with (
+        open(staged.path("sweep_frf.csv"), "w", encoding="utf-8", newline="") as handle,
+        RowWriter(handle, "csv") as rows,
+    ):
+        rows.append(table)
     write_bode_png(
         staged.path("sweep_bode.png"),
         [

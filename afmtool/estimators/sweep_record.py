@@ -79,11 +79,11 @@ __all__ = [
     "RecordFit",
     "StartValues",
     "SweepIdentification",
-    "identify_sweep",
     "drive_switch_times",
-    "record_start_values",
     "fit_record_response",
+    "identify_sweep",
     "record_response_model",
+    "record_start_values",
 ]
 
 #: How the drive reached the cantilever (see the module docstring).
@@ -761,11 +761,12 @@ def _record_route(dither, deflection, fs: float, delay, band, hold: str) -> tupl
     edges = drive_switch_times(dither, fs) if chosen == "continuous" else ()
     warnings: tuple[str, ...] = ()
     if len(edges) > _MAX_EDGES:
-        warnings = (
+        warning = (
             f"the continuous drive switches on or off {len(edges)} times inside the record; only up to "
             f"{_MAX_EDGES} switches are modelled, so each leaves a jump the samples cannot place and f0, Q may "
-            "be biased: give one burst per record, or a drive held by a DAC (--drive-hold zoh)",
+            "be biased: give one burst per record, or a drive held by a DAC (--drive-hold zoh)"
         )
+        warnings = (warning,)
         edges = ()
     if chosen == first_hold and not edges:
         return first, chosen, reason, warnings
