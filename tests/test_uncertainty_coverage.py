@@ -1,13 +1,16 @@
 """Uncertainties that mean what they say (issue 14 item 7).
 
-For each free-air route, over 60 seeded simulations that afmtool did not
-make, the true f0 and Q must lie within ±2σ of the estimate in 90–99 % of
-cases (a calibrated Gaussian error gives 95.4 %; 90–99 % allows the
-binomial scatter of 60 draws, σ ≈ 2.7 %, and the Student-t tails of a
-residual-scaled variance).  Every standard deviation must be positive.
+For each free-air route, over 60–100 seeded simulations that afmtool did
+not make, the true f0 and Q must lie within ±2σ of the estimate in 90–99 %
+of cases.  A calibrated Gaussian error gives 95.4 %; the binomial scatter of
+n draws is √(0.954·0.046/n), 2.1 % at n = 100 and 2.7 % at n = 60, so even
+perfectly calibrated errors miss 90–99 % in about 1.5 % (n = 100) or 9 %
+(n = 60: all 60 inside happens 6 % of the time) of seeds per count; the
+seeds are fixed, and three other seeds per route were tried while writing
+this: none failed.  Every standard deviation must be positive.
 
 * segment (ARX, eq. 3.40): three-sine free-air captures from
-  ``tests/reference_sim.py`` (continuous drive), f0 60–80 kHz, Q 100–400,
+  ``tests/reference_sim.py`` (continuous and held drives), f0 60–80 kHz, Q 100–400,
   measurement noise 0.03–0.1 nm;
 * sweep (whole-record fit): fast chirps, slow chirps, stepped sines and chirp bursts from
   ``tests/reference_sim.py``, continuous and zero-order-held, with the hold
@@ -29,21 +32,23 @@ from afmtool.estimators.sweep_record import identify_sweep
 from afmtool.estimators.thermal_noise import fit_thermal_spectrum
 from tests import reference_sim as ref
 
-N_SIMS = 60
+#: Simulations per route: 100 where a simulation is cheap, 60 for the sweeps (RK4 of 8k–30k samples each).
+N_SIMS = 100
+N_SWEEP_SIMS = 60
 COVERAGE_RANGE = (0.90, 0.99)
 FS = 500e3
 
 
-def _draws(seed: int):
+def _draws(seed: int, n: int = N_SIMS):
     rng = np.random.default_rng(seed)
-    for k in range(N_SIMS):
+    for k in range(n):
         yield k, rng
 
 
 def _coverage(route: str, estimates: list[tuple[float, float, float, float, float, float]]) -> None:
     """estimates: (f0, f0_std, true f0, Q, Q_std, true Q) per simulation."""
     e = np.array(estimates)
-    assert e.shape == (N_SIMS, 6)
+    assert e.ndim == 2 and e.shape[1] == 6 and e.shape[0] >= 50
     assert np.all(e[:, 1] > 0) and np.all(e[:, 4] > 0), "a standard deviation is not positive"
     z_f0 = (e[:, 0] - e[:, 2]) / e[:, 1]
     z_q = (e[:, 3] - e[:, 5]) / e[:, 4]
@@ -66,7 +71,8 @@ def test_segment_route_coverage():
         amplitude_v = 25.0 / (gain * q)  # 25 nm on the main line at resonance
         capture = ref.simulate(
             f0_hz=f0, q=q, gain_nm_per_v=gain, sample_rate_hz=FS, duration_s=0.02,
-            drive=ref.three_sine(f0, 6000.0, amplitude_v), noise_nm=rng.uniform(0.03, 0.1), seed=k,
+            drive=ref.three_sine(f0, 6000.0, amplitude_v), hold=("continuous", "zoh")[k % 2],
+            noise_nm=rng.uniform(0.03, 0.1), seed=k,
         )
         model = free_air_from_segment(capture.channels["deflection"], capture.channels["dither"], FS)
         estimates.append((model.f0_hz, model.f0_std_hz, f0, model.q, model.q_std, q))
@@ -90,7 +96,7 @@ def _sweep_drive(kind: int, f0: float, rng):
 def test_sweep_route_coverage():
     estimates = []
     holds = []
-    for k, rng in _draws(1402):
+    for k, rng in _draws(1402, N_SWEEP_SIMS):
         f0, q = rng.uniform(60e3, 80e3), rng.uniform(100.0, 400.0)
         drive, duration = _sweep_drive(k % 4, f0, rng)
         hold = ("continuous", "zoh")[(k // 4) % 2]
