@@ -140,9 +140,15 @@ def test_reep_command_writes_outputs(tmp_path, ltv_constant):
 
 def test_single_sine_warns_not_persistently_exciting():
     captured = sim.simulate("ltv", {"duration_s": 0.03, "drive": "sine", "step_time_s": 1.0}, seed=1)
-    # the five-parameter free-air fit refuses a single sine, with a way out
+    # without the cantilever's f0/Q the five-parameter free-air fit refuses a single sine, with a way out
+    bare = {k: v for k, v in captured.metadata.items() if k != "cantilever"}
     with pytest.raises(InputError, match="--model"):
-        _run(captured)
+        run_reep(ArrayReader(FS, captured.channels, captured.data, bare, captured.truth, "bare"),
+                 resolve(ReepParams, {}), _Columns())
+    # with metadata f0/Q it takes the f0/Q route (issue 14 item 3) and still warns
+    routed = run_reep(_reader(captured), resolve(ReepParams, {}), _Columns())
+    assert routed.results["free_air_route"]["route"] == "f0-q"
+    assert any("persistently exciting" in w for w in routed.warnings)
     # given a model, REEP runs and warns in its report
     model = FreeAirModel(f0_hz=70_000.0, q=200.0, gain=1.0)
     params = resolve(ReepParams, {})

@@ -53,6 +53,7 @@ Choices
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -248,7 +249,7 @@ def _design_points(params: KalmanBankParams, tables: dict[str, ModelTable] | Non
 def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: Iterator[Chunk]):
     """The free-air model by :func:`~afmtool.analyses.freeair_route.resolve_free_air`, as REEP does.
 
-    Returns (model, chunks, segment seconds or None, route report).
+    Returns (model, chunks, segment seconds or None, route report, route warnings).
     """
     from afmtool.analyses.freeair_route import resolve_free_air
 
@@ -261,7 +262,7 @@ def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: 
         raise ConfigError(f"kalman-bank needs the free-air model ({exc}); or give --reep REEP_DIR with its "
                           "free_air.json") from None
     segment_s = route.segment.interval_s if route.segment is not None else None
-    return route.model, chunks, segment_s, route.report
+    return route.model, chunks, segment_s, route.report, route.warnings
 
 
 def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
@@ -432,7 +433,7 @@ def run_kalman_bank(
     info = reader.info
     fs = info.sample_rate_hz
     require_channels(info, _CHANNELS)
-    lam, segment_s, tables, route = params.lam, None, None, None
+    lam, segment_s, tables, route, route_warnings = params.lam, None, None, None, ()
     if reep_results is not None:
         model = model or reep_results.free_air_model
         lam = _check_reep_file(reep_results, fs) or lam
@@ -447,7 +448,7 @@ def run_kalman_bank(
     try:
         chunks: Iterator[Chunk] = iter_chunks(source, _CHANNELS, params.chunk_samples, progress=progress_two)
         if model is None:
-            model, chunks, segment_s, route = _identify_free_air(source, params, chunks)
+            model, chunks, segment_s, route, route_warnings = _identify_free_air(source, params, chunks)
         setup = _setup(source, params, model, segment_s, lam, tables)
         coefficients = (
             HeldReepCoefficients(reep_results.series["t"], reep_results.series["b1"], reep_results.series["b0"], fs)
@@ -466,7 +467,7 @@ def run_kalman_bank(
         raise InputError(f"--reep {reep_results.path}: REEP's series runs past the capture's {stream.n_total} samples")
     result = _judge(params, setup, stream, tables, info.units("z_piezo"), reep_results)
     result.results["free_air_route"] = route  # how the model was chosen, and the drive's hold
-    return result
+    return dataclasses.replace(result, warnings=tuple(route_warnings) + result.warnings)
 
 
 def _adaptive_hint(stream: _PassTwo, params: KalmanBankParams, z_units: str) -> str:
