@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from afmtool.models.free_air import load_free_air_model
@@ -31,6 +32,22 @@ def test_thermal_route_on_the_real_spectrum(shared, tmp_path):
     assert results["peak_asd_m_per_sqrt_hz"] > 5 * results["floor_asd_m_per_sqrt_hz"]
 
 
+def _reference_sweep(path, drive: str):
+    """The ltv scenario's sweeps (f0 70 kHz, Q 200, 25 nm at the centre) from tests/reference_sim.py."""
+    from tests import reference_sim as ref
+
+    if drive == "chirp":
+        signal, duration = ref.LinearChirp(60e3, 80e3, 25.0 / 200.0), 0.2
+    else:
+        signal, duration = ref.SteppedSine(tuple(np.linspace(68e3, 72e3, 21)), 0.5 / 21, 25.0 / 200.0), 0.5
+    capture = ref.simulate(
+        f0_hz=70e3, q=200.0, gain_nm_per_v=1.0, sample_rate_hz=500e3, duration_s=duration, drive=signal,
+        noise_nm=0.05, seed=11,
+    )
+    return ref.write_capture_h5(path, capture)
+
+
+@pytest.mark.parametrize("source", ["afmtool", "reference"])
 @pytest.mark.parametrize(
     "drive, settings, extra, f0_tol_hz, q_tol",
     [
@@ -38,10 +55,13 @@ def test_thermal_route_on_the_real_spectrum(shared, tmp_path):
         ("stepped", ["duration_s=0.5", "sweep_span_hz=4000.0", "sweep_steps=21"], ["--stepped"], 1.0, 0.01),
     ],
 )
-def test_sweep_routes(tmp_path, drive, settings, extra, f0_tol_hz, q_tol):
+def test_sweep_routes(tmp_path, source, drive, settings, extra, f0_tol_hz, q_tol):
     capture = tmp_path / f"{drive}.h5"
-    args = [a for s in ["step_time_s=10.0", f"drive={drive}", *settings] for a in ("--set", s)]
-    assert run_cli("simulate", "ltv", "-o", capture, *args).returncode == 0
+    if source == "reference":
+        _reference_sweep(capture, drive)
+    else:
+        args = [a for s in ["step_time_s=10.0", f"drive={drive}", *settings] for a in ("--set", s)]
+        assert run_cli("simulate", "ltv", "-o", capture, *args).returncode == 0
     model = _identify(tmp_path, capture, "--sweep", *extra)["free_air_model"]
     assert model["f0_hz"] == pytest.approx(70_000.0, abs=f0_tol_hz)
     assert model["q"] == pytest.approx(200.0, rel=q_tol)

@@ -308,8 +308,9 @@ def test_free_air_from_chirp_recovers_f0_and_q():
 def test_leaving_the_delay_out_biases_f0():
     rng = np.random.default_rng(6)
     x, y = chirp_capture(rng, delay_s=5e-6)
-    with_delay = free_air_from_sweep(x, y, FS, delay=True)
-    without = free_air_from_sweep(x, y, FS, delay=False)
+    # the spectral (H1) fit of fit_second_order, whose docstring makes this claim
+    with_delay = free_air_from_sweep(x, y, FS, method="h1", delay=True)
+    without = free_air_from_sweep(x, y, FS, method="h1", delay=False)
     assert abs(with_delay.f0_hz / F0 - 1) < 5e-5
     assert abs(with_delay.q / Q - 1) < 0.01
     assert abs(without.f0_hz / F0 - 1) > 5e-4  # more than 35 Hz off
@@ -329,9 +330,16 @@ def test_free_air_from_sweep_rejects_bad_options(rng):
     with pytest.raises(ConfigError, match="method='lms'"):
         free_air_from_sweep(x, y, FS, method="lms")
     with pytest.raises(ConfigError, match="segments apply"):
+        free_air_from_sweep(x, y, FS, method="h1", segments=[])
+    with pytest.raises(ConfigError, match="segments and nperseg apply"):
         free_air_from_sweep(x, y, FS, segments=[])
-    with pytest.raises(ConfigError, match="band="):
-        free_air_from_sweep(x, y, FS, band=(5.0, 1.0))
+    with pytest.raises(ConfigError, match="hold='zoh' needs method='record'"):
+        free_air_from_sweep(x, y, FS, method="h1", hold="zoh")
+    with pytest.raises(ConfigError, match="hold='foh'"):
+        free_air_from_sweep(x, y, FS, hold="foh")
+    for method in ("record", "h1"):
+        with pytest.raises(ConfigError, match="band="):
+            free_air_from_sweep(x, y, FS, method=method, band=(5.0, 1.0))
 
 
 def _lowpass_10db_per_decade():

@@ -82,19 +82,72 @@ def write_sweep_bode_png(path: Path, fr, model: FreeAirModel, units: str) -> Non
 
 
 def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress):
-    from afmtool.estimators.frequency_response import free_air_from_response, sweep_frequency_response
+    """(model, details, warnings, plot): ``plot`` draws the spectral methods' Bode figure (None for ``record``)."""
+    from afmtool.estimators.frequency_response import sweep_frequency_response
+    from afmtool.estimators.sweep_record import identify_sweep
 
     chunks = list(iter_chunks(reader, ("dither", "deflection"), 1 << 20, progress=progress))
     dither = np.concatenate([c.data["dither"] for c in chunks])
     deflection = np.concatenate([c.data["deflection"] for c in chunks])
     segments = reader.info.metadata.get("segments") if params.sweep_method == "stepped" else None
+    found = identify_sweep(
+        dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method, segments=segments,
+        hold=params.drive_hold,
+    )
+    details = {
+        "sweep_method": params.sweep_method,
+        "samples": len(dither),
+        "drive_hold": found.hold,
+        "drive_hold_reason": found.hold_reason,
+    }
+    if params.sweep_method == "record":
+        details.update(
+            band_hz=list(found.fit.band_hz),
+            n_bins=found.fit.n_bins,
+            transient_order=found.fit.transient_order,
+            delay_std_s=found.fit.delay_std_s,
+            noise_std=found.fit.noise_std,
+            drive_edges_s=list(found.fit.drive_edges_s),
+            _fit=found.fit,
+        )
+        return found.model, details, list(found.warnings), None
     fr = sweep_frequency_response(dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method,
                                   segments=segments)
-    model = free_air_from_response(fr)
     info = reader.info
     units = f"{info.units('deflection')}/{info.units('dither')}".strip("/") or "input units"
-    plot = lambda path: write_sweep_bode_png(path, fr, model, units)  # noqa: E731 - drawn once the folder is staged
-    return model, {"sweep_method": params.sweep_method, "samples": len(dither)}, plot
+    plot = lambda path: write_sweep_bode_png(path, fr, found.model, units)  # noqa: E731 - drawn once the folder is staged
+    return found.model, details, list(found.warnings), plot
+
+
+def _write_sweep_fit(staged: OutputDir, fit, sample_rate_hz: float) -> None:
+    """sweep_frf.csv and sweep_bode.png: the transient-corrected measurement against the fitted model."""
+    from afmtool.io.rows import RowWriter
+    from afmtool.report.bode import BodeCurve, write_bode_png
+
+    f = np.asarray(fit.frequency_hz)
+    measured = np.asarray(fit.measured_response)
+    model = fit.response(f, sample_rate_hz)
+    table = {
+        "frequency_hz": f,
+        "measured_magnitude": np.abs(measured),
+        "measured_phase_deg": np.degrees(np.angle(measured)),
+        "model_magnitude": np.abs(model),
+        "model_phase_deg": np.degrees(np.angle(model)),
+    }
+    with (
+        open(staged.path("sweep_frf.csv"), "w", encoding="utf-8", newline="") as handle,
+        RowWriter(handle, "csv") as rows,
+    ):
+        rows.append(table)
+    write_bode_png(
+        staged.path("sweep_bode.png"),
+        [
+            BodeCurve(f, measured, "measured, transient removed", {"color": "C0", "marker": ".", "linestyle": "none"}),
+            BodeCurve(f, model, f"model ({fit.hold} drive): f0 {fit.f0_hz:.1f} Hz, Q {fit.q:.1f}", {"color": "C3"}),
+        ],
+        title="identify freeair --sweep: whole-record fit",
+        magnitude_label="|G| (dB re 1 unit/unit)",
+    )
 
 
 def write_thermal_fit_png(path: Path, frequency_hz: np.ndarray, asd: np.ndarray, fit) -> None:
@@ -151,18 +204,21 @@ def run_freeair_command(
     """Identify the free-air model by the chosen route and write free_air.json + report."""
     params = resolve_from(FreeAirParams, "identify.freeair", load_toml(config) if config else None, flags)
     plot = None
+    warnings: list[str] = []
     if params.route == "thermal":
         model, details, plot = _thermal_route(Path(source), params)
         inputs = [input_record(source, "psd")]
     elif params.route == "sweep":
-        model, details, plot = _sweep_route(reader, params, progress)
+        model, details, warnings, plot = _sweep_route(reader, params, progress)
         inputs = [input_record(source)]
     else:
         model, details = _segment_route(reader, params, progress)
         inputs = [input_record(source)]
     with OutputDir(out) as staged:
         model.save(staged.path("free_air.json"))
-        if plot is not None:
+        if params.route == "sweep" and params.sweep_method == "record":
+            _write_sweep_fit(staged, details.pop("_fit"), reader.info.sample_rate_hz)
+        elif plot is not None:
             plot(staged.path("thermal_fit.png" if params.route == "thermal" else "sweep_bode.png"))
         results = {"free_air_model": model.to_dict(), "route": params.route, **details}
-        return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, [])
+        return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, warnings)

@@ -105,7 +105,21 @@ def identify_freeair(
         Optional[str], typer.Option("--free-air", help="Off-sample segment START:END (s); default: metadata.")
     ] = None,
     sweep: Annotated[bool, typer.Option("--sweep", help="The capture is a chirp or stepped-sine sweep.")] = False,
-    stepped: Annotated[bool, typer.Option("--stepped", help="Sweep route: stepped sines (default H1).")] = False,
+    stepped: Annotated[
+        bool, typer.Option("--stepped", help="Sweep route: same as --sweep-method stepped (lock-in per step).")
+    ] = False,
+    sweep_method: Annotated[
+        Optional[str],
+        typer.Option(
+            "--sweep-method",
+            help="Sweep route: record (default; whole-record fit, exact at any sweep rate), "
+            "h1 or stepped (spectral fits that need a steady state).",
+        ),
+    ] = None,
+    drive_hold: Annotated[
+        Optional[str],
+        typer.Option("--drive-hold", help="Sweep route: zoh, continuous or auto (default; from the delay)."),
+    ] = None,
     psd: Annotated[
         Optional[Path], typer.Option("--psd", help="Thermal route: CSV with frequency_hz, asd_m_per_sqrt_hz.")
     ] = None,
@@ -122,8 +136,12 @@ def identify_freeair(
     """Identify the free-air model: f0, Q, gain and their uncertainties.
 
     Three routes: an off-sample segment of a capture (ARX fit, bias compensated),
-    a frequency sweep (--sweep: H1, then a second-order fit with delay), or a
-    thermal-noise spectrum (--psd FILE.csv).  Writes free_air.json for --model.
+    a frequency sweep (--sweep: by default the second-order model with delay
+    fitted to the whole record's spectra with a transient term, exact for fast
+    or slow chirps and stepped sines), or a thermal-noise spectrum
+    (--psd FILE.csv).  Writes free_air.json for --model; the sweep route also
+    writes sweep_frf.csv and sweep_bode.png (the data with the fitted transient
+    removed, beside the model).
     """
     from afmtool.analyses.freeair_outputs import run_freeair_command
     from afmtool.errors import ConfigError
@@ -131,10 +149,13 @@ def identify_freeair(
     route = "thermal" if psd else ("sweep" if sweep else "segment")
     if route != "thermal" and capture is None:
         raise ConfigError("give a CAPTURE (segment or --sweep route) or --psd FILE.csv (thermal route)")
+    if stepped and sweep_method not in (None, "stepped"):
+        raise ConfigError(f"--stepped contradicts --sweep-method {sweep_method}")
     flags = {
         "free_air": free_air,
         "route": route,
-        "sweep_method": "stepped" if stepped else None,
+        "sweep_method": "stepped" if stepped else sweep_method,
+        "drive_hold": drive_hold,
         "temperature_k": temperature,
     }
     if route == "thermal":

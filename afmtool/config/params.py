@@ -53,7 +53,16 @@ class FreeAirParams:
     route: str = field(
         "segment", "Identification route", choices=("segment", "sweep", "thermal")
     )
-    sweep_method: str = field("h1", "Sweep route: H1 (broadband/chirp) or stepped sines", choices=("h1", "stepped"))
+    sweep_method: str = field(
+        "record",
+        "Sweep route: record (whole-record fit, any sweep rate), h1 or stepped (spectral, need a steady state)",
+        choices=("record", "h1", "stepped"),
+    )
+    drive_hold: str = field(
+        "auto",
+        "Sweep route: drive held by a DAC at the ADC rate (zoh), continuous, or auto (a hold's half-sample delay)",
+        choices=("auto", "zoh", "continuous"),
+    )
     temperature_k: float = field(295.0, "Thermal route: temperature for the equipartition spring constant", "K")
 
     def validate(self) -> None:

@@ -2,10 +2,11 @@
 
 This module holds the Fourier-domain identification shared by two features:
 
-* the **sweep route** to the free-air model whose numerator REEP keeps
-  fixed (§3.3.3): the response G(jω) from the dither to the deflection is
-  measured with a chirp/noise drive (H1 estimator) or a stepped sine
-  (lock-in per step), and the second-order model
+* the spectral forms of the **sweep route** to the free-air model whose
+  numerator REEP keeps fixed (§3.3.3; the default, whole-record form is
+  :mod:`afmtool.estimators.sweep_record`): the response G(jω) from the
+  dither to the deflection is measured with a chirp/noise drive (H1
+  estimator) or a stepped sine (lock-in per step), and the second-order model
   G(s) = gain·ω0²/(s² + (ω0/Q)s + ω0²)·e^{−sτ} (eq. 3.1 with a pure delay τ
   of the drive path) is fitted to it, as §6.7.1 does with a chirp on V_sub,
   giving a :class:`~afmtool.models.free_air.FreeAirModel` with
@@ -62,6 +63,7 @@ __all__ = [
     "free_air_from_sweep",
     "free_air_from_response",
     "sweep_frequency_response",
+    "spectral_sweep_fit",
     "frf_table",
 ]
 
@@ -1244,7 +1246,8 @@ def fit_second_order(
     dof = max(sol.fun.size - sol.x.size, 1)
     s2 = float(np.dot(sol.fun, sol.fun)) / dof
     cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
-    std = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scales[: sol.x.size]
+    # |scales|: the gain's scale is the signed start gain, and a standard deviation is never negative
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * np.abs(scales[: sol.x.size])
     return SecondOrderFit(
         f0_hz=float(f0),
         q=float(q),
@@ -1297,13 +1300,53 @@ def free_air_from_sweep(
     deflection,
     sample_rate_hz: float,
     *,
+    method: str = "record",
+    segments: Sequence | None = None,
+    band: tuple[float, float] | None = None,
+    nperseg: int | None = None,
+    delay: bool | float = True,
+    hold: str = "auto",
+) -> FreeAirModel:
+    """Free-air model from a frequency sweep of the dither (the "sweep" route).
+
+    Parameters
+    ----------
+    dither, deflection : array_like
+        Drive (e.g. V) and deflection (e.g. nm) records, equal length.
+    sample_rate_hz : float
+        Sampling rate, Hz.
+    method, segments, band, nperseg, delay, hold
+        As :func:`afmtool.estimators.sweep_record.identify_sweep`: by
+        default the whole-record fit (exact at any sweep rate) with the
+        drive's hold told from its half-sample delay; ``method="h1"`` or
+        ``"stepped"`` for :func:`spectral_sweep_fit`.
+
+    Returns
+    -------
+    FreeAirModel
+        ``source="sweep"``, f0, Q, gain (deflection units per dither unit)
+        and ``delay_s`` with standard errors; no discrete numerator.
+    """
+    from afmtool.estimators.sweep_record import identify_sweep
+
+    return identify_sweep(
+        dither, deflection, sample_rate_hz, method=method, segments=segments, band=band, nperseg=nperseg,
+        delay=delay, hold=hold,
+    ).model
+
+
+def spectral_sweep_fit(
+    dither,
+    deflection,
+    sample_rate_hz: float,
+    *,
     method: str = "h1",
     segments: Sequence | None = None,
     band: tuple[float, float] | None = None,
     nperseg: int | None = None,
     delay: bool | float = True,
-) -> FreeAirModel:
-    """Free-air model from a frequency sweep of the dither (the "sweep" route).
+) -> SecondOrderFit:
+    """The delayed second-order model fitted to an H1 or stepped-sine frequency response.
 
     Parameters
     ----------
@@ -1331,9 +1374,7 @@ def free_air_from_sweep(
 
     Returns
     -------
-    FreeAirModel
-        ``source="sweep"``, f0, Q, gain (deflection units per dither unit)
-        and ``delay_s`` with standard errors; no discrete numerator.
+    SecondOrderFit
 
     Notes
     -----
@@ -1341,7 +1382,11 @@ def free_air_from_sweep(
     random error of |H| from the coherence, plus (1e-6·|H|max)² so that
     noise-free data (σ = 0) get equal weights.  The delay τ absorbs the
     drive and acquisition latencies, including the half-sample delay of a
-    zero-order-hold DAC.
+    zero-order-hold DAC.  Both estimates assume that each Welch segment or
+    each step's settled part holds the steady-state response: a chirp that
+    crosses the resonance faster than its time constant 2Q/ω0 breaks that
+    (Q comes out low); the whole-record fit
+    (:func:`afmtool.estimators.sweep_record.fit_record_response`) does not.
 
     Raises
     ------
@@ -1401,17 +1446,7 @@ def free_air_from_response(
     sigma = fr.magnitude_std[mask]
     sigma = np.where(np.isfinite(sigma), sigma, np.inf)
     weights = 1.0 / (sigma**2 + (1e-6 * np.max(np.abs(h))) ** 2)
-    fit = fit_second_order(fr.frequency_hz[mask], h, delay=delay, weights=weights)
-    return FreeAirModel(
-        f0_hz=fit.f0_hz,
-        q=fit.q,
-        gain=fit.gain,
-        f0_std_hz=fit.f0_std_hz,
-        q_std=fit.q_std,
-        gain_std=fit.gain_std,
-        source="sweep",
-        delay_s=fit.delay_s,
-    )
+    return fit_second_order(fr.frequency_hz[mask], h, delay=delay, weights=weights)
 
 
 # --------------------------------------------------------------------------- tables
