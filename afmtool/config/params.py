@@ -70,6 +70,9 @@ class ReepParams:
     p0: float = field(1.0e6, "Initial covariance P(0) = P0·I (eq. 3.39)")
     bias_compensation: bool = field(True, "Bias-compensated EWRLS (false: plain EWRLS, for comparison)")
     use_input: bool = field(True, "Use the recorded dither (false: output-only AR(2) tracking)")
+    static_offset: bool = field(
+        True, "Constant regressor for the static deflection offset of an attractive force (false: eq. 3.40 as is)"
+    )
     free_air: str = field("", "Off-sample segment START:END for the free-air model; empty = metadata", "s")
     model: str = field("", "Free-air model file (free_air.json from 'identify freeair'); overrides free_air")
     decimate: int = field(0, "Keep one output sample in N; 0 = one per drive period")
@@ -81,6 +84,12 @@ class ReepParams:
     vs: str = field("auto", "Force-curve binning against z_piezo", choices=("auto", "time", "z"))
     z_bin: float = field(0.5, "Force-curve bin width, in the units of z_piezo")
     warmup_windows: float = field(5.0, "Windows 1/(1-λ) left out of summary statistics at the start")
+    min_amplitude_fraction: float = field(
+        0.01, "Validity: f0', Q' flagged where the amplitude is below this share of the free amplitude; 0 = off"
+    )
+    max_sigma2_ratio: float = field(
+        4.0, "Validity: f0', Q' flagged where sigma^2 exceeds this multiple of its free-air level; 0 = off"
+    )
     # 1 Mi samples: each chunk costs ~2 ms of hand-offs between the reading, computing and
     # writing threads, 0.6 s per 1e8 samples at 256 Ki; the buffers cost ~100 MB.
     chunk_samples: int = field(1 << 20, "Samples per streamed chunk (memory against per-chunk overhead)")
@@ -92,7 +101,8 @@ class ReepParams:
             raise ConfigError(f"p0={self.p0!r} must be > 0")
         if self.decimate < 0:
             raise ConfigError(f"decimate={self.decimate!r} must be >= 0")
-        for name in ("drive_frequency_hz", "lockin_lowpass_hz", "bandpass_half_width_hz", "warmup_windows"):
+        for name in ("drive_frequency_hz", "lockin_lowpass_hz", "bandpass_half_width_hz", "warmup_windows",
+                     "min_amplitude_fraction", "max_sigma2_ratio"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
         if self.z_bin <= 0:
