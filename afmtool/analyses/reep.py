@@ -24,6 +24,7 @@ from afmtool.analyses.freeair_source import free_air_interval, identify_from_seg
 from afmtool.analyses.reep_validity import (
     FlagCounter,
     FreeAirLevels,
+    OffsetDrift,
     ValidityLimits,
     free_air_levels,
     validity_flags,
@@ -287,7 +288,8 @@ def run_reep(
     lockin = LockIn(drive_hz, fs, lowpass_hz)
     lock_state = lockin.initial_state(2 if params.use_input else 1)
     warmup = int(params.warmup_windows / (1.0 - params.lam))
-    limits = ValidityLimits(params.min_amplitude_fraction, params.max_sigma2_ratio)
+    limits = ValidityLimits(params.min_amplitude_fraction, params.max_sigma2_ratio, params.max_offset_drift)
+    offset_drift = OffsetDrift(params.lam, decimate) if params.static_offset else None
     if segment is not None:
         levels = _segment_levels(segment, params, numerator, lockin, make_bandpass)
     else:
@@ -328,8 +330,13 @@ def run_reep(
             first_kept = (-(chunk.start + 1)) % decimate
             kept_index = np.arange(chunk.start + first_kept, chunk.start + len(p), decimate)
             f0, q, valid = resonance_from_denominator(block.b1, block.b0, fs)
-            flags = validity_flags(valid, demod.amplitude, block.sigma2, levels, limits)
-            flag_counter.add(flags)
+            offset = None
+            if block.c is not None:
+                # p̄ = c / (1 + b1 + b0), the static deflection offset (reep_update, Notes)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    offset = block.c / (1.0 + block.b1 + block.b0)
+            offset_variance = offset_drift(offset) if offset_drift is not None else None
+            flags = validity_flags(valid, demod.amplitude, block.sigma2, levels, limits, offset_variance)
             columns = {
                 "t": kept_index / fs,
                 "f0_hz": f0,
@@ -340,10 +347,8 @@ def run_reep(
                 "amplitude": demod.amplitude,
                 "phase_deg": np.degrees(demod.phase_rad),
             }
-            if block.c is not None:
-                # p̄ = c / (1 + b1 + b0), the static deflection offset (reep_update, Notes)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    columns["offset"] = block.c / (1.0 + block.b1 + block.b0)
+            if offset is not None:
+                columns["offset"] = offset
             columns["flag"] = flags
             if z_mode:
                 columns["z"] = chunk.data["z_piezo"][first_kept::decimate]
@@ -351,6 +356,7 @@ def run_reep(
             # reep.h5 keeps the fitted values; everything else sees NaN where the fit is flagged
             trusted = dict(columns, f0_hz=np.where(flags == 0, f0, np.nan), q=np.where(flags == 0, q, np.nan))
             first_settled = int(np.searchsorted(kept_index, warmup))
+            flag_counter.add(flags[first_settled:])  # counted over what the summary covers
             for name, summary in summaries.items():
                 summary.add(trusted[name][first_settled:])
             if image_acc is not None:
@@ -377,10 +383,11 @@ def run_reep(
         "lockin": {"lowpass_hz": lowpass_hz, "order": lockin.order, "type": "Butterworth, complex demodulation"},
         "excitation_lines_hz": lines,
         "static_offset": params.static_offset,
-        "flagged_samples": flag_counter.flagged,  # among the decimated output samples
+        "flagged_samples": flag_counter.flagged,  # among the decimated output samples after the warm-up
         "validity": {
             "min_amplitude_fraction": limits.min_amplitude_fraction,
             "max_sigma2_ratio": limits.max_sigma2_ratio,
+            "max_offset_drift": limits.max_offset_drift,
             "free_air_levels": levels.as_dict(),
             "flags": flag_counter.as_dict(),
         },

@@ -90,6 +90,10 @@ class ReepParams:
     max_sigma2_ratio: float = field(
         4.0, "Validity: f0', Q' flagged where sigma^2 exceeds this multiple of its free-air level; 0 = off"
     )
+    max_offset_drift: float = field(
+        0.1, "Validity: f0', Q' flagged where the static offset's variance over the window exceeds this share "
+        "of A^2/2; 0 = off"
+    )
     # 1 Mi samples: each chunk costs ~2 ms of hand-offs between the reading, computing and
     # writing threads, 0.6 s per 1e8 samples at 256 Ki; the buffers cost ~100 MB.
     chunk_samples: int = field(1 << 20, "Samples per streamed chunk (memory against per-chunk overhead)")
@@ -102,7 +106,7 @@ class ReepParams:
         if self.decimate < 0:
             raise ConfigError(f"decimate={self.decimate!r} must be >= 0")
         for name in ("drive_frequency_hz", "lockin_lowpass_hz", "bandpass_half_width_hz", "warmup_windows",
-                     "min_amplitude_fraction", "max_sigma2_ratio"):
+                     "min_amplitude_fraction", "max_sigma2_ratio", "max_offset_drift"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
         if self.z_bin <= 0:
