@@ -320,13 +320,17 @@ def _reep_offset_kernel(  # noqa: PLR0913, PLR0915
         else:
             lam_n = 1.0
             inv_lam_n = 1.0
-        # k = P(n−1) φ(n), the third regressor being 1
+        # s = λ + φᵀ(n) P(n−1) φ(n), the third regressor being 1, summed as Σ φ_i φ_j P_ij
+        # so that it does not wait for k (as in _reep_kernel)
+        s = lam_n + (
+            ((phi1 * phi1) * p11 + (2.0 * phi1 * phi2) * p12 + (phi2 * phi2) * p22)
+            + ((2.0 * phi1) * p13 + (2.0 * phi2) * p23 + p33)
+        )
+        inv_s = 1.0 / s
+        # k = P(n−1) φ(n), computed while 1/s is pending
         k1 = p11 * phi1 + p12 * phi2 + p13
         k2 = p12 * phi1 + p22 * phi2 + p23
         k3 = p13 * phi1 + p23 * phi2 + p33
-        # s = λ + φᵀ(n) P(n−1) φ(n)
-        s = lam_n + (phi1 * k1 + phi2 * k2 + k3)
-        inv_s = 1.0 / s
         # l(n) = z(n) − φᵀ(n) θ̂_LS(n−1)
         l_n = z - phi1 * th_b1 - phi2 * th_b0 - th_c
         # J(n) = λ [J(n−1) + l(n)² / s]                                      (eq. 3.38)
