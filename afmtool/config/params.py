@@ -20,6 +20,7 @@ __all__ = [
     "FreeAirParams",
     "AveragingParams",
     "TheoryCompareParams",
+    "TheoryControllersParams",
     "KalmanBankParams",
     "ObserverTheoryParams",
     "GammaParams",
@@ -211,6 +212,38 @@ class TheoryCompareParams:
             raise ConfigError(f"amplitude_fraction={self.amplitude_fraction!r} must be in (0, 1)")
         if self.tolerance <= 0:
             raise ConfigError(f"tolerance={self.tolerance!r} must be > 0")
+
+
+@dataclass(frozen=True)
+class TheoryControllersParams:
+    """``afmtool theory controllers``: low, high and switching z-controller gains on the grating (ch. 2)."""
+
+    line_rates_hz: str = field("4,8,12,30", "Line rates of the table, comma-separated", "Hz")
+    lines: int = field(2, "Raster lines per table run (a trace and a retrace each)")
+    seed: int = field(1, "Simulation seed (the same surface, noise and seed for the three controllers)")
+    tolerance: float = field(1.2, "Pass: switching loss area <= this x the high gain's, peak force <= this x the low's")
+    figure_line_rate_hz: float = field(12.0, "Line rate of the height images", "Hz")
+    figure_lines: int = field(16, "Raster lines of the height images")
+    figure_pixels: int = field(48, "Pixels per line of the height images")
+
+    def rates(self) -> tuple[float, ...]:
+        """The line rates as numbers, Hz."""
+        try:
+            rates = tuple(float(v) for v in self.line_rates_hz.split(","))
+        except ValueError:
+            raise ConfigError(f"line_rates_hz={self.line_rates_hz!r} must be comma-separated numbers") from None
+        return rates
+
+    def validate(self) -> None:
+        if not all(rate > 0 for rate in self.rates()):
+            raise ConfigError(f"line_rates_hz={self.line_rates_hz!r} must all be > 0")
+        for name in ("lines", "figure_lines", "figure_pixels"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 1")
+        if self.figure_line_rate_hz <= 0:
+            raise ConfigError(f"figure_line_rate_hz={self.figure_line_rate_hz!r} must be > 0")
+        if self.tolerance < 1:
+            raise ConfigError(f"tolerance={self.tolerance!r} must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -515,6 +548,7 @@ SECTIONS: dict[str, type] = {
     "decode": DecodeParams,
     "theory.averaging": AveragingParams,
     "theory.compare": TheoryCompareParams,
+    "theory.controllers": TheoryControllersParams,
     "kalman-bank": KalmanBankParams,
     "theory.observer": ObserverTheoryParams,
 }
