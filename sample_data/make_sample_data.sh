@@ -5,7 +5,8 @@ set -euo pipefail
 cd "$(dirname "$0")"
 
 # REEP's main example: three-sine dither, f0 70 kHz -> 69.65 kHz and Q 200 -> 90 at t = 30 ms.
-afmtool simulate ltv -o ltv_step.h5 --seed 1 \
+# Made before issue 14, with the dither held per sample (drive_hold=zoh; the default is now continuous).
+afmtool simulate ltv -o ltv_step.h5 --seed 1 --set drive_hold=zoh \
   --set duration_s=0.05 --set step_time_s=0.03 --set step_f0_hz=69650.0 --set step_q=90.0
 
 # The same capture in every other format (CSV and bags carry no /truth).
@@ -36,7 +37,8 @@ afmtool convert thermal_sweep_contact.tmp.h5 thermal_sweep_contact.h5 --compress
 
 # A closed-loop raster scan of the calibration grating at 30 Hz (thesis ch. 2): switching-gain
 # z-control driven by the in-loop reliability index, contact and force truth; gzip keeps it small.
-afmtool simulate raster -o raster_grating_raw.h5 --seed 4 \
+# Made before issue 14, with the dither held per sample (drive_hold=zoh; the default is now continuous).
+afmtool simulate raster -o raster_grating_raw.h5 --seed 4 --set drive_hold=zoh \
   --set line_rate_hz=30.0 --set lines=3 --set pixels_per_line=32
 afmtool convert raster_grating_raw.h5 raster_grating.h5 --compression gzip && rm raster_grating_raw.h5
 

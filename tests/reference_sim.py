@@ -84,6 +84,8 @@ __all__ = [
     "free_air_response",
     "simulate",
     "write_capture_h5",
+    "SeparationSteps",
+    "loss_program",
 ]
 
 _CHUNK_SAMPLES = 8192
@@ -257,6 +259,37 @@ class PiecewiseLinearForce:
 
 #: The thesis's §3.4.3 "predominant attractive" set (f0 = 80,318 Hz, Q = 168), eq. 4.1 magnitudes.
 ATTRACTIVE_SET = PiecewiseLinearForce(4.0, 0.31e6**2, 3.03e6**2, 0.042e6, 0.0)
+
+
+# --------------------------------------------------------------------------- separation programs
+
+
+@dataclass(frozen=True)
+class SeparationSteps:
+    """l(t) (nm): ``levels_nm[k]`` from ``edges_s[k]`` to ``edges_s[k+1]`` (the last level holds on)."""
+
+    edges_s: tuple[float, ...]
+    levels_nm: tuple[float, ...]
+
+    def __call__(self, t):
+        t = np.asarray(t, dtype=np.float64)
+        k = np.clip(np.searchsorted(np.asarray(self.edges_s), t, side="right") - 1, 0, len(self.levels_nm) - 1)
+        return np.asarray(self.levels_nm)[k]
+
+
+def loss_program(free_s: float, on_s: float, losses_s, on_nm: float, off_nm: float) -> tuple[SeparationSteps, float]:
+    """Free air for ``free_s``, then on the sample (``on_nm``) for ``on_s`` between losses of ``losses_s`` each.
+
+    Returns the program and the capture length that ends with an on-sample
+    stretch.  During a loss the sample is at ``off_nm`` (beyond the free
+    amplitude plus the force range, so the tip is truly off).
+    """
+    edges = [0.0, free_s]
+    levels = [off_nm, on_nm]
+    for loss in losses_s:
+        edges += [edges[-1] + on_s, edges[-1] + on_s + loss]
+        levels += [off_nm, on_nm]
+    return SeparationSteps(tuple(edges), tuple(levels)), edges[-1] + on_s
 
 
 # --------------------------------------------------------------------------- capture

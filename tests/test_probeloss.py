@@ -366,8 +366,12 @@ def test_missing_model_and_amplitude_threshold(tmp_path, one_line_capture):
     no_setpoint = dict(one_line_capture.metadata)
     no_setpoint.pop("controller")
     reader = ArrayReader(FS, one_line_capture.channels, one_line_capture.data, no_setpoint, {}, "x")
-    with pytest.raises(ConfigError, match="amplitude-upper"):
-        run_probeloss(reader, resolve(ProbeLossParams, {}), _Columns())
+    # without A_upper or a set point the baseline (only a comparison) is skipped, with a warning
+    skipped = run_probeloss(reader, resolve(ProbeLossParams, {}), _Columns())
+    assert skipped.results["amplitude_baseline"]["skipped"] is True
+    assert skipped.results["amplitude_baseline"]["loss_fraction"] is None
+    assert any("amplitude baseline skipped" in w for w in skipped.warnings)
+    assert skipped.results["loss_fraction"] > 0
     result = run_probeloss(reader, resolve(ProbeLossParams, {"setpoint": 21.0}), _Columns())
     assert result.results["amplitude_baseline"]["setpoint"] == 21.0
     out = tmp_path / "out"

@@ -317,7 +317,8 @@ def test_tapping_other_programs_and_drives():
 
 
 def test_ltv_constant_equals_exact_zoh_solution():
-    cap = simulate("ltv", {"step_f0_hz": 70000.0, "step_q": 200.0, "initial_state": "rest", "duration_s": 0.01})
+    cap = simulate("ltv", {"step_f0_hz": 70000.0, "step_q": 200.0, "initial_state": "rest", "duration_s": 0.01,
+                           "drive_hold": "zoh"})
     assert cap.metadata["free_air"] == {"start_s": 0.0, "end_s": 0.01}
     lever = Cantilever(70000.0, 200.0)
     num, den, _ = signal.cont2discrete(lever.tf_coefficients(), 1 / FS, method="zoh")
@@ -330,11 +331,12 @@ def test_ltv_constant_equals_exact_zoh_solution():
 
 
 def test_ltv_steady_start_equals_long_preroll():
-    params = {"step_f0_hz": 70000.0, "step_q": 200.0, "duration_s": 0.004, "measurement_noise_nm": 0.0}
+    params = {"step_f0_hz": 70000.0, "step_q": 200.0, "duration_s": 0.004, "measurement_noise_nm": 0.0,
+              "drive_hold": "zoh"}
     cap = simulate("ltv", params)
     # from rest 40 ms earlier: the transient has decayed by e^-44
     pre = 20000
-    exc, _, _ = scenario_defaults("ltv").dither()
+    exc, _, _ = dataclasses.replace(scenario_defaults("ltv"), drive_hold="zoh").dither()
     g = exc((np.arange(pre + cap.n_samples) - pre) / FS)
     lever = Cantilever(70000.0, 200.0)
     num, den, _ = signal.cont2discrete(lever.tf_coefficients(), 1 / FS, method="zoh")

@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ForceCurveTable
-from afmtool.analyses.freeair_source import drive_frequency, free_air_interval, identify_from_segment, read_free_air
+from afmtool.analyses.freeair_source import drive_frequency
 from afmtool.analyses.kalman_bank_reep import (
     DelayLine,
     HeldReepCoefficients,
@@ -246,15 +246,22 @@ def _design_points(params: KalmanBankParams, tables: dict[str, ModelTable] | Non
 
 
 def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: Iterator[Chunk]):
-    """The free-air model from the segment (read ahead from the chunk stream), as REEP does."""
-    interval = free_air_interval(reader, params.free_air)
-    if interval is None:
-        raise ConfigError(
-            "kalman-bank needs the free-air model: give --free-air START:END, --model free_air.json, --reep REEP_DIR "
-            "with its free_air.json, or capture metadata free_air"
+    """The free-air model by :func:`~afmtool.analyses.freeair_route.resolve_free_air`, as REEP does.
+
+    Returns (model, chunks, segment seconds or None, route report).
+    """
+    from afmtool.analyses.freeair_route import resolve_free_air
+
+    try:
+        route, chunks = resolve_free_air(
+            reader, chunks, given=None, free_air=params.free_air, f0_hz=params.f0_hz, q=params.q,
+            drive_hold=params.drive_hold, drive_frequency_hz=params.drive_frequency_hz,
         )
-    segment, chunks = read_free_air(reader, chunks, interval, ("deflection", "dither"))
-    return identify_from_segment(segment, reader.info.sample_rate_hz), chunks, interval
+    except ConfigError as exc:
+        raise ConfigError(f"kalman-bank needs the free-air model ({exc}); or give --reep REEP_DIR with its "
+                          "free_air.json") from None
+    segment_s = route.segment.interval_s if route.segment is not None else None
+    return route.model, chunks, segment_s, route.report
 
 
 def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
@@ -425,7 +432,7 @@ def run_kalman_bank(
     info = reader.info
     fs = info.sample_rate_hz
     require_channels(info, _CHANNELS)
-    lam, segment_s, tables = params.lam, None, None
+    lam, segment_s, tables, route = params.lam, None, None, None
     if reep_results is not None:
         model = model or reep_results.free_air_model
         lam = _check_reep_file(reep_results, fs) or lam
@@ -435,12 +442,12 @@ def run_kalman_bank(
     source = reader
     if two_passes:
         first = reep_pass_one(reader, params, model, progress_one)
-        tables, model, segment_s = first.tables, first.model, first.segment_s
+        tables, model, segment_s, route = first.tables, first.model, first.segment_s, first.route
         source = reopen() if reopen is not None else reader
     try:
         chunks: Iterator[Chunk] = iter_chunks(source, _CHANNELS, params.chunk_samples, progress=progress_two)
         if model is None:
-            model, chunks, segment_s = _identify_free_air(source, params, chunks)
+            model, chunks, segment_s, route = _identify_free_air(source, params, chunks)
         setup = _setup(source, params, model, segment_s, lam, tables)
         coefficients = (
             HeldReepCoefficients(reep_results.series["t"], reep_results.series["b1"], reep_results.series["b0"], fs)
@@ -457,7 +464,9 @@ def run_kalman_bank(
         raise InputError(f"{info.source}: the capture has no samples")
     if reep_results is not None and coefficients.last_sample >= stream.n_total:
         raise InputError(f"--reep {reep_results.path}: REEP's series runs past the capture's {stream.n_total} samples")
-    return _judge(params, setup, stream, tables, info.units("z_piezo"), reep_results)
+    result = _judge(params, setup, stream, tables, info.units("z_piezo"), reep_results)
+    result.results["free_air_route"] = route  # how the model was chosen, and the drive's hold
+    return result
 
 
 def _adaptive_hint(stream: _PassTwo, params: KalmanBankParams, z_units: str) -> str:

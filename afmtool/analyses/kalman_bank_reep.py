@@ -228,6 +228,8 @@ class PassOne(NamedTuple):
     tables: dict[str, ModelTable]
     model: FreeAirModel
     segment_s: tuple[float, float] | None
+    #: REEP's free-air route and drive hold (report.json ``free_air_route``).
+    route: dict | None = None
 
 
 def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel | None, progress) -> PassOne:
@@ -237,6 +239,9 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
     reep_params = ReepParams(
         lam=params.lam,
         free_air=params.free_air,
+        f0_hz=params.f0_hz,
+        q=params.q,
+        drive_hold=params.drive_hold,
         decimate=params.decimate,
         drive_frequency_hz=params.drive_frequency_hz,
         vs="z",
@@ -248,9 +253,11 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
     result = run_reep(reader, reep_params, binner, model=model, progress=progress)
     if not result.force_curves or binner.binner is None:
         raise InputError(f"{reader.info.source}: REEP found no force curve (z_piezo never moves)")
-    used = model or FreeAirModel.from_dict(result.results["free_air_model"], "identified free-air model")
+    # the model REEP ran beside: a given one as the route refined it (gain and phase fitted at the drive)
+    used = FreeAirModel.from_dict(result.results["free_air_model"], "identified free-air model")
     segment = result.results["free_air_segment_s"]
-    return PassOne(binner.binner.tables(), used, tuple(segment) if segment else None)
+    return PassOne(binner.binner.tables(), used, tuple(segment) if segment else None,
+                   result.results.get("free_air_route"))
 
 
 def reep_tables_from_file(

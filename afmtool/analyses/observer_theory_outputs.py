@@ -160,7 +160,8 @@ def _recommendation(
 
     pick = recommend(grid, params.max_cycles)
     fs = params.sample_rate_hz
-    numerator = FreeAirModel(f0, q, gain).numerator_at(fs)
+    # a model given by continuous parameters, discretised for how the drive reaches the plant
+    numerator = FreeAirModel(f0, q, gain).numerator_at(fs, params.drive_hold, match_hz=drive_hz)
     denominator = discrete_denominator(pick.f_k_hz, pick.q_k, fs)
     design = ObserverDesign.from_decay(
         (float(denominator.b1), float(denominator.b0)), numerator, pick.cycles, fs / drive_hz, residual=params.residual
@@ -172,6 +173,7 @@ def _recommendation(
         f"whose error after a unit plant-state step stays below {params.residual:.3g} after max_cycles drive periods",
         "discrete": {
             "sample_rate_hz": fs,
+            "drive_hold": params.drive_hold,
             "numerator": list(design.numerator),
             "denominator": list(design.denominator),
             "gain": list(design.gain),

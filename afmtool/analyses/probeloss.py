@@ -27,13 +27,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
-from afmtool.analyses.freeair_source import (
-    FreeAirSegment,
-    drive_frequency,
-    free_air_interval,
-    identify_from_segment,
-    read_free_air,
-)
+from afmtool.analyses.freeair_route import resolve_free_air
+from afmtool.analyses.freeair_source import FreeAirSegment
 from afmtool.analyses.probeloss_events import (
     Events,
     RunState,
@@ -72,7 +67,8 @@ class ProbeLossSetup:
     model : FreeAirModel
         The free-air model the observer runs on.
     model_source : str
-        ``"given"`` (``--model``) or ``"segment"`` (identified here).
+        The free-air route: ``"f0-q"``, ``"model"`` (``--model``) or
+        ``"segment"`` (ARX fit here); :mod:`afmtool.analyses.freeair_route`.
     design : ObserverDesign
         The observer.
     window_samples : int
@@ -83,8 +79,9 @@ class ProbeLossSetup:
         fs/drive_hz.
     calibration : FreeAirCalibration
         Index level and thresholds.
-    amplitude_upper : float
-        A_upper, deflection units.
+    amplitude_upper : float or None
+        A_upper, deflection units; None when neither it nor a set point is
+        known (the amplitude baseline is then skipped).
     free_amplitude : float or None
         A0 on the free-air segment, deflection units.
     setpoint : float or None
@@ -95,6 +92,10 @@ class ProbeLossSetup:
         One output sample in ``decimate``.
     segment_s : tuple of 2 floats or None
         The free-air segment, s.
+    route : dict
+        How the model was chosen and the drive's hold, for report.json.
+    warnings : tuple of str
+        Set-up warnings (route fallbacks, a skipped baseline).
     """
 
     model: FreeAirModel
@@ -104,12 +105,14 @@ class ProbeLossSetup:
     drive_hz: float
     period_samples: float
     calibration: FreeAirCalibration
-    amplitude_upper: float
+    amplitude_upper: float | None
     free_amplitude: float | None
     setpoint: float | None
     lowpass_hz: float
     decimate: int
     segment_s: tuple[float, float] | None
+    route: dict = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -184,10 +187,8 @@ def _amplitude_upper(params: ProbeLossParams, reader: CaptureReader, free_amplit
         return params.amplitude_upper, None
     setpoint = params.setpoint or reader.info.metadata.get("controller", {}).get("setpoint_nm")
     if setpoint is None or free_amplitude is None:
-        raise ConfigError(
-            "the amplitude baseline needs --amplitude-upper, or a free-air segment and the set point "
-            "(--setpoint or metadata controller.setpoint_nm) for the automatic A_upper"
-        )
+        # the baseline is only a comparison: without A_upper the index still runs
+        return None, None
     setpoint = float(setpoint)
     # A_upper = A_sp + fraction·(A0 − A_sp)
     return setpoint + params.upper_fraction * (free_amplitude - setpoint), setpoint
@@ -201,19 +202,12 @@ def prepare_probeloss(
     from afmtool.estimators.reliability import index_window
 
     fs = reader.info.sample_rate_hz
-    interval = free_air_interval(reader, params.free_air)
-    segment = None
-    if interval is not None:
-        segment, chunks = read_free_air(reader, chunks, interval, ("deflection", "dither"))
-    source = "given"
-    if model is None:
-        if segment is None:
-            raise ConfigError(
-                "probeloss needs the free-air model: give --free-air START:END, --model free_air.json, "
-                "or capture metadata free_air"
-            )
-        model, source = identify_from_segment(segment, fs), "segment"
-    drive_hz = drive_frequency(reader, params.drive_frequency_hz, model)
+    route, chunks = resolve_free_air(
+        reader, chunks, given=model, free_air=params.free_air, f0_hz=params.f0_hz, q=params.q,
+        drive_hold=params.drive_hold, drive_frequency_hz=params.drive_frequency_hz,
+    )
+    model, source, segment, drive_hz = route.model, route.route, route.segment, route.drive_hz
+    interval = segment.interval_s if segment is not None else None
     period = fs / drive_hz
     design = _design(params, model, fs, period)
     window = index_window(fs, drive_hz, params.window_periods)
@@ -222,10 +216,16 @@ def prepare_probeloss(
     lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, drive.get("sideband_offset_hz"))
     free_amplitude = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
     upper, setpoint = _amplitude_upper(params, reader, free_amplitude)
+    warnings = list(route.warnings)
+    if upper is None:
+        warnings.append(
+            "amplitude baseline skipped: it needs --amplitude-upper, or a free-air segment and the set point "
+            "(--setpoint or metadata controller.setpoint_nm) for the automatic A_upper"
+        )
     decimate = params.decimate or max(1, round(period))
     setup = ProbeLossSetup(
         model, source, design, window, drive_hz, period, calibration, upper, free_amplitude, setpoint,
-        lowpass_hz, decimate, interval,
+        lowpass_hz, decimate, interval, route.report, tuple(warnings),
     )
     return setup, chunks
 
@@ -282,7 +282,8 @@ class _Pass:
         self.index_events.append(runs.events)
         keep = slice((-(chunk.start + 1)) % setup.decimate, None, setup.decimate)
         amplitude = demodulated[0].amplitude
-        upper = setup.amplitude_upper
+        # a skipped baseline (no A_upper) never switches
+        upper = setup.amplitude_upper if setup.amplitude_upper is not None else float(np.finfo(np.float64).max)
         amp = hysteresis_update(self.amp_switch, amplitude, upper, upper, loss_when="above")
         self.amp_switch = amp.state
         amp_runs = runs_update(self.amp_runs, amp.switch, self.kept_seen)
@@ -346,6 +347,14 @@ def _score_dict(score, period: float) -> dict:
     }
 
 
+def _event_mask(events: Events, n: int) -> np.ndarray:
+    """Boolean mask of the samples inside ``events`` (sorted, disjoint [start, end))."""
+    edges = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(edges, np.minimum(events.start, n), 1)
+    np.add.at(edges, np.minimum(events.end, n), -1)
+    return np.cumsum(edges[:-1]) > 0
+
+
 def _truth_results(reader: CaptureReader, params: ProbeLossParams, setup: ProbeLossSetup,
                    index_events: Events, amp_events: Events) -> dict | None:
     if "contact" not in reader.info.truth_names:
@@ -356,6 +365,8 @@ def _truth_results(reader: CaptureReader, params: ProbeLossParams, setup: ProbeL
     minimum = params.min_event_periods * period
     index_score = score_events(index_events, truth, minimum)
     amp_score = score_events(amp_events, truth, minimum)
+    flagged = _event_mask(index_events, len(contact))
+    off_sample = _event_mask(truth.stretches, len(contact))
     t_index, t_amp = index_score.detection_samples, amp_score.detection_samples
     both = (t_index >= 0) & (t_amp >= 0)
     index_only = (t_index >= 0) & (t_amp < 0)
@@ -367,8 +378,13 @@ def _truth_results(reader: CaptureReader, params: ProbeLossParams, setup: ProbeL
         "loss_fraction": stretch_samples / len(contact) if len(contact) else None,
         "gap_periods": params.truth_gap_periods,
         "min_event_periods": params.min_event_periods,
-        "index": _score_dict(index_score, period),
-        "amplitude": _score_dict(amp_score, period),
+        "index": {
+            **_score_dict(index_score, period),
+            # share of flagged time that is truly off the sample, and of on-sample time flagged
+            "time_precision": float(np.mean(off_sample[flagged])) if flagged.any() else None,
+            "on_sample_flagged_fraction": float(np.mean(flagged[~off_sample])) if (~off_sample).any() else None,
+        },
+        "amplitude": _score_dict(amp_score, period) if setup.amplitude_upper is not None else None,
         "index_first": {
             "events": int(index_score.truth_events),
             "both_detected": int(both.sum()),
@@ -409,6 +425,7 @@ def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
     return {
         "free_air_model": setup.model.to_dict(),
         "free_air_model_source": setup.model_source,
+        "free_air_route": setup.route,
         "free_air_segment_s": list(setup.segment_s) if setup.segment_s else None,
         "drive_frequency_hz": setup.drive_hz,
         "decimate": setup.decimate,
@@ -490,8 +507,8 @@ def run_probeloss(
         raise InputError(f"{info.source}: the capture has no samples")
     index_events, amp_events = state.finish()
     lead = overlapping_lead(index_events, amp_events)
-    warnings: list[str] = []
-    if setup.model.delay_s > 1.5 / fs:
+    warnings: list[str] = list(setup.warnings)
+    if setup.model_source != "f0-q" and setup.model.delay_s > 1.5 / fs:
         warnings.append(
             f"the free-air model has a drive delay of {setup.model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
             "observer does not model; the free-air index level absorbs it, the contrast on the sample drops"
@@ -503,8 +520,10 @@ def run_probeloss(
         "sample_rate_hz": fs,
         **_event_results(index_events, amp_events, lead, state.n_samples, fs, params.max_events),
     }
-    results["amplitude_baseline"]["loss_fraction"] = float(np.sum(amp_events.duration)) / state.n_samples
-    results["amplitude_baseline"]["events_total"] = len(amp_events)
+    skipped = setup.amplitude_upper is None
+    results["amplitude_baseline"]["skipped"] = skipped
+    results["amplitude_baseline"]["loss_fraction"] = None if skipped else float(np.sum(amp_events.duration)) / state.n_samples
+    results["amplitude_baseline"]["events_total"] = None if skipped else len(amp_events)
     images = state.images.images() if state.images is not None else {}
     if geometry is not None:
         results["scan"] = _image_results(images, geometry)

@@ -213,11 +213,11 @@ def detection_times(detected: Events, truth: Events, rearmed: np.ndarray | None 
     this one began (it never released while the tip was back on the
     sample) has not detected it.
     """
+    if len(detected) == 0:  # nothing detected (e.g. a baseline that never switched)
+        return np.full(len(truth), -1, dtype=np.int64)
     if rearmed is None:
         k = _first_overlap(detected, truth.start, truth.end)
         return np.where(k >= 0, detected.start[np.maximum(k, 0)], -1)
-    if len(detected) == 0:
-        return np.full(len(truth), -1, dtype=np.int64)
     # first event starting at or after the re-arm sample that ends after the truth start
     k = np.maximum(np.searchsorted(detected.start, rearmed, side="left"),
                    np.searchsorted(detected.end, truth.start, side="right"))

@@ -20,7 +20,6 @@ import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
 from afmtool.analyses.freeair import replay_held
-from afmtool.analyses.freeair_source import free_air_interval, identify_from_segment, read_free_air
 from afmtool.analyses.reep_validity import (
     FlagCounter,
     FreeAirLevels,
@@ -30,7 +29,7 @@ from afmtool.analyses.reep_validity import (
     validity_flags,
 )
 from afmtool.config.params import ReepParams
-from afmtool.errors import ConfigError, InputError
+from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
 from afmtool.io.prefetch import prefetch
@@ -157,24 +156,24 @@ class _Bandpass:
 
 
 def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirModel | None, chunks):
-    """Return (model or None, chunk iterator to process, free-air segment seconds or None, segment or None).
+    """Return (model or None, chunks to process, free-air segment seconds or None, FreeAirRoute or None).
 
-    The free-air segment, when one is known, is read ahead also with a given
-    model: the validity flags take their free-air levels from it.
+    The route (``f0-q``, ``model``, ``segment``) and the drive's hold are
+    :func:`~afmtool.analyses.freeair_route.resolve_free_air`'s.
     """
-    interval = free_air_interval(reader, params.free_air)
-    if interval is None:
-        if model is not None or not params.use_input:
-            return model, chunks, None, None
-        raise ConfigError(
-            "REEP needs the free-air model: give --free-air START:END, --model free_air.json, "
-            "or capture metadata free_air (or use --no-input)"
-        )
-    names = ("deflection", "dither") if params.use_input else ("deflection",)
-    segment, chunks = read_free_air(reader, chunks, interval, names)
-    if model is None and params.use_input:
-        model = identify_from_segment(segment, reader.info.sample_rate_hz)
-    return model, chunks, interval, segment
+    from afmtool.analyses.freeair_route import resolve_free_air
+
+    if not params.use_input:
+        return model, chunks, None, None
+    route, chunks = resolve_free_air(
+        reader, chunks, given=model, free_air=params.free_air, f0_hz=params.f0_hz, q=params.q,
+        drive_hold=params.drive_hold, drive_frequency_hz=params.drive_frequency_hz,
+        required=model is None,
+    )
+    if route is None:
+        return model, chunks, None, None
+    segment_s = route.segment.interval_s if route.segment is not None else None
+    return route.model, chunks, segment_s, route
 
 
 def _segment_levels(segment, params: ReepParams, numerator, lockin, bandpass_factory) -> FreeAirLevels:
@@ -239,7 +238,10 @@ def run_reep(
     z_mode = params.vs == "z" or (params.vs == "auto" and "z_piezo" in info.channel_names)
     channels = ["deflection"] + (["dither"] if params.use_input else []) + (["z_piezo"] if z_mode else [])
     chunks: Iterator[Chunk] = iter_chunks(reader, channels, params.chunk_samples, progress=progress)
-    model, chunks, segment_s, segment = _resolve_model(reader, params, model, chunks)
+    model, chunks, segment_s, resolved = _resolve_model(reader, params, model, chunks)
+    route = resolved.report if resolved is not None else None
+    warnings.extend(resolved.warnings if resolved is not None else ())
+    segment = resolved.segment if resolved is not None else None
     first = next(chunks, None)
     if first is None:
         raise InputError(f"{info.source}: the capture has no samples")
@@ -271,7 +273,7 @@ def run_reep(
                 f"the dither has {len(lines)} spectral line(s) near resonance; REEP's free-air model needs "
                 "three to be persistently exciting for five parameters (thesis §3.3.2)"
             )
-    if model is not None and params.use_input and model.delay_s > 1.5 / fs:
+    if model is not None and params.use_input and model.delay_s > 1.5 / fs and (route or {}).get("route") != "f0-q":
         warnings.append(
             f"the free-air model has a drive delay of {model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
             "fixed numerator does not model; f0' and Q' may be biased"
@@ -370,6 +372,7 @@ def run_reep(
     results = {
         "free_air_model": model.to_dict() if model is not None else None,
         "free_air_segment_s": list(segment_s) if segment_s else None,
+        "free_air_route": route,
         "forgetting_factor": params.lam,
         "window_samples": window,
         "window_us": window / fs * 1e6,

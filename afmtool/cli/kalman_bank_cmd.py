@@ -9,6 +9,7 @@ import typer
 
 from afmtool.cli.common import finish_command, open_input
 from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.options import DriveHoldOpt, F0Opt, QOpt
 from afmtool.cli.progress import progress_bar
 
 __all__ = ["register"]
@@ -35,6 +36,9 @@ def kalman_bank(
     model: Annotated[
         Optional[Path], typer.Option("--model", help="free_air.json from 'afmtool identify freeair' (or its folder).")
     ] = None,
+    f0: F0Opt = None,
+    q: QOpt = None,
+    drive_hold: DriveHoldOpt = None,
     noise_ratio: Annotated[
         Optional[float], typer.Option("--noise-ratio", help="Kalman σ_w/σ_v (default 0.03: ~10-period error decay).")
     ] = None,
@@ -73,6 +77,9 @@ def kalman_bank(
         "n_filters": n_filters,
         "free_air": free_air,
         "model": str(model) if model else None,
+        "f0_hz": f0,
+        "q": q,
+        "drive_hold": drive_hold,
         "noise_ratio": noise_ratio,
         "rms_window_periods": window_periods,
         "z_bin": z_bin,

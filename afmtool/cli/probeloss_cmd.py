@@ -12,7 +12,10 @@ from afmtool.cli.options import (
     CaptureArg,
     ChannelOpt,
     ConfigOpt,
+    DriveHoldOpt,
+    F0Opt,
     JsonOpt,
+    QOpt,
     QuietOpt,
     SampleRateOpt,
     StreamFormatOpt,
@@ -36,6 +39,9 @@ def probeloss(
     model: Annotated[
         Optional[Path], typer.Option("--model", help="free_air.json from 'afmtool identify freeair' (or its folder).")
     ] = None,
+    f0: F0Opt = None,
+    q: QOpt = None,
+    drive_hold: DriveHoldOpt = None,
     decay_cycles: Annotated[
         Optional[float], typer.Option("--decay-cycles", help="Observer error decays (1/e) within N drive periods.")
     ] = None,
@@ -96,6 +102,9 @@ def probeloss(
     flags = {
         "free_air": free_air,
         "model": str(model) if model else None,
+        "f0_hz": f0,
+        "q": q,
+        "drive_hold": drive_hold,
         "gain": "kalman" if kalman else None,
         "decay_cycles": decay_cycles,
         "process_noise": process_noise,

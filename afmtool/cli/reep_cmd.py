@@ -12,7 +12,10 @@ from afmtool.cli.options import (
     CaptureArg,
     ChannelOpt,
     ConfigOpt,
+    DriveHoldOpt,
+    F0Opt,
     JsonOpt,
+    QOpt,
     OutOpt,
     QuietOpt,
     SampleRateOpt,
@@ -37,6 +40,9 @@ def reep(
     model: Annotated[
         Optional[Path], typer.Option("--model", help="free_air.json from 'afmtool identify freeair' (or its folder).")
     ] = None,
+    f0: F0Opt = None,
+    q: QOpt = None,
+    drive_hold: DriveHoldOpt = None,
     lam: Annotated[Optional[float], typer.Option("--lambda", help="Forgetting factor λ (default 0.995).")] = None,
     no_bias_compensation: Annotated[
         bool, typer.Option("--no-bias-compensation", help="Plain EWRLS, for comparison.")
@@ -82,6 +88,9 @@ def reep(
     flags = {
         "free_air": free_air,
         "model": str(model) if model else None,
+        "f0_hz": f0,
+        "q": q,
+        "drive_hold": drive_hold,
         "lam": lam,
         "bias_compensation": False if no_bias_compensation else None,
         "use_input": False if no_input else None,

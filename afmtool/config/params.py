@@ -63,6 +63,12 @@ class FreeAirParams:
             raise ConfigError(f"temperature_k={self.temperature_k!r} must be > 0")
 
 
+def _check_f0_q(f0_hz: float, q: float) -> None:
+    """The f0/Q route's pair: both 0 (off) or both given, Q > 1/2."""
+    if f0_hz < 0 or q < 0 or bool(f0_hz) != bool(q) or (q and not q > 0.5):
+        raise ConfigError(f"f0_hz={f0_hz!r} and q={q!r}: give both (f0 > 0, Q > 0.5) or neither")
+
+
 @dataclass(frozen=True)
 class ReepParams:
     """``afmtool reep``: recursive estimation of equivalent parameters (ch. 3)."""
@@ -76,6 +82,12 @@ class ReepParams:
     )
     free_air: str = field("", "Off-sample segment START:END for the free-air model; empty = metadata", "s")
     model: str = field("", "Free-air model file (free_air.json from 'identify freeair'); overrides free_air")
+    f0_hz: float = field(0.0, "Free-air f0 for the f0/Q route (with q; gain and phase fitted at the drive); 0 = off", "Hz")
+    q: float = field(0.0, "Free-air Q for the f0/Q route (with f0_hz); 0 = off")
+    drive_hold: str = field(
+        "auto", "How the drive reached the cantilever: DAC hold at the ADC rate, continuous, or told from the free-air phase",
+        choices=("auto", "zoh", "continuous"),
+    )
     decimate: int = field(0, "Keep one output sample in N; 0 = one per drive period")
     drive_frequency_hz: float = field(0.0, "Lock-in frequency; 0 = metadata drive, else the free-air f0", "Hz")
     lockin_lowpass_hz: float = field(0.0, "Lock-in low-pass corner; 0 = min(f/10, Δf/2)", "Hz")
@@ -115,6 +127,7 @@ class ReepParams:
         if self.chunk_samples < 16:
             raise ConfigError(f"chunk_samples={self.chunk_samples!r} must be >= 16")
         parse_interval(self.free_air, "free_air")
+        _check_f0_q(self.f0_hz, self.q)
 
 
 @dataclass(frozen=True)
@@ -123,6 +136,12 @@ class ProbeLossParams:
 
     free_air: str = field("", "Off-sample segment START:END (model, index level, thresholds, A0); empty = metadata", "s")
     model: str = field("", "Free-air model file (free_air.json from 'identify freeair'); overrides identification")
+    f0_hz: float = field(0.0, "Free-air f0 for the f0/Q route (with q; gain and phase fitted at the drive); 0 = off", "Hz")
+    q: float = field(0.0, "Free-air Q for the f0/Q route (with f0_hz); 0 = off")
+    drive_hold: str = field(
+        "auto", "How the drive reached the cantilever: DAC hold at the ADC rate, continuous, or told from the free-air phase",
+        choices=("auto", "zoh", "continuous"),
+    )
     gain: str = field("decay", "Observer gain: error decay in decay_cycles, or steady-state Kalman", choices=("decay", "kalman"))
     decay_cycles: float = field(1.0, "Decay design: time constant of the observer error", "drive periods")
     process_noise: float = field(0.0, "Kalman design: force noise as the static deflection it causes, rms", "deflection units")
@@ -150,6 +169,7 @@ class ProbeLossParams:
 
     def validate(self) -> None:
         parse_interval(self.free_air, "free_air")
+        _check_f0_q(self.f0_hz, self.q)
         positive = ("decay_cycles", "window_periods", "quantile", "off_ratio", "min_event_periods", "truth_gap_periods")
         for name in positive:
             if not getattr(self, name) > 0:
@@ -257,6 +277,12 @@ class KalmanBankParams:
     reep: str = field("", "REEP output folder or reep.h5 to use; empty = run REEP internally")
     free_air: str = field("", "Off-sample segment START:END for the free-air model; empty = metadata", "s")
     model: str = field("", "Free-air model file (free_air.json); overrides free_air")
+    f0_hz: float = field(0.0, "Free-air f0 for the f0/Q route (with q; gain and phase fitted at the drive); 0 = off", "Hz")
+    q: float = field(0.0, "Free-air Q for the f0/Q route (with f0_hz); 0 = off")
+    drive_hold: str = field(
+        "auto", "How the drive reached the cantilever: DAC hold at the ADC rate, continuous, or told from the free-air phase",
+        choices=("auto", "zoh", "continuous"),
+    )
     lam: float = field(0.995, "Internal REEP: forgetting factor λ (eq. 3.39)")
     noise_ratio: float = field(
         0.03, "Kalman gains: process-noise rms (as static deflection) over measurement-noise rms, σ_w/σ_v"
@@ -300,6 +326,7 @@ class KalmanBankParams:
         if self.chunk_samples < 16:
             raise ConfigError(f"chunk_samples={self.chunk_samples!r} must be >= 16")
         parse_interval(self.free_air, "free_air")
+        _check_f0_q(self.f0_hz, self.q)
 
 
 @dataclass(frozen=True)
@@ -329,6 +356,10 @@ class ObserverTheoryParams:
     max_cycles: float = field(10.0, "Recommend: the error must settle (below residual) within this many drive periods")
     residual: float = field(0.36787944117144233, "Settled: the step response stays below this share of the step (1/e)")
     sample_rate_hz: float = field(500e3, "Recommend: also give the discrete observer (eq. 3.40) at this rate", "Hz")
+    drive_hold: str = field(
+        "continuous", "Recommend: the discrete observer's numerator for a continuous drive or one a DAC holds per sample",
+        choices=("continuous", "zoh"),
+    )
 
     def validate(self) -> None:
         for name in ("f0_hz", "q", "gain", "free_amplitude_nm", "spring_constant_n_per_m", "max_cycles", "sample_rate_hz"):

@@ -28,6 +28,41 @@ These closed forms are checked against ``scipy.signal.cont2discrete`` in
 ``tests/test_sim.py``.  They need an under-damped mode (Q > 1/2) sampled
 above twice its resonance (f0 < fs/2), so that qT < π and the map from
 (f0, Q) to (b1, b0) is one-to-one.
+
+How the drive was made: the two holds
+-------------------------------------
+The numerator depends on what the plant saw between two samples of the
+drive, and there are two physical cases (``HOLDS``):
+
+* ``"zoh"`` — a DAC at the ADC's own rate holds the drive constant over each
+  sample interval (the thesis's FPGA).  The sampled plant is then exactly
+  the zero-order-hold model above, at every frequency.  Seen from the
+  sampled drive, the hold delays it by half a sample: at a line f the
+  phase lags the continuous G(j2πf) by about 180°·f/fs (25° at 70 kHz
+  sampled at 500 kHz), and the gain carries sinc(f/fs).
+* ``"continuous"`` — the drive is a continuous signal that the ADC merely
+  records (a function generator, or a fast DAC behind its reconstruction
+  filter).  For a band-limited drive the exact sampled response at a line
+  f is G(j2πf) itself, which no 3-tap numerator reproduces at every
+  frequency; a first-order (triangle) hold is not it either (it scales a
+  line by sinc²(f/fs), −6 % at 68 kHz sampled at 500 kHz).  afmtool uses
+  the **line-matched numerator** (:func:`line_numerator`): with the pole-map
+  denominator D(z), the (a2, a1, a0) that make N(z)/D(z) equal
+  G(jω_m)·e^{−jω_m τ} exactly at the match line ω_m = 2πf_m (two real
+  equations) and equal G(0) = 1 at DC (the third).  G(jω)·D(e^{jωT}) is
+  smooth through the resonance (D's zeros cancel G's poles), so the match
+  holds to < 0.1 % in gain and < 0.001° in phase at f_m ± 6 kHz for
+  f0 = 70-80 kHz, Q = 170-200 at 500 kHz (``tests/test_discretisation.py``).
+  The match line is the drive's main line (f0 when it is not known).
+
+By default the hold is told apart on the free-air segment
+(:func:`classify_hold`): the measured phase of deflection over dither at the
+drive, less the continuous model's phase, is near 0 for a continuous drive
+and near the zero-order hold's lag for a held one.  Models identified by a
+discrete fit (the ARX free-air fit, eq. 3.40) carry their own numerator and
+need no hold; models given by continuous parameters (f0, Q, gain from a
+sweep, a thermal tune, metadata or averaging theory) are discretised with
+the hold.  ``docs/conventions.md`` states the same conventions for users.
 """
 
 from __future__ import annotations
@@ -40,7 +75,16 @@ from numba import njit
 
 from afmtool.errors import ConfigError
 
+#: How the drive reached the plant between samples (module docstring).
+HOLDS = ("zoh", "continuous")
+
 __all__ = [
+    "HOLDS",
+    "HoldDecision",
+    "classify_hold",
+    "line_numerator",
+    "sampled_numerator",
+    "sampled_response",
     "is_underdamped",
     "DiscreteDenominator",
     "DiscreteNumerator",
@@ -239,3 +283,159 @@ def resonance_from_denominator(b1, b0, sample_rate_hz: float) -> ResonanceFromDe
         return ResonanceFromDenominator(float(f0[0]), float(qf[0]), bool(np.isfinite(f0[0])))
     f0 = f0.reshape(b1a.shape)
     return ResonanceFromDenominator(f0, qf.reshape(b1a.shape), np.isfinite(f0))
+
+
+def sampled_response(numerator, denominator, frequency_hz, sample_rate_hz: float):
+    """N(e^{jωT})/D(e^{jωT}) of eq. 3.40 at ``frequency_hz`` (Hz): complex, deflection per drive unit.
+
+    ``numerator`` is (a2, a1, a0), ``denominator`` (b1, b0), with
+    N(z) = a2 + a1 z⁻¹ + a0 z⁻², D(z) = 1 + b1 z⁻¹ + b0 z⁻².
+    """
+    a2, a1, a0 = (float(a) for a in numerator)
+    b1, b0 = (float(b) for b in denominator)
+    zinv = np.exp(-2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) / sample_rate_hz)
+    return (a2 + a1 * zinv + a0 * zinv * zinv) / (1.0 + b1 * zinv + b0 * zinv * zinv)
+
+
+def _continuous_response(f0_hz: float, q: float, frequency_hz):
+    """G(jω) = ω0²/(ω0² − ω² + jωω0/Q), unit DC gain."""
+    w = 2.0 * np.pi * np.asarray(frequency_hz, dtype=np.float64)
+    w0 = 2.0 * np.pi * f0_hz
+    return w0 * w0 / (w0 * w0 - w * w + 1j * w * w0 / q)
+
+
+def line_numerator(
+    f0_hz: float, q: float, sample_rate_hz: float, *, match_hz: float | None = None, delay_s: float = 0.0
+) -> DiscreteNumerator:
+    """Numerator of a continuously driven cantilever, exact at one line and at DC.
+
+    Parameters
+    ----------
+    f0_hz, q : float
+        Resonant frequency (Hz) and quality factor of
+        G(s) = ω0²/(s² + (ω0/Q)s + ω0²); 0 < f0 < fs/2, Q > 1/2.
+    sample_rate_hz : float
+        fs = 1/T, Hz.
+    match_hz : float, optional
+        The match line f_m, Hz, 0 < f_m < fs/2; default f0.
+    delay_s : float, optional
+        A drive-path delay τ, s, included in the target at f_m.
+
+    Returns
+    -------
+    DiscreteNumerator
+        (a2, a1, a0) solving, with D(z) from :func:`discrete_denominator` and
+        z_m = e^{jω_m T}:
+
+        .. math::
+
+            a_2 + a_1 z_m^{-1} + a_0 z_m^{-2} = G(j\\omega_m)\\,e^{-j\\omega_m\\tau}\\,D(z_m),
+            \\qquad a_2 + a_1 + a_0 = 1 + b_1 + b_0,
+
+        i.e. the sampled model's response equals the continuous one (times
+        the delay) at f_m and its DC gain is 1 (module docstring).
+
+    Raises
+    ------
+    ConfigError
+        If f0, Q, fs or f_m is out of range (named with its value).
+    """
+    decay, _ = _poles(f0_hz, q, sample_rate_hz)  # validates f0, Q, fs
+    match = float(f0_hz if match_hz is None else match_hz)
+    if not (math.isfinite(match) and 0 < match < sample_rate_hz / 2):
+        raise ConfigError(f"match_hz={match_hz!r} must be > 0 and below the Nyquist frequency {sample_rate_hz / 2:g} Hz")
+    if not math.isfinite(delay_s):
+        raise ConfigError(f"delay_s={delay_s!r} must be finite")
+    b1, b0 = discrete_denominator(f0_hz, q, sample_rate_hz)
+    zinv = complex(np.exp(-2j * np.pi * match / sample_rate_hz))
+    target = complex(_continuous_response(f0_hz, q, match)) * complex(np.exp(-2j * np.pi * match * delay_s))
+    target *= 1.0 + b1 * zinv + b0 * zinv * zinv
+    system = np.array([[1.0, 1.0, 1.0], [1.0, zinv.real, (zinv * zinv).real], [0.0, zinv.imag, (zinv * zinv).imag]])
+    rhs = np.array([1.0 + b1 + b0, target.real, target.imag])
+    a2, a1, a0 = np.linalg.solve(system, rhs)
+    return DiscreteNumerator(float(a2), float(a1), float(a0))
+
+
+def sampled_numerator(
+    f0_hz: float, q: float, sample_rate_hz: float, hold: str, *, match_hz: float | None = None
+) -> DiscreteNumerator:
+    """Unit-gain numerator of G for a drive made by ``hold`` (``"zoh"`` or ``"continuous"``).
+
+    ``"zoh"`` is :func:`zoh_numerator`; ``"continuous"`` is
+    :func:`line_numerator` matched at ``match_hz`` (default f0).
+    """
+    if hold == "zoh":
+        return zoh_numerator(f0_hz, q, sample_rate_hz)
+    if hold == "continuous":
+        return line_numerator(f0_hz, q, sample_rate_hz, match_hz=match_hz)
+    raise ConfigError(f"hold={hold!r} must be one of {HOLDS}")
+
+
+class HoldDecision(NamedTuple):
+    """Which hold a capture's drive had, and why (:func:`classify_hold`).
+
+    Attributes
+    ----------
+    hold : str
+        ``"zoh"`` or ``"continuous"``.
+    reason : str
+        One sentence for report.json.
+    excess_phase_deg : float or None
+        Measured phase at the drive less the continuous model's, degrees
+        (None when nothing was measured).
+    zoh_excess_deg : float or None
+        The same excess a zero-order hold predicts, degrees.
+    """
+
+    hold: str
+    reason: str
+    excess_phase_deg: float | None = None
+    zoh_excess_deg: float | None = None
+
+    def to_dict(self) -> dict:
+        return self._asdict()
+
+
+def classify_hold(
+    measured_response: complex, f0_hz: float, q: float, drive_hz: float, sample_rate_hz: float
+) -> HoldDecision:
+    """Tell a held drive from a continuous one by the phase at the drive.
+
+    Parameters
+    ----------
+    measured_response : complex
+        Deflection over dither at the drive line on a free-air segment
+        (any gain: only its phase is used).
+    f0_hz, q : float
+        The free-air resonance and quality factor.
+    drive_hz : float
+        The drive line, Hz.
+    sample_rate_hz : float
+        fs, Hz.
+
+    Returns
+    -------
+    HoldDecision
+        The hold whose predicted excess phase, arg(H_meas/G(jω)), is nearer:
+        0 for ``"continuous"``, arg(H_zoh(e^{jωT})/G(jω)) ≈ −180°·f/fs for
+        ``"zoh"``.  The reason names both and the measurement.
+
+    Notes
+    -----
+    The excess phase is only as good as f0 and Q: near resonance an f0 error
+    δf shifts the phase by about 2Q·δf/f0 rad, so the classification needs
+    δf well below f0·(πf/fs)/(4Q) (≈ 7 Hz at 70 kHz, Q = 200, fs = 500 kHz).
+    """
+    continuous = complex(_continuous_response(f0_hz, q, drive_hz))
+    zoh = complex(
+        sampled_response(zoh_numerator(f0_hz, q, sample_rate_hz), discrete_denominator(f0_hz, q, sample_rate_hz),
+                         drive_hz, sample_rate_hz)
+    )
+    excess = math.degrees(np.angle(complex(measured_response) / continuous))
+    zoh_excess = math.degrees(np.angle(zoh / continuous))
+    hold = "zoh" if abs(excess - zoh_excess) < abs(excess) else "continuous"
+    reason = (
+        f"free-air phase at the {drive_hz:g} Hz drive is {excess:+.1f} deg from the continuous model "
+        f"(f0 {f0_hz:g} Hz, Q {q:g}); a zero-order hold would give {zoh_excess:+.1f} deg: {hold}"
+    )
+    return HoldDecision(hold, reason, excess, zoh_excess)

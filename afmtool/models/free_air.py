@@ -56,19 +56,26 @@ class FreeAirModel:
     denominator: tuple[float, float] | None = None
     delay_s: float = 0.0
 
-    def numerator_at(self, sample_rate_hz: float) -> tuple[float, float, float]:
-        """(a2, a1, a0) at ``sample_rate_hz``: the identified one, or gain·ZOH(G).
+    def numerator_at(
+        self, sample_rate_hz: float, hold: str = "zoh", match_hz: float | None = None
+    ) -> tuple[float, float, float]:
+        """(a2, a1, a0) at ``sample_rate_hz``: the identified one, or gain times G sampled for ``hold``.
 
-        ``delay_s`` is not applied: the zero-order-hold discretisation already
-        carries the half-sample delay T/2 that a sweep fit finds on sampled
-        data.  A longer drive-path delay would need a z^-d term, which is not
-        modelled (REEP warns when the model's delay exceeds 1.5 samples).
+        ``hold`` is how the drive reached the cantilever
+        (:mod:`afmtool.models.discretisation`): ``"zoh"`` (a DAC at the
+        sample rate; the zero-order hold already carries the half-sample
+        delay T/2 that a sweep fit finds on such data) or ``"continuous"``
+        (the line-matched numerator, exact at ``match_hz``, default f0).
+        ``delay_s`` is not applied: a longer drive-path delay would need a
+        z^-d term, which is not modelled (REEP warns when the model's delay
+        exceeds 1.5 samples); the f0/Q route
+        (:mod:`afmtool.analyses.freeair_route`) fits it into the numerator.
         """
         if self.numerator is not None and self.sample_rate_hz == sample_rate_hz:
             return tuple(float(a) for a in self.numerator)
-        from afmtool.models.discretisation import zoh_numerator
+        from afmtool.models.discretisation import sampled_numerator
 
-        numerator = zoh_numerator(self.f0_hz, self.q, sample_rate_hz)
+        numerator = sampled_numerator(self.f0_hz, self.q, sample_rate_hz, hold, match_hz=match_hz)
         return (self.gain * numerator.a2, self.gain * numerator.a1, self.gain * numerator.a0)
 
     def denominator_at(self, sample_rate_hz: float) -> tuple[float, float]:

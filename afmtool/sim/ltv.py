@@ -8,16 +8,22 @@ The plant is eq. 3.40 with time-varying denominator and a fixed numerator,
 
 where (b1(n), b0(n)) come from the prescribed f0(t_n), Q(t_n) through the
 pole map z = e^{sT} (:func:`~afmtool.models.discretisation.discrete_denominator`)
-and (a2, a1, a0) is the zero-order-hold numerator of the **free-air** model,
-times the dither gain.  Keeping the numerator fixed while the poles move is
+and (a2, a1, a0) is the numerator of the **free-air** model for the way the
+dither reaches the cantilever (``drive_hold``, :mod:`afmtool.models.discretisation`),
+times the dither gain: by default a continuous dither, for which the
+line-matched numerator makes the sampled response equal G(jω) exactly at
+the drive's main line (free-air phase −90° at resonance) and to < 0.1 % at
+side lines ±6 kHz away; with ``drive_hold="zoh"`` the zero-order-hold
+numerator, exact at every frequency for a dither a DAC holds per sample.  Keeping the numerator fixed while the poles move is
 the structure of eq. 5.13 (c1, c0 fixed, ωe and Qe varying), which
 NOTES.md identifies as the physically right one.  w(n) is optional white
 process noise (nm); white measurement noise is added to the recorded
 deflection only.
 
 With constant parameters the recursion is computed with
-``scipy.signal.lfilter`` and equals the exact discrete-time (ZOH) response
-of G(s) = ω0²/(s² + (ω0/Q)s + ω0²) to the sampled dither.  With varying
+``scipy.signal.lfilter``; with ``drive_hold="zoh"`` it equals the exact
+discrete-time (ZOH) response of G(s) = ω0²/(s² + (ω0/Q)s + ω0²) to the
+sampled dither.  With varying
 parameters it is the numba kernel :func:`_ltv_kernel`.
 
 Parameter profile
@@ -41,7 +47,7 @@ from scipy import signal
 from afmtool.errors import ConfigError
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
-from afmtool.models.discretisation import DiscreteNumerator, discrete_denominator, zoh_numerator
+from afmtool.models.discretisation import DiscreteNumerator, discrete_denominator, sampled_numerator
 from afmtool.sim import SimulatedCapture, param, validate_parameters
 from afmtool.sim.excitation import DRIVE_KINDS, LinearChirp, MultiSine, SteppedSine, build_dither, sine
 
@@ -63,6 +69,10 @@ class LtvParams:
     ramp_s: float = param(0.0, "duration of each change (0 = a step)", "s", minimum=0)
     step_repeat_s: float = param(0.0, "if > 0, switch back and forth every step_repeat_s", "s", minimum=0)
     drive: str = param("three-sine", "dither type", "", choices=DRIVE_KINDS)
+    drive_hold: str = param(
+        "continuous", "how the plant sees the dither: a continuous signal, or held per sample (a DAC at the "
+        "sample rate)", "", choices=("continuous", "zoh"),
+    )
     amplitude_nm: float = param(
         25.0,
         "free-air steady-state deflection amplitude of the main line (sweeps: at their centre frequency)",
@@ -103,8 +113,12 @@ class LtvParams:
             raise ConfigError(f"the dither reaches {top_hz:g} Hz, above sample_rate_hz/2 = {nyquist:g}")
 
     def numerator(self) -> DiscreteNumerator:
-        """Free-air ZOH numerator times the dither gain (nm of deflection per V of dither)."""
-        a2, a1, a0 = zoh_numerator(self.f0_hz, self.q, self.sample_rate_hz)
+        """Free-air numerator for ``drive_hold`` times the dither gain (nm of deflection per V of dither).
+
+        Continuous: matched at the drive's main (or sweep-centre) line.
+        """
+        match_hz = self.f0_hz + self.drive_offset_hz
+        a2, a1, a0 = sampled_numerator(self.f0_hz, self.q, self.sample_rate_hz, self.drive_hold, match_hz=match_hz)
         gain = self.dither_gain_nm_per_v
         return DiscreteNumerator(gain * a2, gain * a1, gain * a0)
 
@@ -268,6 +282,7 @@ def simulate_ltv(params: LtvParams, seed: int) -> SimulatedCapture:
         "amplitude_v": float(amplitude_v),
         "free_amplitude_nm": float(params.amplitude_nm),
         "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
+        "hold": params.drive_hold,
     }
     if params.drive == "three-sine":
         drive["sideband_offset_hz"] = float(params.sideband_offset_hz)
@@ -282,7 +297,7 @@ def simulate_ltv(params: LtvParams, seed: int) -> SimulatedCapture:
             "a2": float(a2),
             "a1": float(a1),
             "a0": float(a0),
-            "note": "free-air ZOH numerator x dither gain; input dither (V), output deflection (nm)",
+            "note": f"free-air {params.drive_hold} numerator x dither gain; input dither (V), output deflection (nm)",
         },
         "noise": {
             "process_noise_nm": float(params.process_noise_nm),

@@ -40,10 +40,13 @@ amplitude-feedback AFM runs:
   rate, never the position, and at a switch of K_P the integrator takes up
   the change of the proportional term (bumpless transfer: u is continuous).
 
-The dither g and the controller output u are held over each sample period
-(the DACs of the FPGA), so the zero-order-hold discretisation of the
-free-air model is exact and the observer built from it fits the free-air
-cantilever to the noise.
+The controller output u is held over each sample period (the FPGA's DAC).
+The dither g reaches the plant as a continuous signal evaluated at every RK4
+stage (``drive_hold="continuous"``, the default: a function generator) or
+held over each sample period (``"zoh"``: a DAC at the sample rate, as on the
+thesis's FPGA); the in-loop observer runs on the free-air model discretised
+for that hold (:mod:`afmtool.models.discretisation`), so it fits the
+free-air cantilever to the noise either way.
 
 Time line
 ---------
@@ -208,6 +211,8 @@ class RasterParams:
                                            minimum=0, exclusive_minimum=True)
     drive: str = param("three-sine", "dither: a sine at f0, or with small side lines for identification", "",
                        choices=("sine", "three-sine"))
+    drive_hold: str = param("continuous", "how the plant sees the dither: a continuous signal, or held per sample "
+                            "(a DAC at the sample rate)", "", choices=("continuous", "zoh"))
     sideband_offset_hz: float = param(6000.0, "three-sine side-line offset", "Hz", minimum=0, exclusive_minimum=True)
     sideband_scale: float = param(0.2, "three-sine side-line / main-line amplitude", "", minimum=0)
     amplitude_nm: float = param(30.0, "free amplitude A0 at the drive frequency", "nm", minimum=0,
@@ -313,19 +318,35 @@ class RasterParams:
     def dither(self) -> tuple[MultiSine, float]:
         """The dither (V) and its main-line amplitude (V) for a free amplitude ``amplitude_nm`` at f0.
 
-        The amplitude is ``amplitude_nm / (gain·|G(f0)|·sinc(f0/fs))``: the held
-        (staircase) dither's fundamental is the sine scaled by sinc(f0/fs).
+        The amplitude is ``amplitude_nm / (gain·|G(f0)|)``, with a held
+        dither (``drive_hold="zoh"``) also divided by sinc(f0/fs): the
+        staircase's fundamental is the sine scaled by sinc(f0/fs).
         """
-        # the DAC holds each sample: the fundamental of the staircase is sinc(f0/fs) of the sine
-        response = abs(complex(self.cantilever().frequency_response(self.f0_hz))) * np.sinc(self.f0_hz / self.sample_rate_hz)
+        response = abs(complex(self.cantilever().frequency_response(self.f0_hz)))
+        if self.drive_hold == "zoh":
+            response *= np.sinc(self.f0_hz / self.sample_rate_hz)
         amplitude_v = self.amplitude_nm / (self.dither_gain_nm_per_v * response)
         if self.drive == "sine":
             return sine(amplitude_v, self.f0_hz), amplitude_v
         return three_sine(amplitude_v, self.f0_hz, self.sideband_offset_hz, self.sideband_scale), amplitude_v
 
     def free_air_model(self) -> FreeAirModel:
-        """The true free-air model (dither V to deflection nm), as the in-loop observer uses it."""
-        return FreeAirModel(self.f0_hz, self.q, self.dither_gain_nm_per_v, source="given")
+        """The true free-air model (dither V to deflection nm), as the in-loop observer uses it.
+
+        Discretised at the sample rate for the way the plant sees the dither
+        (:mod:`afmtool.models.discretisation`), so that ``probeloss --model``
+        runs the in-loop observer exactly.
+        """
+        from afmtool.models.discretisation import discrete_denominator, sampled_numerator
+
+        fs = self.sample_rate_hz
+        unit = sampled_numerator(self.f0_hz, self.q, fs, self.drive_hold, match_hz=self.f0_hz)
+        gain = self.dither_gain_nm_per_v
+        return FreeAirModel(
+            self.f0_hz, self.q, gain, source="given", sample_rate_hz=fs,
+            numerator=tuple(gain * a for a in unit),
+            denominator=tuple(float(b) for b in discrete_denominator(self.f0_hz, self.q, fs)),
+        )
 
 
 # --------------------------------------------------------------------------- topography
@@ -421,8 +442,12 @@ def _derivatives(p, v, z, w, g_acc, eta, u, h, w0q, w0sq, wpq, wpsq, d, wa2, wb2
 
 
 @njit(**JIT_OPTIONS)
-def _plant_period(plant, g_acc, eta, u, h_half, base, nsub, dt, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb):  # noqa: PLR0913
-    """Integrate one sample period with ``nsub`` RK4 steps; g, η and u held.
+def _plant_period(plant, g_row, eta, u, h_half, base, nsub, dt, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb):  # noqa: PLR0913
+    """Integrate one sample period with ``nsub`` RK4 steps; η and u held.
+
+    ``g_row[j]`` is the dither forcing ω0²·gain·g at t_n + j·dt/2
+    (j = 0 … 2·nsub): the continuous dither at each stage time, or the
+    sample's value throughout for a held one.
 
     Returns (contact, force extreme per unit mass) over the step boundaries.
     """
@@ -439,18 +464,18 @@ def _plant_period(plant, g_acc, eta, u, h_half, base, nsub, dt, w0q, w0sq, wpq, 
         if p + z - h0 < d:
             touched = 1
         # k1 = f(t, y)
-        a1, b1, f1 = _derivatives(p, v, z, w, g_acc, eta, u, h0, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
+        a1, b1, f1 = _derivatives(p, v, z, w, g_row[2 * k], eta, u, h0, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
         if abs(f1) > abs(extreme):
             extreme = f1
         # k2 = f(t + h/2, y + h/2·k1)
         p2, v2, z2, w2 = p + half * v, v + half * a1, z + half * w, w + half * b1
-        a2, b2, _ = _derivatives(p2, v2, z2, w2, g_acc, eta, u, h1, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
+        a2, b2, _ = _derivatives(p2, v2, z2, w2, g_row[2 * k + 1], eta, u, h1, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
         # k3 = f(t + h/2, y + h/2·k2)
         p3, v3, z3, w3 = p + half * v2, v + half * a2, z + half * w2, w + half * b2
-        a3, b3, _ = _derivatives(p3, v3, z3, w3, g_acc, eta, u, h1, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
+        a3, b3, _ = _derivatives(p3, v3, z3, w3, g_row[2 * k + 1], eta, u, h1, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
         # k4 = f(t + h, y + h·k3)
         p4, v4, z4, w4 = p + dt * v3, v + dt * a3, z + dt * w3, w + dt * b3
-        a4, b4, _ = _derivatives(p4, v4, z4, w4, g_acc, eta, u, h2, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
+        a4, b4, _ = _derivatives(p4, v4, z4, w4, g_row[2 * k + 2], eta, u, h2, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
         # y += h/6·(k1 + 2k2 + 2k3 + k4)
         p = p + sixth * (v + 2.0 * v2 + 2.0 * v3 + v4)
         v = v + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
@@ -474,7 +499,7 @@ def _demodulate(y, rotor, sos, zi):
 
 @njit(**JIT_OPTIONS)
 def _raster_kernel(  # noqa: PLR0913, PLR0915
-    start, dither, eta, noise, h_half, gain, nsub, dt, period,
+    start, dither, g_rows, eta, noise, h_half, gain, nsub, dt, period,
     w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb,
     obs, xhat, ring, sums, counters,
     cal, sos, zi, cycles_per_sample,
@@ -482,6 +507,10 @@ def _raster_kernel(  # noqa: PLR0913, PLR0915
     out_y, out_u, out_amp, out_rms, out_switch, out_contact, out_force, out_sep,
 ):
     """Closed loop over one chunk of samples [start, start + T) (module docstring).
+
+    ``dither`` holds g(t_n) (what the ADC records and the observer sees);
+    ``g_rows[i]`` the forcing ω0²·gain·g over sample period i at the RK4
+    half-step times (see :func:`_plant_period`).
 
     ``obs`` = [a2, b1, b0, bb1, bb2, l1, l2] (observer model and gain);
     ``xhat``, ``ring``, ``sums``, ``counters`` the observer's carried state
@@ -561,7 +590,7 @@ def _raster_kernel(  # noqa: PLR0913, PLR0915
             out_u[i] = u
             out_sep[i] = plant[2] - h_half[2 * nsub * i]
             touched, extreme = _plant_period(
-                plant, gain * g_n * w0sq, eta[i], u, h_half, 2 * nsub * i, nsub, dt,
+                plant, g_rows[i], eta[i], u, h_half, 2 * nsub * i, nsub, dt,
                 w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb,
             )
             out_contact[i] = touched
@@ -620,10 +649,10 @@ class RasterRun(NamedTuple):
 
 
 def _initial_state(params: RasterParams, excitation: MultiSine) -> tuple[float, float]:
-    """Free-air steady state at t = 0 for the held dither: its fundamental lags T/2, scaled by sinc(f/fs)."""
+    """Free-air steady state at t = 0; a held dither's fundamental lags T/2, scaled by sinc(f/fs)."""
     fs = params.sample_rate_hz
     freqs = np.asarray(excitation.frequencies_hz)
-    hold = np.sinc(freqs / fs) * np.exp(-1j * np.pi * freqs / fs)
+    hold = np.sinc(freqs / fs) * np.exp(-1j * np.pi * freqs / fs) if params.drive_hold == "zoh" else 1.0
     response = params.dither_gain_nm_per_v * params.cantilever().frequency_response(freqs) * hold
     return excitation.steady_state(response, 0.0)
 
@@ -697,10 +726,19 @@ class _Loop:
             h_half = topography_nm(params, x, yy, self.strands)
             t = np.arange(start, stop) / self.fs
             dither = self.excitation(t)
+            gain = params.dither_gain_nm_per_v
+            if params.drive_hold == "zoh":
+                # (gain·g)·ω0², in the order the held forcing has always been formed
+                g_rows = np.repeat((gain * dither * w0sq)[:, None], per_sample + 1, axis=1)
+            else:
+                # the continuous dither at every RK4 stage time of each sample period
+                offsets = np.arange(per_sample + 1) * half_step
+                stages = self.excitation((t[:, None] + offsets[None, :]).ravel()).reshape(t.size, -1)
+                g_rows = gain * stages * w0sq
             o = self.out
             sl = slice(start, stop)
             _raster_kernel(
-                start, dither, self.eta[sl], self.noise[sl], h_half, params.dither_gain_nm_per_v, nsub,
+                start, dither, np.ascontiguousarray(g_rows), self.eta[sl], self.noise[sl], h_half, params.dither_gain_nm_per_v, nsub,
                 1.0 / (nsub * self.fs), 1.0 / self.fs, w0q, w0sq, wpq, wpsq, *params.force().as_args(),
                 self.obs, self.xhat, self.ring, self.sums, self.counters,
                 self.cal, self.sos, self.zi, params.f0_hz / self.fs,
@@ -780,7 +818,7 @@ def _metadata(params: RasterParams, run: RasterRun, amplitude_v: float) -> dict:
             "free_amplitude_nm": float(params.amplitude_nm),
             "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
             "sideband_offset_hz": float(params.sideband_offset_hz) if params.drive == "three-sine" else 0.0,
-            "hold": "zero-order (DAC), one sample",
+            "hold": params.drive_hold,
         },
         "force": {"set": params.force_set, **params.force().to_metadata()},
         "free_air": {"start_s": 0.0, "end_s": float(min(params.free_air_s, params.capture_s))},

@@ -82,6 +82,10 @@ class TappingParams:
         2.0, "spring constant k (sets the thermal noise level)", "N/m", minimum=0, exclusive_minimum=True
     )
     drive: str = param("three-sine", "dither type", "", choices=DRIVE_KINDS)
+    drive_hold: str = param(
+        "continuous", "how the plant sees the dither: a continuous signal at every RK4 stage, or held per sample "
+        "(a DAC at the sample rate)", "", choices=("continuous", "zoh"),
+    )
     amplitude_nm: float = param(
         25.0,
         "free-air steady-state deflection amplitude of the main line (sweeps: at their centre frequency)",
@@ -170,12 +174,16 @@ class TappingParams:
         """The dither (V), its main/centre frequency (Hz) and main-line amplitude (V).
 
         The amplitude is ``amplitude_nm / (gain·|G(f_c)|)`` so that the free-air
-        steady-state deflection at f_c = f0 + ``drive_offset_hz`` is ``amplitude_nm``.
+        steady-state deflection at f_c = f0 + ``drive_offset_hz`` is ``amplitude_nm``;
+        a held dither (``drive_hold="zoh"``) is also divided by sinc(f_c/fs), the
+        staircase's fundamental.
         """
         center_hz = self.f0_hz + self.drive_offset_hz
         if not center_hz > 0:
             raise ConfigError(f"drive_offset_hz={self.drive_offset_hz!r} puts the drive at {center_hz:g} Hz")
         response = abs(complex(self.cantilever().frequency_response(center_hz)))
+        if self.drive_hold == "zoh":
+            response *= float(np.sinc(center_hz / self.sample_rate_hz))
         amplitude_v = self.amplitude_nm / (self.dither_gain_nm_per_v * response)
         excitation = build_dither(
             self.drive,
@@ -207,11 +215,15 @@ class TappingParams:
 
 
 @njit(cache=True)
-def _rk4_kernel(g_half, l_half, accel_noise, nsub, dt, w0q, w0sq, d, wa2, wb2, ca, cb, p0, v0, out_p, out_contact):
+def _rk4_kernel(g_half, g_held, l_half, accel_noise, nsub, dt, w0q, w0sq, d, wa2, wb2, ca, cb, p0, v0, out_p,
+                out_contact):
     """Integrate n sample periods with ``nsub`` RK4 steps each.
 
     ``g_half[j]`` and ``l_half[j]`` hold g and l at t_start + j·dt/2
     (length 2·nsub·n + 1); ``accel_noise[i]`` is η over sample period i.
+    A non-empty ``g_held`` (length n) replaces g by ``g_held[i]`` at every
+    stage of period i (a zero-order-held dither: it jumps at the sample
+    instants, where the half-step grid point is shared by two periods).
     Writes p(t_i) to ``out_p[i]`` and 1 to ``out_contact[i]`` when
     p + l < d at any step boundary in [t_i, t_{i+1}).  Returns the state
     (p, v) at the end.
@@ -220,6 +232,7 @@ def _rk4_kernel(g_half, l_half, accel_noise, nsub, dt, w0q, w0sq, d, wa2, wb2, c
     sixth = dt / 6.0
     p = p0
     v = v0
+    held = g_held.shape[0] > 0
     for i in range(out_p.shape[0]):
         out_p[i] = p
         eta = accel_noise[i]
@@ -230,9 +243,14 @@ def _rk4_kernel(g_half, l_half, accel_noise, nsub, dt, w0q, w0sq, d, wa2, wb2, c
             l0 = l_half[j]
             l1 = l_half[j + 1]
             l2 = l_half[j + 2]
-            fg0 = w0sq * g_half[j] + eta
-            fg1 = w0sq * g_half[j + 1] + eta
-            fg2 = w0sq * g_half[j + 2] + eta
+            if held:
+                fg0 = w0sq * g_held[i] + eta
+                fg1 = fg0
+                fg2 = fg0
+            else:
+                fg0 = w0sq * g_half[j] + eta
+                fg1 = w0sq * g_half[j + 1] + eta
+                fg2 = w0sq * g_half[j + 2] + eta
             if p + l0 < d:
                 touched = 1
             # k1 = f(t, y)
@@ -276,6 +294,7 @@ def integrate_rk4(
     force: PiecewiseLinearForce,
     p0_nm: float = 0.0,
     v0_nm_per_s: float = 0.0,
+    g_held: np.ndarray | None = None,
 ) -> RK4Result:
     """Integrate p̈ + (ω0/Q)ṗ + ω0²p = ω0²g + F(p, ṗ; l) + η over n sample periods (RK4).
 
@@ -296,6 +315,9 @@ def integrate_rk4(
         Tip-sample force per unit mass.
     p0_nm, v0_nm_per_s : float
         State at t_0.
+    g_held : numpy.ndarray, optional
+        Forcing g (nm) held over each of the n sample periods (a
+        zero-order-held dither); ``g_half`` then only sets the grid length.
 
     Returns
     -------
@@ -312,8 +334,12 @@ def integrate_rk4(
     out_p = np.empty(n)
     out_contact = np.zeros(n, dtype=np.uint8)
     w0 = cantilever.omega0_rad_s
+    held = np.empty(0) if g_held is None else np.ascontiguousarray(g_held, dtype=np.float64)
+    if held.size and held.shape != (n,):
+        raise ConfigError(f"g_held needs {n} values, got {held.shape}")
     p_end, v_end = _rk4_kernel(
         np.ascontiguousarray(g_half, dtype=np.float64),
+        held,
         np.ascontiguousarray(l_half, dtype=np.float64),
         np.ascontiguousarray(accel_noise, dtype=np.float64),
         substeps,
@@ -366,8 +392,12 @@ def _program(params: TappingParams):
     return LineScan(params.separation_nm, positions, heights, free_air_s, params.duration_s - free_air_s)
 
 
-def _initial_state(excitation, cantilever: Cantilever, gain: float) -> tuple[float, float]:
-    """Free-air steady state at t = 0 (sweeps: that of a sine at their initial frequency and phase)."""
+def _initial_state(excitation, cantilever: Cantilever, gain: float, hold_fs: float | None = None) -> tuple[float, float]:
+    """Free-air steady state at t = 0 (sweeps: that of a sine at their initial frequency and phase).
+
+    With ``hold_fs`` (a dither held per sample at that rate) each line's
+    fundamental lags T/2 and is scaled by sinc(f/fs).
+    """
     if isinstance(excitation, MultiSine):
         lines = excitation
     else:
@@ -375,7 +405,10 @@ def _initial_state(excitation, cantilever: Cantilever, gain: float) -> tuple[flo
         freqs = getattr(excitation, "frequencies_hz", None)
         f_start = freqs[0] if freqs is not None else excitation.start_hz
         lines = sine(excitation.amplitude, f_start, float(excitation.phase_rad(t0)[0]))
-    response = gain * cantilever.frequency_response(np.asarray(lines.frequencies_hz))
+    freqs = np.asarray(lines.frequencies_hz)
+    response = gain * cantilever.frequency_response(freqs)
+    if hold_fs is not None:
+        response = response * np.sinc(freqs / hold_fs) * np.exp(-1j * np.pi * freqs / hold_fs)
     return lines.steady_state(response, 0.0)
 
 
@@ -386,6 +419,7 @@ def _drive_metadata(params: TappingParams, excitation, center_hz: float, amplitu
         "amplitude_v": float(amplitude_v),
         "free_amplitude_nm": float(params.amplitude_nm),
         "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
+        "hold": params.drive_hold,
     }
     if params.drive == "three-sine":
         drive["sideband_offset_hz"] = float(params.sideband_offset_hz)
@@ -440,7 +474,7 @@ def simulate_tapping(
     measurement = params.measurement_noise_nm * rng.standard_normal(n)
 
     if params.initial_state == "steady":
-        p, v = _initial_state(excitation, cantilever, gain)
+        p, v = _initial_state(excitation, cantilever, gain, fs if params.drive_hold == "zoh" else None)
     else:
         p, v = 0.0, 0.0
     clean = np.empty(n)
@@ -454,6 +488,7 @@ def simulate_tapping(
         t_half = np.arange(per_sample * start, per_sample * stop + 1) * half_step_s
         dither_half = excitation(t_half)
         l_half = program(t_half)
+        held = gain * dither_half[:-1:per_sample] if params.drive_hold == "zoh" else None
         result = integrate_rk4(
             gain * dither_half,
             l_half,
@@ -464,6 +499,7 @@ def simulate_tapping(
             force=force,
             p0_nm=p,
             v0_nm_per_s=v,
+            g_held=held,
         )
         clean[start:stop] = result.deflection_nm
         contact[start:stop] = result.contact
