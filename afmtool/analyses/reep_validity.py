@@ -33,6 +33,7 @@ values and the flag.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -141,7 +142,7 @@ def _ew_variance_kernel(x, lam, state, out):
     s0, s1, s2 = state[0], state[1], state[2]
     for i in range(x.shape[0]):
         v = x[i]
-        if v == v:  # not NaN
+        if not math.isnan(v):
             s0 = lam * s0 + 1.0
             s1 = lam * s1 + v
             s2 = lam * s2 + v * v
