@@ -65,20 +65,24 @@ def naive_bcewrls(phi_rows, y, lam_diag, lam, p0):
     return out_c, out_ls, out_s2
 
 
-def naive_reep(deflection, dither, numerator, lam=0.995, p0=1e6, use_input=True):
+def naive_reep(deflection, dither, numerator, lam=0.995, p0=1e6, use_input=True, static_offset=False):
     """REEP (§3.3.3) by :func:`naive_bcewrls` with θ = [b1, b0] and Λ = I₂.
 
-    Returns θ_C(n), θ_LS(n) and σ²(n) for every sample; the first two
-    samples (before φ(n) is known) are θ = 0 and σ² = NaN.
+    With ``static_offset``, θ = [b1, b0, c], φ(n) = [−p(n−1), −p(n−2), 1]
+    and Λ = diag(1, 1, 0).  Returns θ_C(n), θ_LS(n) and σ²(n) for every
+    sample; the first two samples (before φ(n) is known) are θ = 0 and
+    σ² = NaN.
     """
     p = np.asarray(deflection, dtype=float)
     a2, a1, a0 = numerator if use_input else (0.0, 0.0, 0.0)
     g = np.asarray(dither, dtype=float) if use_input else np.zeros_like(p)
-    rows = np.column_stack((-p[1:-1], -p[:-2]))
+    columns = [-p[1:-1], -p[:-2]] + ([np.ones(len(p) - 2)] if static_offset else [])
+    rows = np.column_stack(columns)
     # z(n) = p(n) − a2 g(n) − a1 g(n−1) − a0 g(n−2)
     z = p[2:] - a2 * g[2:] - a1 * g[1:-1] - a0 * g[:-2]
-    out_c, out_ls, out_s2 = naive_bcewrls(rows, z, [1.0, 1.0], lam, p0)
-    head = np.zeros((2, 2))
+    mask = [1.0, 1.0, 0.0] if static_offset else [1.0, 1.0]
+    out_c, out_ls, out_s2 = naive_bcewrls(rows, z, mask, lam, p0)
+    head = np.zeros((2, len(mask)))
     return (
         np.vstack((head, out_c)),
         np.vstack((head, out_ls)),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from afmtool.analyses.probeloss_ch2 import TABLE_LINE_RATES_HZ as TABLE_RATES_HZ
+from afmtool.analyses.controllers import TABLE_LINE_RATES_HZ as TABLE_RATES_HZ
 from afmtool.sim.raster import CONTROLLERS, RasterParams, RasterRun, run_raster
 
 

@@ -469,3 +469,61 @@ def test_bad_arrays_and_numerator():
         identify_arx(np.zeros(100), np.zeros(100), method="svd")
     with pytest.raises(InputError, match="rank deficient"):
         identify_arx(np.zeros(100), np.zeros(100))
+
+
+# ---------------------------------------------------------------------------
+# (d) static offset: the constant regressor θ = [b1, b0, c], Λ = diag(1, 1, 0)
+# ---------------------------------------------------------------------------
+
+
+def test_offset_kernel_matches_naive_reference(rng):
+    p, g, num = record(rng, 3000, 0.05)
+    p = p + 3.0
+    ref_c, ref_ls, ref_s2 = naive_reep(p, g, num, lam=LAM, p0=0.01, static_offset=True)
+    out = reep(p, g, num, lam=LAM, p0=0.01, static_offset=True)
+    np.testing.assert_allclose(out.b1, ref_c[:, 0], rtol=1e-10, atol=0)
+    np.testing.assert_allclose(out.b0, ref_c[:, 1], rtol=1e-10, atol=0)
+    np.testing.assert_allclose(out.c[2:], ref_c[2:, 2], rtol=1e-9, atol=0)
+    np.testing.assert_allclose(out.sigma2, ref_s2, rtol=1e-10, atol=0, equal_nan=True)
+    plain = reep(p, g, num, lam=LAM, p0=0.01, static_offset=True, bias_compensation=False)
+    np.testing.assert_allclose(plain.c[2:], ref_ls[2:, 2], rtol=1e-9, atol=0)
+
+
+def test_offset_chunked_equals_single_call(rng):
+    n = 50_000
+    p, g, num = record(rng, n, 0.05)
+    p = p + 2.0
+    single = reep_update(ReepState.initial(static_offset=True), p, g, num, keep_every=7)
+    state, blocks, start = ReepState.initial(static_offset=True), [], 0
+    for size in [1, 0, 1, 5, 993, 9000, 40_000]:
+        step = reep_update(state, p[start : start + size], g[start : start + size], num, keep_every=7)
+        blocks.append(step.block)
+        state = step.state
+        start += size
+    for field in ("b1", "b0", "sigma2", "c"):
+        np.testing.assert_array_equal(np.concatenate([getattr(b, field) for b in blocks]), getattr(single.block, field))
+    assert state == single.state
+
+
+@pytest.mark.parametrize("offset_nm", [0.0, 5.0])
+def test_offset_regressor_recovers_f0_q_under_a_static_offset(rng, offset_nm):
+    # A small oscillation (1 nm) on a large static offset, the bottom of the attractive trap:
+    # without the constant term eq. 3.40 cannot hold, and the fit collapses toward a pole at z = 1.
+    n = 60_000
+    p, g, num = record(rng, n, 0.0)
+    p = p / DEFLECTION_NM + offset_nm + 0.02 * rng.standard_normal(n)
+    g = g / DEFLECTION_NM
+    settled = slice(10_000, None)
+    with_c = reep(p, g, num, static_offset=True)
+    f0, q, valid = resonance_from_denominator(with_c.b1[settled], with_c.b0[settled], FS_HZ)
+    assert valid.all()
+    print(f"offset {offset_nm} nm: f0 error {np.max(np.abs(f0 - F0_HZ)):.1f} Hz, mean Q {np.mean(q):.1f}")
+    assert np.max(np.abs(f0 / F0_HZ - 1)) < 0.002
+    assert abs(np.mean(q) / Q0 - 1) < 0.05
+    # the static offset p̄ = c / (1 + b1 + b0) is recovered
+    offset = with_c.c[settled] / (1 + with_c.b1[settled] + with_c.b0[settled])
+    assert abs(np.median(offset) - offset_nm) < 0.05
+    if offset_nm:
+        without = reep(p, g, num)
+        f0_plain, _, _ = resonance_from_denominator(without.b1[settled], without.b0[settled], FS_HZ)
+        assert np.nanmedian(np.abs(f0_plain / F0_HZ - 1)) > 0.05  # the defect this regressor removes

@@ -4,7 +4,9 @@ capture → chunks → BCEWRLS kernel (eq. 3.39, θ = [b1, b0], numerator fixed 
 its free-air value, §3.3.3) → f0′, Q′ by eq. 3.48 → decimated series in
 ``reep.h5``, force-curve tables and scan images, and a summary for
 ``report.json``.  Every filter carries its state across chunks, so the
-output does not depend on the chunk size.
+output does not depend on the chunk size.  Samples whose fit cannot be
+trusted are flagged (:mod:`afmtool.analyses.reep_validity`) and left out of
+everything but ``reep.h5``.
 """
 
 from __future__ import annotations
@@ -18,6 +20,14 @@ import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
 from afmtool.analyses.freeair import replay_held
+from afmtool.analyses.reep_validity import (
+    FlagCounter,
+    FreeAirLevels,
+    OffsetDrift,
+    ValidityLimits,
+    free_air_levels,
+    validity_flags,
+)
 from afmtool.config.params import ReepParams
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, Chunk
@@ -38,6 +48,8 @@ SERIES_UNITS = {
     "sigma2": "deflection units^2",
     "amplitude": "deflection units",
     "phase_deg": "deg",
+    "offset": "deflection units",
+    "flag": "",
 }
 _IMAGE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
 _CURVE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
@@ -164,6 +176,35 @@ def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirMode
     return route.model, chunks, segment_s, route
 
 
+def _segment_levels(segment, params: ReepParams, numerator, lockin, bandpass_factory) -> FreeAirLevels:
+    """σ̂² and amplitude in free air, by the run's own estimators over the free-air segment."""
+    from afmtool.estimators.rls import ReepState, reep_update
+
+    p = segment.data["deflection"]
+    g = segment.data.get("dither") if params.use_input else None
+    bandpass = bandpass_factory()
+    block = reep_update(
+        ReepState.initial(lam=params.lam, p0=params.p0, static_offset=params.static_offset),
+        bandpass(p) if bandpass is not None else p, g, numerator,
+        bias_compensation=params.bias_compensation, use_input=params.use_input,
+    ).block
+    if params.use_input:
+        demod, _ = lockin.process_against(p, g, lockin.initial_state(2))
+    else:
+        demod = lockin.process(p, lockin.initial_state(1))[0][0]
+    warmup = int(params.warmup_windows / (1.0 - params.lam))
+    return free_air_levels(block.sigma2, demod.amplitude, min(warmup, len(p) // 2))
+
+
+def _metadata_levels(reader: CaptureReader) -> FreeAirLevels:
+    """Without a free-air segment: the free amplitude from metadata (when the deflection is in nm)."""
+    drive = reader.info.metadata.get("drive", {})
+    amplitude = drive.get("free_amplitude_nm")
+    if amplitude and reader.info.units("deflection") == "nm":
+        return FreeAirLevels(float(amplitude), None, "metadata")
+    return FreeAirLevels(None, None, "none")
+
+
 def run_reep(
     reader: CaptureReader,
     params: ReepParams,
@@ -200,6 +241,7 @@ def run_reep(
     model, chunks, segment_s, resolved = _resolve_model(reader, params, model, chunks)
     route = resolved.report if resolved is not None else None
     warnings.extend(resolved.warnings if resolved is not None else ())
+    segment = resolved.segment if resolved is not None else None
     first = next(chunks, None)
     if first is None:
         raise InputError(f"{info.source}: the capture has no samples")
@@ -236,17 +278,33 @@ def run_reep(
             f"the free-air model has a drive delay of {model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
             "fixed numerator does not model; f0' and Q' may be biased"
         )
-    bandpass = None
-    if not params.use_input and params.bandpass_half_width_hz > 0:
-        bandpass = _Bandpass(drive_hz, params.bandpass_half_width_hz, fs)
+    def make_bandpass():
+        if not params.use_input and params.bandpass_half_width_hz > 0:
+            return _Bandpass(drive_hz, params.bandpass_half_width_hz, fs)
+        return None
+
+    bandpass = make_bandpass()
 
     del first_deflection, first_dither
-    state = ReepState.initial(lam=params.lam, p0=params.p0)
+    state = ReepState.initial(lam=params.lam, p0=params.p0, static_offset=params.static_offset)
     lockin = LockIn(drive_hz, fs, lowpass_hz)
     lock_state = lockin.initial_state(2 if params.use_input else 1)
     warmup = int(params.warmup_windows / (1.0 - params.lam))
+    limits = ValidityLimits(params.min_amplitude_fraction, params.max_sigma2_ratio, params.max_offset_drift)
+    offset_drift = OffsetDrift(params.lam, decimate) if params.static_offset else None
+    if segment is not None:
+        levels = _segment_levels(segment, params, numerator, lockin, make_bandpass)
+    else:
+        levels = _metadata_levels(reader)
+    del segment
+    for check, level, name in (
+        (limits.min_amplitude_fraction, levels.amplitude, "free amplitude"),
+        (limits.max_sigma2_ratio, levels.sigma2, "free-air sigma^2"),
+    ):
+        if check and level is None:
+            warnings.append(f"no {name} known (no free-air segment): that validity check is off")
     summaries = {name: _Summary() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
-    flagged = 0
+    flag_counter = FlagCounter()
     n_total = 0
     geometry = ScanGeometry.from_metadata(info.metadata)
     image_acc = ImageAccumulator(geometry, _IMAGE_QUANTITIES) if geometry else None
@@ -274,7 +332,13 @@ def run_reep(
             first_kept = (-(chunk.start + 1)) % decimate
             kept_index = np.arange(chunk.start + first_kept, chunk.start + len(p), decimate)
             f0, q, valid = resonance_from_denominator(block.b1, block.b0, fs)
-            flagged += int(valid.size - np.count_nonzero(valid))
+            offset = None
+            if block.c is not None:
+                # p̄ = c / (1 + b1 + b0), the static deflection offset (reep_update, Notes)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    offset = block.c / (1.0 + block.b1 + block.b0)
+            offset_variance = offset_drift(offset) if offset_drift is not None else None
+            flags = validity_flags(valid, demod.amplitude, block.sigma2, levels, limits, offset_variance)
             columns = {
                 "t": kept_index / fs,
                 "f0_hz": f0,
@@ -285,17 +349,23 @@ def run_reep(
                 "amplitude": demod.amplitude,
                 "phase_deg": np.degrees(demod.phase_rad),
             }
+            if offset is not None:
+                columns["offset"] = offset
+            columns["flag"] = flags
             if z_mode:
                 columns["z"] = chunk.data["z_piezo"][first_kept::decimate]
             writer.append(columns)
+            # reep.h5 keeps the fitted values; everything else sees NaN where the fit is flagged
+            trusted = dict(columns, f0_hz=np.where(flags == 0, f0, np.nan), q=np.where(flags == 0, q, np.nan))
             first_settled = int(np.searchsorted(kept_index, warmup))
+            flag_counter.add(flags[first_settled:])  # counted over what the summary covers
             for name, summary in summaries.items():
-                summary.add(columns[name][first_settled:])
+                summary.add(trusted[name][first_settled:])
             if image_acc is not None:
-                image_acc.add(columns["t"], columns)
+                image_acc.add(columns["t"], trusted)
             if curve_acc is not None:
                 settled = kept_index >= warmup
-                curve_acc.add(columns["z"], {k: np.where(settled, columns[k], np.nan) for k in _CURVE_QUANTITIES})
+                curve_acc.add(columns["z"], {k: np.where(settled, trusted[k], np.nan) for k in _CURVE_QUANTITIES})
             n_total = chunk.start + len(p)
 
     window = 1.0 / (1.0 - params.lam)
@@ -315,14 +385,19 @@ def run_reep(
         "drive_frequency_hz": drive_hz,
         "lockin": {"lowpass_hz": lowpass_hz, "order": lockin.order, "type": "Butterworth, complex demodulation"},
         "excitation_lines_hz": lines,
-        "flagged_samples": flagged,  # among the decimated output samples
+        "static_offset": params.static_offset,
+        "flagged_samples": flag_counter.flagged,  # among the decimated output samples after the warm-up
+        "validity": {
+            "min_amplitude_fraction": limits.min_amplitude_fraction,
+            "max_sigma2_ratio": limits.max_sigma2_ratio,
+            "max_offset_drift": limits.max_offset_drift,
+            "free_air_levels": levels.as_dict(),
+            "flags": flag_counter.as_dict(),
+        },
         "summary_after_warmup_samples": warmup,
         "summary": {name: s.as_dict() for name, s in summaries.items()},
     }
-    if flagged:
-        warnings.append(
-            f"{flagged} output samples had (b1, b0) outside the under-damped region (eq. 3.48); f0', Q' are NaN there"
-        )
+    warnings.extend(flag_counter.warnings(limits))
     force_curves = curve_acc.tables() if curve_acc is not None else {}
     images = image_acc.images() if image_acc is not None else {}
     z_units = info.units("z_piezo") if z_mode else ""

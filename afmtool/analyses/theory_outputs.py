@@ -103,6 +103,10 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
     capture = Path(reep_report["inputs"][0]["path"])
     with h5py.File(series_path, "r") as f:
         series = {name: f[name][()] for name in ("t", "f0_hz", "q", "amplitude")}
+        if "flag" in f:  # samples REEP flagged as untrustworthy are left out, as in its own summaries
+            trusted = f["flag"][()] == 0
+            series["f0_hz"] = np.where(trusted, series["f0_hz"], np.nan)
+            series["q"] = np.where(trusted, series["q"], np.nan)
     try:
         with h5py.File(capture, "r") as f:
             metadata = json.loads(f.attrs.get("metadata", "{}"))

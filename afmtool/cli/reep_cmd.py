@@ -50,6 +50,10 @@ def reep(
     no_input: Annotated[
         bool, typer.Option("--no-input", help="Output-only AR(2) tracking (self-excited, drive not recorded).")
     ] = False,
+    no_static_offset: Annotated[
+        bool,
+        typer.Option("--no-static-offset", help="No constant regressor: eq. 3.40 as the thesis has it, for comparison."),
+    ] = False,
     decimate: Annotated[
         Optional[int], typer.Option("--decimate", help="Keep one sample in N (default: one per drive period).", min=1)
     ] = None,
@@ -64,11 +68,16 @@ def reep(
 ) -> None:
     """Real-time equivalent f0' and Q' by bias-compensated EW-RLS (thesis ch. 3).
 
-    Writes reep.h5 (t, f0_hz, q, b1, b0, sigma2, amplitude, phase_deg; decimated),
-    report.json, config.toml, and with z_piezo force-curve tables and plots,
+    Writes reep.h5 (t, f0_hz, q, b1, b0, sigma2, amplitude, phase_deg, offset,
+    flag; decimated), report.json, config.toml, and with z_piezo force-curve tables and plots,
     with scan metadata per-pixel images (PNG and Gwyddion .gsf).  With --stream
     the decimated rows go to stdout as they are computed, e.g.
     afmtool simulate ltv -o - --format csv | afmtool reep - --stream --free-air 0:0.01 | head
+
+    Samples whose fit cannot be trusted (not under-damped, amplitude below 1 %
+    of the free amplitude, sigma^2 above 4x its free-air level, a static offset
+    drifting within the window) are flagged: NaN in the summary, force curves
+    and images, counted in the report (reep.h5 keeps them with 'flag').
     """
     from afmtool.report.json_report import PendingInputRecord
 
@@ -85,6 +94,7 @@ def reep(
         "lam": lam,
         "bias_compensation": False if no_bias_compensation else None,
         "use_input": False if no_input else None,
+        "static_offset": False if no_static_offset else None,
         "decimate": decimate,
         "vs": vs,
         "z_bin": z_bin,

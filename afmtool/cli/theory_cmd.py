@@ -1,4 +1,4 @@
-"""``afmtool theory averaging``, ``theory compare`` and ``theory observer``."""
+"""``afmtool theory averaging``, ``theory compare``, ``theory observer`` and ``theory controllers``."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from afmtool.cli.options import ConfigOpt, JsonOpt, OutOpt, QuietOpt
 __all__ = ["app"]
 
 app = typer.Typer(
-    help="Averaging theory (ch. 4), its check against REEP, observer design (ch. 5).", no_args_is_help=True
+    help="Averaging theory (ch. 4), its check against REEP, observer design (ch. 5), z-controller gains (ch. 2).",
+    no_args_is_help=True,
 )
 
 
@@ -120,3 +121,40 @@ def observer(
         "max_cycles": max_cycles,
     }
     finish_command(run_observer_theory_command(out, config, flags), out, json_output, quiet)
+
+
+@app.command("controllers")
+def controllers(
+    out: OutOpt = Path("theory_controllers"),
+    line_rates: Annotated[
+        Optional[str], typer.Option("--line-rates", help="Line rates (Hz), comma-separated (default 4,8,12,30).")
+    ] = None,
+    lines: Annotated[Optional[int], typer.Option("--lines", help="Raster lines per table run.", min=1)] = None,
+    seed: Annotated[Optional[int], typer.Option("--seed", help="Simulation seed.")] = None,
+    figure_lines: Annotated[
+        Optional[int], typer.Option("--figure-lines", help="Raster lines of the height images.", min=1)
+    ] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Low, high and switching z-controller gains on the calibration grating (thesis ch. 2, §2.5).
+
+    Simulates the closed-loop raster scan once per controller and line rate
+    (same surface, noise and seed) and tabulates the probe-loss area and the
+    peak on-sample force; report.json says at each rate whether the high gain
+    loses less than the low, the switching gain's loss is within 1.2x the high
+    gain's and its peak force within 1.2x the low gain's.  Writes report.json,
+    ch2_table.json, ch2_controllers.png (height images side by side) and
+    ch2_loss_force.png.  docs/ch2_table.json and docs/ch2_controllers.png are
+    this command with --lines 4 --figure-lines 48.
+    """
+    from afmtool.analyses.controllers import run_controllers_command
+    from afmtool.cli.progress import stderr_console
+
+    flags = {"line_rates_hz": line_rates, "lines": lines, "seed": seed, "figure_lines": figure_lines}
+
+    def progress(step: str) -> None:
+        stderr_console(quiet).print(f"simulating the three controllers: {step}", highlight=False)
+
+    finish_command(run_controllers_command(out, config, flags, progress), out, json_output, quiet)

@@ -20,6 +20,7 @@ __all__ = [
     "FreeAirParams",
     "AveragingParams",
     "TheoryCompareParams",
+    "TheoryControllersParams",
     "KalmanBankParams",
     "ObserverTheoryParams",
     "GammaParams",
@@ -85,6 +86,9 @@ class ReepParams:
     p0: float = field(1.0e6, "Initial covariance P(0) = P0·I (eq. 3.39)")
     bias_compensation: bool = field(True, "Bias-compensated EWRLS (false: plain EWRLS, for comparison)")
     use_input: bool = field(True, "Use the recorded dither (false: output-only AR(2) tracking)")
+    static_offset: bool = field(
+        True, "Constant regressor for the static deflection offset of an attractive force (false: eq. 3.40 as is)"
+    )
     free_air: str = field("", "Off-sample segment START:END for the free-air model; empty = metadata", "s")
     model: str = field("", "Free-air model file (free_air.json from 'identify freeair'); overrides free_air")
     f0_hz: float = field(0.0, "Free-air f0 for the f0/Q route (with q; gain and phase fitted at the drive); 0 = off", "Hz")
@@ -102,6 +106,16 @@ class ReepParams:
     vs: str = field("auto", "Force-curve binning against z_piezo", choices=("auto", "time", "z"))
     z_bin: float = field(0.5, "Force-curve bin width, in the units of z_piezo")
     warmup_windows: float = field(5.0, "Windows 1/(1-λ) left out of summary statistics at the start")
+    min_amplitude_fraction: float = field(
+        0.01, "Validity: f0', Q' flagged where the amplitude is below this share of the free amplitude; 0 = off"
+    )
+    max_sigma2_ratio: float = field(
+        4.0, "Validity: f0', Q' flagged where sigma^2 exceeds this multiple of its free-air level; 0 = off"
+    )
+    max_offset_drift: float = field(
+        0.1, "Validity: f0', Q' flagged where the static offset's variance over the window exceeds this share "
+        "of A^2/2; 0 = off"
+    )
     # 1 Mi samples: each chunk costs ~2 ms of hand-offs between the reading, computing and
     # writing threads, 0.6 s per 1e8 samples at 256 Ki; the buffers cost ~100 MB.
     chunk_samples: int = field(1 << 20, "Samples per streamed chunk (memory against per-chunk overhead)")
@@ -113,7 +127,8 @@ class ReepParams:
             raise ConfigError(f"p0={self.p0!r} must be > 0")
         if self.decimate < 0:
             raise ConfigError(f"decimate={self.decimate!r} must be >= 0")
-        for name in ("drive_frequency_hz", "lockin_lowpass_hz", "bandpass_half_width_hz", "warmup_windows"):
+        for name in ("drive_frequency_hz", "lockin_lowpass_hz", "bandpass_half_width_hz", "warmup_windows",
+                     "min_amplitude_fraction", "max_sigma2_ratio", "max_offset_drift"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
         if self.z_bin <= 0:
@@ -226,6 +241,38 @@ class TheoryCompareParams:
             raise ConfigError(f"amplitude_fraction={self.amplitude_fraction!r} must be in (0, 1)")
         if self.tolerance <= 0:
             raise ConfigError(f"tolerance={self.tolerance!r} must be > 0")
+
+
+@dataclass(frozen=True)
+class TheoryControllersParams:
+    """``afmtool theory controllers``: low, high and switching z-controller gains on the grating (ch. 2)."""
+
+    line_rates_hz: str = field("4,8,12,30", "Line rates of the table, comma-separated", "Hz")
+    lines: int = field(2, "Raster lines per table run (a trace and a retrace each)")
+    seed: int = field(1, "Simulation seed (the same surface, noise and seed for the three controllers)")
+    tolerance: float = field(1.2, "Pass: switching loss area <= this x the high gain's, peak force <= this x the low's")
+    figure_line_rate_hz: float = field(12.0, "Line rate of the height images", "Hz")
+    figure_lines: int = field(16, "Raster lines of the height images")
+    figure_pixels: int = field(48, "Pixels per line of the height images")
+
+    def rates(self) -> tuple[float, ...]:
+        """The line rates as numbers, Hz."""
+        try:
+            rates = tuple(float(v) for v in self.line_rates_hz.split(","))
+        except ValueError:
+            raise ConfigError(f"line_rates_hz={self.line_rates_hz!r} must be comma-separated numbers") from None
+        return rates
+
+    def validate(self) -> None:
+        if not all(rate > 0 for rate in self.rates()):
+            raise ConfigError(f"line_rates_hz={self.line_rates_hz!r} must all be > 0")
+        for name in ("lines", "figure_lines", "figure_pixels"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 1")
+        if self.figure_line_rate_hz <= 0:
+            raise ConfigError(f"figure_line_rate_hz={self.figure_line_rate_hz!r} must be > 0")
+        if self.tolerance < 1:
+            raise ConfigError(f"tolerance={self.tolerance!r} must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -541,6 +588,7 @@ SECTIONS: dict[str, type] = {
     "decode": DecodeParams,
     "theory.averaging": AveragingParams,
     "theory.compare": TheoryCompareParams,
+    "theory.controllers": TheoryControllersParams,
     "kalman-bank": KalmanBankParams,
     "theory.observer": ObserverTheoryParams,
 }

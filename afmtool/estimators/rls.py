@@ -77,7 +77,10 @@ _S = 9  # S(n) = 1/w_n = Σ_{i<n} λ^i
 _P_1, _P_2 = 10, 11  # p(n−1), p(n−2)
 _G_1, _G_2 = 12, 13  # g(n−1), g(n−2)
 _N_PAST = 14  # past samples held, 0…2
-_STATE_LEN = 15
+# the constant regressor of the static-offset variant (``_reep_offset_kernel``); unused otherwise
+_TH_LS_C, _TH_C_C = 15, 16  # constant term c of θ̂_LS(n), θ̂_C(n)
+_P13, _P23, _P33 = 17, 18, 19  # the third row of the 3 × 3 P(n)
+_STATE_LEN = 20
 
 
 # ---------------------------------------------------------------------------
@@ -242,6 +245,165 @@ def _reep_kernel(  # noqa: PLR0913, PLR0915
     state[_N_PAST] = n_past
 
 
+@njit(**JIT_OPTIONS)
+def _reep_offset_kernel(  # noqa: PLR0913, PLR0915
+    p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, state, out_b1, out_b0, out_sigma2,
+    out_c,
+):
+    """REEP with a constant regressor: eq. 3.39 with θ = [b1, b0, c], Λ = diag(1, 1, 0).
+
+    φ(n) = [−p(n−1), −p(n−2), 1]ᵀ, so z(n) = φᵀ(n)θ + e(n) carries the static
+    term c = (1 + b1 + b0)·p̄ of a deflection offset p̄ (see :func:`reep_update`,
+    Notes).  The same recursion, guards and output rule as ``_reep_kernel``,
+    with the symmetric 3 × 3 P(n) held as six scalars; ``trace_cap`` is
+    trace P(0) = 3·P0.  ``out_c`` receives c (deflection units).
+    """
+    th_b1 = state[_TH_LS_B1]
+    th_b0 = state[_TH_LS_B0]
+    th_c = state[_TH_LS_C]
+    c_b1 = state[_TH_C_B1]
+    c_b0 = state[_TH_C_B0]
+    c_c = state[_TH_C_C]
+    p11 = state[_P11]
+    p12 = state[_P12]
+    p22 = state[_P22]
+    p13 = state[_P13]
+    p23 = state[_P23]
+    p33 = state[_P33]
+    jn = state[_J]
+    n = state[_N]
+    s_w = state[_S]
+    p_1 = state[_P_1]
+    p_2 = state[_P_2]
+    g_1 = state[_G_1]
+    g_2 = state[_G_2]
+    n_past = state[_N_PAST]
+    inv_lam = 1.0 / lam
+    nan = np.nan
+    seen = int(n + n_past)
+    until_keep = (keep_every - (seen + 1) % keep_every) % keep_every
+    k = 0
+
+    for i in range(p.shape[0]):
+        p_n = p[i]
+        if n_past < 2.0:
+            n_past += 1.0
+            p_2 = p_1
+            p_1 = p_n
+            if use_input:
+                g_2 = g_1
+                g_1 = g[i]
+            if until_keep == 0:
+                out_b1[k] = c_b1 if bias_compensation else th_b1
+                out_b0[k] = c_b0 if bias_compensation else th_b0
+                out_c[k] = c_c if bias_compensation else th_c
+                out_sigma2[k] = nan
+                k += 1
+                until_keep = keep_every - 1
+            else:
+                until_keep -= 1
+            continue
+        if use_input:
+            g_n = g[i]
+            # z(n) = p(n) − a2 g(n) − a1 g(n−1) − a0 g(n−2)                  (eq. 3.41)
+            z = p_n - a2 * g_n - a1 * g_1 - a0 * g_2
+            g_2 = g_1
+            g_1 = g_n
+        else:
+            z = p_n
+        # φ(n) = [−p(n−1), −p(n−2), 1]ᵀ
+        phi1 = -p_1
+        phi2 = -p_2
+        if p11 + p22 + p33 < trace_cap:
+            lam_n = lam
+            inv_lam_n = inv_lam
+        else:
+            lam_n = 1.0
+            inv_lam_n = 1.0
+        # s = λ + φᵀ(n) P(n−1) φ(n), the third regressor being 1, summed as Σ φ_i φ_j P_ij
+        # so that it does not wait for k (as in _reep_kernel)
+        s = lam_n + (
+            ((phi1 * phi1) * p11 + (2.0 * phi1 * phi2) * p12 + (phi2 * phi2) * p22)
+            + ((2.0 * phi1) * p13 + (2.0 * phi2) * p23 + p33)
+        )
+        inv_s = 1.0 / s
+        # k = P(n−1) φ(n), computed while 1/s is pending
+        k1 = p11 * phi1 + p12 * phi2 + p13
+        k2 = p12 * phi1 + p22 * phi2 + p23
+        k3 = p13 * phi1 + p23 * phi2 + p33
+        # l(n) = z(n) − φᵀ(n) θ̂_LS(n−1)
+        l_n = z - phi1 * th_b1 - phi2 * th_b0 - th_c
+        # J(n) = λ [J(n−1) + l(n)² / s]                                      (eq. 3.38)
+        jn = lam_n * (jn + l_n * l_n * inv_s)
+        # P(n) = [P(n−1) − k kᵀ / s] / λ, six scalars so P stays symmetric   (eq. 3.39)
+        p11 = p11 * inv_lam_n - (k1 * k1 * inv_lam_n) * inv_s
+        p12 = p12 * inv_lam_n - (k1 * k2 * inv_lam_n) * inv_s
+        p22 = p22 * inv_lam_n - (k2 * k2 * inv_lam_n) * inv_s
+        p13 = p13 * inv_lam_n - (k1 * k3 * inv_lam_n) * inv_s
+        p23 = p23 * inv_lam_n - (k2 * k3 * inv_lam_n) * inv_s
+        p33 = p33 * inv_lam_n - (k3 * k3 * inv_lam_n) * inv_s
+        # θ̂_LS(n) = θ̂_LS(n−1) + P(n) φ(n) l(n), P(n) φ(n) = k / s
+        gain_l = l_n * inv_s
+        th_b1 = th_b1 + k1 * gain_l
+        th_b0 = th_b0 + k2 * gain_l
+        th_c = th_c + k3 * gain_l
+        s_w = lam_n * s_w + 1.0
+        n += 1.0
+        # d = 1 + θ̂_C(n−1)ᵀ Λ θ̂_LS(n), Λ = diag(1, 1, 0)                      (eq. 3.33)
+        den = 1.0 + c_b1 * th_b1 + c_b0 * th_b0
+        if den > MIN_BIAS_DENOMINATOR:
+            r = jn / den
+            sigma2 = r / s_w
+            # θ̂_C(n) = θ̂_LS(n) + (σ̂²(n)/w_n) P(n) Λ θ̂_C(n−1): Λθ̂_C = [c_b1, c_b0, 0]
+            new_b1 = th_b1 + r * (p11 * c_b1 + p12 * c_b0)
+            new_b0 = th_b0 + r * (p12 * c_b1 + p22 * c_b0)
+            c_c = th_c + r * (p13 * c_b1 + p23 * c_b0)
+            c_b1 = new_b1
+            c_b0 = new_b0
+        else:
+            sigma2 = nan
+            c_b1 = th_b1
+            c_b0 = th_b0
+            c_c = th_c
+        p_2 = p_1
+        p_1 = p_n
+        if until_keep == 0:
+            if bias_compensation:
+                out_b1[k] = c_b1
+                out_b0[k] = c_b0
+                out_c[k] = c_c
+            else:
+                out_b1[k] = th_b1
+                out_b0[k] = th_b0
+                out_c[k] = th_c
+            out_sigma2[k] = sigma2
+            k += 1
+            until_keep = keep_every - 1
+        else:
+            until_keep -= 1
+
+    state[_TH_LS_B1] = th_b1
+    state[_TH_LS_B0] = th_b0
+    state[_TH_LS_C] = th_c
+    state[_TH_C_B1] = c_b1
+    state[_TH_C_B0] = c_b0
+    state[_TH_C_C] = c_c
+    state[_P11] = p11
+    state[_P12] = p12
+    state[_P22] = p22
+    state[_P13] = p13
+    state[_P23] = p23
+    state[_P33] = p33
+    state[_J] = jn
+    state[_N] = n
+    state[_S] = s_w
+    state[_P_1] = p_1
+    state[_P_2] = p_2
+    state[_G_1] = g_1
+    state[_G_2] = g_2
+    state[_N_PAST] = n_past
+
+
 def _check_lam_p0(lam: float, p0: float) -> None:
     if not (isinstance(lam, (int, float, np.floating)) and 0.0 < lam <= 1.0):
         raise ConfigError(f"lam={lam!r} must be a forgetting factor in (0, 1]")
@@ -276,6 +438,13 @@ class ReepState:
     n_past : int
         How many of those past samples are real (0, 1 or 2): the first two
         samples of a stream only fill them.
+    static_offset : bool
+        Whether θ carries the constant term c of a static deflection offset
+        (θ = [b1, b0, c], see :func:`reep_update`); fixed for the stream.
+    offset_ls, offset_c : float
+        c of θ̂_LS(n) and θ̂_C(n), deflection units (0 without static_offset).
+    p_offset : tuple of float
+        (P13, P23, P33), the third row of the 3 × 3 P(n) (zeros without static_offset).
     """
 
     lam: float
@@ -289,9 +458,15 @@ class ReepState:
     p_past: tuple[float, float]
     g_past: tuple[float, float]
     n_past: int
+    static_offset: bool = False
+    offset_ls: float = 0.0
+    offset_c: float = 0.0
+    p_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @classmethod
-    def initial(cls, *, lam: float = DEFAULT_FORGETTING_FACTOR, p0: float = DEFAULT_P0) -> ReepState:
+    def initial(
+        cls, *, lam: float = DEFAULT_FORGETTING_FACTOR, p0: float = DEFAULT_P0, static_offset: bool = False
+    ) -> ReepState:
         """The state before the first sample (§3.3.3).
 
         θ̂_LS(0) = θ̂_C(0) = 0, P(0) = P0·I, J(0) = 0, and zero past samples.
@@ -307,6 +482,11 @@ class ReepState:
             (1 − λ)/mean(p²): 1e6 (thesis) suits deflection in nm.  P is
             never allowed to grow past trace P(0) (anti-windup), so a P0 that
             is too small pins the estimate near 0 rather than failing silently.
+        static_offset : bool, optional
+            Add the constant regressor of a static deflection offset,
+            θ = [b1, b0, c] with Λ = diag(1, 1, 0) (:func:`reep_update`,
+            Notes).  False (default) is eq. 3.39 with θ = [b1, b0] as in the
+            thesis.
 
         Raises
         ------
@@ -326,6 +506,8 @@ class ReepState:
             p_past=(0.0, 0.0),
             g_past=(0.0, 0.0),
             n_past=0,
+            static_offset=bool(static_offset),
+            p_offset=(0.0, 0.0, float(p0) if static_offset else 0.0),
         )
 
     def _to_array(self) -> np.ndarray:
@@ -339,6 +521,9 @@ class ReepState:
         out[_P_1], out[_P_2] = self.p_past
         out[_G_1], out[_G_2] = self.g_past
         out[_N_PAST] = self.n_past
+        out[_TH_LS_C] = self.offset_ls
+        out[_TH_C_C] = self.offset_c
+        out[_P13], out[_P23], out[_P33] = self.p_offset
         return out
 
     def _from_array(self, a: np.ndarray) -> ReepState:
@@ -355,6 +540,10 @@ class ReepState:
             p_past=(v[_P_1], v[_P_2]),
             g_past=(v[_G_1], v[_G_2]),
             n_past=int(v[_N_PAST]),
+            static_offset=self.static_offset,
+            offset_ls=v[_TH_LS_C],
+            offset_c=v[_TH_C_C],
+            p_offset=(v[_P13], v[_P23], v[_P33]),
         )
 
 
@@ -369,11 +558,16 @@ class ReepBlock(NamedTuple):
     sigma2 : numpy.ndarray of float64
         σ̂²(n), the measurement-noise variance (deflection units², eq. 3.39);
         NaN where the start-up guard skipped the compensation.
+    c : numpy.ndarray of float64 or None
+        The constant term c(n) (deflection units) when the state has
+        ``static_offset``, else None.  The static offset is
+        p̄ = c / (1 + b1 + b0).
     """
 
     b1: np.ndarray
     b0: np.ndarray
     sigma2: np.ndarray
+    c: np.ndarray | None = None
 
 
 class ReepStep(NamedTuple):
@@ -448,6 +642,33 @@ def reep_update(
 
     Eq. 3.43 of the thesis is a garbled copy of this and is not used.
 
+    **Static offset** (``state.static_offset``).  An attractive force adds
+    a static part F̄ to the equation of motion, p̈ + (ω′/Q′)ṗ + ω′²p =
+    ω0²g + F̄ + (the linearised, sample-dependent part that moves ω′ and Q′).
+    Its particular solution is the constant p̄ = F̄/ω′², so p − p̄ obeys
+    eq. 3.40, and substituting p = (p − p̄) + p̄ gives
+
+    .. math:: p(n) + b_1 p(n-1) + b_0 p(n-2) = a_2 g(n) + a_1 g(n-1) + a_0 g(n-2)
+              + (1 + b_1 + b_0)\\,\\bar p + e(n),
+
+    exactly for any hold of g (a constant is the same under every
+    discretisation).  Eq. 3.40 has no constant term, so least squares
+    absorbs (1 + b1 + b0)p̄ into b1, b0: with an offset of a few nm beside
+    an oscillation of 0.3 nm (the bottom of the attractive trap) it drives
+    1 + b1 + b0 toward 0, a pole near z = 1, and f0′ ≈ 13 kHz, Q′ ≈ 0.7
+    instead of 63 kHz, 8.9.  The constant regressor restores the model:
+    θ = [b1, b0, c], φ(n) = [−p(n−1), −p(n−2), 1]ᵀ, c = (1 + b1 + b0)p̄,
+    tracked by the same exponential window, so p̄ may drift as the
+    separation changes.  The bias compensation stays exact with
+    Λ = diag(1, 1, 0): the third regressor is noise-free, so
+    E[φ(n)e(n)] = −σ²Λθ (eq. 3.15) and J(n)w_n → σ²(1 + θᵀΛθ̂_LS)
+    (eq. 3.31) hold unchanged, and eq. 3.39 reads as above with
+    θ̂_C(n) = θ̂_LS(n) + (σ̂²/w_n)P(n)[b̂1_C, b̂0_C, 0]ᵀ(n−1) and the same
+    σ̂² denominator 1 + b̂1_C b̂1_LS + b̂0_C b̂0_LS.  (The alternative, one
+    high-pass on deflection and dither, keeps eq. 3.40 but colours ϑ, and
+    eq. 3.15 needs ϑ white; it would bias the compensation.)  The cost is
+    a 3 × 3 P (six scalars) instead of 2 × 2.
+
     The first two samples of a stream only fill p(n−1), p(n−2) (and g): their
     output is θ̂(0) = 0 with σ̂² = NaN.  Two guards, inactive in normal
     operation, extend eq. 3.39 (details in ``_reep_kernel``):
@@ -485,6 +706,13 @@ def reep_update(
     b1 = np.empty(n_kept, dtype=np.float64)
     b0 = np.empty(n_kept, dtype=np.float64)
     sigma2 = np.empty(n_kept, dtype=np.float64)
+    if state.static_offset:
+        c = np.empty(n_kept, dtype=np.float64)
+        _reep_offset_kernel(
+            p, g, a2, a1, a0, bool(use_input), state.lam, 3.0 * state.p0, bool(bias_compensation),
+            int(keep_every), carried, b1, b0, sigma2, c,
+        )
+        return ReepStep(ReepBlock(b1, b0, sigma2, c), state._from_array(carried))
     _reep_kernel(
         p, g, a2, a1, a0, bool(use_input), state.lam, 2.0 * state.p0, bool(bias_compensation), int(keep_every),
         carried, b1, b0, sigma2,
@@ -501,6 +729,7 @@ def reep(
     p0: float = DEFAULT_P0,
     bias_compensation: bool = True,
     use_input: bool = True,
+    static_offset: bool = False,
 ) -> ReepBlock:
     """REEP over a whole record: :func:`reep_update` from :meth:`ReepState.initial`.
 
@@ -511,7 +740,7 @@ def reep(
     ReepBlock
         b1(n), b0(n) and σ̂²(n) for every sample.
     """
-    state = ReepState.initial(lam=lam, p0=p0)
+    state = ReepState.initial(lam=lam, p0=p0, static_offset=static_offset)
     step = reep_update(
         state, deflection, dither, numerator, bias_compensation=bias_compensation, use_input=use_input
     )

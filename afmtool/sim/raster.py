@@ -37,7 +37,8 @@ amplitude-feedback AFM runs:
   and a high gain would then retract the sample and launch the tip into a
   long loss (``switch_rule = "loss"`` is the thesis's rule as written).
   The integrator carries the piezo position, so a switch of K_I changes the
-  rate, never the position (bumpless); the default pairs share K_P.
+  rate, never the position, and at a switch of K_P the integrator takes up
+  the change of the proportional term (bumpless transfer: u is continuous).
 
 The controller output u is held over each sample period (the FPGA's DAC).
 The dither g reaches the plant as a continuous signal evaluated at every RK4
@@ -84,10 +85,28 @@ set (short-range attraction with damping, stiff repulsion).  The z-piezo
 (15 kHz, Q = 1) stands for a fast z-actuator: a landing after probe loss
 indents the sample by about the piezo's lag, v_z/(Q_p·ω_p), so a slow
 piezo turns every fast re-approach into a force spike whatever switches
-the gain.  K_I = 600/s (low) is slow enough to lose the grating's pits at
-4-12 Hz; 3000/s (high) follows the pits' edges but overshoots and rings
-after each (it loses the tip on the terraces after rising edges at 12 Hz
-and above); both pairs share K_P = 0.1.
+the gain.
+
+Controller gains, tuned as §2.4-2.5 has it.  The low pair (K_I = 600/s,
+K_P = 0.1) is gentle on the sample and slow enough to lose the grating's
+pits at 4-12 Hz.  The high pair is tuned from the loop's stability limit,
+in the manner of Ziegler and Nichols: along (K_I, K_P) = s·(1500/s, 0.5)
+the loop on a flat sample is stable up to s ≈ 2.3 and oscillates in a limit
+cycle (z rms ≈ 0.4 nm) from s ≈ 2.4 (the ultimate gain); the default s = 1
+is 0.43 of it (Ziegler-Nichols PI: 0.45), which approaches about 2.5 times
+faster than the low pair after probe loss and rings on the rising edges.
+The ratio K_P/K_I = 1/3000 s puts the PI zero near the amplitude's own
+pole 1/τ = ω0/2Q, so the pair winds up little while the tip is pressed on a
+rising edge (an integral-dominated pair with the same approach rate, e.g.
+K_I = 3000/s with K_P = 0.1, overshoots after each rising edge and loses
+more than the low pair at 12 Hz and above).  Nearer the limit (s ≥ 1.2)
+the high gain's ringing keeps the tip in light, intermittent contact, which
+the reliability index reads as probe loss (the index's per-event precision
+on the ch. 2 captures falls below 0.95), so the default stays at the
+Ziegler-Nichols margin.  In this simulator the switching gain loses even
+less than the constant high gain: after a rising edge its on-sample low
+gain lifts the tip off less.  ``afmtool theory controllers`` tabulates the
+three controllers (docs/ch2_table.json).
 
 Truth
 -----
@@ -207,8 +226,10 @@ class RasterParams:
     ki_low_per_s: float = param(600.0, "low gain: integral gain K_I (nm of z per nm of amplitude error per s)",
                                 "1/s", minimum=0)
     kp_low: float = param(0.1, "low gain: proportional gain K_P", "", minimum=0)
-    ki_high_per_s: float = param(3000.0, "high gain: integral gain K_I", "1/s", minimum=0)
-    kp_high: float = param(0.1, "high gain: proportional gain K_P", "", minimum=0)
+    ki_high_per_s: float = param(1500.0, "high gain: integral gain K_I (0.43 of the on-sample stability limit)", "1/s",
+                                 minimum=0)
+    kp_high: float = param(0.5, "high gain: proportional gain K_P (0.43 of the on-sample stability limit)", "",
+                           minimum=0)
     switch_rule: str = param(
         "loss-approaching", "switching: high gain while the index reads loss and A > A_sp, or whenever it reads loss",
         "", choices=("loss-approaching", "loss"),
@@ -497,7 +518,7 @@ def _raster_kernel(  # noqa: PLR0913, PLR0915
     ``cal`` = [1/ρ_fa (NaN before calibration), on, off];
     ``ctl`` = [A_sp, K_I low, K_P low, K_I high, K_P high, mode, high gain in either direction];
     ``schedule`` = [first approach sample, first sample the amplitude is trusted, z retracted,
-    approach per sample]; ``plant`` = [p, v, z, ż]; ``carried`` = [u_I, u, switch, engaged].
+    approach per sample]; ``plant`` = [p, v, z, ż]; ``carried`` = [u_I, u, switch, engaged, K_P in use].
     """
     n_samples = dither.shape[0]
     width = ring.shape[1]
@@ -507,6 +528,7 @@ def _raster_kernel(  # noqa: PLR0913, PLR0915
     any_direction = ctl[6] != 0.0
     n_engage, n_lockin, z_far, approach_step = schedule[0], schedule[1], schedule[2], schedule[3]
     u_int, u, switch, engaged = carried[0], carried[1], int(carried[2]), int(carried[3])
+    kp_prev = carried[4]
     two_pi = 2.0 * math.pi
     step = complex(math.cos(two_pi * cycles_per_sample), -math.sin(two_pi * cycles_per_sample))
     rotor = _rotor_at(start, cycles_per_sample)
@@ -560,7 +582,10 @@ def _raster_kernel(  # noqa: PLR0913, PLR0915
                 high = mode == 1 or (mode == 2 and switch == 1 and (err < 0.0 or any_direction))
                 ki = ki_hi if high else ki_lo
                 kp = kp_hi if high else kp_lo
-                u_int += ki * period * err
+                # bumpless transfer: at a switch of K_P the integrator takes up the change of the
+                # proportional term, so u stays continuous (u_I + K_P·e is the same with either K_P)
+                u_int += (kp_prev - kp) * err + ki * period * err
+                kp_prev = kp
                 u = u_int + kp * err
             out_u[i] = u
             out_sep[i] = plant[2] - h_half[2 * nsub * i]
@@ -579,6 +604,7 @@ def _raster_kernel(  # noqa: PLR0913, PLR0915
     carried[1] = u
     carried[2] = switch
     carried[3] = engaged
+    carried[4] = kp_prev
 
 
 # --------------------------------------------------------------------------- driver
@@ -675,7 +701,7 @@ class _Loop:
         self.schedule = np.array([float(self.n_free), float(n_lockin), z_far, params.engage_rate_nm_per_s / fs])
         p0, v0 = _initial_state(params, self.excitation)
         self.plant = np.array([p0, v0, z_far, 0.0])
-        self.carried = np.array([z_far, z_far, 0.0, 0.0])
+        self.carried = np.array([z_far, z_far, 0.0, 0.0, params.kp_low if code != 1 else params.kp_high])
         wp = 2.0 * math.pi * params.piezo_f0_hz
         w0 = cantilever.omega0_rad_s
         self.consts = (w0 / params.q, w0 * w0, wp / params.piezo_q, wp * wp)

@@ -1,4 +1,4 @@
-"""Chapter 2 reproduced: low, high and switching z-controller gains on the calibration grating.
+"""``afmtool theory controllers``: ch. 2's low, high and switching z-controller gains on the grating.
 
 For each line rate the closed-loop ``raster`` scenario runs once per
 controller with the same seed, and the table compares, over the scan
@@ -12,21 +12,24 @@ controller with the same seed, and the table compares, over the scan
   scan (truth ``force_n``, N);
 * the height image (``z_piezo``, the controller output) per pixel, trace.
 
-The thesis (§2.5) finds the switching controller's probe-loss area comparable
-to the high gain's and its on-sample behaviour that of the low gain;
-:func:`ch2_table` gives the ratios the acceptance test bounds (1.2×).
+The thesis (§2.5) finds the high gain's probe-loss area negligible, the
+switching controller's comparable to it and its on-sample behaviour that of
+the low gain; :func:`ch2_table` gives the ratios the acceptance bounds (1.2×)
+and :func:`criteria` checks them per line rate.  The gains are those of
+:class:`~afmtool.sim.raster.RasterParams` (see :mod:`afmtool.sim.raster`
+on how they are tuned).
 
-``python -m afmtool.analyses.probeloss_ch2 OUT_DIR`` writes the table
-(``ch2_table.json``) and the side-by-side height images
-(``ch2_controllers.png``).
+:func:`run_controllers_command` writes the table (``report.json``,
+``ch2_table.json``), the side-by-side height images (``ch2_controllers.png``)
+and loss area and peak force against line rate (``ch2_loss_force.png``);
+docs/ holds the table and figure it writes with ``--lines 4 --figure-lines 48``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -36,7 +39,17 @@ from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
 from afmtool.analyses.probeloss_events import truth_loss_events
 from afmtool.sim.raster import CONTROLLERS, RasterParams, RasterRun, run_raster
 
-__all__ = ["TABLE_LINE_RATES_HZ", "ControllerRow", "Ch2Row", "run_controllers", "ch2_table", "height_image", "write_controller_png"]
+__all__ = [
+    "TABLE_LINE_RATES_HZ",
+    "ControllerRow",
+    "Ch2Row",
+    "run_controllers",
+    "ch2_table",
+    "criteria",
+    "height_image",
+    "write_controller_png",
+    "run_controllers_command",
+]
 
 #: The thesis's grating line rates (Figs. 2.2-2.4) and its DNA rate (Fig. 2.6), Hz.
 TABLE_LINE_RATES_HZ = (4.0, 8.0, 12.0, 30.0)
@@ -158,25 +171,83 @@ def write_controller_png(path: Path, runs: Mapping[str, RasterRun], *, title: st
     )
 
 
-def _main(argv: list[str]) -> int:
-    """``python -m afmtool.analyses.probeloss_ch2 OUT_DIR``: the table and the figure."""
-    if len(argv) != 1:
-        print("usage: python -m afmtool.analyses.probeloss_ch2 OUT_DIR", file=sys.stderr)
-        return 2
-    out = Path(argv[0])
-    out.mkdir(parents=True, exist_ok=True)
-    rows = ch2_table(TABLE_LINE_RATES_HZ, {"lines": 4})
-    (out / "ch2_table.json").write_text(json.dumps([row.as_dict() for row in rows], indent=2) + "\n")
-    # Fig. 2.4: at 12 Hz the low gain loses the pits' square profile and the switching gain recovers it
-    runs = run_controllers(12.0, {"lines": 48, "pixels_per_line": 48, "y_offset_m": 0.0})
-    write_controller_png(out / "ch2_controllers.png", runs, title="grating, 12 Hz line rate: z of the three controllers")
-    for row in rows:
-        print(f"{row.line_rate_hz:5g} Hz  loss low/high/switching "
-              f"{row.low.loss_area:.3f}/{row.high.loss_area:.3f}/{row.switching.loss_area:.3f}"
-              f"  peak force (nN) {row.low.peak_force_n * 1e9:.1f}/{row.high.peak_force_n * 1e9:.1f}"
-              f"/{row.switching.peak_force_n * 1e9:.1f}")
-    return 0
+def criteria(row: Ch2Row, tolerance: float = 1.2) -> dict:
+    """The thesis's claims (§2.5) at one line rate, each True or False.
+
+    * ``high_below_low``: the high gain loses less than the low gain;
+    * ``high_least_loss``: the high gain has the least probe-loss area of the three;
+    * ``switching_loss_within``: switching probe-loss area ≤ ``tolerance`` × the high gain's;
+    * ``switching_force_within``: switching peak force ≤ ``tolerance`` × the low gain's.
+    """
+    return {
+        "high_below_low": row.high.loss_area < row.low.loss_area,
+        "high_least_loss": row.high.loss_area <= min(row.low.loss_area, row.switching.loss_area),
+        "switching_loss_within": row.switching.loss_area <= tolerance * row.high.loss_area,
+        "switching_force_within": row.switching.peak_force_n <= tolerance * row.low.peak_force_n,
+    }
 
 
-if __name__ == "__main__":
-    raise SystemExit(_main(sys.argv[1:]))
+def _write_loss_force_png(path: Path, rows: Sequence[Ch2Row]) -> None:
+    from afmtool.report.images import write_multi_panel_png
+
+    rates = np.array([row.line_rate_hz for row in rows])
+    styles = {"low": {"color": "C0", "marker": "o"}, "high": {"color": "C3", "marker": "s"},
+              "switching": {"color": "C2", "marker": "^"}}
+    panels = [
+        {"y_label": label, "series": [(rates, np.array([getter(getattr(r, c)) for r in rows]), f"{c} gain", styles[c])
+                                      for c in CONTROLLERS]}
+        for label, getter in (("probe-loss area", lambda c: c.loss_area),
+                              ("peak force (nN)", lambda c: c.peak_force_n * 1e9))
+    ]
+    write_multi_panel_png(path, panels, x_label="line rate (Hz)", title="Three z-controllers on the grating (ch. 2)")
+
+
+def run_controllers_command(
+    out: Path, config: Path | None, flags: Mapping, progress: Callable[[str], None] | None = None
+) -> dict:
+    """The three-controller table and its images, written atomically into ``out``; returns the report."""
+    from afmtool.config import load_toml, resolve_from
+    from afmtool.config.params import TheoryControllersParams
+    from afmtool.report.outputs import OutputDir
+    from afmtool.report.run import finish_run
+
+    params = resolve_from(TheoryControllersParams, "theory.controllers", load_toml(config) if config else None, flags)
+    rates = params.rates()
+    rows = []
+    for rate in rates:
+        if progress:
+            progress(f"{rate:g} Hz")
+        runs = run_controllers(rate, {"lines": params.lines}, params.seed)
+        rows.append(Ch2Row(rate, *(controller_row(runs[c]) for c in CONTROLLERS)))
+    checks = {f"{row.line_rate_hz:g}": criteria(row, params.tolerance) for row in rows}
+    required = ("high_below_low", "switching_loss_within", "switching_force_within")
+    passed = all(check[name] for check in checks.values() for name in required)
+    base = RasterParams()
+    results = {
+        "line_rates_hz": list(rates),
+        "gains": {"low": {"ki_per_s": base.ki_low_per_s, "kp": base.kp_low},
+                  "high": {"ki_per_s": base.ki_high_per_s, "kp": base.kp_high}},
+        "table": [row.as_dict() for row in rows],
+        "criteria": checks,
+        "tolerance": params.tolerance,
+        "pass": passed,
+    }
+    warnings = [
+        f"{rate} Hz: {name.replace('_', ' ')} does not hold"
+        for rate, check in checks.items() for name in required if not check[name]
+    ]
+    if progress:
+        progress(f"images at {params.figure_line_rate_hz:g} Hz")
+    figure_runs = run_controllers(
+        params.figure_line_rate_hz,
+        {"lines": params.figure_lines, "pixels_per_line": params.figure_pixels, "y_offset_m": 0.0},
+        params.seed,
+    )
+    with OutputDir(out) as staged:
+        staged.path("ch2_table.json").write_text(json.dumps([row.as_dict() for row in rows], indent=2) + "\n")
+        write_controller_png(
+            staged.path("ch2_controllers.png"), figure_runs,
+            title=f"grating, {params.figure_line_rate_hz:g} Hz line rate: z of the three controllers",
+        )
+        _write_loss_force_png(staged.path("ch2_loss_force.png"), rows)
+        return finish_run(staged, "theory controllers", [], "theory.controllers", params, results, warnings)
