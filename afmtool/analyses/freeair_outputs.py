@@ -13,6 +13,7 @@ from afmtool.config.params import FreeAirParams, parse_interval
 from afmtool.errors import ConfigError
 from afmtool.io.capture import CaptureReader
 from afmtool.io.chunks import iter_chunks
+from afmtool.io.units import calibration_record
 from afmtool.models.free_air import FreeAirModel
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
@@ -84,10 +85,10 @@ def run_freeair_command(
         inputs = [input_record(source, "psd")]
     elif params.route == "sweep":
         model, details = _sweep_route(reader, params, progress)
-        inputs = [input_record(source)]
+        inputs = [{**input_record(source), **calibration_record(reader)}]
     else:
         model, details = _segment_route(reader, params, progress)
-        inputs = [input_record(source)]
+        inputs = [{**input_record(source), **calibration_record(reader)}]
     with OutputDir(out) as staged:
         model.save(staged.path("free_air.json"))
         results = {"free_air_model": model.to_dict(), "route": params.route, **details}

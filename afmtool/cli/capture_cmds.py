@@ -8,6 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.calibration_options import CaptureCalibration, UnitsOpt
 from afmtool.cli.common import open_input, output_target, stdout_pipe
 from afmtool.cli.options import CaptureArg, ChannelOpt, ChunkOpt, JsonOpt, QuietOpt, SampleRateOpt, TopicOpt
 from afmtool.cli.progress import progress_bar
@@ -24,6 +25,7 @@ def info(
     sample_rate: SampleRateOpt = None,
     chunk_samples: ChunkOpt = DEFAULT_CHUNK_SAMPLES,
     quiet: QuietOpt = False,
+    units: UnitsOpt = None,
 ) -> None:
     """Channels, units, sample rate, length, metadata and min/max/mean/rms per channel.
 
@@ -32,7 +34,7 @@ def info(
     from afmtool.analyses.info import summarize
     from afmtool.report.json_report import dumps, to_jsonable
 
-    with open_input(capture, channel, topic, sample_rate) as reader:
+    with open_input(capture, channel, topic, sample_rate, CaptureCalibration(units), convert_units=False) as reader:
         with progress_bar("info", reader.info.n_samples, quiet) as update:
             summary = summarize(reader, chunk_samples, update)
     with stdout_pipe():
@@ -76,6 +78,7 @@ def convert(
     sample_rate: SampleRateOpt = None,
     chunk_samples: ChunkOpt = DEFAULT_CHUNK_SAMPLES,
     quiet: QuietOpt = False,
+    units: UnitsOpt = None,
 ) -> None:
     """Convert a capture between HDF5, CSV, ROS1 and ROS2 (mcap, sqlite3) bags.
 
@@ -92,7 +95,7 @@ def convert(
         raise ConfigError(f"--format {fmt!r} must be one of {', '.join(FORMATS)}")
     if compression not in (None, "gzip"):
         raise ConfigError(f"--compression {compression!r} must be gzip")
-    with open_input(source, channel, topic, sample_rate) as reader:
+    with open_input(source, channel, topic, sample_rate, CaptureCalibration(units), convert_units=False) as reader:
         with progress_bar("convert", reader.info.n_samples, quiet) as update, output_target(output, fmt) as target:
             convert_capture(
                 reader, target, fmt, compression=compression, chunk_samples=chunk_samples, progress=update

@@ -7,6 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.calibration_options import CaptureCalibration, InvolsOpt, UnitsOpt, ZSensitivityOpt
 from afmtool.cli.common import finish_command, open_input
 from afmtool.cli.options import ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
 from afmtool.cli.progress import progress_bar
@@ -35,6 +36,9 @@ def identify_gamma(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
 ) -> None:
     """Sensing transfer function Gamma_IR,ts with the feed-through removed (thesis eq. 6.15).
 
@@ -53,7 +57,10 @@ def identify_gamma(
         "method": "stepped" if stepped else ("h1" if h1 else None),
         "min_coherence": min_coherence,
     }
-    with open_input(sweep, channel, topic, sample_rate) as near, open_input(contact, channel, topic, sample_rate) as far:
+    calibration = CaptureCalibration(units, invols, z_sensitivity)
+    with open_input(sweep, channel, topic, sample_rate, calibration) as near, open_input(
+        contact, channel, topic, sample_rate, calibration
+    ) as far:
         total = (near.info.n_samples or 0) + (far.info.n_samples or 0)
         with progress_bar("identify gamma", total or None, quiet) as update:
             report = run_gamma_command(near, far, (sweep, contact), out, config, flags, update)
@@ -89,6 +96,9 @@ def identify_thermal(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
 ) -> None:
     """Thermal sensor from its current alone: g(T), K_TP, K_TP(t_s), C(jw), H(jw) (thesis 6.5.2, 6.6.2).
 
@@ -104,9 +114,10 @@ def identify_thermal(
 
     flags = {"breakdown_temperature_c": breakdown_temperature, "room_temperature_c": room_temperature}
     sources = {"iv": iv, "z": z_curve, "vr": vr_sweep, "gamma": gamma, "model": model}
+    calibration = CaptureCalibration(units, invols, z_sensitivity)
     with ExitStack() as stack:
         readers = {
-            key: stack.enter_context(open_input(path, channel, topic, sample_rate)) if path else None
+            key: stack.enter_context(open_input(path, channel, topic, sample_rate, calibration)) if path else None
             for key, path in (("iv", iv), ("z", z_curve), ("vr", vr_sweep))
         }
         total = sum((r.info.n_samples or 0) for r in readers.values() if r is not None)
@@ -136,6 +147,9 @@ def identify_electrostatic(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
 ) -> None:
     """Electrostatic parameters from an approach curve before snap-in (thesis eqs. 6.6, 6.7).
 
@@ -148,7 +162,8 @@ def identify_electrostatic(
     from afmtool.analyses.electrostatic_outputs import run_electrostatic_command
 
     flags = {"sensor": sensor, "spring_constant_n_per_m": spring_constant, "v_r_v": v_r}
-    with open_input(capture, channel, topic, sample_rate) as reader:
+    calibration = CaptureCalibration(units, invols, z_sensitivity)
+    with open_input(capture, channel, topic, sample_rate, calibration) as reader:
         report = run_electrostatic_command(reader, capture, out, config, flags, thermal_model)
     finish_command(report, out, json_output, quiet)
 

@@ -7,6 +7,13 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.calibration_options import (
+    CaptureCalibration,
+    DriveOpt,
+    InvolsOpt,
+    UnitsOpt,
+    ZSensitivityOpt,
+)
 from afmtool.cli.common import finish_command, open_input, run_capture_analysis
 from afmtool.cli.options import (
     CaptureArg,
@@ -55,6 +62,10 @@ def reep(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
+    drive: DriveOpt = None,
 ) -> None:
     """Real-time equivalent f0' and Q' by bias-compensated EW-RLS (thesis ch. 3).
 
@@ -80,8 +91,9 @@ def reep(
         "vs": vs,
         "z_bin": z_bin,
     }
+    calibration = CaptureCalibration(units, invols, z_sensitivity, drive, free_air, accepts_drive=True)
     run_capture_analysis(
-        "reep", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        "reep", capture, (channel, topic, sample_rate, calibration), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_reep_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_reep_command(reader, capture, out, config, flags, update, capture_record),
     )
@@ -109,6 +121,10 @@ def identify_freeair(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
+    drive: DriveOpt = None,
 ) -> None:
     """Identify the free-air model: f0, Q, gain and their uncertainties.
 
@@ -131,7 +147,8 @@ def identify_freeair(
     if route == "thermal":
         report = run_freeair_command(None, psd, out, config, flags, lambda done: None)
     else:
-        with open_input(capture, channel, topic, sample_rate) as reader:
+        calibration = CaptureCalibration(units, invols, z_sensitivity, drive, free_air, accepts_drive=True)
+        with open_input(capture, channel, topic, sample_rate, calibration) as reader:
             with progress_bar("identify", reader.info.n_samples, quiet) as update:
                 report = run_freeair_command(reader, capture, out, config, flags, update)
     finish_command(report, out, json_output, quiet)
