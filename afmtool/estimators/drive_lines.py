@@ -21,7 +21,15 @@ import numpy as np
 
 from afmtool.errors import ConfigError, InputError
 
-__all__ = ["DriveLine", "DrivePhaseFit", "parse_drive_lines", "line_amplitudes", "fit_drive_phases", "synthesize_drive"]
+__all__ = [
+    "DriveLine",
+    "DrivePhaseFit",
+    "parse_drive_lines",
+    "line_amplitudes",
+    "zoh_response",
+    "fit_drive_phases",
+    "synthesize_drive",
+]
 
 
 class DriveLine(NamedTuple):
@@ -40,9 +48,9 @@ class DrivePhaseFit(NamedTuple):
     lines : tuple of DriveLine
         With their fitted phases.
     f0_hz, q, gain : float
-        G(s) = gain·ω0² / (s² + (ω0/Q)s + ω0²) from the lines' magnitudes
-        (``gain`` in deflection units per V); from the metadata when fewer
-        than three lines.
+        G(s) = gain·ω0² / (s² + (ω0/Q)s + ω0²), discretised with a zero-order
+        hold, from the lines' magnitudes (``gain`` in deflection units per V);
+        from the metadata when fewer than three lines.
     response_source : str
         ``"line magnitudes"`` or ``"metadata cantilever f0_hz, q"``.
     deflection_amplitudes : tuple of float
@@ -94,24 +102,85 @@ def line_amplitudes(x: np.ndarray, sample_rate_hz: float, start_sample: int, fre
     return coef[:k] - 1j * coef[k : 2 * k]
 
 
-def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray) -> tuple[float, float, float]:
-    """(f0, Q, gain) of a second-order low-pass through |H(f_i)| (≥ 3 lines).
+def _continuous_from_magnitudes(f: np.ndarray, magnitude: np.ndarray) -> tuple[float, float] | None:
+    """(f0, Q) of a continuous second-order low-pass through |H(f_i)| (≥ 3 lines), or None.
 
     1/|H|² = (1/g²)·[(1 − f²/f0²)² + f²/(f0²Q²)] = α + β f² + γ f⁴ is linear
-    in (α, β, γ): g = α^(−1/2), f0 = (α/γ)^(1/4), 1/Q² = 2 + β f0²/α.
+    in (α, β, γ): f0 = (α/γ)^(1/4), 1/Q² = 2 + β f0²/α.  The start of the
+    discrete fit.
     """
     scale = float(np.max(f))
     u = (f / scale) ** 2  # scaled, for a well-conditioned fit
     design = np.column_stack([np.ones_like(u), u, u * u])
     (alpha, beta, gamma), *_ = np.linalg.lstsq(design, 1.0 / magnitude**2, rcond=None)
-    inv_q2 = 2.0 + beta * math.sqrt(alpha / gamma) / alpha if alpha > 0 and gamma > 0 else math.nan
-    if not (alpha > 0 and gamma > 0 and inv_q2 > 0):
+    if not (alpha > 0 and gamma > 0):
+        return None
+    inv_q2 = 2.0 + beta * math.sqrt(alpha / gamma) / alpha
+    if not inv_q2 > 0:
+        return None
+    return scale * (alpha / gamma) ** 0.25, 1.0 / math.sqrt(inv_q2)
+
+
+def zoh_response(frequency_hz, f0_hz: float, q: float, sample_rate_hz: float) -> np.ndarray:
+    """H(e^{jωT}) of G(s) = ω0²/(s² + (ω0/Q)s + ω0²) discretised with a zero-order hold (DC gain 1).
+
+    The form of REEP's five-parameter free-air model (eq. 3.39's regressors,
+    a2 = 0), so a dither whose phases follow it is explained exactly by it.
+    """
+    from afmtool.models.discretisation import discrete_denominator, zoh_numerator
+
+    a2, a1, a0 = zoh_numerator(f0_hz, q, sample_rate_hz)
+    b1, b0 = discrete_denominator(f0_hz, q, sample_rate_hz)
+    z_inv = np.exp(-2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) / sample_rate_hz)
+    return (a2 + a1 * z_inv + a0 * z_inv**2) / (1.0 + b1 * z_inv + b0 * z_inv**2)
+
+
+def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float) -> tuple[float, float, float]:
+    """(f0, Q, gain) of the zero-order-hold second-order response through |H(f_i)| (≥ 3 lines).
+
+    Gauss–Newton with Levenberg damping on the log magnitudes over (f0, ln Q),
+    the gain eliminated (its log is the mean residual); started from the
+    continuous closed form.
+    """
+    start = _continuous_from_magnitudes(f, magnitude)
+    if start is None or not (0 < start[0] < fs / 2 and start[1] > 0.5):
+        start = (float(f[int(np.argmax(magnitude))]), 50.0)
+    x = np.array([start[0], math.log(max(start[1], 0.51))])
+    log_m = np.log(magnitude)
+
+    def residual(params: np.ndarray) -> np.ndarray:
+        f0, q = params[0], math.exp(params[1])
+        if not (0 < f0 < fs / 2 and q > 0.5):
+            return np.full(f.size, np.inf)
+        r = log_m - np.log(np.abs(zoh_response(f, f0, q, fs)))
+        return r - r.mean()
+
+    r = residual(x)
+    damping = 1e-3
+    for _ in range(100):
+        steps = np.array([max(1e-7 * x[0], 1e-6), 1e-7])
+        jac = np.column_stack([(residual(x + np.eye(2)[k] * steps[k]) - r) / steps[k] for k in range(2)])
+        if not np.all(np.isfinite(jac)):
+            break
+        normal = jac.T @ jac
+        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-30), -jac.T @ r)
+        trial = residual(x + step)
+        if np.all(np.isfinite(trial)) and trial @ trial < r @ r:
+            x, r, damping = x + step, trial, damping / 3
+            if np.all(np.abs(step) <= np.array([1e-9 * x[0], 1e-9])):
+                break
+        else:
+            damping *= 10
+            if damping > 1e12:
+                break
+    f0, q = float(x[0]), math.exp(x[1])
+    if not (np.all(np.isfinite(r)) and 0 < f0 < fs / 2 and q > 0.5):
         raise InputError(
             "the drive lines' deflection amplitudes do not fit a second-order resonance; "
             "give lines around the resonance, or metadata cantilever f0_hz and q"
         )
-    f0 = scale * (alpha / gamma) ** 0.25
-    return f0, 1.0 / math.sqrt(inv_q2), 1.0 / math.sqrt(alpha)
+    gain = float(np.exp(np.mean(log_m - np.log(np.abs(zoh_response(f, f0, q, fs))))))
+    return f0, q, gain
 
 
 def fit_drive_phases(
@@ -144,15 +213,21 @@ def fit_drive_phases(
     Notes
     -----
     With D_i the deflection's complex amplitude at ω_i (least squares,
-    :func:`line_amplitudes`) and G(jω) = g/(1 − (ω/ω0)² + jω/(ω0 Q)) (eq. 3.1),
-    |D_i|/A_i = |G(jω_i)| fixes g, ω0, Q from three or more lines, and
+    :func:`line_amplitudes`) and H the free-air response G(s) = g·ω0²/(s² +
+    (ω0/Q)s + ω0²) of eq. 3.1 discretised with a zero-order hold
+    (:func:`zoh_response`), |D_i|/A_i = |H(e^{jω_i T})| fixes g, ω0, Q from
+    three or more lines, and
 
-        φ_i = ∠D_i − ∠G(jω_i),   ∠G(jω) = −atan2(ω/(ω0Q), 1 − (ω/ω0)²).
+        φ_i = ∠D_i − ∠H(e^{jω_i T}).
 
     A pure delay between the drive and the deflection cannot be told from a
-    phase of the drive; it ends up in φ_i, so the synthesised dither and the
-    free-air model identified from it describe the deflection exactly as a
-    delay-free pair.
+    phase of the drive, so a convention is needed: the zero-order-hold
+    response is the form of REEP's five-parameter free-air model (a2 = 0,
+    eq. 3.39), so the synthesised dither and the deflection are explained
+    exactly by a model REEP can represent.  A continuous response (no hold)
+    would ask the ARX fit for a half-sample advance it cannot represent, and
+    its denominator would absorb the difference (about −40 Hz on f0 at
+    70 kHz, 500 kHz sampling).
     """
     fs = float(sample_rate_hz)
     frequencies = np.array([line.frequency_hz for line in lines])
@@ -166,21 +241,18 @@ def fit_drive_phases(
     if np.any(magnitude <= 0):
         raise InputError("a drive line has no response in the deflection on the free-air segment")
     if len(lines) >= 3:
-        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude)
+        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs)
         source = "line magnitudes"
     elif f0_hz and q:
         f0, qf = float(f0_hz), float(q)
-        u = frequencies / f0
-        gain = float(np.mean(magnitude * np.hypot(1 - u * u, u / qf)))
+        gain = float(np.mean(magnitude / np.abs(zoh_response(frequencies, f0, qf, fs))))
         source = "metadata cantilever f0_hz, q"
     else:
         raise InputError(
             f"--drive gives {len(lines)} line(s): fitting their phases needs three lines around the resonance, "
             "or metadata cantilever f0_hz and q"
         )
-    u = frequencies / f0
-    response_phase = -np.arctan2(u / qf, 1.0 - u * u)
-    phases = np.angle(d) - response_phase
+    phases = np.angle(d) - np.angle(zoh_response(frequencies, f0, qf, fs))
     fitted = tuple(DriveLine(float(f), float(a), float(p)) for f, a, p in zip(frequencies, amplitudes, phases))
     return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)))
 

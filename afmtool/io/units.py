@@ -185,6 +185,13 @@ def _conversion(name: str, units: str, info: CaptureInfo, calibration: Calibrati
     return ChannelConversion(units, INTERNAL_UNITS[kind], 10.0 ** (exponent - _INTERNAL_EXPONENT[kind]), "")
 
 
+def _check_unit_names(info: CaptureInfo, calibration: Calibration) -> None:
+    for name in calibration.units:
+        if name not in info.channel_names:
+            have = ", ".join(info.channel_names) or "none"
+            raise InputError(f"{info.source}: --units names no channel {name!r} (has: {have})")
+
+
 def plan_conversions(info: CaptureInfo, calibration: Calibration) -> dict[str, ChannelConversion]:
     """Each channel's conversion to its internal unit.
 
@@ -195,10 +202,7 @@ def plan_conversions(info: CaptureInfo, calibration: Calibration) -> dict[str, C
         channel, a deflection (z-piezo) in V without an InvOLS (z
         sensitivity), or ``--units`` naming a channel the capture lacks.
     """
-    for name in calibration.units:
-        if name not in info.channel_names:
-            have = ", ".join(info.channel_names) or "none"
-            raise InputError(f"{info.source}: --units names no channel {name!r} (has: {have})")
+    _check_unit_names(info, calibration)
     plan = {}
     for spec in info.channels:
         units = calibration.units.get(spec.name, spec.units)
@@ -226,6 +230,7 @@ class UnitsReader(ReaderBase):
         self._reader = reader
         self.calibration = calibration
         source_info = reader.info
+        _check_unit_names(source_info, calibration)
         overridden = tuple(ChannelSpec(c.name, calibration.units.get(c.name, c.units)) for c in source_info.channels)
         source_info = replace(source_info, channels=overridden)
         if convert:
