@@ -10,7 +10,11 @@ every chunk with the dither synthesised sample by sample:
 
 REEP, probeloss and kalman-bank then run unchanged.  The lines come from
 ``--drive`` or from metadata ``drive.lines`` (a list of
-``{"frequency_hz": F, "amplitude_v": A}``).
+``{"frequency_hz": F, "amplitude_v": A}``).  The drive is taken to be a
+continuous signal (a real instrument's); metadata ``drive.hold`` starting
+with ``"zero-order"`` says a DAC held it between samples (afmtool's
+discrete-time simulators), which changes the response the phases are
+fitted with.
 """
 
 from __future__ import annotations
@@ -24,10 +28,17 @@ from afmtool.errors import InputError
 from afmtool.estimators.drive_lines import DriveLine, DrivePhaseFit, fit_drive_phases, synthesize_drive
 from afmtool.io.capture import CaptureReader, ChannelSpec, Chunk, ReaderBase
 
-__all__ = ["DEFAULT_FIT_SAMPLES", "SyntheticDriveReader", "drive_lines_from_metadata"]
+__all__ = ["DEFAULT_FIT_SAMPLES", "SyntheticDriveReader", "drive_hold", "drive_lines_from_metadata"]
 
 #: Without a free-air segment, the phases are fitted on the capture's first samples.
 DEFAULT_FIT_SAMPLES = 1 << 16
+
+
+def drive_hold(metadata: Mapping) -> str:
+    """``"zero-order"`` when metadata ``drive.hold`` says a DAC held the drive between samples, else ``"none"``."""
+    drive = metadata.get("drive")
+    hold = drive.get("hold", "") if isinstance(drive, Mapping) else ""
+    return "zero-order" if isinstance(hold, str) and hold.startswith("zero-order") else "none"
 
 
 def drive_lines_from_metadata(metadata: Mapping) -> tuple[DriveLine, ...]:
@@ -84,7 +95,10 @@ class SyntheticDriveReader(ReaderBase):
                 for line in self.fit.lines
             ]
             record["fitted_on_s"] = list(self._fitted_on)
-            record["response"] = {"f0_hz": self.fit.f0_hz, "q": self.fit.q, "from": self.fit.response_source}
+            record["response"] = {
+                "f0_hz": self.fit.f0_hz, "q": self.fit.q, "from": self.fit.response_source,
+                "hold": drive_hold(self.info.metadata),
+            }
         record["replaced_recorded_dither"] = self.replaced_recorded
         return record
 
@@ -122,7 +136,8 @@ class SyntheticDriveReader(ReaderBase):
             )
         cantilever = self.info.metadata.get("cantilever", {})
         self.fit = fit_drive_phases(
-            segment, self.info.sample_rate_hz, start, self._lines, f0_hz=cantilever.get("f0_hz"), q=cantilever.get("q")
+            segment, self.info.sample_rate_hz, start, self._lines, f0_hz=cantilever.get("f0_hz"),
+            q=cantilever.get("q"), hold=drive_hold(self.info.metadata),
         )
         self._fitted_on = (start / self.info.sample_rate_hz, end / self.info.sample_rate_hz)
 

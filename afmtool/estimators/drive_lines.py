@@ -135,13 +135,24 @@ def zoh_response(frequency_hz, f0_hz: float, q: float, sample_rate_hz: float) ->
     return (a2 + a1 * z_inv + a0 * z_inv**2) / (1.0 + b1 * z_inv + b0 * z_inv**2)
 
 
-def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float) -> tuple[float, float, float]:
-    """(f0, Q, gain) of the zero-order-hold second-order response through |H(f_i)| (≥ 3 lines).
+def continuous_response(frequency_hz, f0_hz: float, q: float, sample_rate_hz: float) -> np.ndarray:
+    """G(jω) = ω0²/(ω0² − ω² + jωω0/Q) (eq. 3.1, DC gain 1): a continuous drive, sampled by the ADC."""
+    u = np.asarray(frequency_hz, dtype=np.float64) / f0_hz
+    return 1.0 / (1.0 - u * u + 1j * u / q)
+
+
+def _response(hold: str):
+    return zoh_response if hold == "zero-order" else continuous_response
+
+
+def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float, hold: str) -> tuple[float, float, float]:
+    """(f0, Q, gain) of the second-order response through |H(f_i)| (≥ 3 lines).
 
     Gauss–Newton with Levenberg damping on the log magnitudes over (f0, ln Q),
     the gain eliminated (its log is the mean residual); started from the
     continuous closed form.
     """
+    response = _response(hold)
     start = _continuous_from_magnitudes(f, magnitude)
     if start is None or not (0 < start[0] < fs / 2 and start[1] > 0.5):
         start = (float(f[int(np.argmax(magnitude))]), 50.0)
@@ -152,7 +163,7 @@ def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float) -
         f0, q = params[0], math.exp(params[1])
         if not (0 < f0 < fs / 2 and q > 0.5):
             return np.full(f.size, np.inf)
-        r = log_m - np.log(np.abs(zoh_response(f, f0, q, fs)))
+        r = log_m - np.log(np.abs(response(f, f0, q, fs)))
         return r - r.mean()
 
     r = residual(x)
@@ -179,7 +190,7 @@ def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float) -
             "the drive lines' deflection amplitudes do not fit a second-order resonance; "
             "give lines around the resonance, or metadata cantilever f0_hz and q"
         )
-    gain = float(np.exp(np.mean(log_m - np.log(np.abs(zoh_response(f, f0, q, fs))))))
+    gain = float(np.exp(np.mean(log_m - np.log(np.abs(response(f, f0, q, fs))))))
     return f0, q, gain
 
 
@@ -191,6 +202,7 @@ def fit_drive_phases(
     *,
     f0_hz: float | None = None,
     q: float | None = None,
+    hold: str = "none",
 ) -> DrivePhaseFit:
     """Each drive line's phase at t = 0 from the free-air deflection.
 
@@ -205,6 +217,10 @@ def fit_drive_phases(
         Frequencies (Hz) and amplitudes (V); phases are ignored.
     f0_hz, q : float, optional
         Free-air resonance, used only with fewer than three lines.
+    hold : {"none", "zero-order"}
+        How the drive reached the cantilever: a continuous signal (the
+        default, a real instrument's drive) or held between samples by a DAC
+        at the sample rate (a discrete-time simulator).
 
     Returns
     -------
@@ -214,24 +230,29 @@ def fit_drive_phases(
     -----
     With D_i the deflection's complex amplitude at ω_i (least squares,
     :func:`line_amplitudes`) and H the free-air response G(s) = g·ω0²/(s² +
-    (ω0/Q)s + ω0²) of eq. 3.1 discretised with a zero-order hold
-    (:func:`zoh_response`), |D_i|/A_i = |H(e^{jω_i T})| fixes g, ω0, Q from
-    three or more lines, and
+    (ω0/Q)s + ω0²) of eq. 3.1 (:func:`continuous_response`; with
+    ``hold="zero-order"`` discretised with a zero-order hold,
+    :func:`zoh_response`), |D_i|/A_i = |H(ω_i)| fixes g, ω0, Q from three or
+    more lines, and
 
-        φ_i = ∠D_i − ∠H(e^{jω_i T}).
+        φ_i = ∠D_i − ∠H(ω_i).
 
-    A pure delay between the drive and the deflection cannot be told from a
-    phase of the drive, so a convention is needed: the zero-order-hold
-    response is the form of REEP's five-parameter free-air model (a2 = 0,
-    eq. 3.39), so the synthesised dither and the deflection are explained
-    exactly by a model REEP can represent.  A continuous response (no hold)
-    would ask the ARX fit for a half-sample advance it cannot represent, and
-    its denominator would absorb the difference (about −40 Hz on f0 at
-    70 kHz, 500 kHz sampling).
+    Only the magnitudes carry ω0 and Q: the lines' phases are what is being
+    fitted.  So the side lines must stand clear of the noise (their
+    amplitudes set ω0 to about Δf times their relative error), and the
+    response must be the right one: the magnitudes of a held and of a
+    continuous drive differ by a few % at f/fs ≈ 0.15, which moves the
+    fitted f0 by tens of Hz, and the main line's phase, at resonance, with
+    it (2Q/f0 rad per Hz).  A pure delay between drive and deflection cannot
+    be told from a phase of the drive; it ends up in φ_i, and the free-air
+    model identified from the synthesised dither is then delay-free.
     """
     fs = float(sample_rate_hz)
     frequencies = np.array([line.frequency_hz for line in lines])
     amplitudes = np.array([line.amplitude_v for line in lines])
+    if hold not in ("none", "zero-order"):
+        raise ConfigError(f"{hold=} must be 'none' or 'zero-order'")
+    response = _response(hold)
     if np.any(frequencies >= fs / 2):
         raise ConfigError(f"--drive lines must be below the Nyquist frequency {fs / 2:g} Hz")
     if len(deflection) < 4 * len(lines) + 8:
@@ -241,18 +262,18 @@ def fit_drive_phases(
     if np.any(magnitude <= 0):
         raise InputError("a drive line has no response in the deflection on the free-air segment")
     if len(lines) >= 3:
-        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs)
+        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs, hold)
         source = "line magnitudes"
     elif f0_hz and q:
         f0, qf = float(f0_hz), float(q)
-        gain = float(np.mean(magnitude / np.abs(zoh_response(frequencies, f0, qf, fs))))
+        gain = float(np.mean(magnitude / np.abs(response(frequencies, f0, qf, fs))))
         source = "metadata cantilever f0_hz, q"
     else:
         raise InputError(
             f"--drive gives {len(lines)} line(s): fitting their phases needs three lines around the resonance, "
             "or metadata cantilever f0_hz and q"
         )
-    phases = np.angle(d) - np.angle(zoh_response(frequencies, f0, qf, fs))
+    phases = np.angle(d) - np.angle(response(frequencies, f0, qf, fs))
     fitted = tuple(DriveLine(float(f), float(a), float(p)) for f, a, p in zip(frequencies, amplitudes, phases))
     return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)))
 
