@@ -168,7 +168,42 @@ def identify_electrostatic(
     finish_command(report, out, json_output, quiet)
 
 
+def identify_invols(
+    curve: Annotated[str, typer.Argument(help="Force curve on a hard sample: deflection (V) and z_piezo.")],
+    out: OutOpt = Path("invols"),
+    leg: Annotated[Optional[str], typer.Option("--leg", help="approach (default), retract or all.")] = None,
+    z_channel: Annotated[Optional[str], typer.Option("--z-channel", help="z channel (default z_piezo).")] = None,
+    deflection_channel: Annotated[
+        Optional[str], typer.Option("--deflection-channel", help="Deflection channel (default deflection).")
+    ] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
+) -> None:
+    """InvOLS (nm/V) from the contact part of a force curve on a hard sample, with its uncertainty.
+
+    Finds the contact point (a hinge fit), fits the contact part with a line and
+    reports its slope, InvOLS = 1/|slope| with its standard deviation when the
+    deflection is in V, and the capture's own InvOLS (metadata) beside it.  A
+    deflection already in a length gives the slope (1 on a hard sample) and the
+    InvOLS it implies.  Writes invols.png, report.json and config.toml.
+    """
+    from afmtool.analyses.invols import run_invols_command
+
+    flags = {"leg": leg, "z_channel": z_channel, "deflection_channel": deflection_channel}
+    calibration = CaptureCalibration(units, None, z_sensitivity, raw_deflection=True)
+    with open_input(curve, channel, topic, sample_rate, calibration) as reader:
+        report = run_invols_command(reader, curve, out, config, flags)
+    finish_command(report, out, json_output, quiet)
+
+
 def register(identify: typer.Typer) -> None:
     identify.command("gamma")(identify_gamma)
     identify.command("thermal")(identify_thermal)
     identify.command("electrostatic")(identify_electrostatic)
+    identify.command("invols")(identify_invols)
