@@ -115,6 +115,17 @@ def identify_freeair(
     temperature: Annotated[
         Optional[float], typer.Option("--temperature", help="Thermal route: temperature (K) for k.")
     ] = None,
+    detection: Annotated[
+        Optional[str],
+        typer.Option("--detection", help="Thermal route: optical-lever (k factor 0.817, default) or displacement."),
+    ] = None,
+    length: Annotated[
+        Optional[float], typer.Option("--length", help="Thermal route, Sader k: cantilever length L (um).", min=0.0)
+    ] = None,
+    width: Annotated[
+        Optional[float], typer.Option("--width", help="Thermal route, Sader k: cantilever width b (um).", min=0.0)
+    ] = None,
+    fluid: Annotated[Optional[str], typer.Option("--fluid", help="Thermal route, Sader k: air (default) or water.")] = None,
     json_output: JsonOpt = False,
     config: ConfigOpt = None,
     quiet: QuietOpt = False,
@@ -131,6 +142,9 @@ def identify_freeair(
     Three routes: an off-sample segment of a capture (ARX fit, bias compensated),
     a frequency sweep (--sweep: H1, then a second-order fit with delay), or a
     thermal-noise spectrum (--psd FILE.csv).  Writes free_air.json for --model.
+    The thermal route also reports the spring constant by equipartition with the
+    Butt-Jaschke optical-lever factor, and with --length/--width by the Sader
+    method, and plots the spectrum and its fit (thermal_fit.png).
     """
     from afmtool.analyses.freeair_outputs import run_freeair_command
     from afmtool.errors import ConfigError
@@ -143,6 +157,7 @@ def identify_freeair(
         "route": route,
         "sweep_method": "stepped" if stepped else None,
         "temperature_k": temperature,
+        "spring": {"detection": detection, "length_um": length, "width_um": width, "fluid": fluid},
     }
     if route == "thermal":
         report = run_freeair_command(None, psd, out, config, flags, lambda done: None)
