@@ -36,8 +36,14 @@ def stdout_pipe() -> Iterator[None]:
 
 
 @contextmanager
-def open_input(path: str, channel: list[str] | None, topic: list[str] | None, sample_rate: float | None):
-    """Open a capture with the shared --channel/--topic/--sample-rate options."""
+def open_input(
+    path: str,
+    channel: list[str] | None,
+    topic: list[str] | None,
+    sample_rate: float | None,
+    segment: str | None = None,
+):
+    """Open a capture with the shared --channel/--topic/--sample-rate/--segment options."""
     from afmtool.io.registry import open_capture
 
     reader = open_capture(
@@ -45,6 +51,7 @@ def open_input(path: str, channel: list[str] | None, topic: list[str] | None, sa
         channel_map=parse_mapping(channel, "--channel"),
         topic_map=parse_mapping(topic, "--topic"),
         sample_rate_hz=sample_rate,
+        segment=segment,
     )
     try:
         yield reader
