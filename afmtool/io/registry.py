@@ -28,11 +28,15 @@ _SUFFIX_FORMATS = {
     ".mcap": "ros2-mcap",
     ".db3": "ros2-sqlite3",
     ".ibw": "ibw",
+    ".tdms": "tdms",
+    ".wav": "wav",
 }
 
 #: Input-only formats: their readers, as (module, class) under afmtool.io.
 _READERS = {
     "ibw": ("ibw", "IbwReader"),
+    "tdms": ("tdms", "TdmsReader"),
+    "wav": ("wav", "WavReader"),
 }
 
 #: Formats whose readers select a segment themselves (segments at different rates).

@@ -137,11 +137,15 @@ class RenamedView(ReaderBase):
                 raise InputError(
                     f"{info.source}: --channel {new}={old}: no channel {old!r} (has: {', '.join(have) or 'none'})"
                 )
-        self._source_of = {new: old for new, old in mapping.items()}
-        renamed = set(mapping.values()) | set(mapping)
+        # In the file's channel order: a mapped channel under its new name(s); an unmapped one under
+        # its own, unless a new name takes its place.
+        self._source_of = {}
         for name in have:
-            if name not in renamed:
-                self._source_of[name] = name
+            news = [new for new, old in mapping.items() if old == name]
+            if not news and name not in mapping:
+                news = [name]
+            for new in news:
+                self._source_of[new] = name
         channels = tuple(ChannelSpec(new, have[old].units) for new, old in self._source_of.items())
         self.info = dataclasses.replace(info, channels=channels)
 
