@@ -30,19 +30,9 @@ import numpy as np
 
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
+from afmtool.io.unit_names import unit_symbol
 
-__all__ = ["TdmsReader", "NI_UNIT_SYMBOLS"]
-
-#: NI's unit names and the symbols afmtool writes for them (names, not conversions).
-NI_UNIT_SYMBOLS = {
-    "Volts": "V",
-    "Amps": "A",
-    "Meters": "m",
-    "Seconds": "s",
-    "Newtons": "N",
-    "Hertz": "Hz",
-    "Deg C": "degC",
-}
+__all__ = ["TdmsReader"]
 
 # Relative spread allowed between the channels' wf_increment (they are float64 copies of one clock).
 _RATE_TOLERANCE = 1e-9
@@ -147,7 +137,7 @@ class TdmsReader(ReaderBase):
         specs = []
         for name, channel in self._channels.items():
             unit = str(channel.properties.get("unit_string", "") or "").strip()
-            specs.append(ChannelSpec(name, NI_UNIT_SYMBOLS.get(unit, unit)))
+            specs.append(ChannelSpec(name, unit_symbol(unit)))
         first = next(iter(self._channels.values()))
         instrument: dict = {"vendor_format": "NI TDMS"}
         if self._file.properties.get("name"):
