@@ -190,6 +190,7 @@ class CsvReader(ReaderBase):
         self._header_units = {name: unit for name, unit in named}
         self._read_units_row(columns)
         self._time = next((c for c in columns if c.lower() in TIME_NAMES), None)
+        self._t_scale, self._t_relative = 1.0, _T_RELATIVE_DIGITS
         if self._time is not None:
             unit = self._header_units[self._time]
             if unit not in _TIME_UNITS:
@@ -283,7 +284,7 @@ class CsvReader(ReaderBase):
         fs = self.info.sample_rate_hz
         t = t * self._t_scale
         expected = self._t0 + (start + np.arange(len(t))) / fs
-        tolerance = _T_TOLERANCE_PERIODS / fs + _T_RELATIVE_DIGITS * np.abs(expected)
+        tolerance = _T_TOLERANCE_PERIODS / fs + self._t_relative * np.abs(expected)
         bad = np.flatnonzero(~(np.abs(t - expected) <= tolerance))
         if bad.size:
             i = int(bad[0])

@@ -37,10 +37,12 @@ _READERS = {
     "ibw": ("ibw", "IbwReader"),
     "tdms": ("tdms", "TdmsReader"),
     "wav": ("wav", "WavReader"),
+    "labone-csv": ("labone", "LaboneCsvReader"),
+    "labone-hdf5": ("labone", "LaboneHdf5Reader"),
 }
 
 #: Formats whose readers select a segment themselves (segments at different rates).
-_NATIVE_SEGMENTS = ("jpk",)
+_NATIVE_SEGMENTS = ("jpk", "labone-hdf5")
 
 
 def input_format(path: Path | str) -> str:
@@ -60,6 +62,10 @@ def input_format(path: Path | str) -> str:
         raise InputError(f"{path}: unknown extension {path.suffix or '(none)'!r}; expected one of {known}")
     if path.stat().st_size == 0:
         raise InputError(f"{path}: empty file")
+    if fmt in ("hdf5", "csv"):
+        from afmtool.io.labone import sniff_labone
+
+        fmt = sniff_labone(path, fmt)
     return "ros2" if fmt.startswith("ros2") else fmt
 
 
