@@ -30,11 +30,14 @@ _SUFFIX_FORMATS = {
     ".ibw": "ibw",
     ".tdms": "tdms",
     ".wav": "wav",
+    ".jpk-force": "jpk",
+    ".jpk-qi-series": "jpk",
 }
 
 #: Input-only formats: their readers, as (module, class) under afmtool.io.
 _READERS = {
     "ibw": ("ibw", "IbwReader"),
+    "jpk": ("jpk", "JpkReader"),
     "tdms": ("tdms", "TdmsReader"),
     "wav": ("wav", "WavReader"),
     "labone-csv": ("labone", "LaboneCsvReader"),
