@@ -32,12 +32,15 @@ _SUFFIX_FORMATS = {
     ".wav": "wav",
     ".jpk-force": "jpk",
     ".jpk-qi-series": "jpk",
+    ".txt": "chiaro",
+    ".zip": "chiaro",
 }
 
 #: Input-only formats: their readers, as (module, class) under afmtool.io.
 _READERS = {
     "ibw": ("ibw", "IbwReader"),
     "jpk": ("jpk", "JpkReader"),
+    "chiaro": ("chiaro", "ChiaroReader"),
     "tdms": ("tdms", "TdmsReader"),
     "wav": ("wav", "WavReader"),
     "labone-csv": ("labone", "LaboneCsvReader"),
