@@ -232,6 +232,10 @@ class CsvReader(ReaderBase):
         if sample_rate_hz is None and has_t and len(self._pending_rows) >= 2:
             t = self._pending_rows[:, self._index[self._time]] * self._t_scale
             sample_rate_hz = (len(t) - 1) / (t[-1] - t[0]) if t[-1] != t[0] else float("nan")
+            if np.isfinite(sample_rate_hz):
+                # Decimal time stamps make (n-1)/span 500000.00000000006 for 500 kHz; 12 significant
+                # digits undo that and move the rate by < 1e-12, far inside the uniformity check.
+                sample_rate_hz = float(f"{sample_rate_hz:.12g}")
         if sample_rate_hz is None:
             raise InputError(f"{self._name}: no sample rate; add '# sample_rate_hz: ...', a t column, or --sample-rate")
         if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
