@@ -96,3 +96,35 @@ def test_identify_invols_bad_channel(tmp_path, rng):
     result = run_cli("identify", "invols", curve, "--z-channel", "height", "--out", tmp_path / "out")
     assert result.returncode == 2 and "no channel 'height'" in result.stderr.decode()
     assert not (tmp_path / "out").exists()
+
+
+def test_identify_invols_on_the_real_asylum_force_curve(tmp_path, shared):
+    """The MFP-3D force curve (SOURCES.md §1): the slope beside the wave note's InvOLS, and an independent fit.
+
+    The independent fit reads the wave with igor2 directly (column Defl against ZSnsr, m), takes the approach
+    (the note's Indexes 0,1008,...) and fits a straight line with numpy.polyfit to the points in the z range the
+    report says it fitted.  The sample is soft: the slope is well below 1.
+    """
+    igor2 = pytest.importorskip("igor2.binarywave")
+    path = shared / "data" / "formats" / "fmt-igor-fd_SiN_FD_plot.ibw"
+    out = tmp_path / "out"
+    result = run_cli("identify", "invols", path, "--out", out, "-q")
+    assert result.returncode == 0, result.stderr.decode()
+    report = json.loads((out / "report.json").read_text())
+    res = report["results"]
+    wave = igor2.load(str(path))["wave"]
+    data = np.asarray(wave["wData"], dtype=np.float64)
+    labels = [x.decode() for x in wave["labels"][1] if x]
+    defl_nm = data[:1009, labels.index("Defl")] * 1e9
+    z_nm = data[:1009, labels.index("ZSnsr")] * 1e9
+    lo, hi = res["fitted_z_range_nm"]
+    chosen = (z_nm >= lo) & (z_nm <= hi)
+    slope, _ = np.polyfit(z_nm[chosen], defl_nm[chosen], 1)
+    print(f"real .ibw: contact slope {res['contact_slope']:.5f} nm/nm (independent polyfit {slope:.5f}, "
+          f"{chosen.sum()} points), the note's InvOLS {res['capture_invols_nm_per_v']} nm/V, implied "
+          f"{res['implied_invols_nm_per_v']:.2f} nm/V")
+    assert chosen.sum() == res["fitted_points"]
+    assert math.isclose(res["contact_slope"], slope, rel_tol=1e-6)
+    assert 0.1 < res["contact_slope"] < 0.8  # soft sample: well below 1
+    assert res["capture_invols_nm_per_v"] == pytest.approx(44.99)
+    assert any("soft sample" in w for w in report["warnings"])

@@ -35,7 +35,9 @@ def stdout_pipe() -> Iterator[None]:
         raise typer.Exit(0) from None
 
 
-def open_calibrated(path, channel, topic, sample_rate, calibration=None, *, convert_units: bool = True):
+def open_calibrated(
+    path, channel, topic, sample_rate, calibration=None, *, convert_units: bool = True, segment: str | None = None
+):
     """Open a capture, its units parsed and converted once here (``--units``, ``--invols``, ``--drive``)."""
     from afmtool.cli.calibration_options import apply_calibration
     from afmtool.io.registry import open_capture
@@ -45,6 +47,7 @@ def open_calibrated(path, channel, topic, sample_rate, calibration=None, *, conv
         channel_map=parse_mapping(channel, "--channel"),
         topic_map=parse_mapping(topic, "--topic"),
         sample_rate_hz=sample_rate,
+        segment=segment,
     )
     try:
         return apply_calibration(reader, calibration, convert_units=convert_units)
@@ -62,12 +65,15 @@ def open_input(
     calibration=None,
     *,
     convert_units: bool = True,
+    segment: str | None = None,
 ):
-    """Open a capture with the shared --channel/--topic/--sample-rate (and calibration) options.
+    """Open a capture with the shared --channel/--topic/--sample-rate/--segment (and calibration) options.
 
     ``convert_units=False`` (``info``, ``convert``) applies ``--units`` but keeps the file's scale.
     """
-    reader = open_calibrated(path, channel, topic, sample_rate, calibration, convert_units=convert_units)
+    reader = open_calibrated(
+        path, channel, topic, sample_rate, calibration, convert_units=convert_units, segment=segment
+    )
     try:
         yield reader
     finally:

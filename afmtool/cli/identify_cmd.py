@@ -9,7 +9,16 @@ import typer
 
 from afmtool.cli.calibration_options import CaptureCalibration, InvolsOpt, UnitsOpt, ZSensitivityOpt
 from afmtool.cli.common import finish_command, open_input
-from afmtool.cli.options import ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.options import (
+    ChannelOpt,
+    ConfigOpt,
+    JsonOpt,
+    OutOpt,
+    QuietOpt,
+    SampleRateOpt,
+    SegmentOpt,
+    TopicOpt,
+)
 from afmtool.cli.progress import progress_bar
 
 __all__ = ["register"]
@@ -184,6 +193,7 @@ def identify_invols(
     sample_rate: SampleRateOpt = None,
     units: UnitsOpt = None,
     z_sensitivity: ZSensitivityOpt = None,
+    segment: SegmentOpt = None,
 ) -> None:
     """InvOLS (nm/V) from the contact part of a force curve on a hard sample, with its uncertainty.
 
@@ -197,7 +207,7 @@ def identify_invols(
 
     flags = {"leg": leg, "z_channel": z_channel, "deflection_channel": deflection_channel}
     calibration = CaptureCalibration(units, None, z_sensitivity, raw_deflection=True)
-    with open_input(curve, channel, topic, sample_rate, calibration) as reader:
+    with open_input(curve, channel, topic, sample_rate, calibration, segment=segment) as reader:
         report = run_invols_command(reader, curve, out, config, flags)
     finish_command(report, out, json_output, quiet)
 
