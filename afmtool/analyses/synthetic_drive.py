@@ -19,6 +19,7 @@ fitted with.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import replace
 
@@ -47,9 +48,15 @@ def drive_lines_from_metadata(metadata: Mapping) -> tuple[DriveLine, ...]:
     if not lines:
         return ()
     try:
-        parsed = tuple(DriveLine(float(x["frequency_hz"]), float(x["amplitude_v"])) for x in lines)
-    except (TypeError, KeyError, ValueError):
-        raise InputError("metadata drive.lines must be a list of {frequency_hz, amplitude_v}") from None
+        parsed = tuple(
+            DriveLine(float(x["frequency_hz"]), float(x["amplitude_v"]), math.radians(float(x.get("phase_deg", math.nan))))
+            for x in lines
+        )
+    except (TypeError, KeyError, ValueError, AttributeError):
+        raise InputError("metadata drive.lines must be a list of {frequency_hz, amplitude_v[, phase_deg]}") from None
+    given = [math.isfinite(line.phase_rad) for line in parsed]
+    if any(given) and not all(given):
+        raise InputError("metadata drive.lines: give phase_deg for every line or for none")
     if any(not (line.frequency_hz > 0 and line.amplitude_v > 0) for line in parsed):
         raise InputError("metadata drive.lines: frequency_hz and amplitude_v must be > 0")
     return parsed
@@ -88,7 +95,14 @@ class SyntheticDriveReader(ReaderBase):
     @property
     def drive_record(self) -> dict:
         """What the report records: the lines with their fitted phases and where they were fitted."""
-        record = {"lines": [{"frequency_hz": line.frequency_hz, "amplitude_v": line.amplitude_v} for line in self._lines]}
+        record = {
+            "lines": [
+                {"frequency_hz": line.frequency_hz, "amplitude_v": line.amplitude_v,
+                 "phase_deg": float(np.degrees(line.phase_rad)) if math.isfinite(line.phase_rad) else None}
+                for line in self._lines
+            ],
+            "phases": "given" if all(math.isfinite(line.phase_rad) for line in self._lines) else "fitted",
+        }
         if self.fit is not None:
             record["lines"] = [
                 {"frequency_hz": line.frequency_hz, "amplitude_v": line.amplitude_v, "phase_deg": float(np.degrees(line.phase_rad))}
@@ -114,6 +128,13 @@ class SyntheticDriveReader(ReaderBase):
             yield from self._reader.blocks(channels, block_samples)
             return
         wanted = [c for c in channels if c != "dither"]
+        if all(math.isfinite(line.phase_rad) for line in self._lines):
+            # the phases were given: nothing to fit, nothing to read ahead
+            for chunk in self._reader.blocks(list(dict.fromkeys([*wanted, "deflection"])), block_samples):
+                data = {name: chunk.data[name] for name in wanted}
+                data["dither"] = synthesize_drive(self._lines, self.info.sample_rate_hz, chunk.start, len(chunk))
+                yield Chunk(chunk.start, {name: data[name] for name in channels})
+            return
         read = list(dict.fromkeys([*wanted, "deflection"]))
         source = self._reader.blocks(read, block_samples)
         start, end = self._fit_range()

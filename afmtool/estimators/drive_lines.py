@@ -33,11 +33,11 @@ __all__ = [
 
 
 class DriveLine(NamedTuple):
-    """One line of the dither: frequency (Hz), amplitude (V) and phase (rad) at t = 0."""
+    """One line of the dither: frequency (Hz), amplitude (V) and cosine phase (rad) at t = 0 (NaN: to be fitted)."""
 
     frequency_hz: float
     amplitude_v: float
-    phase_rad: float = 0.0
+    phase_rad: float = math.nan
 
 
 class DrivePhaseFit(NamedTuple):
@@ -66,22 +66,37 @@ class DrivePhaseFit(NamedTuple):
 
 
 def parse_drive_lines(text: str) -> tuple[DriveLine, ...]:
-    """``"71000:0.05,70000:0.025"`` → lines (Hz, V), for ``--drive``."""
+    """``"71000:0.05,70000:0.025"`` → lines (Hz, V), for ``--drive``.
+
+    A third field gives a line's phase at the capture's first sample in
+    degrees (``"71000:0.05:-90"``, cosine phase); then it is not fitted.  Give
+    it for every line or for none.  Lines without one have phase NaN.
+    """
     lines = []
     for item in text.split(","):
-        freq, sep, amp = item.partition(":")
+        fields = item.strip().split(":")
         try:
-            line = DriveLine(float(freq), float(amp))
+            if len(fields) not in (2, 3):
+                raise ValueError
+            phase = math.radians(float(fields[2])) if len(fields) == 3 else math.nan
+            line = DriveLine(float(fields[0]), float(fields[1]), phase)
         except ValueError:
-            raise ConfigError(f"--drive item {item.strip()!r} must look like FREQUENCY_HZ:AMPLITUDE_V") from None
-        if not sep or not (math.isfinite(line.frequency_hz) and line.frequency_hz > 0):
-            raise ConfigError(f"--drive item {item.strip()!r} must look like FREQUENCY_HZ:AMPLITUDE_V, frequency > 0")
+            raise ConfigError(
+                f"--drive item {item.strip()!r} must look like FREQUENCY_HZ:AMPLITUDE_V[:PHASE_DEG]"
+            ) from None
+        if not (math.isfinite(line.frequency_hz) and line.frequency_hz > 0):
+            raise ConfigError(f"--drive item {item.strip()!r}: the frequency must be > 0")
         if not (math.isfinite(line.amplitude_v) and line.amplitude_v > 0):
             raise ConfigError(f"--drive item {item.strip()!r}: the amplitude must be > 0")
+        if len(fields) == 3 and not math.isfinite(line.phase_rad):
+            raise ConfigError(f"--drive item {item.strip()!r}: the phase must be finite")
         lines.append(line)
     frequencies = [line.frequency_hz for line in lines]
     if len(set(frequencies)) != len(frequencies):
         raise ConfigError(f"--drive {text!r} names a frequency twice")
+    given = [math.isfinite(line.phase_rad) for line in lines]
+    if any(given) and not all(given):
+        raise ConfigError(f"--drive {text!r}: give a phase for every line or for none")
     return tuple(lines)
 
 
