@@ -12,7 +12,7 @@ REEP, probeloss and kalman-bank then run unchanged.  The lines come from
 ``--drive`` or from metadata ``drive.lines`` (a list of
 ``{"frequency_hz": F, "amplitude_v": A}``).  The drive is taken to be a
 continuous signal (a real instrument's); metadata ``drive.hold`` starting
-with ``"zero-order"`` says a DAC held it between samples (afmtool's
+with ``"zero-order"`` (or ``"zoh"``) says a DAC held it between samples (afmtool's
 discrete-time simulators), which changes the response the phases are
 fitted with.
 """
@@ -36,10 +36,14 @@ DEFAULT_FIT_SAMPLES = 1 << 16
 
 
 def drive_hold(metadata: Mapping) -> str:
-    """``"zero-order"`` when metadata ``drive.hold`` says a DAC held the drive between samples, else ``"none"``."""
+    """``"zero-order"`` when metadata ``drive.hold`` says a DAC held the drive between samples, else ``"none"``.
+
+    ``"zero-order..."`` (afmtool's simulators) and ``"zoh"`` (tests/reference_sim.py) mean held.
+    """
     drive = metadata.get("drive")
     hold = drive.get("hold", "") if isinstance(drive, Mapping) else ""
-    return "zero-order" if isinstance(hold, str) and hold.startswith("zero-order") else "none"
+    held = isinstance(hold, str) and (hold.startswith("zero-order") or hold == "zoh")
+    return "zero-order" if held else "none"
 
 
 def drive_lines_from_metadata(metadata: Mapping) -> tuple[DriveLine, ...]:
