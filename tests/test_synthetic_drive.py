@@ -181,3 +181,43 @@ def test_bad_drive_is_one_line_exit_2(tmp_path):
     result = run_cli("reep", tmp_path / "x.h5", "--drive", "70000", "--out", tmp_path / "out")
     assert result.returncode == 2 and len(result.stderr.decode().strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+class _ArrayReader:
+    """A minimal in-memory reader: deflection only, any chunk size."""
+
+    def __init__(self, fs, deflection, metadata):
+        from afmtool.io.capture import CaptureInfo, ChannelSpec
+
+        self.info = CaptureInfo("mem", "memory", fs, (ChannelSpec("deflection", "nm"),), deflection.size, metadata)
+        self._x = deflection
+
+    def blocks(self, channels, block_samples):
+        from afmtool.io.capture import Chunk
+
+        for start in range(0, self._x.size, block_samples):
+            yield Chunk(start, {"deflection": self._x[start : start + block_samples]})
+
+    def truth(self):
+        return {}
+
+    def close(self):
+        pass
+
+
+def test_synthetic_dither_does_not_depend_on_the_chunk_size(tmp_path):
+    from afmtool.analyses.synthetic_drive import SyntheticDriveReader
+
+    capture = _drop_dither(LTV, tmp_path / "x.h5")
+    capture["metadata"]["drive"]["hold"] = "zero-order"
+    lines = _lines_of(capture)
+    series = {}
+    for block in (997, 4096, 1 << 20):
+        reader = SyntheticDriveReader(_ArrayReader(capture["fs"], capture["data"]["deflection"], capture["metadata"]),
+                                      lines)
+        chunks = list(reader.blocks(["deflection", "dither"], block))
+        series[block] = np.concatenate([c.data["dither"] for c in chunks])
+        np.testing.assert_array_equal(np.concatenate([c.data["deflection"] for c in chunks]),
+                                      capture["data"]["deflection"])
+    np.testing.assert_allclose(series[997], series[1 << 20], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(series[4096], series[1 << 20], rtol=0, atol=1e-12)

@@ -214,22 +214,31 @@ def test_units_option_on_csv(tmp_path):
     assert bad.returncode == 2 and "no channel 'deflectoin'" in bad.stderr.decode()
 
 
-def test_decode_same_in_m_as_in_nm(tmp_path):
-    """decode on a deflection in m used to run ℓ0 to the bracket edge; now it is converted."""
-    capture = tmp_path / "bits_m.h5"
-    _rewrite(BITS, capture, {"deflection": 1e-9}, {"deflection": "m"})
-    runs = {}
-    for label, path in (("nm", BITS), ("m", capture)):
-        out = tmp_path / label
-        result = run_cli("decode", path, "--bit-rate", "30000", "--out", out, "-q")
-        assert result.returncode == 0, result.stderr.decode()
-        runs[label] = _report(out)["results"]
-    nm, m = runs["nm"], runs["m"]
-    print("l0 nm:", nm["l0"]["estimate_nm"], "m:", m["l0"]["estimate_nm"], "bits", nm["bits"]["count"], m["bits"]["count"])
-    assert math.isclose(m["l0"]["estimate_nm"], nm["l0"]["estimate_nm"], rel_tol=1e-9)
-    assert math.isclose(m["noise"]["measurement_noise_nm"], nm["noise"]["measurement_noise_nm"], rel_tol=1e-9)
-    assert m["bits"]["count"] == nm["bits"]["count"] and m["bits"]["ones"] == nm["bits"]["ones"]
+@pytest.fixture(scope="module")
+def decode_nm(tmp_path_factory):
+    out = tmp_path_factory.mktemp("decode_nm") / "out"
+    result = run_cli("decode", BITS, "--bit-rate", "30000", "--out", out, "-q")
+    assert result.returncode == 0, result.stderr.decode()
+    return _report(out)["results"]
+
+
+@pytest.mark.parametrize(
+    ("label", "scale", "unit", "extra"),
+    [("m", 1e-9, "m", ()), ("um", 1e-3, "um", ()), ("volts", 1 / 38.0, "V", ("--invols", "38"))],
+)
+def test_decode_same_in_m_um_and_volts(tmp_path, decode_nm, label, scale, unit, extra):
+    """decode on a deflection in m used to run l0 to the bracket edge; now it is converted."""
+    capture = tmp_path / f"bits_{label}.h5"
+    _rewrite(BITS, capture, {"deflection": scale}, {"deflection": unit})
+    out = tmp_path / label
+    result = run_cli("decode", capture, "--bit-rate", "30000", "--out", out, "-q", *extra)
+    assert result.returncode == 0, result.stderr.decode()
+    nm, got = decode_nm, _report(out)["results"]
+    print(label, "l0:", got["l0"]["estimate_nm"], "nm run:", nm["l0"]["estimate_nm"], "bits", got["bits"]["count"])
+    assert math.isclose(got["l0"]["estimate_nm"], nm["l0"]["estimate_nm"], rel_tol=1e-9)
+    assert math.isclose(got["noise"]["measurement_noise_nm"], nm["noise"]["measurement_noise_nm"], rel_tol=1e-9)
+    assert got["bits"]["count"] == nm["bits"]["count"] and got["bits"]["ones"] == nm["bits"]["ones"]
     for who in ("decoder", "baseline"):
-        assert m["truth"][who]["errors"] == nm["truth"][who]["errors"]
-        assert m["truth"][who]["confusion"] == nm["truth"][who]["confusion"]
-    print("BER decoder", m["truth"]["decoder"]["ber"], "baseline", m["truth"]["baseline"]["ber"])
+        assert got["truth"][who]["errors"] == nm["truth"][who]["errors"]
+        assert got["truth"][who]["confusion"] == nm["truth"][who]["confusion"]
+    print("BER decoder", got["truth"]["decoder"]["ber"], "baseline", got["truth"]["baseline"]["ber"])
