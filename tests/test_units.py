@@ -74,6 +74,14 @@ def test_plan_factors_are_exact_powers_of_ten():
     assert plan["thermal_current"].factor == 1e-6 and plan["thermal_current"].internal_units == "A"
 
 
+def test_plan_keeps_an_unparsed_unit_of_a_channel_no_analysis_reads():
+    plan = plan_conversions(_info(deflection="nm", lockin_r="Vrms"), Calibration())
+    assert plan["lockin_r"] == ("Vrms", "Vrms", 1.0, "unparsed")
+    with pytest.raises(InputError, match="channel 'deflection' has units 'Vrms'"):
+        plan_conversions(_info(deflection="Vrms"), Calibration())
+    assert parse_unit("Volts").kind == "voltage" and parse_unit("METERS").kind == "length"
+
+
 def test_plan_refuses_wrong_kind_naming_the_channel():
     with pytest.raises(InputError, match=r"channel 'deflection' has units 'uA' \(current\)"):
         plan_conversions(_info(deflection="uA"), Calibration())

@@ -58,6 +58,12 @@ def identify_invols(reader: CaptureReader, params: InvolsParams, warnings: list[
     z = np.concatenate([b.data[params.z_channel] for b in blocks])
     d = np.concatenate([b.data[params.deflection_channel] for b in blocks])
     z_units, d_units = info.units(params.z_channel), info.units(params.deflection_channel)
+    for name, units in ((params.z_channel, z_units), (params.deflection_channel, d_units)):
+        try:
+            parse_unit(units)
+        except ValueError:
+            raise InputError(f"{info.source}: channel {name!r} has units {units!r}, which afmtool cannot parse; "
+                             f"give --units {name}=UNIT") from None
     if z_units and parse_unit(z_units).kind != "length":
         raise InputError(f"{info.source}: channel {params.z_channel!r} is in {z_units!r}; z must be a length here")
     if not z_units:

@@ -66,7 +66,7 @@ _BASES = {"m": "length", "V": "voltage", "A": "current", "s": "time", "Hz": "fre
 _WORDS = {
     "metre": ("length", 0), "meter": ("length", 0), "metres": ("length", 0), "meters": ("length", 0),
     "Å": ("length", -10), "angstrom": ("length", -10),
-    "volt": ("voltage", 0), "volts": ("voltage", 0), "Volt": ("voltage", 0), "Volts": ("voltage", 0),
+    "volt": ("voltage", 0), "volts": ("voltage", 0),
     "ampere": ("current", 0), "amp": ("current", 0), "amps": ("current", 0),
     "sec": ("time", 0), "seconds": ("time", 0),
     "": ("none", 0), "1": ("dimensionless", 0), "a.u.": ("dimensionless", 0), "au": ("dimensionless", 0),
@@ -100,6 +100,8 @@ def parse_unit(text: str) -> ParsedUnit:
     unit = text.strip()
     if unit in _WORDS:
         return ParsedUnit(*_WORDS[unit])
+    if len(unit) > 3 and unit.lower() in _WORDS:  # "Volts", "METERS"; never for symbols ("mV" is not "MV")
+        return ParsedUnit(*_WORDS[unit.lower()])
     for base, kind in _BASES.items():
         if unit.endswith(base) and unit[: -len(base)] in _PREFIXES:
             return ParsedUnit(kind, _PREFIXES[unit[: -len(base)]])
@@ -145,7 +147,7 @@ class ChannelConversion(NamedTuple):
     recorded_units: str
     internal_units: str
     factor: float
-    via: str  # "" (unit prefix only), "invols", "z_sensitivity", "assumed" (no units), "override"
+    via: str  # "" (unit prefix only), "invols", "z_sensitivity", "assumed" (no units), "override", "unparsed"
 
 
 def _sensitivity(name: str, info: CaptureInfo, calibration: Calibration) -> tuple[float, str, str]:
@@ -164,11 +166,15 @@ def _sensitivity(name: str, info: CaptureInfo, calibration: Calibration) -> tupl
 
 def _conversion(name: str, units: str, info: CaptureInfo, calibration: Calibration) -> ChannelConversion:
     where = f"{info.source}: channel {name!r}"
+    allowed = CHANNEL_KINDS.get(name)
     try:
         kind, exponent = parse_unit(units)
     except ValueError:
+        if allowed is None and name not in calibration.units:
+            # a channel no analysis reads by its canonical name ("Vrms", "counts/s"...): kept as recorded,
+            # so that one odd column does not stop an analysis of the others
+            return ChannelConversion(units, units, 1.0, "unparsed")
         raise InputError(f"{where} has units {units!r}, which afmtool cannot parse; give --units {name}=UNIT") from None
-    allowed = CHANNEL_KINDS.get(name)
     if kind == "none":
         return ChannelConversion("", "", 1.0, "assumed")
     if allowed is not None and kind not in allowed:
@@ -195,10 +201,14 @@ def _check_unit_names(info: CaptureInfo, calibration: Calibration) -> None:
 def plan_conversions(info: CaptureInfo, calibration: Calibration) -> dict[str, ChannelConversion]:
     """Each channel's conversion to its internal unit.
 
+    A channel that is not canonical and whose unit cannot be parsed is kept
+    as recorded (``via="unparsed"``); an analysis that reads it by another
+    name checks it itself.
+
     Raises
     ------
     InputError
-        A unit that cannot be parsed, one of the wrong kind for a canonical
+        A unit of a canonical channel that cannot be parsed, one of the wrong kind for a canonical
         channel, a deflection (z-piezo) in V without an InvOLS (z
         sensitivity), or ``--units`` naming a channel the capture lacks.
     """
