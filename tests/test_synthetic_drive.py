@@ -21,7 +21,7 @@ from afmtool.estimators.drive_lines import (
     parse_drive_lines,
     synthesize_drive,
 )
-from tests.conftest import SAMPLE_DATA, run_cli
+from tests.conftest import SAMPLE_DATA, run_cli, validate_report
 
 LTV = SAMPLE_DATA / "ltv_step.h5"
 RASTER = SAMPLE_DATA / "raster_grating.h5"
@@ -124,6 +124,7 @@ def test_reep_with_drive_matches_the_recorded_dither(tmp_path, source):
         q_err = np.nanmax(np.abs(b["q"][()][warm] / a["q"][()][warm] - 1))
     print(source.name, "largest per-sample difference after warm-up: f0'", f0_err, "Q'", q_err)
     assert f0_err < 1e-3 and q_err < 1e-2
+    validate_report(got)
     record = got["inputs"][0]["synthetic_drive"]
     assert len(record["lines"]) == 3 and all("phase_deg" in line for line in record["lines"])
 

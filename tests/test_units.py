@@ -17,7 +17,7 @@ import pytest
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk
 from afmtool.io.units import Calibration, UnitsReader, calibration_record, parse_unit, plan_conversions
-from tests.conftest import SAMPLE_DATA, run_cli
+from tests.conftest import SAMPLE_DATA, run_cli, validate_report
 
 LTV = SAMPLE_DATA / "ltv_step.h5"
 BITS = SAMPLE_DATA / "bits_30khz.h5"
@@ -170,6 +170,7 @@ def test_reep_same_in_m_um_and_volts(tmp_path, reep_nm, label, scale, unit, extr
     print(label, "f0', Q', amplitude:", actual, "nm:", expected)
     for a, e in zip(actual, expected):
         assert math.isclose(a, e, rel_tol=1e-9)
+    validate_report(report)
     conversion = report["inputs"][0]["unit_conversions"]["deflection"]
     assert conversion["recorded_units"] == unit and conversion["internal_units"] == "nm"
     assert math.isclose(conversion["factor"], 1 / scale, rel_tol=1e-12)
