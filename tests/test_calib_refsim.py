@@ -11,7 +11,6 @@ import json
 import math
 
 import h5py
-import numpy as np
 import pytest
 
 from tests.conftest import run_cli
