@@ -42,7 +42,8 @@ class CaptureCalibration(NamedTuple):
     invols_nm_per_v: float | None = None
     z_sensitivity_nm_per_v: float | None = None
     drive: str | None = None
-    #: ``--free-air``: where the drive's phases are fitted.
+    #: ``--free-air``: where the drive's phases are fitted (else metadata ``free_air``, else the first
+    #: 65,536 samples); a ``free_air`` set only in a --config file is not seen here, the flag or metadata is.
     free_air: str | None = None
     #: The command can use a synthesised dither (reep, probeloss, kalman-bank): metadata drive.lines apply.
     accepts_drive: bool = False

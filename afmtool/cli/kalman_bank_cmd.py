@@ -74,6 +74,7 @@ def kalman_bank(
     config.toml.  Needs dither, deflection and z_piezo.
     """
     from afmtool.analyses.kalman_bank_outputs import run_kalman_bank_command
+
     flags = {
         "reep": str(reep) if reep else None,
         "at_z": at_z,
