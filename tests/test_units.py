@@ -67,11 +67,14 @@ def _info(**units) -> CaptureInfo:
 
 
 def test_plan_factors_are_exact_powers_of_ten():
-    plan = plan_conversions(_info(deflection="m", z_piezo="um", dither="mV", thermal_current="uA"), Calibration())
+    plan = plan_conversions(_info(deflection="m", z_piezo="um", dither="mV", thermal_current="A", i2="nA"),
+                            Calibration())
     assert plan["deflection"].factor == 1e9 and plan["deflection"].internal_units == "nm"
     assert plan["z_piezo"].factor == 1e3
     assert plan["dither"].factor == 1e-3 and plan["dither"].internal_units == "V"
-    assert plan["thermal_current"].factor == 1e-6 and plan["thermal_current"].internal_units == "A"
+    assert plan["thermal_current"].factor == 1e6 and plan["thermal_current"].internal_units == "uA"
+    assert plan["i2"].factor == 1e-3
+    assert plan_conversions(_info(thermal_current="uA"), Calibration())["thermal_current"].factor == 1.0
 
 
 def test_plan_keeps_an_unparsed_unit_of_a_channel_no_analysis_reads():

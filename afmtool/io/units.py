@@ -1,7 +1,8 @@
 """Channel units, parsed once where a capture is opened, and converted to afmtool's internal units.
 
-Every analysis assumes lengths in nm, voltages in V, currents in A and times
-in s.  :class:`UnitsReader` wraps any reader: it parses each channel's units
+Every analysis assumes lengths in nm, voltages in V, currents in µA and
+times in s (µA, not A: the canonical current of the thermal-sensor analyses,
+:data:`afmtool.analyses.gamma.CANONICAL_UNITS`, whose results are in µA/nm).  :class:`UnitsReader` wraps any reader: it parses each channel's units
 (from the file, or from ``--units NAME=UNIT``), refuses a unit it cannot parse
 or one of the wrong kind for a canonical channel (a deflection in A), turns a
 deflection or z-piezo recorded in V into nm through the InvOLS (``--invols``,
@@ -39,7 +40,7 @@ __all__ = [
 
 #: The unit each kind of quantity is converted to.
 INTERNAL_UNITS: Mapping[str, str] = MappingProxyType(
-    {"length": "nm", "voltage": "V", "current": "A", "time": "s", "frequency": "Hz"}
+    {"length": "nm", "voltage": "V", "current": "uA", "time": "s", "frequency": "Hz"}
 )
 #: The kinds a canonical channel may be recorded in ("voltage" for deflection and
 #: z_piezo only through a sensitivity).
@@ -74,8 +75,8 @@ _WORDS = {
     "deg": ("angle", 0), "rad": ("angle", 0), "dB": ("level", 0), "K": ("temperature", 0),
     "degC": ("temperature", 0), "°C": ("temperature", 0),
 }
-#: Power of ten of each kind's internal unit to SI (nm = 1e-9 m).
-_INTERNAL_EXPONENT = {"length": -9, "voltage": 0, "current": 0, "time": 0, "frequency": 0}
+#: Power of ten of each kind's internal unit to SI (nm = 1e-9 m, µA = 1e-6 A).
+_INTERNAL_EXPONENT = {"length": -9, "voltage": 0, "current": -6, "time": 0, "frequency": 0}
 
 
 class ParsedUnit(NamedTuple):
@@ -224,7 +225,7 @@ def plan_conversions(info: CaptureInfo, calibration: Calibration) -> dict[str, C
 
 
 class UnitsReader(ReaderBase):
-    """A reader whose channels come out in afmtool's internal units (nm, V, A, s).
+    """A reader whose channels come out in afmtool's internal units (nm, V, µA, s).
 
     Parameters
     ----------
