@@ -13,6 +13,7 @@ from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import DecodeParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
+from afmtool.io.units import calibration_record
 from afmtool.report.json_report import PendingInputRecord
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -52,7 +53,8 @@ def run_decode_command(
                     writer.put(f"psd/{name}", result.psd[name], units)
         _write_figures(staged, result)
         _write_time_series(staged, reader, result.results)
-        return finish_run(staged, "decode", [record.result()], "decode", params, result.results, result.warnings)
+        inputs = [{**record.result(), **calibration_record(reader)}]
+        return finish_run(staged, "decode", inputs, "decode", params, result.results, result.warnings)
 
 
 def run_decode_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:

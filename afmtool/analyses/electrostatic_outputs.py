@@ -18,6 +18,7 @@ from afmtool.config.params import ElectrostaticFitParams
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader
 from afmtool.io.chunks import iter_chunks
+from afmtool.io.units import calibration_record
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -210,7 +211,7 @@ def run_electrostatic_command(
         "rms_residual_nm": fit.rms_residual_m * 1e9,
         "residual_lag1_autocorrelation": fit.residual_autocorrelation,
     }
-    inputs = [input_record(source)]
+    inputs = [{**input_record(source), **calibration_record(reader)}]
     if sensor == "thermal":
         path = Path(thermal_model)
         inputs.append(input_record(path / THERMAL_MODEL_FILE if path.is_dir() else path, "thermal-model"))

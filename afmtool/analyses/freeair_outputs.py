@@ -10,10 +10,11 @@ import numpy as np
 
 from afmtool.analyses.freeair import free_air_from_segment, read_segment
 from afmtool.config import load_toml, resolve_from
-from afmtool.config.params import FreeAirParams, parse_interval
+from afmtool.config.params import FreeAirParams, SpringConstantParams, parse_interval
 from afmtool.errors import ConfigError
 from afmtool.io.capture import CaptureReader
 from afmtool.io.chunks import iter_chunks
+from afmtool.io.units import calibration_record
 from afmtool.models.free_air import FreeAirModel
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
@@ -173,7 +174,9 @@ def write_thermal_fit_png(path: Path, frequency_hz: np.ndarray, asd: np.ndarray,
                           title="Thermal-noise spectrum and its simple-harmonic-oscillator fit")
 
 
-def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict, Callable[[Path], None]]:
+def _thermal_route(
+    psd: Path, params: FreeAirParams, spring: SpringConstantParams
+) -> tuple[FreeAirModel, dict, Callable[[Path], None]]:
     from afmtool.estimators.thermal_noise import fit_thermal_spectrum
     from afmtool.io.psd import read_psd_csv
 
@@ -189,8 +192,48 @@ def _thermal_route(psd: Path, params: FreeAirParams) -> tuple[FreeAirModel, dict
         "spring_constant_n_per_m": fit.spring_constant_n_per_m,
         "spring_constant_note": "equipartition, assuming the ASD is calibrated tip displacement (m/sqrt(Hz))",
         "temperature_k": params.temperature_k,
+        "spring_constant": _spring_constants(fit, spring),
     }
     return model, details, lambda path: write_thermal_fit_png(path, frequency, asd, fit)
+
+
+def _spring_constants(fit, spring: SpringConstantParams) -> dict:
+    """The thermal (Butt–Jaschke corrected) and, with L and b, the Sader spring constants (N/m)."""
+    from afmtool.estimators.spring_constant import FLUIDS, sader_spring_constant, thermal_factor
+
+    factor = thermal_factor(spring.detection)
+    thermal = {
+        "method": "equipartition of mode 1, k = factor * k_B T / <p^2>",
+        "detection": spring.detection,
+        "factor": factor,
+        "factor_source": "Butt & Jaschke, Nanotechnology 6, 1 (1995): 12/(alpha_1 L)^4 / chi^2 (optical lever, "
+        "static InvOLS) or 12/(alpha_1 L)^4 (displacement)",
+        "temperature_k": fit.temperature_k,
+        "value_n_per_m": None if fit.spring_constant_n_per_m is None else factor * fit.spring_constant_n_per_m,
+        "std_n_per_m": None if fit.spring_constant_std is None else factor * fit.spring_constant_std,
+    }
+    result = {"thermal": thermal, "sader": None, "parameters": dataclasses.asdict(spring)}
+    if spring.length_um > 0 and spring.width_um > 0:
+        density = spring.fluid_density_kg_per_m3 or FLUIDS[spring.fluid][0]
+        viscosity = spring.fluid_viscosity_pa_s or FLUIDS[spring.fluid][1]
+        sader = sader_spring_constant(
+            fit.f0_hz, fit.q, spring.length_um * 1e-6, spring.width_um * 1e-6, fluid=spring.fluid,
+            density_kg_per_m3=density, viscosity_pa_s=viscosity, f0_std_hz=fit.f0_std_hz, q_std=fit.q_std,
+        )
+        result["sader"] = {
+            "method": "Sader, Chon & Mulvaney, Rev. Sci. Instrum. 70, 3967 (1999): "
+            "k = 0.1906 rho_f b^2 L Q Gamma_i(Re) omega^2",
+            "value_n_per_m": sader.spring_constant_n_per_m,
+            "std_n_per_m": sader.spring_constant_std,
+            "length_um": spring.length_um,
+            "width_um": spring.width_um,
+            "fluid": spring.fluid,
+            "fluid_density_kg_per_m3": density,
+            "fluid_viscosity_pa_s": viscosity,
+            "reynolds": sader.reynolds,
+            "gamma_imag": sader.gamma_imag,
+        }
+    return result
 
 
 def run_freeair_command(
@@ -202,18 +245,22 @@ def run_freeair_command(
     progress: Callable[[int], None],
 ) -> dict:
     """Identify the free-air model by the chosen route and write free_air.json + report."""
-    params = resolve_from(FreeAirParams, "identify.freeair", load_toml(config) if config else None, flags)
+    user_config = load_toml(config) if config else None
+    params = resolve_from(
+        FreeAirParams, "identify.freeair", user_config, {k: v for k, v in flags.items() if k != "spring"}
+    )
     plot = None
     warnings: list[str] = []
     if params.route == "thermal":
-        model, details, plot = _thermal_route(Path(source), params)
+        spring = resolve_from(SpringConstantParams, "identify.spring_constant", user_config, flags.get("spring", {}))
+        model, details, plot = _thermal_route(Path(source), params, spring)
         inputs = [input_record(source, "psd")]
     elif params.route == "sweep":
         model, details, warnings, plot = _sweep_route(reader, params, progress)
-        inputs = [input_record(source)]
+        inputs = [{**input_record(source), **calibration_record(reader)}]
     else:
         model, details = _segment_route(reader, params, progress)
-        inputs = [input_record(source)]
+        inputs = [{**input_record(source), **calibration_record(reader)}]
     with OutputDir(out) as staged:
         model.save(staged.path("free_air.json"))
         if params.route == "sweep" and params.sweep_method == "record":

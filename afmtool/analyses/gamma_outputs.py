@@ -31,6 +31,7 @@ from afmtool.estimators.frequency_response import FrequencyResponse, frf_table
 from afmtool.io.capture import CaptureReader
 from afmtool.io.chunks import iter_chunks, require_channels
 from afmtool.io.results import ResultWriter
+from afmtool.io.units import calibration_record
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -273,7 +274,10 @@ def run_gamma_command(
     gamma, facts = estimate_from_captures(sweep, contact, params, progress, warnings)
     summary, mask = summarise(gamma, params, warnings)
     results = {**facts, **summary}
-    inputs = [input_record(sources[0], "sweep"), input_record(sources[1], "contact")]
+    inputs = [
+        {**input_record(sources[0], "sweep"), **calibration_record(sweep)},
+        {**input_record(sources[1], "contact"), **calibration_record(contact)},
+    ]
     with OutputDir(out) as staged:
         _write_tables(staged, gamma, facts)
         _write_plots(staged, gamma, results, mask)

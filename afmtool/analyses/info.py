@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES, CaptureReader
+from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES, CaptureReader, SegmentSpec
 from afmtool.io.chunks import iter_chunks
 
 __all__ = ["ChannelStats", "CaptureSummary", "summarize"]
@@ -38,6 +38,8 @@ class CaptureSummary:
     channels: tuple[ChannelStats, ...]
     metadata: dict
     truth_names: tuple[str, ...]
+    #: The file's segments (``--segment`` reads one), empty when it has none.
+    segments: tuple[SegmentSpec, ...] = ()
 
 
 class _RunningStats:
@@ -89,4 +91,5 @@ def summarize(
         channels,
         dict(info.metadata),
         info.truth_names,
+        info.segments,
     )

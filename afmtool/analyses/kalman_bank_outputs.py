@@ -19,6 +19,7 @@ from afmtool.config.params import KalmanBankParams
 from afmtool.errors import ConfigError
 from afmtool.io.capture import CaptureReader
 from afmtool.io.matrix_results import MatrixResultWriter
+from afmtool.io.units import calibration_record
 from afmtool.models.free_air import load_free_air_model
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
@@ -72,6 +73,7 @@ def run_kalman_bank_command(
             warnings = list(result.warnings)
             if not result.verdict.passed:
                 warnings.append("verdict FAIL: " + "; ".join(result.verdict.reasons))
+            inputs[0] = {**inputs[0], **calibration_record(reader)}  # after the run: the drive phases are fitted
             return finish_run(staged, "kalman-bank", inputs, "kalman-bank", params, result.results, warnings)
     finally:
         if reep_results is not None:

@@ -13,6 +13,7 @@ from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
+from afmtool.io.units import calibration_record
 from afmtool.models.free_air import load_free_air_model
 from afmtool.report.json_report import PendingInputRecord, input_record
 from afmtool.report.outputs import OutputDir
@@ -54,7 +55,7 @@ def run_probeloss_command(
         _write_time_series(staged, reader, results)
         if result.setup is not None and result.setup.model_source == "segment":
             result.setup.model.save(staged.path("free_air.json"))
-        inputs = [capture_record.result()]
+        inputs = [{**capture_record.result(), **calibration_record(reader)}]
         if params.model:
             model_path = Path(params.model)
             model_file = model_path if model_path.is_file() else model_path / "free_air.json"

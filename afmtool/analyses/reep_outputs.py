@@ -13,6 +13,7 @@ from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
+from afmtool.io.units import calibration_record
 from afmtool.models.free_air import load_free_air_model
 from afmtool.report.json_report import PendingInputRecord, input_record
 from afmtool.report.outputs import OutputDir
@@ -63,7 +64,7 @@ def run_reep_command(
             from afmtool.models.free_air import FreeAirModel
 
             FreeAirModel(**result.results["free_air_model"]).save(staged.path("free_air.json"))
-        inputs = [capture_record.result(), *model_records]
+        inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_records]
         return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
 
 

@@ -8,8 +8,18 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.calibration_options import CaptureCalibration, UnitsOpt
 from afmtool.cli.common import open_input, output_target, stdout_pipe
-from afmtool.cli.options import CaptureArg, ChannelOpt, ChunkOpt, JsonOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.options import (
+    CaptureArg,
+    ChannelOpt,
+    ChunkOpt,
+    JsonOpt,
+    QuietOpt,
+    SampleRateOpt,
+    SegmentOpt,
+    TopicOpt,
+)
 from afmtool.cli.progress import progress_bar
 from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES
 
@@ -24,15 +34,20 @@ def info(
     sample_rate: SampleRateOpt = None,
     chunk_samples: ChunkOpt = DEFAULT_CHUNK_SAMPLES,
     quiet: QuietOpt = False,
+    segment: SegmentOpt = None,
+    units: UnitsOpt = None,
 ) -> None:
-    """Channels, units, sample rate, length, metadata and min/max/mean/rms per channel.
+    """Channels, units, sample rate, length, segments, metadata and min/max/mean/rms per channel.
 
     Statistics are computed by streaming, so any size of capture works.
+    Segmented files (force curves) list their segments; --segment NAME|N
+    summarises one of them.
     """
     from afmtool.analyses.info import summarize
     from afmtool.report.json_report import dumps, to_jsonable
 
-    with open_input(capture, channel, topic, sample_rate) as reader:
+    calibration = CaptureCalibration(units)
+    with open_input(capture, channel, topic, sample_rate, calibration, convert_units=False, segment=segment) as reader:
         with progress_bar("info", reader.info.n_samples, quiet) as update:
             summary = summarize(reader, chunk_samples, update)
     with stdout_pipe():
@@ -55,6 +70,14 @@ def _print_summary(summary) -> None:
     for c in summary.channels:
         table.add_row(c.name, c.units, f"{c.min:.6g}", f"{c.max:.6g}", f"{c.mean:.6g}", f"{c.rms:.6g}")
     console.print(table)
+    if summary.segments:
+        console.print(
+            "segments: "
+            + ", ".join(
+                f"{i} {s.name} ({s.n_samples:,} samples, {s.sample_rate_hz:,.6g} Hz)" for i, s in enumerate(summary.segments)
+            ),
+            highlight=False,
+        )
     if summary.metadata:
         console.print("metadata: " + json.dumps(summary.metadata), highlight=False, soft_wrap=True)
     if summary.truth_names:
@@ -76,6 +99,8 @@ def convert(
     sample_rate: SampleRateOpt = None,
     chunk_samples: ChunkOpt = DEFAULT_CHUNK_SAMPLES,
     quiet: QuietOpt = False,
+    segment: SegmentOpt = None,
+    units: UnitsOpt = None,
 ) -> None:
     """Convert a capture between HDF5, CSV, ROS1 and ROS2 (mcap, sqlite3) bags.
 
@@ -92,7 +117,8 @@ def convert(
         raise ConfigError(f"--format {fmt!r} must be one of {', '.join(FORMATS)}")
     if compression not in (None, "gzip"):
         raise ConfigError(f"--compression {compression!r} must be gzip")
-    with open_input(source, channel, topic, sample_rate) as reader:
+    calibration = CaptureCalibration(units)
+    with open_input(source, channel, topic, sample_rate, calibration, convert_units=False, segment=segment) as reader:
         with progress_bar("convert", reader.info.n_samples, quiet) as update, output_target(output, fmt) as target:
             convert_capture(
                 reader, target, fmt, compression=compression, chunk_samples=chunk_samples, progress=update

@@ -11,7 +11,7 @@ from typing import Iterator
 from afmtool.cli.options import check_stream_format, parse_mapping
 from afmtool.cli.progress import progress_bar, stderr_console
 
-__all__ = ["open_input", "output_target", "stdout_pipe", "finish_command", "run_capture_analysis"]
+__all__ = ["open_input", "open_calibrated", "output_target", "stdout_pipe", "finish_command", "run_capture_analysis"]
 
 
 @contextmanager
@@ -35,9 +35,11 @@ def stdout_pipe() -> Iterator[None]:
         raise typer.Exit(0) from None
 
 
-@contextmanager
-def open_input(path: str, channel: list[str] | None, topic: list[str] | None, sample_rate: float | None):
-    """Open a capture with the shared --channel/--topic/--sample-rate options."""
+def open_calibrated(
+    path, channel, topic, sample_rate, calibration=None, *, convert_units: bool = True, segment: str | None = None
+):
+    """Open a capture, its units parsed and converted once here (``--units``, ``--invols``, ``--drive``)."""
+    from afmtool.cli.calibration_options import apply_calibration
     from afmtool.io.registry import open_capture
 
     reader = open_capture(
@@ -45,6 +47,32 @@ def open_input(path: str, channel: list[str] | None, topic: list[str] | None, sa
         channel_map=parse_mapping(channel, "--channel"),
         topic_map=parse_mapping(topic, "--topic"),
         sample_rate_hz=sample_rate,
+        segment=segment,
+    )
+    try:
+        return apply_calibration(reader, calibration, convert_units=convert_units)
+    except BaseException:
+        reader.close()
+        raise
+
+
+@contextmanager
+def open_input(
+    path: str,
+    channel: list[str] | None,
+    topic: list[str] | None,
+    sample_rate: float | None,
+    calibration=None,
+    *,
+    convert_units: bool = True,
+    segment: str | None = None,
+):
+    """Open a capture with the shared --channel/--topic/--sample-rate/--segment (and calibration) options.
+
+    ``convert_units=False`` (``info``, ``convert``) applies ``--units`` but keeps the file's scale.
+    """
+    reader = open_calibrated(
+        path, channel, topic, sample_rate, calibration, convert_units=convert_units, segment=segment
     )
     try:
         yield reader
@@ -98,7 +126,8 @@ def run_capture_analysis(
     name : str
         The command, for the progress bar.
     capture, source
-        The capture and its ``(--channel, --topic, --sample-rate)``.
+        The capture and its ``(--channel, --topic, --sample-rate)``, optionally
+        followed by its :class:`~afmtool.cli.calibration_options.CaptureCalibration`.
     out : Path or None
         ``--out``; required without ``--stream``.
     stream : (bool, str)

@@ -6,6 +6,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.calibration_options import CaptureCalibration, InvolsOpt, UnitsOpt, ZSensitivityOpt
 from afmtool.cli.common import run_capture_analysis
 from afmtool.cli.options import (
     CaptureArg,
@@ -63,6 +64,9 @@ def decode(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
 ) -> None:
     """Decode bits read by an electrostatically actuated probe with an EKF (thesis ch. 7).
 
@@ -94,8 +98,9 @@ def decode(
         "clock_window_s": clock_window,
         "polarity": polarity,
     }
+    calibration = CaptureCalibration(units, invols, z_sensitivity)
     run_capture_analysis(
-        "decode", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        "decode", capture, (channel, topic, sample_rate, calibration), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_decode_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_decode_command(reader, capture, out, config, flags, update, capture_record),
     )

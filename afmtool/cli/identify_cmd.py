@@ -7,8 +7,18 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.calibration_options import CaptureCalibration, InvolsOpt, UnitsOpt, ZSensitivityOpt
 from afmtool.cli.common import finish_command, open_input
-from afmtool.cli.options import ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
+from afmtool.cli.options import (
+    ChannelOpt,
+    ConfigOpt,
+    JsonOpt,
+    OutOpt,
+    QuietOpt,
+    SampleRateOpt,
+    SegmentOpt,
+    TopicOpt,
+)
 from afmtool.cli.progress import progress_bar
 
 __all__ = ["register"]
@@ -35,6 +45,9 @@ def identify_gamma(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
 ) -> None:
     """Sensing transfer function Gamma_IR,ts with the feed-through removed (thesis eq. 6.15).
 
@@ -53,7 +66,10 @@ def identify_gamma(
         "method": "stepped" if stepped else ("h1" if h1 else None),
         "min_coherence": min_coherence,
     }
-    with open_input(sweep, channel, topic, sample_rate) as near, open_input(contact, channel, topic, sample_rate) as far:
+    calibration = CaptureCalibration(units, invols, z_sensitivity)
+    with open_input(sweep, channel, topic, sample_rate, calibration) as near, open_input(
+        contact, channel, topic, sample_rate, calibration
+    ) as far:
         total = (near.info.n_samples or 0) + (far.info.n_samples or 0)
         with progress_bar("identify gamma", total or None, quiet) as update:
             report = run_gamma_command(near, far, (sweep, contact), out, config, flags, update)
@@ -89,6 +105,9 @@ def identify_thermal(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
 ) -> None:
     """Thermal sensor from its current alone: g(T), K_TP, K_TP(t_s), C(jw), H(jw) (thesis 6.5.2, 6.6.2).
 
@@ -104,9 +123,10 @@ def identify_thermal(
 
     flags = {"breakdown_temperature_c": breakdown_temperature, "room_temperature_c": room_temperature}
     sources = {"iv": iv, "z": z_curve, "vr": vr_sweep, "gamma": gamma, "model": model}
+    calibration = CaptureCalibration(units, invols, z_sensitivity)
     with ExitStack() as stack:
         readers = {
-            key: stack.enter_context(open_input(path, channel, topic, sample_rate)) if path else None
+            key: stack.enter_context(open_input(path, channel, topic, sample_rate, calibration)) if path else None
             for key, path in (("iv", iv), ("z", z_curve), ("vr", vr_sweep))
         }
         total = sum((r.info.n_samples or 0) for r in readers.values() if r is not None)
@@ -136,6 +156,9 @@ def identify_electrostatic(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
 ) -> None:
     """Electrostatic parameters from an approach curve before snap-in (thesis eqs. 6.6, 6.7).
 
@@ -148,8 +171,44 @@ def identify_electrostatic(
     from afmtool.analyses.electrostatic_outputs import run_electrostatic_command
 
     flags = {"sensor": sensor, "spring_constant_n_per_m": spring_constant, "v_r_v": v_r}
-    with open_input(capture, channel, topic, sample_rate) as reader:
+    calibration = CaptureCalibration(units, invols, z_sensitivity)
+    with open_input(capture, channel, topic, sample_rate, calibration) as reader:
         report = run_electrostatic_command(reader, capture, out, config, flags, thermal_model)
+    finish_command(report, out, json_output, quiet)
+
+
+def identify_invols(
+    curve: Annotated[str, typer.Argument(help="Force curve on a hard sample: deflection (V) and z_piezo.")],
+    out: OutOpt = Path("invols"),
+    leg: Annotated[Optional[str], typer.Option("--leg", help="approach (default), retract or all.")] = None,
+    z_channel: Annotated[Optional[str], typer.Option("--z-channel", help="z channel (default z_piezo).")] = None,
+    deflection_channel: Annotated[
+        Optional[str], typer.Option("--deflection-channel", help="Deflection channel (default deflection).")
+    ] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+    channel: ChannelOpt = None,
+    topic: TopicOpt = None,
+    sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
+    segment: SegmentOpt = None,
+) -> None:
+    """InvOLS (nm/V) from the contact part of a force curve on a hard sample, with its uncertainty.
+
+    Finds the contact point (a hinge fit), fits the contact part with a line and
+    reports its slope, InvOLS = 1/|slope| with its standard deviation when the
+    deflection is in V, and the capture's own InvOLS (metadata) beside it.  A
+    deflection already in a length gives the slope (1 on a hard sample) and the
+    InvOLS it implies.  Writes invols.png, report.json and config.toml.
+    """
+    from afmtool.analyses.invols import run_invols_command
+
+    flags = {"leg": leg, "z_channel": z_channel, "deflection_channel": deflection_channel}
+    calibration = CaptureCalibration(units, None, z_sensitivity, raw_deflection=True)
+    with open_input(curve, channel, topic, sample_rate, calibration, segment=segment) as reader:
+        report = run_invols_command(reader, curve, out, config, flags)
     finish_command(report, out, json_output, quiet)
 
 
@@ -157,3 +216,4 @@ def register(identify: typer.Typer) -> None:
     identify.command("gamma")(identify_gamma)
     identify.command("thermal")(identify_thermal)
     identify.command("electrostatic")(identify_electrostatic)
+    identify.command("invols")(identify_invols)

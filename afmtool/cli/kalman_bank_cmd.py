@@ -7,7 +7,14 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import finish_command, open_input
+from afmtool.cli.calibration_options import (
+    CaptureCalibration,
+    DriveOpt,
+    InvolsOpt,
+    UnitsOpt,
+    ZSensitivityOpt,
+)
+from afmtool.cli.common import finish_command, open_calibrated, open_input
 from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
 from afmtool.cli.options import DriveHoldOpt, F0Opt, QOpt
 from afmtool.cli.progress import progress_bar
@@ -55,6 +62,10 @@ def kalman_bank(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
+    drive: DriveOpt = None,
 ) -> None:
     """Validate REEP's on-sample f0', Q' on a force curve by minimum innovation RMS (thesis §3.4.2).
 
@@ -67,8 +78,6 @@ def kalman_bank(
     config.toml.  Needs dither, deflection and z_piezo.
     """
     from afmtool.analyses.kalman_bank_outputs import run_kalman_bank_command
-    from afmtool.cli.options import parse_mapping
-    from afmtool.io.registry import open_capture
 
     flags = {
         "reep": str(reep) if reep else None,
@@ -86,15 +95,12 @@ def kalman_bank(
         "f0_scale": f0_scale,
     }
 
-    def reopen():
-        return open_capture(
-            capture,
-            channel_map=parse_mapping(channel, "--channel"),
-            topic_map=parse_mapping(topic, "--topic"),
-            sample_rate_hz=sample_rate,
-        )
+    calibration = CaptureCalibration(units, invols, z_sensitivity, drive, free_air, accepts_drive=True)
 
-    with open_input(capture, channel, topic, sample_rate) as reader:
+    def reopen():
+        return open_calibrated(capture, channel, topic, sample_rate, calibration)
+
+    with open_input(capture, channel, topic, sample_rate, calibration) as reader:
         with progress_bar("kalman-bank", reader.info.n_samples, quiet) as update:
             report = run_kalman_bank_command(reader, capture, out, config, flags, update, reopen)
     finish_command(report, out, json_output, quiet)

@@ -19,6 +19,7 @@ __all__ = [
     "TopicOpt",
     "SampleRateOpt",
     "ChunkOpt",
+    "SegmentOpt",
     "StreamOutOpt",
     "StreamOpt",
     "StreamFormatOpt",
@@ -27,7 +28,11 @@ __all__ = [
 ]
 
 CaptureArg = Annotated[
-    str, typer.Argument(help="Capture file (.h5, .csv, .bag, ROS2 bag folder), or - for CSV on stdin.")
+    str,
+    typer.Argument(
+        help="Capture file (.h5, .csv, .bag, ROS2 bag folder, .ibw, .jpk-force, .jpk-qi-series, .tdms, .wav, "
+        "LabOne .h5/.csv, Chiaro .txt/.zip), or - for CSV on stdin."
+    ),
 ]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output folder; created if missing.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the report as JSON on stdout.")]
@@ -38,7 +43,10 @@ ConfigOpt = Annotated[
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar or messages on stderr.")]
 ChannelOpt = Annotated[
     Optional[list[str]],
-    typer.Option("--channel", help="Map a channel to an HDF5 dataset: NAME=/path (repeatable)."),
+    typer.Option(
+        "--channel",
+        help="Map a channel to an HDF5 dataset (NAME=/path) or rename a file's channel or column (NAME=CH2); repeatable.",
+    ),
 ]
 TopicOpt = Annotated[
     Optional[list[str]],
@@ -46,6 +54,10 @@ TopicOpt = Annotated[
 ]
 SampleRateOpt = Annotated[
     Optional[float], typer.Option("--sample-rate", help="Sample rate in Hz; overrides the file's.", min=0.0)
+]
+SegmentOpt = Annotated[
+    Optional[str],
+    typer.Option("--segment", help="Read one segment of a segmented file (force curve): its name or number from 0."),
 ]
 ChunkOpt = Annotated[
     int, typer.Option("--chunk-samples", help="Samples per streamed chunk (memory vs overhead).", min=1)

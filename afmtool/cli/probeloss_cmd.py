@@ -7,6 +7,13 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.calibration_options import (
+    CaptureCalibration,
+    DriveOpt,
+    InvolsOpt,
+    UnitsOpt,
+    ZSensitivityOpt,
+)
 from afmtool.cli.common import run_capture_analysis
 from afmtool.cli.options import (
     CaptureArg,
@@ -81,6 +88,10 @@ def probeloss(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
+    drive: DriveOpt = None,
 ) -> None:
     """Probe loss from the reliability index (thesis ch. 2), beside the amplitude threshold.
 
@@ -119,8 +130,9 @@ def probeloss(
     }
     if kalman and decay_cycles is not None:
         raise ConfigError("--kalman and --decay-cycles choose the gain two ways; give one")
+    calibration = CaptureCalibration(units, invols, z_sensitivity, drive, free_air, accepts_drive=True)
     run_capture_analysis(
-        "probeloss", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        "probeloss", capture, (channel, topic, sample_rate, calibration), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_probeloss_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_probeloss_command(reader, capture, out, config, flags, update, capture_record),
     )

@@ -7,6 +7,13 @@ from typing import Annotated, Optional
 
 import typer
 
+from afmtool.cli.calibration_options import (
+    CaptureCalibration,
+    DriveOpt,
+    InvolsOpt,
+    UnitsOpt,
+    ZSensitivityOpt,
+)
 from afmtool.cli.common import finish_command, open_input, run_capture_analysis
 from afmtool.cli.options import (
     CaptureArg,
@@ -65,6 +72,10 @@ def reep(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
+    drive: DriveOpt = None,
 ) -> None:
     """Real-time equivalent f0' and Q' by bias-compensated EW-RLS (thesis ch. 3).
 
@@ -99,8 +110,9 @@ def reep(
         "vs": vs,
         "z_bin": z_bin,
     }
+    calibration = CaptureCalibration(units, invols, z_sensitivity, drive, free_air, accepts_drive=True)
     run_capture_analysis(
-        "reep", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        "reep", capture, (channel, topic, sample_rate, calibration), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_reep_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_reep_command(reader, capture, out, config, flags, update, capture_record),
     )
@@ -136,12 +148,27 @@ def identify_freeair(
     temperature: Annotated[
         Optional[float], typer.Option("--temperature", help="Thermal route: temperature (K) for k.")
     ] = None,
+    detection: Annotated[
+        Optional[str],
+        typer.Option("--detection", help="Thermal route: optical-lever (k factor 0.817, default) or displacement."),
+    ] = None,
+    length: Annotated[
+        Optional[float], typer.Option("--length", help="Thermal route, Sader k: cantilever length L (um).", min=0.0)
+    ] = None,
+    width: Annotated[
+        Optional[float], typer.Option("--width", help="Thermal route, Sader k: cantilever width b (um).", min=0.0)
+    ] = None,
+    fluid: Annotated[Optional[str], typer.Option("--fluid", help="Thermal route, Sader k: air (default) or water.")] = None,
     json_output: JsonOpt = False,
     config: ConfigOpt = None,
     quiet: QuietOpt = False,
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    units: UnitsOpt = None,
+    invols: InvolsOpt = None,
+    z_sensitivity: ZSensitivityOpt = None,
+    drive: DriveOpt = None,
 ) -> None:
     """Identify the free-air model: f0, Q, gain and their uncertainties.
 
@@ -151,7 +178,10 @@ def identify_freeair(
     or slow chirps and stepped sines), or a thermal-noise spectrum
     (--psd FILE.csv).  Writes free_air.json for --model; the sweep route also
     writes sweep_frf.csv and sweep_bode.png (the data with the fitted transient
-    removed, beside the model).
+    removed, beside the model); the thermal route also
+    reports the spring constant by equipartition with the Butt-Jaschke
+    optical-lever factor, and with --length/--width by the Sader method, and
+    plots the spectrum and its fit (thermal_fit.png).
     """
     from afmtool.analyses.freeair_outputs import run_freeair_command
     from afmtool.errors import ConfigError
@@ -167,11 +197,13 @@ def identify_freeair(
         "sweep_method": "stepped" if stepped else sweep_method,
         "drive_hold": drive_hold,
         "temperature_k": temperature,
+        "spring": {"detection": detection, "length_um": length, "width_um": width, "fluid": fluid},
     }
     if route == "thermal":
         report = run_freeair_command(None, psd, out, config, flags, lambda done: None)
     else:
-        with open_input(capture, channel, topic, sample_rate) as reader:
+        calibration = CaptureCalibration(units, invols, z_sensitivity, drive, free_air, accepts_drive=True)
+        with open_input(capture, channel, topic, sample_rate, calibration) as reader:
             with progress_bar("identify", reader.info.n_samples, quiet) as update:
                 report = run_freeair_command(reader, capture, out, config, flags, update)
     finish_command(report, out, json_output, quiet)

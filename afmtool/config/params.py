@@ -29,6 +29,8 @@ __all__ = [
     "parse_interval",
     "DecodeParams",
     "parse_bracket_nm",
+    "InvolsParams",
+    "SpringConstantParams",
 ]
 
 
@@ -577,6 +579,43 @@ class ElectrostaticFitParams:
             raise ConfigError(f"max_relative_std={self.max_relative_std!r} must be > 0")
 
 
+@dataclass(frozen=True)
+class InvolsParams:
+    """``afmtool identify invols``: the InvOLS from the contact part of a force curve on a hard sample."""
+
+    leg: str = field("approach", "Which part of the curve to fit", choices=("approach", "retract", "all"))
+    skip_fraction: float = field(0.1, "Share of the contact z range next to the contact point left out of the fit")
+    z_channel: str = field("z_piezo", "Channel holding the z-piezo position (a length, or V with --z-sensitivity)")
+    deflection_channel: str = field("deflection", "Channel holding the deflection (V, or a length)")
+
+    def validate(self) -> None:
+        if not 0 <= self.skip_fraction < 1:
+            raise ConfigError(f"skip_fraction={self.skip_fraction!r} must be in [0, 1)")
+
+
+@dataclass(frozen=True)
+class SpringConstantParams:
+    """``afmtool identify freeair --psd``: the spring constant, thermal (Butt–Jaschke) and Sader."""
+
+    detection: str = field(
+        "optical-lever", "How the spectrum's deflection was measured: optical lever calibrated by a static force "
+        "curve (factor 0.817) or the tip's displacement itself, e.g. an interferometer (0.971)",
+        choices=("optical-lever", "displacement"),
+    )
+    length_um: float = field(0.0, "Sader: plan-view length L of the rectangular cantilever; 0 = no Sader value", "um")
+    width_um: float = field(0.0, "Sader: plan-view width b; 0 = no Sader value", "um")
+    fluid: str = field("air", "Sader: the fluid around the cantilever", choices=("air", "water"))
+    fluid_density_kg_per_m3: float = field(0.0, "Sader: fluid density; 0 = that of the fluid at 25 degC", "kg/m^3")
+    fluid_viscosity_pa_s: float = field(0.0, "Sader: fluid viscosity; 0 = that of the fluid at 25 degC", "Pa s")
+
+    def validate(self) -> None:
+        for name in ("length_um", "width_um", "fluid_density_kg_per_m3", "fluid_viscosity_pa_s"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
+        if (self.length_um > 0) != (self.width_um > 0):
+            raise ConfigError("the Sader method needs both length_um and width_um (--length, --width)")
+
+
 #: Config-file section -> parameter model.
 SECTIONS: dict[str, type] = {
     "identify.freeair": FreeAirParams,
@@ -591,4 +630,6 @@ SECTIONS: dict[str, type] = {
     "theory.controllers": TheoryControllersParams,
     "kalman-bank": KalmanBankParams,
     "theory.observer": ObserverTheoryParams,
+    "identify.invols": InvolsParams,
+    "identify.spring_constant": SpringConstantParams,
 }

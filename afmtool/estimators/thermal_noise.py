@@ -366,7 +366,8 @@ def fit_thermal_spectrum(
     Jaschke (1995) give k = 0.817·k_B·T/⟨p*²⟩; for an interferometric tip
     displacement, where mode 1 holds 97.1 % of the energy, k = 0.971·k_B·T/⟨p²⟩.
     Neither factor is applied here (k is the plain one-mode equipartition of
-    :class:`afmtool.models.cantilever.Cantilever`).
+    :class:`afmtool.models.cantilever.Cantilever`); ``identify freeair --psd``
+    applies them through :mod:`afmtool.estimators.spring_constant`.
 
     Raises
     ------

@@ -20,6 +20,7 @@ __all__ = [
     "CANONICAL_CHANNELS",
     "DEFAULT_CHUNK_SAMPLES",
     "ChannelSpec",
+    "SegmentSpec",
     "CaptureInfo",
     "Chunk",
     "CaptureReader",
@@ -43,6 +44,21 @@ class ChannelSpec:
 
 
 @dataclass(frozen=True)
+class SegmentSpec:
+    """One segment of a segmented file (a force curve's approach, dwell, retract).
+
+    ``start`` is the segment's first sample in the file's sample stream when
+    all segments share one rate (they are then read back to back), and 0
+    for segments at different rates (each is then read on its own).
+    """
+
+    name: str
+    start: int
+    n_samples: int
+    sample_rate_hz: float
+
+
+@dataclass(frozen=True)
 class CaptureInfo:
     """What is known about a capture before its samples are read.
 
@@ -58,6 +74,8 @@ class CaptureInfo:
     metadata: Mapping = field(default_factory=dict)
     #: Names of simulator ground-truth series stored with the capture.
     truth_names: tuple[str, ...] = ()
+    #: The file's segments (empty for an unsegmented capture); see ``--segment``.
+    segments: tuple[SegmentSpec, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "metadata", MappingProxyType(dict(self.metadata)))

@@ -9,16 +9,33 @@
     0,0.1,0.02
     ...
 
-The time column ``t`` (s) is optional; when present, sampling must be
-uniform.  Files and standard input (``-``) are read line by line in blocks,
-so memory stays bounded whatever the length.
+Also read, so that scope and DAQ exports need no editing:
+
+- a time column named ``t``, ``time``, ``Time (s)``, ``Time [ms]`` and the
+  like (its unit, s by default, may be s, ms, us/µs or ns); when present,
+  sampling must be uniform, and it supplies the sample rate when no other
+  source does;
+- units in the header, ``deflection (nm)`` or ``deflection [nm]``, or in a
+  second header row of unit names (``Second,Volt,Volt`` as some scopes
+  write); a ``# units.NAME:`` line overrides both;
+- comma, tab or semicolon separators (from the header row), quoted names;
+- UTF-8 with or without a byte-order mark, Latin-1 (bytes that are not
+  UTF-8 are read as Latin-1, so ``µm`` arrives either way), and CR, LF or
+  CRLF line endings, mixed.
+
+Files and standard input (``-``) are read line by line in blocks, so memory
+stays bounded whatever the length.  So is the work on hostile input: a line
+longer than :data:`MAX_LINE_CHARS` or a header of more than
+:data:`MAX_COLUMNS` columns is refused (``info - < /dev/zero`` ends at
+once), and the header is parsed in time linear in its columns.
 """
 
 from __future__ import annotations
 
+import codecs
 import io
-import itertools
 import json
+import re
 import sys
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -29,15 +46,67 @@ import numpy as np
 from afmtool.errors import InputError
 from afmtool.io.capture import ReaderBase, CaptureInfo, ChannelSpec, Chunk
 from afmtool.io.metadata import parse_metadata_json
+from afmtool.io.unit_names import unit_symbol
 
-__all__ = ["CsvReader", "CsvWriter", "STDIO"]
+__all__ = ["CsvReader", "CsvWriter", "STDIO", "MAX_LINE_CHARS", "MAX_COLUMNS", "split_unit"]
 
 STDIO = "-"
 TIME_COLUMN = "t"
+#: Longest line read, in characters (a 40,000-column row of 17-digit numbers fits).
+MAX_LINE_CHARS = 1 << 22
+#: Most columns a header may have.
+MAX_COLUMNS = 1 << 16
+#: Most comment or blank lines before the header row.
+MAX_PREAMBLE_LINES = 100_000
+#: Values parsed per np.loadtxt call (bounds the temporary text held at once).
+_BLOCK_VALUES = 1 << 21
 # Uniform sampling means |t[n] - (t[0] + n/fs)| stays below this fraction of
 # a sample period, plus the rounding of a 10-significant-digit time stamp.
 _T_TOLERANCE_PERIODS = 0.1
 _T_RELATIVE_DIGITS = 2e-9
+
+#: Names (lower case, without units) of a time column.
+TIME_NAMES = frozenset({"t", "time", "times", "time_s", "t_s", "timestamp_s", "second", "seconds"})
+#: Units a time column may carry, as factors to seconds.
+_TIME_UNITS = {"": 1.0, "s": 1.0, "sec": 1.0, "second": 1.0, "seconds": 1.0, "ms": 1e-3, "us": 1e-6,
+               "\u00b5s": 1e-6, "\u03bcs": 1e-6, "ns": 1e-9}
+_NAME_WITH_UNIT = re.compile(r"^(?P<name>.*?)\s*[\(\[](?P<unit>[^\)\]]*)[\)\]]\s*$")
+
+
+def _latin1_fallback(error: UnicodeDecodeError) -> tuple[str, int]:
+    """Decode the bytes that are not UTF-8 as Latin-1 (every byte is a Latin-1 character)."""
+    return error.object[error.start : error.end].decode("latin-1"), error.end
+
+
+codecs.register_error("afmtool-latin1", _latin1_fallback)
+
+
+def _text_stream(binary) -> io.TextIOWrapper:
+    # utf-8-sig drops a byte-order mark; newline=None reads CR, LF and CRLF alike.
+    return io.TextIOWrapper(binary, encoding="utf-8-sig", errors="afmtool-latin1", newline=None)
+
+
+def split_unit(header: str) -> tuple[str, str]:
+    """``"deflection (nm)"`` -> ``("deflection", "nm")``; ``"CH1"`` -> ``("CH1", "")``."""
+    match = _NAME_WITH_UNIT.match(header)
+    if match and match.group("name").strip():
+        return match.group("name").strip(), match.group("unit").strip()
+    return header.strip(), ""
+
+
+def _delimiter(header_line: str) -> str:
+    for candidate in (",", "\t", ";"):
+        if candidate in header_line:
+            return candidate
+    return ","
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _parse_comment(line: str, header: dict) -> None:
@@ -56,44 +125,99 @@ class CsvReader(ReaderBase):
         if stream is not None:
             self._stream = stream
         elif str(path) == STDIO:
-            self._stream = io.TextIOWrapper(sys.stdin.buffer, encoding="utf-8", errors="replace")
+            self._stream = _text_stream(sys.stdin.buffer)
         else:
             try:
-                self._stream = open(path, encoding="utf-8", errors="replace", newline="")  # noqa: SIM115
+                self._stream = _text_stream(open(path, "rb"))  # noqa: SIM115
             except FileNotFoundError:
                 raise InputError(f"{path}: no such file") from None
             except OSError as exc:
                 raise InputError(f"{path}: cannot open ({exc.strerror})") from None
         self._line_no = 0
+        self._pushed_back: str | None = None
         try:
             self._columns, comments = self._read_header()
+            self._rows_per_read = max(1, _BLOCK_VALUES // len(self._columns))
             self._pending_rows = self._first_rows()
             self.info = self._make_info(comments, sample_rate_hz)
         except BaseException:
             self.close()
             raise
 
+    def _next_line(self) -> str | None:
+        """The next line, or None at the end; a line longer than MAX_LINE_CHARS is refused."""
+        if self._pushed_back is not None:
+            line, self._pushed_back = self._pushed_back, None
+            self._line_no += 1
+            return line
+        try:
+            line = self._stream.readline(MAX_LINE_CHARS + 1)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{self._name}: cannot read ({_short(exc)})") from None
+        if not line:
+            return None
+        self._line_no += 1
+        if len(line) > MAX_LINE_CHARS:
+            raise InputError(f"{self._name}: line {self._line_no} is longer than {MAX_LINE_CHARS} characters")
+        return line
+
     def _read_header(self) -> tuple[list[str], dict]:
         comments: dict[str, str] = {}
-        for line in self._stream:
-            self._line_no += 1
+        for _ in range(MAX_PREAMBLE_LINES):
+            line = self._next_line()
+            if line is None:
+                break
             stripped = line.strip()
             if not stripped:
                 continue
             if stripped.startswith("#"):
                 _parse_comment(stripped, comments)
                 continue
-            columns = [c.strip() for c in stripped.split(",")]
-            if any(not c for c in columns) or len(set(columns)) != len(columns):
-                raise InputError(f"{self._name}: line {self._line_no}: header needs distinct non-empty names")
-            if columns == [TIME_COLUMN]:
-                raise InputError(f"{self._name}: the capture has no channels besides {TIME_COLUMN}")
-            return columns, comments
+            return self._parse_header_row(stripped, comments), comments
+        else:
+            raise InputError(f"{self._name}: no header row in the first {MAX_PREAMBLE_LINES} lines")
         raise InputError(f"{self._name}: empty file (no header row)")
 
+    def _parse_header_row(self, stripped: str, comments: dict) -> list[str]:
+        self._delimiter = _delimiter(stripped)
+        fields = [c.strip().strip('"').strip() for c in stripped.split(self._delimiter)]
+        if len(fields) > MAX_COLUMNS:
+            raise InputError(f"{self._name}: line {self._line_no}: {len(fields)} columns; at most {MAX_COLUMNS}")
+        named = [split_unit(f) for f in fields]
+        columns = [name for name, _ in named]
+        if any(not c for c in columns) or len(set(columns)) != len(columns):
+            raise InputError(f"{self._name}: line {self._line_no}: header needs distinct non-empty names")
+        self._header_units = {name: unit for name, unit in named}
+        self._read_units_row(columns)
+        self._time = next((c for c in columns if c.lower() in TIME_NAMES), None)
+        self._t_scale, self._t_relative = 1.0, _T_RELATIVE_DIGITS
+        if self._time is not None:
+            unit = self._header_units[self._time]
+            if unit not in _TIME_UNITS:
+                raise InputError(f"{self._name}: time column {self._time!r} has unit {unit!r}; expected s, ms, us or ns")
+            self._t_scale = _TIME_UNITS[unit]
+        if len(columns) == 1 and self._time is not None:
+            raise InputError(f"{self._name}: the capture has no channels besides {self._time}")
+        self._index = {name: i for i, name in enumerate(columns)}
+        return columns
+
+    def _read_units_row(self, columns: list[str]) -> None:
+        """A second header row of unit names (no field a number) fills units the header lacks."""
+        line = self._next_line()
+        if line is None:
+            return
+        fields = [f.strip().strip('"').strip() for f in line.strip().split(self._delimiter)]
+        if line.strip() and not line.lstrip().startswith("#") and len(fields) == len(columns):
+            if not any(_is_number(f) for f in fields if f):
+                for name, unit in zip(columns, fields):
+                    self._header_units[name] = self._header_units[name] or unit
+                return
+        self._pushed_back = line
+        self._line_no -= 1
+
     def _first_rows(self) -> np.ndarray:
-        """Read a first block so the sample rate can come from ``t``."""
-        return self._read_rows(4096)
+        """Read a first block so the sample rate can come from the time column."""
+        return self._read_rows(min(4096, self._rows_per_read))
 
     def _make_info(self, comments: dict, sample_rate_hz: float | None) -> CaptureInfo:
         metadata = {}
@@ -104,29 +228,54 @@ class CsvReader(ReaderBase):
                 sample_rate_hz = float(comments["sample_rate_hz"])
             except ValueError:
                 raise InputError(f"{self._name}: sample_rate_hz {comments['sample_rate_hz']!r} is not a number") from None
-        has_t = TIME_COLUMN in self._columns
+        has_t = self._time is not None
         if sample_rate_hz is None and has_t and len(self._pending_rows) >= 2:
-            t = self._pending_rows[:, self._columns.index(TIME_COLUMN)]
+            t = self._pending_rows[:, self._index[self._time]] * self._t_scale
             sample_rate_hz = (len(t) - 1) / (t[-1] - t[0]) if t[-1] != t[0] else float("nan")
+            if np.isfinite(sample_rate_hz):
+                # Decimal time stamps make (n-1)/span 500000.00000000006 for 500 kHz; 12 significant
+                # digits undo that and move the rate by < 1e-12, far inside the uniformity check.
+                sample_rate_hz = float(f"{sample_rate_hz:.12g}")
         if sample_rate_hz is None:
             raise InputError(f"{self._name}: no sample rate; add '# sample_rate_hz: ...', a t column, or --sample-rate")
         if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
             raise InputError(f"{self._name}: sample rate {sample_rate_hz!r} must be a positive number")
-        self._t0 = float(self._pending_rows[0, self._columns.index(TIME_COLUMN)]) if has_t and len(self._pending_rows) else 0.0
+        self._t0 = 0.0
+        if has_t and len(self._pending_rows):
+            self._t0 = float(self._pending_rows[0, self._index[self._time]]) * self._t_scale
         channels = tuple(
-            ChannelSpec(name, comments.get(f"units.{name}", "")) for name in self._columns if name != TIME_COLUMN
+            ChannelSpec(name, comments.get(f"units.{name}", unit_symbol(self._header_units.get(name, ""))))
+            for name in self._columns
+            if name != self._time
         )
         return CaptureInfo(self._name, "csv", float(sample_rate_hz), channels, None, metadata)
 
     def _read_rows(self, n_rows: int) -> np.ndarray:
-        first_line = self._line_no + 1
-        lines = list(itertools.islice(self._stream, n_rows))
-        self._line_no += len(lines)
-        lines = [ln for ln in lines if ln.strip() and not ln.lstrip().startswith("#")]
-        if not lines:
+        parts = []
+        while n_rows > 0:
+            rows = self._read_row_batch(min(n_rows, self._rows_per_read))
+            if rows is None:
+                break
+            parts.append(rows)
+            n_rows -= len(rows)
+        if not parts:
             return np.empty((0, len(self._columns)))
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def _read_row_batch(self, n_rows: int) -> np.ndarray | None:
+        """Up to ``n_rows`` data rows (comment and blank lines skipped), or None at the end."""
+        first_line = self._line_no + 1
+        lines = []
+        while len(lines) < n_rows:
+            line = self._next_line()
+            if line is None:
+                break
+            if line.strip() and not line.lstrip().startswith("#"):
+                lines.append(line)
+        if not lines:
+            return None
         try:
-            rows = np.loadtxt(lines, delimiter=",", dtype=np.float64, ndmin=2)
+            rows = np.loadtxt(lines, delimiter=self._delimiter, dtype=np.float64, ndmin=2)
         except ValueError as exc:
             raise InputError(f"{self._name}: near line {first_line}: {_short(exc)}") from None
         if rows.shape[1] != len(self._columns):
@@ -137,8 +286,9 @@ class CsvReader(ReaderBase):
 
     def _check_time(self, t: np.ndarray, start: int) -> None:
         fs = self.info.sample_rate_hz
+        t = t * self._t_scale
         expected = self._t0 + (start + np.arange(len(t))) / fs
-        tolerance = _T_TOLERANCE_PERIODS / fs + _T_RELATIVE_DIGITS * np.abs(expected)
+        tolerance = _T_TOLERANCE_PERIODS / fs + self._t_relative * np.abs(expected)
         bad = np.flatnonzero(~(np.abs(t - expected) <= tolerance))
         if bad.size:
             i = int(bad[0])
@@ -147,8 +297,8 @@ class CsvReader(ReaderBase):
             )
 
     def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
-        index = {name: self._columns.index(name) for name in channels}
-        t_index = self._columns.index(TIME_COLUMN) if TIME_COLUMN in self._columns else None
+        index = {name: self._index[name] for name in channels}
+        t_index = self._index[self._time] if self._time is not None else None
         start = 0
         pending, self._pending_rows = self._pending_rows, np.empty((0, len(self._columns)))
         while True:
@@ -166,10 +316,14 @@ class CsvReader(ReaderBase):
         return {}
 
     def close(self) -> None:
-        if self._stream is not sys.stdin and getattr(self, "_stream", None) is not None:
+        stream = getattr(self, "_stream", None)
+        if stream is not None and stream is not sys.stdin:
             try:
-                self._stream.close()
-            except OSError:
+                if isinstance(stream, io.TextIOWrapper) and stream.buffer is getattr(sys.stdin, "buffer", None):
+                    stream.detach()  # leave the process's stdin open
+                else:
+                    stream.close()
+            except (OSError, ValueError):
                 pass
 
 

@@ -27,7 +27,28 @@ _SUFFIX_FORMATS = {
     ".bag": "ros1",
     ".mcap": "ros2-mcap",
     ".db3": "ros2-sqlite3",
+    ".ibw": "ibw",
+    ".tdms": "tdms",
+    ".wav": "wav",
+    ".jpk-force": "jpk",
+    ".jpk-qi-series": "jpk",
+    ".txt": "chiaro",
+    ".zip": "chiaro",
 }
+
+#: Input-only formats: their readers, as (module, class) under afmtool.io.
+_READERS = {
+    "ibw": ("ibw", "IbwReader"),
+    "jpk": ("jpk", "JpkReader"),
+    "chiaro": ("chiaro", "ChiaroReader"),
+    "tdms": ("tdms", "TdmsReader"),
+    "wav": ("wav", "WavReader"),
+    "labone-csv": ("labone", "LaboneCsvReader"),
+    "labone-hdf5": ("labone", "LaboneHdf5Reader"),
+}
+
+#: Formats whose readers select a segment themselves (segments at different rates).
+_NATIVE_SEGMENTS = ("jpk", "labone-hdf5")
 
 
 def input_format(path: Path | str) -> str:
@@ -41,13 +62,25 @@ def input_format(path: Path | str) -> str:
         if (path / "metadata.yaml").is_file():
             return "ros2"
         raise InputError(f"{path}: a directory that is not a ROS2 bag (no metadata.yaml)")
-    fmt = _SUFFIX_FORMATS.get(path.suffix.lower())
+    fmt = _SUFFIX_FORMATS.get(_suffix(path))
     if fmt is None:
         known = ", ".join(sorted(_SUFFIX_FORMATS))
         raise InputError(f"{path}: unknown extension {path.suffix or '(none)'!r}; expected one of {known}")
     if path.stat().st_size == 0:
         raise InputError(f"{path}: empty file")
+    if fmt in ("hdf5", "csv"):
+        from afmtool.io.labone import sniff_labone
+
+        fmt = sniff_labone(path, fmt)
     return "ros2" if fmt.startswith("ros2") else fmt
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    for suffix in (".jpk-qi-series", ".jpk-force"):
+        if name.endswith(suffix):
+            return suffix
+    return path.suffix.lower()
 
 
 def format_for_path(path: Path | str) -> str:
@@ -66,9 +99,52 @@ def open_capture(
     channel_map: Mapping[str, str] | None = None,
     topic_map: Mapping[str, str] | None = None,
     sample_rate_hz: float | None = None,
+    segment: str | None = None,
 ) -> CaptureReader:
-    """Open a capture for streaming; use as a context manager or call ``close``."""
+    """Open a capture for streaming; use as a context manager or call ``close``.
+
+    ``channel_map`` names HDF5 datasets (``{"deflection": "/s"}``) for HDF5,
+    and renames channels (``{"deflection": "CH2"}``) for every other format
+    but bags.  ``segment`` (a name or a number from 0) reads one segment of
+    a segmented file.
+    """
     fmt = input_format(path)
+    native_segment = segment if fmt in _NATIVE_SEGMENTS else None
+    reader = _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, native_segment)
+    try:
+        return _views(reader, fmt, channel_map, segment if native_segment is None else None)
+    except BaseException:
+        reader.close()
+        raise
+
+
+def _views(reader: CaptureReader, fmt: str, channel_map: Mapping[str, str] | None, segment: str | None):
+    import dataclasses
+
+    from afmtool.io.views import SEGMENTS_KEY, RenamedView, SegmentView, segments_from_metadata, select_segment
+
+    info = reader.info
+    if not info.segments and SEGMENTS_KEY in info.metadata:
+        segments = segments_from_metadata(info.metadata, info.source, info.n_samples)
+        reader.info = dataclasses.replace(info, segments=segments)
+    if segment is not None:
+        reader = SegmentView(reader, select_segment(reader.info.segments, segment, info.source))
+    if channel_map and fmt != "hdf5":
+        reader = RenamedView(reader, channel_map)
+    return reader
+
+
+def _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, segment) -> CaptureReader:
+    if fmt in _READERS:
+        import importlib
+
+        if topic_map:
+            raise InputError(f"{path}: --topic maps bag topics; use --channel NAME=CHANNEL")
+        module, name = _READERS[fmt]
+        reader_class = getattr(importlib.import_module(f"afmtool.io.{module}"), name)
+        if segment is not None:
+            return reader_class(Path(path), sample_rate_hz, segment=segment)
+        return reader_class(Path(path), sample_rate_hz)
     if fmt == "hdf5":
         from afmtool.io.hdf5 import Hdf5Reader
 
@@ -76,8 +152,6 @@ def open_capture(
             raise InputError(f"{path}: --topic maps bag topics; use --channel NAME=/dataset for HDF5")
 
         return Hdf5Reader(Path(path), channel_map, sample_rate_hz)
-    if channel_map:
-        raise InputError(f"{path}: --channel maps HDF5 datasets; use --topic for bags")
     if fmt == "csv":
         from afmtool.io.csv import CsvReader
 
@@ -85,6 +159,8 @@ def open_capture(
             raise InputError(f"{path}: --topic maps bag topics; CSV columns are channels")
 
         return CsvReader(path, sample_rate_hz)
+    if channel_map:
+        raise InputError(f"{path}: --channel maps HDF5 datasets and renames channels; use --topic for bags")
     from afmtool.io.rosbag import RosbagReader
 
     return RosbagReader(Path(path), topic_map, sample_rate_hz)

@@ -1,0 +1,304 @@
+"""The phases of a drive that was not recorded, from the deflection it caused.
+
+An instrument that does not record its dither still says what it drove: the
+lines' frequencies F_i (Hz) and amplitudes A_i (V) (``--drive``).  What it
+does not say is each line's phase relative to the capture's first sample.
+On the free-air segment the deflection is
+
+    p(t) = Σ_i A_i·|G(jω_i)|·cos(ω_i t + φ_i + ∠G(jω_i)) + noise,
+
+with G the free-air response of eq. 3.1.  A linear least-squares fit of p on
+cos ω_i t and sin ω_i t gives each line's complex amplitude D_i; G is then
+found from the magnitudes alone, and φ_i = ∠D_i − ∠G(jω_i).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from afmtool.errors import ConfigError, InputError
+
+__all__ = [
+    "DriveLine",
+    "DrivePhaseFit",
+    "parse_drive_lines",
+    "line_amplitudes",
+    "zoh_response",
+    "fit_drive_phases",
+    "synthesize_drive",
+]
+
+
+class DriveLine(NamedTuple):
+    """One line of the dither: frequency (Hz), amplitude (V) and cosine phase (rad) at t = 0 (NaN: to be fitted)."""
+
+    frequency_hz: float
+    amplitude_v: float
+    phase_rad: float = math.nan
+
+
+class DrivePhaseFit(NamedTuple):
+    """The fitted lines and the second-order response their magnitudes imply.
+
+    Attributes
+    ----------
+    lines : tuple of DriveLine
+        With their fitted phases.
+    f0_hz, q, gain : float
+        G(s) = gain·ω0² / (s² + (ω0/Q)s + ω0²), discretised with a zero-order
+        hold, from the lines' magnitudes (``gain`` in deflection units per V);
+        from the metadata when fewer than three lines.
+    response_source : str
+        ``"line magnitudes"`` or ``"metadata cantilever f0_hz, q"``.
+    deflection_amplitudes : tuple of float
+        |D_i|, deflection units.
+    """
+
+    lines: tuple[DriveLine, ...]
+    f0_hz: float
+    q: float
+    gain: float
+    response_source: str
+    deflection_amplitudes: tuple[float, ...]
+
+
+def parse_drive_lines(text: str) -> tuple[DriveLine, ...]:
+    """``"71000:0.05,70000:0.025"`` → lines (Hz, V), for ``--drive``.
+
+    A third field gives a line's phase at the capture's first sample in
+    degrees (``"71000:0.05:-90"``, cosine phase); then it is not fitted.  Give
+    it for every line or for none.  Lines without one have phase NaN.
+    """
+    lines = []
+    for item in text.split(","):
+        fields = item.strip().split(":")
+        try:
+            if len(fields) not in (2, 3):
+                raise ValueError
+            phase = math.radians(float(fields[2])) if len(fields) == 3 else math.nan
+            line = DriveLine(float(fields[0]), float(fields[1]), phase)
+        except ValueError:
+            raise ConfigError(
+                f"--drive item {item.strip()!r} must look like FREQUENCY_HZ:AMPLITUDE_V[:PHASE_DEG]"
+            ) from None
+        if not (math.isfinite(line.frequency_hz) and line.frequency_hz > 0):
+            raise ConfigError(f"--drive item {item.strip()!r}: the frequency must be > 0")
+        if not (math.isfinite(line.amplitude_v) and line.amplitude_v > 0):
+            raise ConfigError(f"--drive item {item.strip()!r}: the amplitude must be > 0")
+        if len(fields) == 3 and not math.isfinite(line.phase_rad):
+            raise ConfigError(f"--drive item {item.strip()!r}: the phase must be finite")
+        lines.append(line)
+    frequencies = [line.frequency_hz for line in lines]
+    if len(set(frequencies)) != len(frequencies):
+        raise ConfigError(f"--drive {text!r} names a frequency twice")
+    given = [math.isfinite(line.phase_rad) for line in lines]
+    if any(given) and not all(given):
+        raise ConfigError(f"--drive {text!r}: give a phase for every line or for none")
+    return tuple(lines)
+
+
+def line_amplitudes(x: np.ndarray, sample_rate_hz: float, start_sample: int, frequencies_hz) -> np.ndarray:
+    """Complex amplitudes D_i with x[n] ≈ Re Σ D_i·exp(jω_i t_n) + c, t_n = (start_sample + n)/fs.
+
+    Linear least squares on [cos ω_i t, sin ω_i t, 1]: unlike a per-line
+    DFT it does not leak one line into another on a short segment.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    t = (start_sample + np.arange(x.size)) / sample_rate_hz
+    omega = 2.0 * np.pi * np.asarray(frequencies_hz, dtype=np.float64)
+    phase = np.outer(t, omega)
+    design = np.column_stack([np.cos(phase), np.sin(phase), np.ones_like(t)])
+    coef, *_ = np.linalg.lstsq(design, x, rcond=None)
+    k = omega.size
+    # c·cos + s·sin = Re[(c − j s)·exp(jωt)]
+    return coef[:k] - 1j * coef[k : 2 * k]
+
+
+def _continuous_from_magnitudes(f: np.ndarray, magnitude: np.ndarray) -> tuple[float, float] | None:
+    """(f0, Q) of a continuous second-order low-pass through |H(f_i)| (≥ 3 lines), or None.
+
+    1/|H|² = (1/g²)·[(1 − f²/f0²)² + f²/(f0²Q²)] = α + β f² + γ f⁴ is linear
+    in (α, β, γ): f0 = (α/γ)^(1/4), 1/Q² = 2 + β f0²/α.  The start of the
+    discrete fit.
+    """
+    scale = float(np.max(f))
+    u = (f / scale) ** 2  # scaled, for a well-conditioned fit
+    design = np.column_stack([np.ones_like(u), u, u * u])
+    (alpha, beta, gamma), *_ = np.linalg.lstsq(design, 1.0 / magnitude**2, rcond=None)
+    if not (alpha > 0 and gamma > 0):
+        return None
+    inv_q2 = 2.0 + beta * math.sqrt(alpha / gamma) / alpha
+    if not inv_q2 > 0:
+        return None
+    return scale * (alpha / gamma) ** 0.25, 1.0 / math.sqrt(inv_q2)
+
+
+def zoh_response(frequency_hz, f0_hz: float, q: float, sample_rate_hz: float) -> np.ndarray:
+    """H(e^{jωT}) of G(s) = ω0²/(s² + (ω0/Q)s + ω0²) discretised with a zero-order hold (DC gain 1).
+
+    The form of REEP's five-parameter free-air model (eq. 3.39's regressors,
+    a2 = 0), so a dither whose phases follow it is explained exactly by it.
+    """
+    from afmtool.models.discretisation import discrete_denominator, zoh_numerator
+
+    a2, a1, a0 = zoh_numerator(f0_hz, q, sample_rate_hz)
+    b1, b0 = discrete_denominator(f0_hz, q, sample_rate_hz)
+    z_inv = np.exp(-2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) / sample_rate_hz)
+    return (a2 + a1 * z_inv + a0 * z_inv**2) / (1.0 + b1 * z_inv + b0 * z_inv**2)
+
+
+def continuous_response(frequency_hz, f0_hz: float, q: float, sample_rate_hz: float) -> np.ndarray:
+    """G(jω) = ω0²/(ω0² − ω² + jωω0/Q) (eq. 3.1, DC gain 1): a continuous drive, sampled by the ADC."""
+    u = np.asarray(frequency_hz, dtype=np.float64) / f0_hz
+    return 1.0 / (1.0 - u * u + 1j * u / q)
+
+
+def _response(hold: str):
+    return zoh_response if hold == "zero-order" else continuous_response
+
+
+def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float, hold: str) -> tuple[float, float, float]:
+    """(f0, Q, gain) of the second-order response through |H(f_i)| (≥ 3 lines).
+
+    Gauss–Newton with Levenberg damping on the log magnitudes over (f0, ln Q),
+    the gain eliminated (its log is the mean residual); started from the
+    continuous closed form.
+    """
+    response = _response(hold)
+    start = _continuous_from_magnitudes(f, magnitude)
+    if start is None or not (0 < start[0] < fs / 2 and start[1] > 0.5):
+        start = (float(f[int(np.argmax(magnitude))]), 50.0)
+    x = np.array([start[0], math.log(max(start[1], 0.51))])
+    log_m = np.log(magnitude)
+
+    def residual(params: np.ndarray) -> np.ndarray:
+        f0, q = params[0], math.exp(params[1])
+        if not (0 < f0 < fs / 2 and q > 0.5):
+            return np.full(f.size, np.inf)
+        r = log_m - np.log(np.abs(response(f, f0, q, fs)))
+        return r - r.mean()
+
+    r = residual(x)
+    damping = 1e-3
+    for _ in range(100):
+        steps = np.array([max(1e-7 * x[0], 1e-6), 1e-7])
+        jac = np.column_stack([(residual(x + np.eye(2)[k] * steps[k]) - r) / steps[k] for k in range(2)])
+        if not np.all(np.isfinite(jac)):
+            break
+        normal = jac.T @ jac
+        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-30), -jac.T @ r)
+        trial = residual(x + step)
+        if np.all(np.isfinite(trial)) and trial @ trial < r @ r:
+            x, r, damping = x + step, trial, damping / 3
+            if np.all(np.abs(step) <= np.array([1e-9 * x[0], 1e-9])):
+                break
+        else:
+            damping *= 10
+            if damping > 1e12:
+                break
+    f0, q = float(x[0]), math.exp(x[1])
+    if not (np.all(np.isfinite(r)) and 0 < f0 < fs / 2 and q > 0.5):
+        raise InputError(
+            "the drive lines' deflection amplitudes do not fit a second-order resonance; "
+            "give lines around the resonance, or metadata cantilever f0_hz and q"
+        )
+    gain = float(np.exp(np.mean(log_m - np.log(np.abs(response(f, f0, q, fs))))))
+    return f0, q, gain
+
+
+def fit_drive_phases(
+    deflection: np.ndarray,
+    sample_rate_hz: float,
+    start_sample: int,
+    lines: tuple[DriveLine, ...],
+    *,
+    f0_hz: float | None = None,
+    q: float | None = None,
+    hold: str = "none",
+) -> DrivePhaseFit:
+    """Each drive line's phase at t = 0 from the free-air deflection.
+
+    Parameters
+    ----------
+    deflection : ndarray
+        Free-air segment of the deflection (any length unit).
+    sample_rate_hz : float
+    start_sample : int
+        Index of the segment's first sample in the capture (t = 0 at sample 0).
+    lines : tuple of DriveLine
+        Frequencies (Hz) and amplitudes (V); phases are ignored.
+    f0_hz, q : float, optional
+        Free-air resonance, used only with fewer than three lines.
+    hold : {"none", "zero-order"}
+        How the drive reached the cantilever: a continuous signal (the
+        default, a real instrument's drive) or held between samples by a DAC
+        at the sample rate (a discrete-time simulator).
+
+    Returns
+    -------
+    DrivePhaseFit
+
+    Notes
+    -----
+    With D_i the deflection's complex amplitude at ω_i (least squares,
+    :func:`line_amplitudes`) and H the free-air response G(s) = g·ω0²/(s² +
+    (ω0/Q)s + ω0²) of eq. 3.1 (:func:`continuous_response`; with
+    ``hold="zero-order"`` discretised with a zero-order hold,
+    :func:`zoh_response`), |D_i|/A_i = |H(ω_i)| fixes g, ω0, Q from three or
+    more lines, and
+
+        φ_i = ∠D_i − ∠H(ω_i).
+
+    Only the magnitudes carry ω0 and Q: the lines' phases are what is being
+    fitted.  So the side lines must stand clear of the noise (their
+    amplitudes set ω0 to about Δf times their relative error), and the
+    response must be the right one: the magnitudes of a held and of a
+    continuous drive differ by a few % at f/fs ≈ 0.15, which moves the
+    fitted f0 by tens of Hz, and the main line's phase, at resonance, with
+    it (2Q/f0 rad per Hz).  A pure delay between drive and deflection cannot
+    be told from a phase of the drive; it ends up in φ_i, and the free-air
+    model identified from the synthesised dither is then delay-free.
+    """
+    fs = float(sample_rate_hz)
+    frequencies = np.array([line.frequency_hz for line in lines])
+    amplitudes = np.array([line.amplitude_v for line in lines])
+    if hold not in ("none", "zero-order"):
+        raise ConfigError(f"{hold=} must be 'none' or 'zero-order'")
+    response = _response(hold)
+    if np.any(frequencies >= fs / 2):
+        raise ConfigError(f"--drive lines must be below the Nyquist frequency {fs / 2:g} Hz")
+    if len(deflection) < 4 * len(lines) + 8:
+        raise InputError(f"the free-air segment ({len(deflection)} samples) is too short to fit the drive phases")
+    d = line_amplitudes(deflection, fs, start_sample, frequencies)
+    magnitude = np.abs(d) / amplitudes
+    if np.any(magnitude <= 0):
+        raise InputError("a drive line has no response in the deflection on the free-air segment")
+    if len(lines) >= 3:
+        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs, hold)
+        source = "line magnitudes"
+    elif f0_hz and q:
+        f0, qf = float(f0_hz), float(q)
+        gain = float(np.mean(magnitude / np.abs(response(frequencies, f0, qf, fs))))
+        source = "metadata cantilever f0_hz, q"
+    else:
+        raise InputError(
+            f"--drive gives {len(lines)} line(s): fitting their phases needs three lines around the resonance, "
+            "or metadata cantilever f0_hz and q"
+        )
+    phases = np.angle(d) - np.angle(response(frequencies, f0, qf, fs))
+    fitted = tuple(DriveLine(float(f), float(a), float(p)) for f, a, p in zip(frequencies, amplitudes, phases))
+    return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)))
+
+
+def synthesize_drive(lines: tuple[DriveLine, ...], sample_rate_hz: float, start_sample: int, n: int) -> np.ndarray:
+    """g[k] = Σ_i A_i cos(ω_i t_k + φ_i), t_k = (start_sample + k)/fs: the dither as the ADC would sample it (V)."""
+    index = start_sample + np.arange(n, dtype=np.float64)
+    out = np.zeros(n)
+    for line in lines:
+        # cycles reduced to [0, 1) before the 2π keeps the cosine's argument small on long captures
+        cycles = np.mod(index * (line.frequency_hz / sample_rate_hz), 1.0)
+        out += line.amplitude_v * np.cos(2.0 * np.pi * cycles + line.phase_rad)
+    return out

@@ -1,0 +1,102 @@
+"""WAV files (``.wav``) from sound-card and scope DAQs, read with scipy.io.wavfile.
+
+Each WAV channel becomes a capture channel ``ch1`` .. ``chN`` (as scopes
+label them; ``--channel deflection=ch2`` names them).  WAV carries no
+physical units, so the channels have none: integer PCM samples are ADC
+counts and IEEE-float samples are whatever the writer stored.  The reader
+reports the PCM type and its full scale in the metadata and never scales
+the samples; give the units with ``--units`` and calibrate from there.
+
+The file is memory-mapped (``mmap=True``), so blocks are read as they are
+needed; formats numpy cannot map (24-bit PCM) are read whole.  A file
+shorter than its header says is refused.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from afmtool.errors import InputError
+from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
+
+__all__ = ["WavReader"]
+
+# What scipy.io.wavfile raises on a damaged or truncated file.
+_WAV_ERRORS = (ValueError, EOFError, KeyError, IndexError, TypeError, OverflowError, MemoryError)
+
+
+def _first_line(exc: BaseException) -> str:
+    return ((str(exc).strip().splitlines() or [type(exc).__name__])[0])[:200]
+
+
+class WavReader(ReaderBase):
+    """Read a WAV file as a capture.
+
+    Parameters
+    ----------
+    path : Path
+        The ``.wav`` file; opened read-only.
+    sample_rate_hz : float, optional
+        Overrides the header's sample rate (an integer in WAV, so a
+        1.15 MHz recording may need the exact value here).
+    """
+
+    def __init__(self, path: Path, sample_rate_hz: float | None = None) -> None:
+        self._path = Path(path)
+        rate, data = self._load()
+        if data.ndim == 1:
+            data = data[:, None]
+        if data.ndim != 2 or data.shape[1] == 0 or data.dtype.kind not in "fiu":
+            raise InputError(f"{path}: WAV data of shape {data.shape} {data.dtype} is not a set of channels")
+        self._data = data
+        rate = float(sample_rate_hz if sample_rate_hz is not None else rate)
+        if not (math.isfinite(rate) and rate > 0):
+            raise InputError(f"{path}: sample rate {rate!r} must be a positive number")
+        channels = tuple(ChannelSpec(f"ch{i + 1}") for i in range(data.shape[1]))
+        instrument: dict = {"vendor_format": "WAV", "sample_type": str(data.dtype)}
+        if data.dtype.kind in "iu":
+            instrument["full_scale_counts"] = int(np.iinfo(data.dtype).max) + 1
+        self.info = CaptureInfo(str(path), "wav", rate, channels, len(data), {"instrument": instrument})
+
+    def _load(self) -> tuple[int, np.ndarray]:
+        from scipy.io import wavfile
+
+        try:
+            with warnings.catch_warnings():
+                # scipy warns, and reads on, when the file ends before its header's data size
+                warnings.simplefilter("error", wavfile.WavFileWarning)
+                try:
+                    return wavfile.read(str(self._path), mmap=True)
+                except ValueError as exc:
+                    if "mmap length is greater than file size" in str(exc):
+                        raise InputError(f"{self._path}: truncated WAV file (shorter than its header says)") from None
+                    if "mmap" not in str(exc):
+                        raise
+                return wavfile.read(str(self._path), mmap=False)  # e.g. 24-bit PCM, which numpy cannot map
+        except OSError as exc:
+            raise InputError(f"{self._path}: cannot read ({exc.strerror or _first_line(exc)})") from None
+        except wavfile.WavFileWarning as exc:
+            raise InputError(f"{self._path}: truncated or damaged WAV file ({_first_line(exc)})") from None
+        except _WAV_ERRORS as exc:
+            raise InputError(f"{self._path}: not a readable WAV file ({_first_line(exc)})") from None
+
+    def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
+        columns = [int(name[2:]) - 1 for name in channels]
+        for start in range(0, len(self._data), block_samples):
+            block = self._data[start : start + block_samples]
+            try:
+                data = {name: np.array(block[:, i], dtype=np.float64) for name, i in zip(channels, columns)}
+            except OSError as exc:  # a mapped file that shrank under us
+                raise InputError(f"{self._path}: cannot read at sample {start} ({exc.strerror})") from None
+            yield Chunk(start, data)
+
+    def truth(self) -> dict[str, np.ndarray]:
+        return {}
+
+    def close(self) -> None:
+        self._data = np.empty((0, 0))  # drops the memory map
