@@ -58,7 +58,10 @@ _ASYLUM_CHANNELS = {"Defl": "deflection", "ZSnsr": "z_piezo", "DeflV": "deflecti
 _DIRECTION_NAMES = {1: "approach", 0: "dwell", -1: "retract"}
 
 # What igor2 raises on a damaged or truncated wave, at any depth of its parser.
-_IGOR_ERRORS = (ValueError, struct.error, EOFError, IndexError, KeyError, TypeError, OverflowError, MemoryError)
+_IGOR_ERRORS = (
+    ValueError, struct.error, EOFError, IndexError, KeyError, TypeError, ArithmeticError, MemoryError,
+    AssertionError,  # igor2 asserts on header fields it cannot reconcile
+)
 
 
 def parse_wave_note(note: bytes) -> dict[str, str]:
@@ -235,7 +238,9 @@ class IbwReader(ReaderBase):
         columns = [index[name] for name in channels]
         for start in range(0, len(self._data), block_samples):
             block = self._data[start : start + block_samples]
-            yield Chunk(start, {name: block[:, i].astype(np.float64) for name, i in zip(channels, columns)})
+            with np.errstate(invalid="ignore", over="ignore"):  # a NaN or inf is refused, by name, downstream
+                data = {name: block[:, i].astype(np.float64) for name, i in zip(channels, columns)}
+            yield Chunk(start, data)
 
     def truth(self) -> dict[str, np.ndarray]:
         return {}

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import re
 import zipfile
+import zlib
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -157,7 +158,7 @@ class JpkReader(ReaderBase):
             raise InputError(f"{path}: cannot read ({exc.strerror or _first_line(exc)})") from None
         try:
             self._open(sample_rate_hz, segment)
-        except (zipfile.BadZipFile, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError) as exc:
+        except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError) as exc:
             self._zip.close()
             raise InputError(f"{path}: damaged JPK file ({_first_line(exc)})") from None
         except BaseException:
@@ -375,7 +376,7 @@ class JpkReader(ReaderBase):
                     data = {c: self._read(segment_channels[c], handles[c], lo, count) for c in channels}
                     yield Chunk(done, data)
                     done += count
-            except (zipfile.BadZipFile, EOFError, ValueError, OSError, RuntimeError) as exc:
+            except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError, RuntimeError, NotImplementedError) as exc:
                 raise InputError(f"{self._path}: cannot read segment {name} ({_first_line(exc)})") from None
             finally:
                 for handle in handles.values():

@@ -38,7 +38,11 @@ __all__ = ["TdmsReader"]
 _RATE_TOLERANCE = 1e-9
 
 # What npTDMS raises on a damaged file, at any depth of its parser.
-_TDMS_ERRORS = (ValueError, struct.error, KeyError, IndexError, EOFError, TypeError, OverflowError, UnicodeDecodeError)
+_TDMS_ERRORS = (
+    ValueError, struct.error, KeyError, IndexError, EOFError, TypeError, OverflowError, UnicodeDecodeError,
+    NotImplementedError,  # a damaged type code: "Unsupported data type to read"
+    MemoryError,
+)
 
 
 class _WarningTrap(logging.Filter):

@@ -15,6 +15,7 @@ shorter than its header says is refused.
 from __future__ import annotations
 
 import math
+import struct
 import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -27,7 +28,10 @@ from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 __all__ = ["WavReader"]
 
 # What scipy.io.wavfile raises on a damaged or truncated file.
-_WAV_ERRORS = (ValueError, EOFError, KeyError, IndexError, TypeError, OverflowError, MemoryError)
+_WAV_ERRORS = (
+    ValueError, EOFError, KeyError, IndexError, TypeError, ArithmeticError, MemoryError, struct.error,
+    UnboundLocalError,  # scipy 1.17 on a file with no data chunk
+)
 
 
 def _first_line(exc: BaseException) -> str:
