@@ -14,6 +14,7 @@ from afmtool.cli.options import (
     JsonOpt,
     QuietOpt,
     SampleRateOpt,
+    SegmentOpt,
     StreamFormatOpt,
     StreamOpt,
     StreamOutOpt,
@@ -63,6 +64,7 @@ def decode(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    segment: SegmentOpt = None,
 ) -> None:
     """Decode bits read by an electrostatically actuated probe with an EKF (thesis ch. 7).
 
@@ -95,7 +97,7 @@ def decode(
         "polarity": polarity,
     }
     run_capture_analysis(
-        "decode", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        "decode", capture, (channel, topic, sample_rate, segment), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_decode_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_decode_command(reader, capture, out, config, flags, update, capture_record),
     )

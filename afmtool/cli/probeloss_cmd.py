@@ -15,6 +15,7 @@ from afmtool.cli.options import (
     JsonOpt,
     QuietOpt,
     SampleRateOpt,
+    SegmentOpt,
     StreamFormatOpt,
     StreamOpt,
     StreamOutOpt,
@@ -75,6 +76,7 @@ def probeloss(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    segment: SegmentOpt = None,
 ) -> None:
     """Probe loss from the reliability index (thesis ch. 2), beside the amplitude threshold.
 
@@ -111,7 +113,7 @@ def probeloss(
     if kalman and decay_cycles is not None:
         raise ConfigError("--kalman and --decay-cycles choose the gain two ways; give one")
     run_capture_analysis(
-        "probeloss", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        "probeloss", capture, (channel, topic, sample_rate, segment), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_probeloss_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_probeloss_command(reader, capture, out, config, flags, update, capture_record),
     )

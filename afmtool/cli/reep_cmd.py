@@ -16,6 +16,7 @@ from afmtool.cli.options import (
     OutOpt,
     QuietOpt,
     SampleRateOpt,
+    SegmentOpt,
     StreamFormatOpt,
     StreamOpt,
     StreamOutOpt,
@@ -55,6 +56,7 @@ def reep(
     channel: ChannelOpt = None,
     topic: TopicOpt = None,
     sample_rate: SampleRateOpt = None,
+    segment: SegmentOpt = None,
 ) -> None:
     """Real-time equivalent f0' and Q' by bias-compensated EW-RLS (thesis ch. 3).
 
@@ -81,7 +83,7 @@ def reep(
         "z_bin": z_bin,
     }
     run_capture_analysis(
-        "reep", capture, (channel, topic, sample_rate), out, (stream, stream_format), json_output, quiet,
+        "reep", capture, (channel, topic, sample_rate, segment), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_reep_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_reep_command(reader, capture, out, config, flags, update, capture_record),
     )
