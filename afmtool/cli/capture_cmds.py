@@ -98,7 +98,10 @@ def convert(
     quiet: QuietOpt = False,
     segment: SegmentOpt = None,
 ) -> None:
-    """Convert a capture between HDF5, CSV, ROS1 and ROS2 (mcap, sqlite3) bags.
+    """Convert any readable capture (HDF5, CSV, bags, .ibw, JPK, .tdms, LabOne, .wav, Chiaro) to HDF5, CSV or a bag.
+
+    Units, metadata and segments are kept; a file whose segments have different
+    rates is converted one segment at a time (--segment).
 
     The output appears only when complete (written to a temp name, then renamed).
     ROS2 outputs are bag folders; without --format a name ending in .mcap or
