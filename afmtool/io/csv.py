@@ -159,6 +159,8 @@ class CsvReader(ReaderBase):
         if not line:
             return None
         self._line_no += 1
+        if self._line_no == 1:
+            line = line.lstrip("\ufeff")  # a byte-order mark that reached us as text (a stream given decoded)
         if len(line) > MAX_LINE_CHARS:
             raise InputError(f"{self._name}: line {self._line_no} is longer than {MAX_LINE_CHARS} characters")
         return line
