@@ -197,3 +197,28 @@ def test_reep_and_probeloss_identical_through_each_format(tmp_path, reference_ru
     result = run_cli("reep", foreign, "--config", tmp_path / "p.toml", "--out", direct, "-q", *mapping, *_units_flags("reep"))
     assert result.returncode == 0, result.stderr.decode()
     _assert_same(_results(direct, "reep"), reference_runs["reep"])
+
+
+@pytest.mark.parametrize("suffix", [".ibw", ".jpk-force", ".jpk-qi-series", ".tdms", ".wav", ".txt", ".zip", ".h5", ".csv"])
+@pytest.mark.parametrize("content", [b"\x00\x01garbage\xff" * 50, b"PK\x03\x04" + bytes(300)])
+def test_unparsable_file_with_a_supported_suffix(tmp_path, suffix, content):
+    from afmtool.errors import InputError
+    from afmtool.io.chunks import iter_chunks
+    from afmtool.io.registry import open_capture
+
+    path = tmp_path / f"junk{suffix}"
+    path.write_bytes(content)
+    with pytest.raises(InputError) as caught:
+        with open_capture(path) as reader:
+            list(iter_chunks(reader, reader.info.channel_names, 100))
+    assert str(path) in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_unparsable_file_through_the_cli(tmp_path):
+    path = tmp_path / "junk.tdms"
+    path.write_bytes(b"TDSm" + bytes(100))
+    for command in (["info", path], ["convert", path, tmp_path / "out.h5"]):
+        result = run_cli(*command)
+        err = result.stderr.decode()
+        assert result.returncode == 2 and err.count("\n") == 1 and str(path) in err and "Traceback" not in err, err
+    assert not (tmp_path / "out.h5").exists()
