@@ -7,7 +7,8 @@ metadata is read up front, and samples are read block by block with
 ``Linear_Y_Intercept``) and returns physical values.
 
 Every channel holding samples becomes a capture channel, named by its TDMS
-channel name (``group/channel`` when the file has more than one group).
+channel name (``group.channel`` when the file has more than one group: a ``/``
+would become an HDF5 path on conversion).
 The sample rate is 1 / ``wf_increment`` (s), which every channel must carry
 and share; units come from ``unit_string`` (NI's long names such as
 ``Volts`` are written as their symbols; no value is converted).
@@ -108,7 +109,7 @@ class TdmsReader(ReaderBase):
             for channel in group.channels():
                 if len(channel) == 0:
                     continue
-                name = channel.name if len(groups) == 1 else f"{group.name}/{channel.name}"
+                name = channel.name if len(groups) == 1 else f"{group.name}.{channel.name}"
                 if channel.dtype is None or np.dtype(channel.dtype).kind not in "fiu":
                     raise InputError(f"{self._path}: TDMS channel {name!r} holds {channel.dtype}, not numbers")
                 channels[name] = channel
