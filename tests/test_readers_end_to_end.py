@@ -222,3 +222,18 @@ def test_unparsable_file_through_the_cli(tmp_path):
         err = result.stderr.decode()
         assert result.returncode == 2 and err.count("\n") == 1 and str(path) in err and "Traceback" not in err, err
     assert not (tmp_path / "out.h5").exists()
+
+
+@pytest.mark.parametrize("name", [r[0] for r in EXPECTED] + ["fmt-jpk-fd_qi-data-2021.04.13.jpk-qi-series"])
+def test_vendor_metadata_follows_the_schema(shared, name):
+    import jsonschema
+
+    from afmtool.io.metadata import validate_metadata
+    from afmtool.io.registry import open_capture
+    from tests.conftest import load_schema
+
+    segment = "retract" if "qi-series" in name else None
+    with open_capture(shared / FORMATS / name, segment=segment) as reader:
+        metadata = json.loads(json.dumps(dict(reader.info.metadata)))
+    jsonschema.validate(metadata, load_schema("capture-metadata.schema.json"))
+    validate_metadata(metadata)
