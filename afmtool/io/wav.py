@@ -94,7 +94,8 @@ class WavReader(ReaderBase):
         for start in range(0, len(self._data), block_samples):
             block = self._data[start : start + block_samples]
             try:
-                data = {name: np.array(block[:, i], dtype=np.float64) for name, i in zip(channels, columns)}
+                with np.errstate(invalid="ignore", over="ignore"):  # NaN/inf are refused by name downstream
+                    data = {name: np.array(block[:, i], dtype=np.float64) for name, i in zip(channels, columns)}
             except OSError as exc:  # a mapped file that shrank under us
                 raise InputError(f"{self._path}: cannot read at sample {start} ({exc.strerror})") from None
             yield Chunk(start, data)
