@@ -70,3 +70,22 @@ def test_error_messages_stay_on_one_line():
     assert "\n" not in message and message.isprintable()
     assert message == "case.bag: topic /afm/metadat\\n (channel metadat\\n) has message type x\\x00"
     assert str(InputError("  Γ_IR,ts in µA/nm  ")) == "Γ_IR,ts in µA/nm"  # printable text is left alone
+
+
+def test_tdms_with_a_damaged_scaling_chain_is_an_input_error(tmp_path):
+    """Long run, tdms cases 397, 747, 1172, 1385, 2174: npTDMS raised a bare Exception
+    ("Invalid scaling input source for DAQmx data") while scaling a channel."""
+    import numpy as np
+
+    from afmtool.errors import InputError
+    from afmtool.io.chunks import iter_chunks
+    from afmtool.io.registry import open_capture
+    from tests.fuzz_harness import _FORMATS, mutate
+
+    if not _FORMATS.is_dir():
+        pytest.skip("../shared/data/formats is not beside the repository")
+    path = tmp_path / "case397.tdms"
+    path.write_bytes(mutate((_FORMATS / "raw1.tdms").read_bytes(), np.random.default_rng([0, 397])))
+    with pytest.raises(InputError, match="cannot scale"):
+        with open_capture(path) as reader:
+            list(iter_chunks(reader, reader.info.channel_names, 257))

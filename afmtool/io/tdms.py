@@ -164,6 +164,12 @@ class TdmsReader(ReaderBase):
                     raise InputError(f"{self._path}: cannot read {name} at sample {start} ({exc.strerror})") from None
                 except _TDMS_ERRORS as exc:
                     raise InputError(f"{self._path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
+                except Exception as exc:  # noqa: BLE001 - narrowed at once to npTDMS's bare Exception
+                    if type(exc) is not Exception:
+                        raise
+                    # npTDMS raises the base class itself for a damaged scaling chain
+                    # ("Invalid scaling input source for DAQmx data")
+                    raise InputError(f"{self._path}: cannot scale {name} ({_first_line(exc)})") from None
                 self._check_warnings()
                 values = np.asarray(values, dtype=np.float64)
                 if len(values) != length:
