@@ -68,6 +68,8 @@ _RAW_TYPES = {
 _MAX_HEADER_BYTES = 16 << 20
 #: Most segments in a file.
 _MAX_SEGMENTS = 10_000
+#: Largest ratio of a member's size to its compressed size (deflate itself stops near 1032).
+_MAX_COMPRESSION = 1100
 #: Where the deflection's chain stops (see the module docstring).
 _DEFLECTION_TARGET = "distance"
 
@@ -273,9 +275,12 @@ class JpkReader(ReaderBase):
             raise InputError(f"{where}: unknown data type {data_type or raw_type!r}")
         member = f"segments/{k}/" + own.get("data.file.name", f"channels/{jpk_name}.dat")
         try:
-            size = self._zip.getinfo(member).file_size
+            entry = self._zip.getinfo(member)
         except KeyError:
             raise InputError(f"{where}: no {member} in the archive") from None
+        size = entry.file_size
+        if size > _MAX_COMPRESSION * entry.compress_size + (1 << 16):
+            raise InputError(f"{where}: {member} claims {size} bytes from {entry.compress_size}; refusing a ZIP bomb")
         if size != n * np.dtype(dtype).itemsize:
             raise InputError(f"{where}: {member} holds {size} bytes, not {n} samples of {np.dtype(dtype).itemsize}")
         steps, unit = self._chain(encoding, encoder, name, where)
