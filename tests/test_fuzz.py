@@ -89,3 +89,26 @@ def test_tdms_with_a_damaged_scaling_chain_is_an_input_error(tmp_path):
     with pytest.raises(InputError, match="cannot scale"):
         with open_capture(path) as reader:
             list(iter_chunks(reader, reader.info.channel_names, 257))
+
+
+def test_ibw_with_a_huge_declared_section_is_refused_before_allocating(tmp_path):
+    """Long run, ibw cases 1345, 1380 and 1392: a damaged section size made igor2 ask for
+    gigabytes (7.7 GB RSS, and a worker killed as a hang); the header is now checked first."""
+    import time
+
+    import numpy as np
+
+    from afmtool.errors import InputError
+    from afmtool.io.registry import open_capture
+    from tests.fuzz_harness import _FORMATS, mutate
+
+    if not _FORMATS.is_dir():
+        pytest.skip("../shared/data/formats is not beside the repository")
+    seed = (_FORMATS / "fmt-igor-fd_SiN_FD_plot.ibw").read_bytes()
+    for case in (1345, 1380):
+        path = tmp_path / f"case{case}.ibw"
+        path.write_bytes(mutate(seed, np.random.default_rng([0, case])))
+        start = time.monotonic()
+        with pytest.raises(InputError, match="declares"):
+            open_capture(path)
+        assert time.monotonic() - start < 2
