@@ -31,8 +31,18 @@ import numpy as np
 #: Beyond a case's own timeout, how long the parent waits before it kills a worker, s.
 _GRACE_S = 20.0
 
-READERS = ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", "psd", "toml", "metadata")
-_SUFFIX = {"csv": ".csv", "hdf5": ".h5", "ros1": ".bag", "psd": ".csv", "toml": ".toml", "metadata": ".json"}
+READERS = (
+    "csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", "psd", "toml", "metadata",
+    "ibw", "jpk", "tdms", "wav", "labone-hdf5", "labone-csv", "chiaro",
+)
+_SUFFIX = {"csv": ".csv", "hdf5": ".h5", "ros1": ".bag", "psd": ".csv", "toml": ".toml", "metadata": ".json",
+           "ibw": ".ibw", "jpk": ".jpk-force", "tdms": ".tdms", "wav": ".wav", "labone-hdf5": ".h5",
+           "labone-csv": ".csv", "chiaro": ".zip"}
+#: Readers of instrument formats, whose seeds are real files or their libraries' own output.
+VENDOR_READERS = ("ibw", "jpk", "tdms", "wav", "labone-hdf5", "labone-csv", "chiaro")
+#: Readers whose files are ZIP archives: half their cases mutate one member and re-zip it.
+_ZIP_READERS = ("jpk", "chiaro")
+_FORMATS = Path(__file__).resolve().parents[2] / "shared" / "data" / "formats"
 
 
 # --------------------------------------------------------------------------- seeds
@@ -56,10 +66,51 @@ def _seed_capture(folder: Path, fmt: str) -> Path:
     return target
 
 
+def _seed_vendor(path: Path, reader: str) -> Path:
+    """A small valid file in a vendor format: a real instrument file, or its library's own output."""
+    if reader in ("ibw", "jpk", "tdms"):
+        name = {"ibw": "fmt-igor-fd_SiN_FD_plot.ibw", "jpk": "fmt-jpk-fd_spot3-0192.jpk-force", "tdms": "raw1.tdms"}
+        shutil.copyfile(_FORMATS / name[reader], path)
+    elif reader == "chiaro":  # the real export's header and its first 300 rows, zipped as it came
+        import zipfile
+
+        with zipfile.ZipFile(_FORMATS / "fmt-chiaro-txt_AEBP1_Indentation_002.zip") as source:
+            member = source.namelist()[0]
+            text = source.read(member)
+        cut = text.index(b"Time (s)")
+        rows = text[cut:].split(b"\r\n")[:301]
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as target:
+            target.writestr(member, text[:cut] + b"\r\n".join(rows) + b"\r\n")
+    elif reader == "wav":
+        from scipy.io import wavfile
+
+        wavfile.write(path, 500000, np.random.default_rng(1).standard_normal((300, 2)).astype(np.float32))
+    elif reader == "labone-hdf5":
+        import h5py
+
+        with h5py.File(path, "w") as f:
+            for chunk in range(2):
+                group = f.create_group(f"{chunk:03d}/dev1234/demods/0/sample")
+                group["timestamp"] = (10**9 + (np.arange(100) + 100 * chunk) * 3000).astype(np.uint64)
+                group["x"] = np.linspace(0, 1, 100)
+                group["y"] = np.linspace(1, 0, 100)
+                group.attrs["clockbase"] = 60e6
+            wave = f.create_group("000/dev1234/scopes/0/wave")  # a second segment: --segment in the target
+            wave["wave"] = np.ones((2, 64), dtype=np.int16)
+            wave.attrs["dt"] = 1e-6
+    else:  # labone-csv
+        lines = ["# clockbase: 60000000", "chunk;timestamp;x;y;frequency"]
+        lines += [f"0;{10**9 + 3000 * i};{0.001 * i};{-0.002 * i};70000" for i in range(200)]
+        path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def seed_input(folder: Path, reader: str) -> Path:
     if reader in ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap"):
         return _seed_capture(folder, reader)
     path = folder / ("seed" + _SUFFIX[reader])
+    if reader in VENDOR_READERS:
+        return _seed_vendor(path, reader)
     if reader == "psd":
         f = np.arange(1, 400) * 250.0
         asd = 1e-13 + 1e-11 / np.sqrt((1 - (f / 5e4) ** 2) ** 2 + (f / 5e4 / 300) ** 2)
@@ -102,6 +153,28 @@ def mutate(data: bytes, rng: np.random.Generator) -> bytes:
     return bytes(buf)
 
 
+def mutate_zip(data: bytes, rng: np.random.Generator) -> bytes:
+    """Mutate one member of a ZIP archive and re-zip it (so its CRC still matches), or the archive itself."""
+    import io
+    import zipfile
+
+    if rng.random() < 0.5:
+        return mutate(data, rng)
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as source:
+            members = [(item, source.read(item)) for item in source.infolist()]
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError):
+        return mutate(data, rng)
+    if not members:
+        return data
+    victim = int(rng.integers(0, len(members)))
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as target:
+        for i, (item, body) in enumerate(members):
+            target.writestr(item, mutate(body, rng) if i == victim else body)
+    return out.getvalue()
+
+
 def materialise(seed: Path, data: bytes, folder: Path) -> Path:
     """Write a mutated copy of ``seed``; a ROS2 bag keeps its other file intact."""
     if seed.is_dir():
@@ -125,12 +198,14 @@ def materialise(seed: Path, data: bytes, folder: Path) -> Path:
 
 def read_target(reader: str) -> Callable[[Path], None]:
     """The code under test for ``reader``: parse everything, raise AfmtoolError on bad input."""
-    if reader in ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap"):
+    if reader in ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", *VENDOR_READERS):
         from afmtool.io.chunks import iter_chunks
         from afmtool.io.registry import open_capture
 
+        segment = "demods" if reader == "labone-hdf5" else None
+
         def run(path: Path) -> None:
-            with open_capture(path) as capture:
+            with open_capture(path, segment=segment) as capture:
                 for _ in iter_chunks(capture, capture.info.channel_names, 257):
                     pass
                 capture.truth()
@@ -181,7 +256,8 @@ def _worker(reader: str, seed_dir: str, start: int, stop: int, rng_seed: int, ti
     work = Path(tempfile.mkdtemp(prefix=f"fuzz-{reader}-"))
     try:
         for case in range(start, stop):
-            data = mutate(original, np.random.default_rng([rng_seed, case]))
+            case_rng = np.random.default_rng([rng_seed, case])
+            data = mutate_zip(original, case_rng) if reader in _ZIP_READERS else mutate(original, case_rng)
             path = materialise(seed, data, work)
             conn.send(("start", case, data))
             signal.setitimer(signal.ITIMER_REAL, timeout)

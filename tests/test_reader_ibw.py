@@ -87,3 +87,10 @@ def test_truncated_ibw_is_one_line_exit_2(shared, tmp_path, keep):
     err = result.stderr.decode()
     assert err.count("\n") == 1 and str(path) in err and "Igor binary wave" in err, err
     assert result.stdout == b""
+
+
+@pytest.mark.parametrize("command", ["reep", "probeloss", "decode"])
+def test_analyses_take_segment(shared, tmp_path, command):
+    result = run_cli(command, shared / IBW, "--segment", "dwell", "--out", tmp_path / "out")
+    assert result.returncode == 2 and "no segment 'dwell'" in result.stderr.decode()
+    assert not (tmp_path / "out").exists()

@@ -152,3 +152,22 @@ def test_text_that_is_not_chiaro_is_refused(tmp_path):
     (tmp_path / "notes.txt").write_text("hello\nworld\n")
     result = run_cli("info", tmp_path / "notes.txt")
     assert result.returncode == 2 and "not an Optics11 Chiaro export" in result.stderr.decode()
+
+
+def test_zip_bomb_member_is_refused(shared, tmp_path):
+    """A channel claiming 5 million samples that bzip2 packs into a few hundred bytes is refused before reading."""
+    source = zipfile.ZipFile(shared / SPOT3)
+    path = tmp_path / "bomb.jpk-force"
+    n = 5_000_000
+    with zipfile.ZipFile(path, "w") as target:
+        for item in source.infolist():
+            body = source.read(item)
+            if item.filename.startswith("segments/0/"):
+                if item.filename.endswith("segment-header.properties"):
+                    body = body.replace(b"num-points=2000", f"num-points={n}".encode())
+                    body = body.replace(b"duration=0.9999999999999998", b"duration=50000")
+                elif item.filename.endswith(".dat"):
+                    body = bytes(2 * n)
+            target.writestr(item.filename, body, compress_type=zipfile.ZIP_BZIP2 if body[:1] == b"\0" else None)
+    result = run_cli("info", path)
+    assert result.returncode == 2 and "ZIP bomb" in result.stderr.decode(), result.stderr.decode()

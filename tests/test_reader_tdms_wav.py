@@ -70,10 +70,10 @@ def test_file_from_nptdms_writer(tmp_path):
     np.testing.assert_array_equal(data["deflection"], objects[1].data)
 
 
-def test_two_groups_are_named_group_slash_channel(tmp_path):
+def test_two_groups_are_named_group_dot_channel(tmp_path):
     _write_tdms(tmp_path / "w.tdms", groups=("a", "b"))
-    info, _ = _read(tmp_path / "w.tdms", channel_map={"deflection": "b/deflection"})
-    assert "deflection" in info.channel_names and "a/dither" in info.channel_names
+    info, _ = _read(tmp_path / "w.tdms", channel_map={"deflection": "b.deflection"})
+    assert "deflection" in info.channel_names and "a.dither" in info.channel_names
 
 
 def test_channel_without_sample_interval_is_refused(tmp_path):

@@ -63,9 +63,9 @@ def open_input(
     topic: list[str] | None,
     sample_rate: float | None,
     calibration=None,
+    segment: str | None = None,
     *,
     convert_units: bool = True,
-    segment: str | None = None,
 ):
     """Open a capture with the shared --channel/--topic/--sample-rate/--segment (and calibration) options.
 
@@ -110,7 +110,7 @@ def finish_command(report: dict, out: Path, json_output: bool, quiet: bool) -> N
 def run_capture_analysis(
     name: str,
     capture: str,
-    source: tuple[list[str] | None, list[str] | None, float | None],
+    source: tuple,
     out: Path | None,
     stream: tuple[bool, str],
     json_output: bool,
@@ -127,7 +127,8 @@ def run_capture_analysis(
         The command, for the progress bar.
     capture, source
         The capture and its ``(--channel, --topic, --sample-rate)``, optionally
-        followed by its :class:`~afmtool.cli.calibration_options.CaptureCalibration`.
+        followed by its :class:`~afmtool.cli.calibration_options.CaptureCalibration`
+        and ``--segment``.
     out : Path or None
         ``--out``; required without ``--stream``.
     stream : (bool, str)

@@ -15,6 +15,7 @@ from afmtool.cli.options import (
     JsonOpt,
     QuietOpt,
     SampleRateOpt,
+    SegmentOpt,
     StreamFormatOpt,
     StreamOpt,
     StreamOutOpt,
@@ -67,6 +68,7 @@ def decode(
     units: UnitsOpt = None,
     invols: InvolsOpt = None,
     z_sensitivity: ZSensitivityOpt = None,
+    segment: SegmentOpt = None,
 ) -> None:
     """Decode bits read by an electrostatically actuated probe with an EKF (thesis ch. 7).
 
@@ -100,7 +102,7 @@ def decode(
     }
     calibration = CaptureCalibration(units, invols, z_sensitivity)
     run_capture_analysis(
-        "decode", capture, (channel, topic, sample_rate, calibration), out, (stream, stream_format), json_output, quiet,
+        "decode", capture, (channel, topic, sample_rate, calibration, segment), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_decode_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_decode_command(reader, capture, out, config, flags, update, capture_record),
     )

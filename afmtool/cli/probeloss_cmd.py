@@ -25,6 +25,7 @@ from afmtool.cli.options import (
     QOpt,
     QuietOpt,
     SampleRateOpt,
+    SegmentOpt,
     StreamFormatOpt,
     StreamOpt,
     StreamOutOpt,
@@ -92,6 +93,7 @@ def probeloss(
     invols: InvolsOpt = None,
     z_sensitivity: ZSensitivityOpt = None,
     drive: DriveOpt = None,
+    segment: SegmentOpt = None,
 ) -> None:
     """Probe loss from the reliability index (thesis ch. 2), beside the amplitude threshold.
 
@@ -132,7 +134,7 @@ def probeloss(
         raise ConfigError("--kalman and --decay-cycles choose the gain two ways; give one")
     calibration = CaptureCalibration(units, invols, z_sensitivity, drive, free_air, accepts_drive=True)
     run_capture_analysis(
-        "probeloss", capture, (channel, topic, sample_rate, calibration), out, (stream, stream_format), json_output, quiet,
+        "probeloss", capture, (channel, topic, sample_rate, calibration, segment), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_probeloss_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_probeloss_command(reader, capture, out, config, flags, update, capture_record),
     )

@@ -26,6 +26,7 @@ from afmtool.cli.options import (
     OutOpt,
     QuietOpt,
     SampleRateOpt,
+    SegmentOpt,
     StreamFormatOpt,
     StreamOpt,
     StreamOutOpt,
@@ -76,6 +77,7 @@ def reep(
     invols: InvolsOpt = None,
     z_sensitivity: ZSensitivityOpt = None,
     drive: DriveOpt = None,
+    segment: SegmentOpt = None,
 ) -> None:
     """Real-time equivalent f0' and Q' by bias-compensated EW-RLS (thesis ch. 3).
 
@@ -112,7 +114,7 @@ def reep(
     }
     calibration = CaptureCalibration(units, invols, z_sensitivity, drive, free_air, accepts_drive=True)
     run_capture_analysis(
-        "reep", capture, (channel, topic, sample_rate, calibration), out, (stream, stream_format), json_output, quiet,
+        "reep", capture, (channel, topic, sample_rate, calibration, segment), out, (stream, stream_format), json_output, quiet,
         to_rows=lambda reader: run_reep_stream(reader, config, flags, stream_format),
         to_folder=lambda reader, update: run_reep_command(reader, capture, out, config, flags, update, capture_record),
     )

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import zipfile
+import zlib
 from pathlib import Path
 
 from afmtool.errors import InputError
@@ -58,7 +59,7 @@ class ChiaroReader(CsvReader):
             if members[0].file_size > _MAX_MEMBER_BYTES:
                 raise InputError(f"{path}: {members[0].filename} is {members[0].file_size} bytes; too large")
             return _text_stream(self._zip.open(members[0]))
-        except (zipfile.BadZipFile, EOFError, ValueError, NotImplementedError, RuntimeError) as exc:
+        except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplementedError, RuntimeError) as exc:
             self._close_zip()
             raise InputError(f"{path}: not a readable ZIP archive ({str(exc).splitlines()[0][:200]})") from None
         except OSError as exc:

@@ -22,9 +22,9 @@ __all__ = ["iter_chunks", "require_channels"]
 
 def require_channels(info: CaptureInfo, channels: Sequence[str]) -> None:
     """Raise :class:`InputError` naming the first channel the capture lacks."""
-    have = frozenset(info.channel_names)  # once: a 40,000-column CSV made this loop quadratic
+    present = frozenset(info.channel_names)  # once: a 40,000-column CSV made this loop quadratic
     for name in channels:
-        if name not in have:
+        if name not in present:
             have = ", ".join(info.channel_names) or "none"
             raise InputError(f"{info.source}: no channel {name!r} (has: {have})")
 

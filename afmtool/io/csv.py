@@ -37,6 +37,8 @@ import io
 import json
 import re
 import sys
+import zipfile
+import zlib
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TextIO
@@ -152,11 +154,13 @@ class CsvReader(ReaderBase):
             return line
         try:
             line = self._stream.readline(MAX_LINE_CHARS + 1)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError, zlib.error, zipfile.BadZipFile) as exc:  # a file, stdin or a zip member
             raise InputError(f"{self._name}: cannot read ({_short(exc)})") from None
         if not line:
             return None
         self._line_no += 1
+        if self._line_no == 1:
+            line = line.lstrip("\ufeff")  # a byte-order mark that reached us as text (a stream given decoded)
         if len(line) > MAX_LINE_CHARS:
             raise InputError(f"{self._name}: line {self._line_no} is longer than {MAX_LINE_CHARS} characters")
         return line

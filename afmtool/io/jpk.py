@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import re
 import zipfile
+import zlib
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -67,6 +68,8 @@ _RAW_TYPES = {
 _MAX_HEADER_BYTES = 16 << 20
 #: Most segments in a file.
 _MAX_SEGMENTS = 10_000
+#: Largest ratio of a member's size to its compressed size (deflate itself stops near 1032).
+_MAX_COMPRESSION = 1100
 #: Where the deflection's chain stops (see the module docstring).
 _DEFLECTION_TARGET = "distance"
 
@@ -157,7 +160,7 @@ class JpkReader(ReaderBase):
             raise InputError(f"{path}: cannot read ({exc.strerror or _first_line(exc)})") from None
         try:
             self._open(sample_rate_hz, segment)
-        except (zipfile.BadZipFile, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError) as exc:
+        except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError) as exc:
             self._zip.close()
             raise InputError(f"{path}: damaged JPK file ({_first_line(exc)})") from None
         except BaseException:
@@ -272,9 +275,12 @@ class JpkReader(ReaderBase):
             raise InputError(f"{where}: unknown data type {data_type or raw_type!r}")
         member = f"segments/{k}/" + own.get("data.file.name", f"channels/{jpk_name}.dat")
         try:
-            size = self._zip.getinfo(member).file_size
+            entry = self._zip.getinfo(member)
         except KeyError:
             raise InputError(f"{where}: no {member} in the archive") from None
+        size = entry.file_size
+        if size > _MAX_COMPRESSION * entry.compress_size + (1 << 16):
+            raise InputError(f"{where}: {member} claims {size} bytes from {entry.compress_size}; refusing a ZIP bomb")
         if size != n * np.dtype(dtype).itemsize:
             raise InputError(f"{where}: {member} holds {size} bytes, not {n} samples of {np.dtype(dtype).itemsize}")
         steps, unit = self._chain(encoding, encoder, name, where)
@@ -375,7 +381,7 @@ class JpkReader(ReaderBase):
                     data = {c: self._read(segment_channels[c], handles[c], lo, count) for c in channels}
                     yield Chunk(done, data)
                     done += count
-            except (zipfile.BadZipFile, EOFError, ValueError, OSError, RuntimeError) as exc:
+            except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError, RuntimeError, NotImplementedError) as exc:
                 raise InputError(f"{self._path}: cannot read segment {name} ({_first_line(exc)})") from None
             finally:
                 for handle in handles.values():

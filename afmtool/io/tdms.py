@@ -7,7 +7,8 @@ metadata is read up front, and samples are read block by block with
 ``Linear_Y_Intercept``) and returns physical values.
 
 Every channel holding samples becomes a capture channel, named by its TDMS
-channel name (``group/channel`` when the file has more than one group).
+channel name (``group.channel`` when the file has more than one group: a ``/``
+would become an HDF5 path on conversion).
 The sample rate is 1 / ``wf_increment`` (s), which every channel must carry
 and share; units come from ``unit_string`` (NI's long names such as
 ``Volts`` are written as their symbols; no value is converted).
@@ -38,7 +39,11 @@ __all__ = ["TdmsReader"]
 _RATE_TOLERANCE = 1e-9
 
 # What npTDMS raises on a damaged file, at any depth of its parser.
-_TDMS_ERRORS = (ValueError, struct.error, KeyError, IndexError, EOFError, TypeError, OverflowError, UnicodeDecodeError)
+_TDMS_ERRORS = (
+    ValueError, struct.error, KeyError, IndexError, EOFError, TypeError, OverflowError, UnicodeDecodeError,
+    NotImplementedError,  # a damaged type code: "Unsupported data type to read"
+    MemoryError,
+)
 
 
 class _WarningTrap(logging.Filter):
@@ -104,7 +109,7 @@ class TdmsReader(ReaderBase):
             for channel in group.channels():
                 if len(channel) == 0:
                     continue
-                name = channel.name if len(groups) == 1 else f"{group.name}/{channel.name}"
+                name = channel.name if len(groups) == 1 else f"{group.name}.{channel.name}"
                 if channel.dtype is None or np.dtype(channel.dtype).kind not in "fiu":
                     raise InputError(f"{self._path}: TDMS channel {name!r} holds {channel.dtype}, not numbers")
                 channels[name] = channel
@@ -159,6 +164,12 @@ class TdmsReader(ReaderBase):
                     raise InputError(f"{self._path}: cannot read {name} at sample {start} ({exc.strerror})") from None
                 except _TDMS_ERRORS as exc:
                     raise InputError(f"{self._path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
+                except Exception as exc:  # noqa: BLE001 - narrowed at once to npTDMS's bare Exception
+                    if type(exc) is not Exception:
+                        raise
+                    # npTDMS raises the base class itself for a damaged scaling chain
+                    # ("Invalid scaling input source for DAQmx data")
+                    raise InputError(f"{self._path}: cannot scale {name} ({_first_line(exc)})") from None
                 self._check_warnings()
                 values = np.asarray(values, dtype=np.float64)
                 if len(values) != length:

@@ -15,6 +15,7 @@ shorter than its header says is refused.
 from __future__ import annotations
 
 import math
+import struct
 import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -27,7 +28,10 @@ from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 __all__ = ["WavReader"]
 
 # What scipy.io.wavfile raises on a damaged or truncated file.
-_WAV_ERRORS = (ValueError, EOFError, KeyError, IndexError, TypeError, OverflowError, MemoryError)
+_WAV_ERRORS = (
+    ValueError, EOFError, KeyError, IndexError, TypeError, ArithmeticError, MemoryError, struct.error,
+    UnboundLocalError,  # scipy 1.17 on a file with no data chunk
+)
 
 
 def _first_line(exc: BaseException) -> str:
@@ -90,7 +94,8 @@ class WavReader(ReaderBase):
         for start in range(0, len(self._data), block_samples):
             block = self._data[start : start + block_samples]
             try:
-                data = {name: np.array(block[:, i], dtype=np.float64) for name, i in zip(channels, columns)}
+                with np.errstate(invalid="ignore", over="ignore"):  # NaN/inf are refused by name downstream
+                    data = {name: np.array(block[:, i], dtype=np.float64) for name, i in zip(channels, columns)}
             except OSError as exc:  # a mapped file that shrank under us
                 raise InputError(f"{self._path}: cannot read at sample {start} ({exc.strerror})") from None
             yield Chunk(start, data)
