@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
-from typing import Annotated
+from typing import Annotated, Optional
 
 import typer
 
@@ -57,8 +57,26 @@ def _root(
     version: Annotated[
         bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")
     ] = False,
+    max_samples: Annotated[
+        Optional[int],
+        typer.Option(
+            "--max-samples",
+            min=1,
+            help="Accept HDF5 captures of up to N samples per dataset whatever their size on disk "
+            "(by default what a file claims may be at most 1000x its size).",
+        ),
+    ] = None,
+    wait: Annotated[
+        bool, typer.Option("--wait", help="Wait for another run writing the same --out, instead of failing.")
+    ] = False,
 ) -> None:
     """afmtool: capture -> chunks -> kernel -> result -> writer."""
+    # Process-wide settings read where files are opened; the environment carries them to
+    # batch workers too.
+    if max_samples is not None:
+        os.environ["AFMTOOL_MAX_SAMPLES"] = str(max_samples)
+    if wait:
+        os.environ["AFMTOOL_WAIT"] = "1"
 
 
 identify_app = typer.Typer(help="Identify models: the free-air cantilever, ...", no_args_is_help=True)
