@@ -112,8 +112,26 @@ def report(
     from afmtool.report.html import render_report_html
 
     target = output or folder / "report.html"
+    _refuse_report_over_inputs(folder, target)
     write_text_atomic(target, render_report_html(folder))
     stderr_console(quiet).print(f"wrote {target}", highlight=False)
+
+
+def _refuse_report_over_inputs(folder: Path, target: Path) -> None:
+    """The page is HTML, and never replaces the folder's report or the run's inputs."""
+    from afmtool.errors import ConfigError
+    from afmtool.report.input_guard import register_input
+
+    if target.suffix.lower() not in (".html", ".htm"):
+        raise ConfigError(f"--output {target}: must end in .html or .htm (refusing to overwrite other files)")
+    register_input(folder / "report.json")
+    try:
+        recorded = json.loads((folder / "report.json").read_text(encoding="utf-8")).get("inputs", [])
+        paths = [item["path"] for item in recorded if isinstance(item, dict) and isinstance(item.get("path"), str)]
+    except (OSError, ValueError, AttributeError, RecursionError):
+        paths = []  # render_report_html reports an unreadable report.json
+    for path in paths:
+        register_input(path)
 
 
 def register(app: typer.Typer) -> None:

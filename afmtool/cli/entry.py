@@ -23,6 +23,7 @@ _MMAP_THRESHOLD_BYTES = 32 << 20
 
 
 def _while_starting(signum, frame) -> None:  # noqa: ARG001
+    os.write(2, b"afmtool: interrupted\n")
     os._exit(130)
 
 

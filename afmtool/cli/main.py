@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 from typing import Annotated, Optional
 
 import typer
@@ -100,30 +101,76 @@ def _error(message: str, code: int) -> None:
     sys.exit(code)
 
 
+#: After a SIGINT or SIGTERM the process ends within this time, s, whatever it is doing.
+INTERRUPT_DEADLINE_S = 1.5
+
+
+class _Signals:
+    """What the handlers saw: signals received, interrupts raised and swallowed."""
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+        self.raised = 0
+        self.swallowed = 0
+        self.reported = False
+        self.deadline: threading.Timer | None = None
+
+    def __bool__(self) -> bool:
+        return bool(self.received)
+
+    def report(self) -> None:
+        if not self.reported:
+            self.reported = True
+            os.write(2, b"afmtool: interrupted\n")
+
+
+def _give_up(state: _Signals) -> None:
+    # The unwinding did not finish in time (a signal swallowed where nothing can unwind, a
+    # long call into a library): end the process. Outputs are staged; the next run removes
+    # what this one leaves, and --out is the old folder or the new one.
+    state.report()
+    os._exit(130)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point with afmtool's exit-code contract."""
+    from afmtool.report.interrupts import interrupt_now
+
     # SIGINT and SIGTERM unwind as KeyboardInterrupt, so staged outputs are cleaned up.
-    signals: list[int] = []
+    state = _Signals()
 
     def interrupt(signum, frame) -> None:  # noqa: ARG001
-        signals.append(signum)
-        raise KeyboardInterrupt
+        state.received.append(signum)
+        if state.deadline is None:
+            state.deadline = threading.Timer(INTERRUPT_DEADLINE_S, _give_up, (state,))
+            state.deadline.daemon = True
+            state.deadline.start()
+        if state.raised > state.swallowed:
+            return  # one interrupt is already unwinding the run
+        if interrupt_now(signum):
+            state.raised += 1
+            raise KeyboardInterrupt
 
     signal.signal(signal.SIGINT, interrupt)
     signal.signal(signal.SIGTERM, interrupt)
     default_unraisable = sys.unraisablehook
 
     def unraisable(info) -> None:
-        # A signal that lands in a finaliser or weakref callback cannot unwind anything;
-        # Python would print it as 'Exception ignored' with a traceback. The run goes on
-        # and ends normally, with complete outputs.
+        # A signal that lands in a finaliser or weakref callback (h5py closes objects in
+        # them) cannot unwind anything there; Python would print it as 'Exception ignored'.
+        # Deliver the signal again a moment later, where it can unwind the run.
         if info.exc_type is not None and issubclass(info.exc_type, KeyboardInterrupt):
+            state.swallowed += 1
+            signum = state.received[-1] if state.received else signal.SIGINT
+            again = threading.Timer(0.01, os.kill, (os.getpid(), signum))
+            again.daemon = True
+            again.start()
             return
         default_unraisable(info)
 
     sys.unraisablehook = unraisable
     try:
-        _run(argv, signals)
+        _run(argv, state)
     finally:
         # Outputs are committed or cleaned up by now; a signal during interpreter
         # shutdown should end the process, not print a traceback from a finaliser.
@@ -132,7 +179,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.unraisablehook = default_unraisable
 
 
-def _run(argv: list[str] | None, signals: list[int]) -> None:
+def _run(argv: list[str] | None, signals: _Signals) -> None:
     try:
         # inside the try: building the command evaluates every option's annotations, a
         # moment a signal can land in
@@ -147,7 +194,7 @@ def _run(argv: list[str] | None, signals: list[int]) -> None:
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except (KeyboardInterrupt, typer.Abort):
-        print("afmtool: interrupted", file=sys.stderr)
+        signals.report()
         sys.exit(130)
     except BrokenPipeError:
         # A closed downstream pipe (| head) is a normal way to stop reading.
@@ -158,7 +205,7 @@ def _run(argv: list[str] | None, signals: list[int]) -> None:
         if signals:
             # the interrupt surfaced as another exception, e.g. an extension module whose
             # import it cut short reports 'ImportError: initialization failed'
-            print("afmtool: interrupted", file=sys.stderr)
+            signals.report()
             sys.exit(130)
         if os.environ.get("AFMTOOL_DEBUG"):
             raise

@@ -69,6 +69,9 @@ def open_capture(
 ) -> CaptureReader:
     """Open a capture for streaming; use as a context manager or call ``close``."""
     fmt = input_format(path)
+    from afmtool.report.input_guard import register_input
+
+    register_input(path)  # so that no output of this run can overwrite it
     if fmt == "hdf5":
         from afmtool.io.hdf5 import Hdf5Reader
 
