@@ -251,3 +251,173 @@ def test_gzip_bomb_ends_within_10_s(tmp_path):
     assert time.monotonic() - start < 10
     if result.returncode != 0:
         _one_line_exit_2(result)
+
+
+# -- 2. inputs are sacred ---------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> dict[str, Path]:
+    """The same small capture in every format afmtool reads."""
+    folder = tmp_path_factory.mktemp("inputs")
+    h5 = _write_capture(folder / "cap.h5", 2000)
+    made = {"hdf5": h5}
+    for fmt, name in (("csv", "cap.csv"), ("ros1", "cap.bag"), ("ros2-mcap", "cap_mcap")):
+        result = run_cli("convert", h5, folder / name, "--format", fmt)
+        assert result.returncode == 0, result.stderr.decode()
+        made[fmt] = folder / name
+    return made
+
+
+@pytest.mark.parametrize("fmt", ["hdf5", "csv", "ros1", "ros2-mcap"])
+def test_convert_never_overwrites_its_input(tmp_path, inputs, fmt):
+    source = inputs[fmt]
+    before = _state(source)
+    link = source.parent / f"hard_{fmt}{source.suffix}"
+    targets = [source, source.parent / ".." / source.parent.name / source.name]
+    if source.is_file():
+        if not link.exists():
+            os.link(source, link)
+        targets.append(link)
+        symlink = tmp_path / f"sym{source.suffix}"
+        symlink.symlink_to(source)
+        targets.append(symlink)
+    for target in targets:
+        _one_line_exit_2(run_cli("convert", source, target, "--format", fmt), "input")
+        assert _state(source) == before, target
+    if source.is_dir():  # into the bag folder
+        _one_line_exit_2(run_cli("convert", source, source / "inner.h5"), "input")
+        assert _state(source) == before
+
+
+def test_report_output_onto_a_capture_is_refused(tmp_path, inputs):
+    out = tmp_path / "reep"
+    assert run_cli("reep", inputs["hdf5"], "--out", out, "-q", "--no-input").returncode == 0
+    for capture in (inputs["hdf5"], inputs["csv"]):
+        before = _state(capture)
+        _one_line_exit_2(run_cli("report", out, "--output", capture))
+        assert _state(capture) == before
+    before = _state(out / "report.json")
+    _one_line_exit_2(run_cli("report", out, "--output", out / "report.json"))
+    assert _state(out / "report.json") == before
+
+
+@pytest.mark.parametrize("fmt", ["hdf5", "ros2-mcap"])
+def test_out_inside_or_onto_an_input_is_refused(tmp_path, inputs, fmt):
+    source = inputs[fmt]
+    before = _state(source)
+    outs = [source, source.parent]  # the capture itself; the folder holding it
+    if source.is_dir():
+        outs.append(source / "res")
+    for out in outs:
+        _one_line_exit_2(run_cli("reep", source, "--out", out, "-q", "--no-input"), "input")
+        assert _state(source) == before, out
+    assert not (source.parent / "res").exists()
+
+
+# -- 3. atomic output folders, one run at a time ---------------------------------------------
+
+
+def _reep(capture: Path, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "afmtool", *extra, "reep", str(capture), "--out", str(out), "-q"]
+
+
+def _lock_is_held(lock: Path) -> bool:
+    import fcntl
+
+    if not lock.exists():
+        return False
+    with open(lock, "rb") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(fh, fcntl.LOCK_UN)
+    return False
+
+
+def test_two_concurrent_runs_one_succeeds_the_other_fails_at_once(tmp_path):
+    long = tmp_path / "long.h5"
+    assert run_cli("simulate", "ltv", "-o", long, "--set", "duration_s=0.6").returncode == 0
+    out = tmp_path / "out"
+    first = subprocess.Popen(_reep(long, out), cwd=REPO, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while not _lock_is_held(tmp_path / ".out.lock"):
+        assert first.poll() is None and time.monotonic() < deadline
+        time.sleep(0.01)
+    start = time.monotonic()
+    second = subprocess.run(_reep(long, out), cwd=REPO, capture_output=True)
+    assert time.monotonic() - start < 10
+    running = first.poll() is None
+    _one_line_exit_2(second, "another afmtool run")
+    assert running  # the refusal came while the first run still held the folder
+    assert first.wait(timeout=120) == 0
+    report = __import__("json").loads((out / "report.json").read_text())
+    assert sorted(p.name for p in out.iterdir()) == sorted(report["outputs"])
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == [".out.lock"]
+
+
+def test_wait_waits_for_the_lock(tmp_path, inputs):
+    import fcntl
+
+    out = tmp_path / "out"
+    lock = tmp_path / ".out.lock"
+    with open(lock, "wb") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        waiting = subprocess.Popen(_reep(inputs["hdf5"], out, "--wait") + ["--no-input"], cwd=REPO, stderr=subprocess.PIPE)
+        time.sleep(2.0)
+        assert waiting.poll() is None and not out.exists()
+    assert waiting.wait(timeout=120) == 0
+    assert (out / "report.json").is_file()
+
+
+def test_runs_in_turn_leave_only_the_second_runs_files(tmp_path):
+    from tests.conftest import SAMPLE_DATA
+
+    out = tmp_path / "out"
+    assert run_cli("reep", SAMPLE_DATA / "tapping_force_curve.h5", "--out", out, "-q").returncode == 0
+    assert (out / "force_curve.png").is_file()
+    (out / "report.html").write_text("made by `afmtool report` after the first run")
+    assert run_cli("reep", SAMPLE_DATA / "ltv_step.h5", "--out", out, "-q").returncode == 0
+    report = __import__("json").loads((out / "report.json").read_text())
+    assert sorted(p.name for p in out.iterdir()) == sorted(report["outputs"])
+    assert not (out / "force_curve.png").exists()
+
+
+def test_out_that_is_not_an_output_folder_is_not_replaced(tmp_path, inputs):
+    folder = tmp_path / "home"
+    folder.mkdir()
+    (folder / "thesis.tex").write_text("years of work")
+    _one_line_exit_2(run_cli("reep", inputs["hdf5"], "--out", folder, "-q", "--no-input"), "not an afmtool output folder")
+    assert (folder / "thesis.tex").read_text() == "years of work"
+
+
+@pytest.mark.parametrize("case", ["empty", "dangling", "long name", "file"])
+def test_bad_out_paths_exit_2_and_leave_nothing(tmp_path, inputs, case):
+    work = tmp_path / "work"
+    work.mkdir()
+    if case == "empty":
+        out = ""
+    elif case == "dangling":
+        (work / "link").symlink_to(work / "missing" / "target")
+        out = work / "link"
+    elif case == "long name":
+        out = work / ("x" * 250)
+    else:
+        out = work / "file"
+        out.write_text("not a folder")
+    result = run_cli("reep", inputs["hdf5"], "--out", out, "-q", "--no-input", cwd=work)
+    if case == "long name" and result.returncode == 0:  # 250 characters fit: the staging name must too
+        assert (work / ("x" * 250) / "report.json").is_file()
+        return
+    _one_line_exit_2(result)
+    assert not (work / "missing").exists()
+    assert sorted(p.name for p in work.iterdir()) in ([], ["link"], ["file"])
+
+
+def test_failed_run_removes_the_parent_folders_it_created(tmp_path, secret):
+    path = _soft_link_to_external(tmp_path, secret)
+    (tmp_path / "ok").mkdir()
+    _one_line_exit_2(run_cli("reep", _write_capture(tmp_path / "ok" / "bad.h5", 10), "--out", tmp_path / "a" / "b" / "c"))
+    _one_line_exit_2(run_cli("reep", path, "--out", tmp_path / "a" / "b" / "c"))
+    assert not (tmp_path / "a").exists()

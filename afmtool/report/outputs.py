@@ -99,6 +99,10 @@ class OutputDir:
         name = self._final.name
         if not name:
             raise OutputError(f"--out {self.out}: is the file-system root")
+        cwd = Path(os.path.realpath(os.getcwd()))
+        if self._final == cwd or self._final in cwd.parents:
+            # typer reads --out "" as "."; the folder is replaced as a whole, so never the one we are in
+            raise OutputError(f"--out {os.fspath(out)!r}: is the current folder or holds it; name a folder for the outputs")
         if len(os.fsencode(name)) > _NAME_MAX:
             raise OutputError(f"--out {self.out}: file name too long ({len(os.fsencode(name))} bytes, at most {_NAME_MAX})")
         # Long names get a hashed staging key, so the staging prefix never exceeds NAME_MAX.
