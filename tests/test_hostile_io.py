@@ -421,3 +421,88 @@ def test_failed_run_removes_the_parent_folders_it_created(tmp_path, secret):
     _one_line_exit_2(run_cli("reep", _write_capture(tmp_path / "ok" / "bad.h5", 10), "--out", tmp_path / "a" / "b" / "c"))
     _one_line_exit_2(run_cli("reep", path, "--out", tmp_path / "a" / "b" / "c"))
     assert not (tmp_path / "a").exists()
+
+
+# -- 4. every fault is exit 2 and one line ---------------------------------------------------
+
+FULL_DISK_RUNS = {
+    "reep": ["reep", "sample_data/ltv_step.h5"],
+    "probeloss": ["probeloss", "sample_data/raster_grating.h5"],
+    "decode": ["decode", "sample_data/bits_30khz.h5", "--bit-rate", "30000"],
+    "kalman-bank": ["kalman-bank", "sample_data/tapping_force_curve.h5"],
+}
+FILL_LEVELS = 10
+
+
+class Tmpfs:
+    """A tmpfs of a given size (root only), unmounted on exit; skips where mounting is not allowed."""
+
+    def __init__(self, where: Path, size_bytes: int, *, read_only: bool = False) -> None:
+        self.where = where
+        where.mkdir(parents=True, exist_ok=True)
+        options = f"size={max(size_bytes, 4096)}" + (",ro" if read_only else "")
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)], capture_output=True)
+        if done.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here ({done.stderr.decode().strip()})")
+
+    def __enter__(self) -> Path:
+        return self.where
+
+    def __exit__(self, *exc) -> None:
+        subprocess.run(["umount", "-l", str(self.where)], check=True)
+
+
+def _run_in(cwd: Path, *args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "afmtool", *map(str, args)], cwd=REPO, capture_output=True, timeout=300)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", list(FULL_DISK_RUNS))
+def test_disk_full_at_every_fill_level_is_exit_2_and_one_line(tmp_path, command):
+    if os.geteuid() != 0:
+        pytest.skip("mounting a small tmpfs needs root")
+    args = FULL_DISK_RUNS[command]
+    full = tmp_path / "full"
+    assert _run_in(REPO, *args, "--out", full, "-q").returncode == 0
+    need = sum(p.stat().st_size for p in full.rglob("*") if p.is_file())
+    codes = []
+    for level in range(FILL_LEVELS):
+        size = int(need * (level + 0.5) / FILL_LEVELS)  # 5 % .. 95 % of what the run writes
+        with Tmpfs(tmp_path / f"mnt{level}", size) as mnt:
+            out = mnt / "out"
+            result = _run_in(REPO, *args, "--out", out, "-q")
+            codes.append(result.returncode)
+            if result.returncode == 0:  # page rounding can make the smallest outputs fit
+                assert (out / "report.json").is_file()
+                continue
+            _one_line_exit_2(result, "No space left on device")
+            assert sorted(p.name for p in mnt.iterdir()) == [".out.lock"]  # nothing partial
+    assert codes.count(2) >= FILL_LEVELS - 1, codes
+
+
+def test_read_only_out_is_exit_2_and_one_line(tmp_path, inputs):
+    with Tmpfs(tmp_path / "ro", 1 << 20, read_only=True) as mnt:
+        _one_line_exit_2(run_cli("reep", inputs["hdf5"], "--out", mnt / "out", "-q", "--no-input"), "Read-only")
+        _one_line_exit_2(run_cli("convert", inputs["hdf5"], mnt / "copy.h5"), "Read-only")
+
+
+def test_convert_onto_a_full_disk_leaves_nothing(tmp_path, inputs):
+    with Tmpfs(tmp_path / "small", 16 << 10) as mnt:
+        result = run_cli("convert", inputs["hdf5"], mnt / "copy.h5")
+        _one_line_exit_2(result, "No space left on device")
+        assert list(mnt.iterdir()) == []
+
+
+def test_output_to_dev_full_is_exit_2(inputs):
+    with open("/dev/full", "wb") as full:
+        result = subprocess.run(
+            [sys.executable, "-m", "afmtool", "info", str(inputs["hdf5"]), "--json"], stdout=full, stderr=subprocess.PIPE
+        )
+    _one_line_exit_2(result, "No space left on device")
+
+
+def test_symlink_loop_out_is_exit_2(tmp_path, inputs):
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    _one_line_exit_2(run_cli("reep", inputs["hdf5"], "--out", tmp_path / "a" / "out", "-q", "--no-input"))
+    _one_line_exit_2(run_cli("convert", inputs["hdf5"], tmp_path / "a" / "x.h5"))

@@ -172,11 +172,43 @@ def main(argv: list[str] | None = None) -> None:
     try:
         _run(argv, state)
     finally:
+        _close_hdf5_files()
         # Outputs are committed or cleaned up by now; a signal during interpreter
         # shutdown should end the process, not print a traceback from a finaliser.
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        sys.unraisablehook = default_unraisable
+        # The run has reported its outcome in one line; what finalisers meet while the
+        # interpreter tears down (h5py objects on a full disk) is not printed after it.
+        sys.unraisablehook = _silent
+
+
+def _silent(info) -> None:  # noqa: ARG001
+    return
+
+
+def _close_hdf5_files() -> None:
+    """Close every HDF5 object still open, now, not in a finaliser at interpreter teardown.
+
+    A file that a failed write (a full disk) left open would otherwise be
+    flushed by h5py's finalisers while the interpreter tears down, where a
+    second failure has crashed libhdf5 (SIGSEGV, SIGBUS).
+    """
+    h5py = sys.modules.get("h5py")
+    if h5py is None:
+        return
+    h5f = h5py.h5f
+    # the objects inside files first (they keep their file open), then the files
+    for kinds in (h5f.OBJ_DATASET | h5f.OBJ_GROUP | h5f.OBJ_ATTR, h5f.OBJ_FILE):
+        try:
+            ids = h5f.get_obj_ids(types=kinds)
+        except Exception:  # noqa: BLE001 - best effort at exit
+            return
+        for object_id in ids:
+            try:
+                while object_id.valid:
+                    h5py.h5i.dec_ref(object_id)
+            except Exception:  # noqa: BLE001 - a failing flush on a full disk: nothing to do but go on
+                pass
 
 
 def _run(argv: list[str] | None, signals: _Signals) -> None:
@@ -202,6 +234,11 @@ def _run(argv: list[str] | None, signals: _Signals) -> None:
         os.dup2(devnull, sys.stdout.fileno())
         sys.exit(0)
     except Exception as exc:  # noqa: BLE001 - the one place unexpected errors are reported
+        from afmtool.report.faults import environment_fault, fault_message
+
+        code = environment_fault(exc)
+        if code is not None:  # disk full, read-only, permissions: the environment, not a bug
+            _error(fault_message(exc, code), 2)
         if signals:
             # the interrupt surfaced as another exception, e.g. an extension module whose
             # import it cut short reports 'ImportError: initialization failed'

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from afmtool.errors import AfmtoolError
 from afmtool.report.atomic import OutputError, _fsync_dir, _fsync_tree
+from afmtool.report.faults import environment_fault
 from afmtool.report.input_guard import refuse_output_over_inputs
 from afmtool.report.interrupts import signals_deferred
 
@@ -204,10 +205,16 @@ class OutputDir:
     def __exit__(self, exc_type, exc, tb) -> None:
         committed = False
         try:
+            code = environment_fault(exc) if exc is not None and not isinstance(exc, AfmtoolError) else None
+            if code is not None:
+                # a full disk (or a read-only one...) while the analysis wrote into staging
+                raise OutputError(f"--out {self.out}: could not be written ({os.strerror(code)})") from None
             if exc_type is None:
                 try:
                     self._commit()
-                except OSError as error:
+                except (OSError, RuntimeError) as error:
+                    if isinstance(error, RuntimeError) and environment_fault(error) is None:
+                        raise
                     raise OutputError(
                         f"--out {self.out}: could not be written ({_describe(error)}, {error.filename or self._final})"
                     ) from None
