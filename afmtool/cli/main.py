@@ -134,6 +134,7 @@ def _give_up(state: _Signals) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point with afmtool's exit-code contract."""
+    from afmtool.report.faults import environment_fault
     from afmtool.report.interrupts import interrupt_now
 
     # SIGINT and SIGTERM unwind as KeyboardInterrupt, so staged outputs are cleaned up.
@@ -159,6 +160,10 @@ def main(argv: list[str] | None = None) -> None:
         # A signal that lands in a finaliser or weakref callback (h5py closes objects in
         # them) cannot unwind anything there; Python would print it as 'Exception ignored'.
         # Deliver the signal again a moment later, where it can unwind the run.
+        if info.exc_value is not None and environment_fault(info.exc_value) is not None:
+            # h5py dropping an object of a file the disk has no room for: the write that
+            # failed first raised in the run already, and is reported as one line
+            return
         if info.exc_type is not None and issubclass(info.exc_type, KeyboardInterrupt):
             state.swallowed += 1
             signum = state.received[-1] if state.received else signal.SIGINT
@@ -171,8 +176,10 @@ def main(argv: list[str] | None = None) -> None:
     sys.unraisablehook = unraisable
     try:
         _run(argv, state)
+    except SystemExit as done:
+        _exit_now_if_hdf5_is_stuck(done.code)
+        raise
     finally:
-        _close_hdf5_files()
         # Outputs are committed or cleaned up by now; a signal during interpreter
         # shutdown should end the process, not print a traceback from a finaliser.
         signal.signal(signal.SIGINT, signal.SIG_DFL)
@@ -186,29 +193,34 @@ def _silent(info) -> None:  # noqa: ARG001
     return
 
 
-def _close_hdf5_files() -> None:
-    """Close every HDF5 object still open, now, not in a finaliser at interpreter teardown.
-
-    A file that a failed write (a full disk) left open would otherwise be
-    flushed by h5py's finalisers while the interpreter tears down, where a
-    second failure has crashed libhdf5 (SIGSEGV, SIGBUS).
-    """
+def _hdf5_files_open() -> bool:
+    """Whether h5py still holds a file open (one a failed write could not close)."""
     h5py = sys.modules.get("h5py")
     if h5py is None:
+        return False
+    try:
+        return bool(h5py.h5f.get_obj_ids(types=h5py.h5f.OBJ_FILE))
+    except Exception:  # noqa: BLE001 - asking must never fail the exit
+        return True
+
+
+def _exit_now_if_hdf5_is_stuck(code: object) -> None:
+    """End a failed run without the interpreter's teardown when an HDF5 file is still open.
+
+    A file whose flush failed (a full disk) cannot be closed: libhdf5 tries
+    the flush again, in h5py's finalisers at teardown or in an explicit
+    close, and has crashed there (SIGSEGV, SIGBUS).  The run's outcome is
+    decided and printed, its outputs are staged and removed, so nothing is
+    lost by skipping teardown: flush Python's own streams and leave.
+    """
+    if code in (0, None) or not _hdf5_files_open():
         return
-    h5f = h5py.h5f
-    # the objects inside files first (they keep their file open), then the files
-    for kinds in (h5f.OBJ_DATASET | h5f.OBJ_GROUP | h5f.OBJ_ATTR, h5f.OBJ_FILE):
+    for stream in (sys.stdout, sys.stderr):
         try:
-            ids = h5f.get_obj_ids(types=kinds)
-        except Exception:  # noqa: BLE001 - best effort at exit
-            return
-        for object_id in ids:
-            try:
-                while object_id.valid:
-                    h5py.h5i.dec_ref(object_id)
-            except Exception:  # noqa: BLE001 - a failing flush on a full disk: nothing to do but go on
-                pass
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code if isinstance(code, int) else 1)
 
 
 def _run(argv: list[str] | None, signals: _Signals) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import signal
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -485,4 +486,10 @@ class Hdf5Writer:
                 )
 
     def close(self) -> None:
-        self._file.close()
+        try:
+            self._file.close()
+        except BaseException:
+            from afmtool.report.faults import keep_until_exit
+
+            keep_until_exit(self._file, self._datasets, sys.exc_info()[2])  # see keep_until_exit: no finaliser may flush
+            raise

@@ -13,7 +13,7 @@ import errno
 import os
 import re
 
-__all__ = ["FAULT_ERRNOS", "environment_fault", "fault_message"]
+__all__ = ["FAULT_ERRNOS", "environment_fault", "fault_message", "keep_until_exit"]
 
 #: errno values that mean "the environment refused", not "afmtool is wrong".
 FAULT_ERRNOS = frozenset(
@@ -59,3 +59,19 @@ def fault_message(exc: BaseException, code: int, where: object = None) -> str:
     path = getattr(exc, "filename", None) or where
     cause = os.strerror(code)
     return f"{path}: {cause}" if path else cause
+
+
+_kept: list[object] = []
+
+
+def keep_until_exit(*objects: object) -> None:
+    """Hold ``objects`` (h5py files whose close failed, and the traceback) so no finaliser runs on them.
+
+    Dropping an h5py object of a file that could not be flushed makes
+    libhdf5 try the flush again in the finaliser, which prints a traceback
+    from inside h5py and has crashed libhdf5.  The CLI ends such a run with
+    ``os._exit`` after its one-line error, so these are never finalised.
+    The traceback is kept too: h5py's ``File.close`` holds the ids it could
+    not close in its own frame.
+    """
+    _kept.extend(objects)
