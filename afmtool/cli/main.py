@@ -174,6 +174,16 @@ def main(argv: list[str] | None = None) -> None:
         default_unraisable(info)
 
     sys.unraisablehook = unraisable
+    default_excepthook = sys.excepthook
+
+    def excepthook(exc_type, exc, tb) -> None:
+        # Cython finalisers (h5py's ObjectID) print through sys.excepthook before the
+        # unraisable hook; a full disk is reported once, as the run's one line.
+        if exc is not None and environment_fault(exc) is not None:
+            return
+        default_excepthook(exc_type, exc, tb)
+
+    sys.excepthook = excepthook
     try:
         _run(argv, state)
     except SystemExit as done:

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import signal
+import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
