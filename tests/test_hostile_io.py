@@ -506,3 +506,55 @@ def test_symlink_loop_out_is_exit_2(tmp_path, inputs):
     (tmp_path / "b").symlink_to(tmp_path / "a")
     _one_line_exit_2(run_cli("reep", inputs["hdf5"], "--out", tmp_path / "a" / "out", "-q", "--no-input"))
     _one_line_exit_2(run_cli("convert", inputs["hdf5"], tmp_path / "a" / "x.h5"))
+
+
+# -- signals are never lost ---------------------------------------------------------------------
+
+SIGTERMS = 20
+
+
+@pytest.fixture(scope="module")
+def compressed(tmp_path_factory) -> Path:
+    """A gzip-compressed capture that takes a few seconds to read."""
+    folder = tmp_path_factory.mktemp("gzip")
+    plain = folder / "plain.h5"
+    assert run_cli("simulate", "ltv", "-o", plain, "--set", "duration_s=1.5", "--set", "step_time_s=10").returncode == 0
+    packed = folder / "packed.h5"
+    assert run_cli("convert", plain, packed, "--compression", "gzip").returncode == 0
+    return packed
+
+
+@pytest.mark.slow
+def test_sigterm_at_random_points_ends_every_run_within_2_s(tmp_path, compressed):
+    import signal
+
+    rng = np.random.default_rng(1202)
+    runs = [
+        ["info", str(compressed), "--chunk-samples", "4096"],  # many small h5py reads of gzip chunks
+        ["reep", str(compressed), "--out", str(tmp_path / "out"), "-q"],
+    ]
+    late = []
+    for k in range(SIGTERMS):
+        args = [sys.executable, "-m", "afmtool", *runs[k % 2]]
+        proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        time.sleep(rng.uniform(0.3, 3.0))
+        if proc.poll() is not None:
+            continue  # finished before the signal: nothing to measure
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            code = proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise
+        took = time.monotonic() - sent
+        stderr = proc.stderr.read().decode()
+        # 0: the signal came after the outcome was decided; -15: while Python was starting;
+        # -2: rarely, once the run was reported interrupted, CPython ends by SIGINT (see README)
+        assert code in (0, 130, -signal.SIGTERM, -signal.SIGINT), (code, stderr)
+        assert "Traceback" not in stderr
+        if code in (130, -signal.SIGINT):
+            assert stderr.strip().splitlines()[-1] == "afmtool: interrupted"
+        late.append(took)
+    print(f"signal to exit: max {max(late):.2f} s over {len(late)} runs")
+    assert len(late) >= SIGTERMS // 2 and max(late) < 2.0

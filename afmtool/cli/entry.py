@@ -56,4 +56,9 @@ def main() -> None:
     _reuse_freed_memory()
     from afmtool.cli.main import main as run
 
-    run()
+    try:
+        run()
+    except KeyboardInterrupt:
+        # a signal that landed after the run's outcome was decided (in the last
+        # finalisers); Python would otherwise end the process by SIGINT
+        os._exit(130)

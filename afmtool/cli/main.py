@@ -146,8 +146,8 @@ def main(argv: list[str] | None = None) -> None:
             state.deadline = threading.Timer(INTERRUPT_DEADLINE_S, _give_up, (state,))
             state.deadline.daemon = True
             state.deadline.start()
-        if state.raised > state.swallowed:
-            return  # one interrupt is already unwinding the run
+        if state.raised > state.swallowed or state.reported:
+            return  # one interrupt is already unwinding the run, or the run has ended
         if interrupt_now(signum):
             state.raised += 1
             raise KeyboardInterrupt
@@ -190,10 +190,10 @@ def main(argv: list[str] | None = None) -> None:
         _exit_now_if_hdf5_is_stuck(done.code)
         raise
     finally:
-        # Outputs are committed or cleaned up by now; a signal during interpreter
-        # shutdown should end the process, not print a traceback from a finaliser.
-        signal.signal(signal.SIGINT, signal.SIG_DFL)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        # Outputs are committed or cleaned up by now, and the outcome printed: a signal
+        # during interpreter shutdown (or one re-delivered late) changes nothing.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         # The run has reported its outcome in one line; what finalisers meet while the
         # interpreter tears down (h5py objects on a full disk) is not printed after it.
         sys.unraisablehook = _silent
@@ -269,4 +269,8 @@ def _run(argv: list[str] | None, signals: _Signals) -> None:
         if os.environ.get("AFMTOOL_DEBUG"):
             raise
         _error(f"internal error ({type(exc).__name__}: {exc}); rerun with AFMTOOL_DEBUG=1 for a traceback", 1)
+    if result == 130 or (signals and result not in (0, None)):
+        # typer turns a KeyboardInterrupt it meets into a bare return value of 130
+        signals.report()
+        sys.exit(130)
     sys.exit(result if isinstance(result, int) else 0)
