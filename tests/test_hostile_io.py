@@ -558,3 +558,116 @@ def test_sigterm_at_random_points_ends_every_run_within_2_s(tmp_path, compressed
         late.append(took)
     print(f"signal to exit: max {max(late):.2f} s over {len(late)} runs")
     assert len(late) >= SIGTERMS // 2 and max(late) < 2.0
+
+
+# -- 5. bounded work; bad input is exit 2, never 1 ---------------------------------------------
+
+
+def _with_attrs(path: Path, **attrs) -> Path:
+    _write_capture(path)
+    with h5py.File(path, "a") as f:
+        for key, value in attrs.items():
+            f.attrs[key] = value
+    return path
+
+
+def _with_units(path: Path, units) -> Path:
+    _write_capture(path)
+    with h5py.File(path, "a") as f:
+        f["channels/deflection"].attrs["units"] = units
+    return path
+
+
+EXIT_2_CAPTURES = {
+    "metadata nested 500 deep": lambda p: _with_attrs(p, metadata="[" * 500 + "]" * 500),
+    "metadata nested 100000 deep": lambda p: _with_attrs(p, metadata='{"a":' * 100_000 + "1" + "}" * 100_000),
+    "sample_rate_hz = []": lambda p: _with_attrs(p, sample_rate_hz=np.zeros(0)),
+    "sample_rate_hz = True": lambda p: _with_attrs(p, sample_rate_hz=True),
+    "sample_rate_hz complex": lambda p: _with_attrs(p, sample_rate_hz=1e5 + 1j),
+    "sample_rate_hz 2 elements": lambda p: _with_attrs(p, sample_rate_hz=np.array([1e5, 2e5])),
+    "sample_rate_hz text": lambda p: _with_attrs(p, sample_rate_hz="fast"),
+    "units invalid UTF-8": lambda p: _with_units(p, np.void(b"n\xffm")),
+    "units bytes invalid UTF-8": lambda p: _with_units(p, b"n\xff\xfem"),
+    "units with a newline": lambda p: _with_units(p, "nm\nV"),
+    "scan lines 1e9": lambda p: _with_attrs(
+        p, metadata='{"scan": {"lines": 1000000000, "pixels_per_line": 1000000000, "scan_size_m": 1e-6, "line_rate_hz": 1}}'
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(EXIT_2_CAPTURES))
+def test_bad_captures_are_exit_2_and_one_line(tmp_path, case):
+    path = EXIT_2_CAPTURES[case](tmp_path / "bad.h5")
+    start = time.monotonic()
+    _one_line_exit_2(run_cli("info", path))
+    assert time.monotonic() - start < 10
+
+
+def test_subnormal_data_is_not_an_internal_error(tmp_path):
+    path = tmp_path / "tiny.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["sample_rate_hz"] = FS
+        for name in ("dither", "deflection"):
+            f.create_dataset(f"channels/{name}", data=np.full(N, 5e-324)).attrs["units"] = "nm"
+    result = run_cli("reep", path, "--out", tmp_path / "out", "-q", "--free-air", "0:0.01")
+    assert result.returncode in (0, 2), result.stderr.decode()
+    if result.returncode == 2:
+        _one_line_exit_2(result)
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [["--free-air", "0:inf"], ["--free-air", "nan:1"], ["--free-air", "0.01:0"]],
+)
+def test_non_finite_intervals_are_exit_2(tmp_path, inputs, flags):
+    _one_line_exit_2(run_cli("reep", inputs["hdf5"], "--out", tmp_path / "out", "-q", *flags))
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-1", "0"])
+def test_non_finite_z_bin_is_exit_2(tmp_path, value):
+    from tests.conftest import SAMPLE_DATA
+
+    result = run_cli("kalman-bank", SAMPLE_DATA / "tapping_force_curve.h5", "--out", tmp_path / "out", "--z-bin", value)
+    _one_line_exit_2(result)
+
+
+def test_deep_toml_config_is_exit_2(tmp_path, inputs):
+    config = tmp_path / "deep.toml"
+    config.write_text("x = " + "[" * 5000 + "]" * 5000 + "\n")
+    _one_line_exit_2(run_cli("reep", inputs["hdf5"], "--out", tmp_path / "out", "--config", config), "--config")
+    config.write_text("x = " + "{a = " * 5000 + "1" + "}" * 5000 + "\n")
+    _one_line_exit_2(run_cli("reep", inputs["hdf5"], "--out", tmp_path / "out", "--config", config), "--config")
+
+
+def test_fifo_config_is_refused_at_once(tmp_path, inputs):
+    fifo = tmp_path / "config.toml"
+    os.mkfifo(fifo)
+    start = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, "-m", "afmtool", "reep", str(inputs["hdf5"]), "--out", str(tmp_path / "out"), "--config", str(fifo)],
+        capture_output=True, timeout=10,
+    )
+    assert time.monotonic() - start < 10
+    _one_line_exit_2(result, "regular file")
+
+
+def test_malformed_report_json_is_exit_2(tmp_path):
+    folder = tmp_path / "res"
+    folder.mkdir()
+    for text in ("{", "[]", '{"command": 3}', "[" * 100_000, '{"outputs": "x", "results": 5}'):
+        (folder / "report.json").write_text(text)
+        _one_line_exit_2(run_cli("report", folder))
+
+
+def test_closed_stdin_and_stdout(inputs):
+    closed_out = subprocess.run(
+        [sys.executable, "-c", "import os, runpy, sys; os.close(1); sys.argv = ['afmtool', 'info', sys.argv[1], '--json']; runpy.run_module('afmtool', run_name='__main__')", str(inputs["hdf5"])],
+        cwd=REPO, capture_output=False, stderr=subprocess.PIPE,
+    )
+    assert closed_out.returncode in (0, 2), closed_out.stderr.decode()
+    assert "Traceback" not in closed_out.stderr.decode()
+    closed_in = subprocess.run(
+        [sys.executable, "-c", "import os, runpy, sys; os.close(0); sys.argv = ['afmtool', 'info', '-']; runpy.run_module('afmtool', run_name='__main__')"],
+        cwd=REPO, stderr=subprocess.PIPE,
+    )
+    _one_line_exit_2(closed_in)

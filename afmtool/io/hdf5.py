@@ -328,16 +328,14 @@ class Hdf5Reader(ReaderBase):
         if sample_rate_hz is None:
             if "sample_rate_hz" not in attrs:
                 raise InputError(f"{path}: no sample_rate_hz attribute; give --sample-rate")
-            sample_rate_hz = float(np.asarray(attrs["sample_rate_hz"]).reshape(-1)[0])
+            sample_rate_hz = _sample_rate_attr(path, attrs["sample_rate_hz"])
         if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
             raise InputError(f"{path}: sample rate {sample_rate_hz!r} must be a positive number")
         metadata = {}
         if "metadata" in attrs:
-            raw = attrs["metadata"]
-            text = raw.decode() if isinstance(raw, bytes) else str(raw)
-            metadata = parse_metadata_json(text, str(path))
+            metadata = parse_metadata_json(_text_attr(path, "metadata", attrs["metadata"]), str(path))
         channels = tuple(
-            ChannelSpec(name, _decode_attr(d.attrs.get("units", ""))) for name, d in self._datasets.items()
+            ChannelSpec(name, _units_attr(path, name, d.attrs.get("units", ""))) for name, d in self._datasets.items()
         )
         n_samples = len(next(iter(self._datasets.values())))
         truth_names = tuple(self._truth)
@@ -421,6 +419,39 @@ def dataset_name(name: str, what: str = "channel") -> str:
     if not name or name in (".", "..") or "/" in name or not name.isprintable():
         raise InputError(f"{what} name {name!r} cannot be an HDF5 dataset name (no '/', '.', '..' or control characters)")
     return name
+
+
+def _sample_rate_attr(path: Path, value) -> float:
+    """The root attribute ``sample_rate_hz``: one real number, not a flag, text or array."""
+    array = np.asarray(value)
+    if array.size != 1 or array.dtype.kind not in "fiu":
+        raise InputError(
+            f"{path}: attribute sample_rate_hz must be one real number, is {array.dtype} of shape {array.shape}"
+        )
+    return float(array.reshape(-1)[0])
+
+
+def _text_attr(path: Path, name: str, value) -> str:
+    """A string attribute as text; refuse bytes that are not UTF-8 and non-string values."""
+    if isinstance(value, np.ndarray) and value.shape == ():
+        value = value[()]
+    if isinstance(value, np.void):
+        value = value.tobytes()
+    if isinstance(value, bytes):
+        try:
+            return value.decode("utf-8")
+        except UnicodeDecodeError:
+            raise InputError(f"{path}: attribute {name} is not UTF-8 text") from None
+    if isinstance(value, str):
+        return value
+    raise InputError(f"{path}: attribute {name} must be a string, is {type(value).__name__}")
+
+
+def _units_attr(path: Path, channel: str, value) -> str:
+    units = _text_attr(path, f"units of {channel}", value)
+    if not units.isprintable() or len(units) > 64:
+        raise InputError(f"{path}: units of {channel} {units[:64]!r} must be one short printable line")
+    return units
 
 
 def _decode_attr(value) -> str:
