@@ -112,26 +112,48 @@ def report(
     from afmtool.report.html import render_report_html
 
     target = output or folder / "report.html"
-    _refuse_report_over_inputs(folder, target)
+    _check_report_folder(folder, target)
     write_text_atomic(target, render_report_html(folder))
     stderr_console(quiet).print(f"wrote {target}", highlight=False)
 
 
-def _refuse_report_over_inputs(folder: Path, target: Path) -> None:
-    """The page is HTML, and never replaces the folder's report or the run's inputs."""
-    from afmtool.errors import ConfigError
+def _check_report_folder(folder: Path, target: Path) -> None:
+    """The page is HTML, never replaces the folder's report or the run's inputs; report.json is sound.
+
+    report.json comes from disk and may be anything: its shape is checked
+    here (an object with the fields the page shows, of their types) so that
+    a damaged one is one line and exit 2, not an internal error.
+    """
+    from afmtool.errors import ConfigError, InputError
+    from afmtool.io.metadata import MAX_JSON_DEPTH, json_depth
     from afmtool.report.input_guard import register_input
 
     if target.suffix.lower() not in (".html", ".htm"):
         raise ConfigError(f"--output {target}: must end in .html or .htm (refusing to overwrite other files)")
-    register_input(folder / "report.json")
+    report_path = folder / "report.json"
+    if not report_path.is_file():
+        raise InputError(f"{folder}: no report.json (not an afmtool output folder)")
+    register_input(report_path)
     try:
-        recorded = json.loads((folder / "report.json").read_text(encoding="utf-8")).get("inputs", [])
-        paths = [item["path"] for item in recorded if isinstance(item, dict) and isinstance(item.get("path"), str)]
-    except (OSError, ValueError, AttributeError, RecursionError):
-        paths = []  # render_report_html reports an unreadable report.json
-    for path in paths:
-        register_input(path)
+        text = report_path.read_text(encoding="utf-8")
+        if json_depth(text) > MAX_JSON_DEPTH:
+            raise InputError(f"{report_path}: nested more than {MAX_JSON_DEPTH} deep; not an afmtool report")
+        report = json.loads(text)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{report_path}: not valid JSON ({exc})") from None
+    shape = {"command": str, "inputs": list, "outputs": list, "warnings": list, "results": dict, "parameters": dict}
+    if not isinstance(report, dict) or not isinstance(report.get("command"), str):
+        raise InputError(f"{report_path}: not an afmtool report")
+    for key, kind in shape.items():
+        if key in report and not isinstance(report[key], kind):
+            raise InputError(f"{report_path}: {key} must be a JSON {kind.__name__}; not an afmtool report")
+    if not all(isinstance(i, dict) for i in report.get("inputs", [])) or not all(
+        isinstance(w, str) for w in report.get("warnings", []) + report.get("outputs", [])
+    ):
+        raise InputError(f"{report_path}: inputs, outputs or warnings of the wrong type; not an afmtool report")
+    for item in report.get("inputs", []):
+        if isinstance(item.get("path"), str):
+            register_input(item["path"])
 
 
 def register(app: typer.Typer) -> None:
