@@ -671,3 +671,50 @@ def test_closed_stdin_and_stdout(inputs):
         cwd=REPO, stderr=subprocess.PIPE,
     )
     _one_line_exit_2(closed_in)
+
+
+# -- 6. batch resume that checks ------------------------------------------------------------------
+
+
+def test_batch_redoes_a_deleted_or_changed_output(tmp_path, inputs):
+    from afmtool.analyses.batch import plan_batch, run_one
+
+    (item,) = plan_batch([inputs["hdf5"]], tmp_path / "batch")
+    assert run_one(["reep"], item, ["--no-input"]).status == "ok"
+    assert run_one(["reep"], item, ["--no-input"]).status == "skipped"
+    (Path(item.out_dir) / "reep.h5").unlink()
+    assert run_one(["reep"], item, ["--no-input"]).status == "ok"
+    (Path(item.out_dir) / "config.toml").write_text("# edited by hand\n")
+    assert run_one(["reep"], item, ["--no-input"]).status == "ok"
+    assert run_one(["reep"], item, ["--no-input"]).status == "skipped"
+
+
+def test_batch_retries_a_signal_killed_child(tmp_path, inputs, monkeypatch):
+    import afmtool.analyses.batch as batch
+
+    (item,) = batch.plan_batch([inputs["hdf5"]], tmp_path / "batch")
+    calls = []
+
+    def killed(args, **kwargs):
+        calls.append(args)
+        return subprocess.CompletedProcess(args, -9, "", "")
+
+    monkeypatch.setattr(batch.subprocess, "run", killed)
+    outcome = batch.run_one(["reep"], item, ["--no-input"])
+    assert outcome.status == "failed" and "signal" in outcome.reason
+    assert len(calls) == 2  # retried at once
+    assert not (Path(item.out_dir) / batch.FAILURE_FILE).exists()  # not cached as a failure
+    monkeypatch.undo()
+    assert batch.run_one(["reep"], item, ["--no-input"]).status == "ok"  # the next run tries again
+
+
+@pytest.mark.parametrize("bad", [".", "batch", "batch/x"])
+def test_batch_inputs_are_confined_to_files(tmp_path, inputs, bad, monkeypatch):
+    from afmtool.analyses.batch import plan_batch
+    from afmtool.errors import InputError
+
+    (tmp_path / "batch" / "x").mkdir(parents=True)
+    (tmp_path / "batch" / "x" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError):
+        plan_batch([Path(bad)], Path("batch"))

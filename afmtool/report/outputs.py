@@ -136,7 +136,8 @@ class OutputDir:
     def _refuse_foreign_folder(self) -> None:
         final = self._final
         try:
-            if final.is_dir() and not (final / "report.json").is_file() and any(final.iterdir()):
+            ours = (final / "report.json").is_file() or (final / "failure.json").is_file()  # failure: afmtool batch
+            if final.is_dir() and not ours and any(final.iterdir()):
                 raise OutputError(
                     f"--out {self.out}: exists and is not an afmtool output folder (no report.json); "
                     "refusing to replace it"
