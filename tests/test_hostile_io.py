@@ -718,3 +718,35 @@ def test_batch_inputs_are_confined_to_files(tmp_path, inputs, bad, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(InputError):
         plan_batch([Path(bad)], Path("batch"))
+
+
+def test_numpy_warnings_are_captured_not_printed(tmp_path):
+    path = tmp_path / "huge_values.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["sample_rate_hz"] = FS
+        f.create_dataset("channels/deflection", data=np.full(1000, 1e200)).attrs["units"] = "nm"
+    result = run_cli("info", path, "--json")
+    assert result.returncode == 0
+    stderr = result.stderr.decode()
+    assert "RuntimeWarning" not in stderr or stderr.startswith("afmtool: warning: RuntimeWarning")
+    assert all(line.startswith("afmtool: warning: ") for line in stderr.splitlines())
+
+
+def test_warnings_go_into_the_report():
+    import warnings
+
+    from afmtool.report.captured_warnings import capture_warnings, drain
+
+    previous = warnings.showwarning
+    try:
+        capture_warnings()
+        drain()
+        with np.errstate(over="warn"):
+            np.float64(1e308) * np.float64(10.0)
+        warnings.warn("chunk cache too small", UserWarning, stacklevel=1)
+        got = drain()
+    finally:
+        warnings.showwarning = previous
+    assert any(w.startswith("RuntimeWarning: overflow") for w in got), got
+    assert "UserWarning: chunk cache too small" in got
+    assert drain() == []

@@ -184,6 +184,9 @@ def main(argv: list[str] | None = None) -> None:
         default_excepthook(exc_type, exc, tb)
 
     sys.excepthook = excepthook
+    from afmtool.report.captured_warnings import capture_warnings
+
+    capture_warnings()
     try:
         _run(argv, state)
     except SystemExit as done:
@@ -273,4 +276,9 @@ def _run(argv: list[str] | None, signals: _Signals) -> None:
         # typer turns a KeyboardInterrupt it meets into a bare return value of 130
         signals.report()
         sys.exit(130)
+    if result in (0, None):
+        from afmtool.report.captured_warnings import drain
+
+        for warning in drain():  # commands without a report.json: afmtool's one-line form, at the end
+            print(f"afmtool: warning: {warning}", file=sys.stderr)
     sys.exit(result if isinstance(result, int) else 0)
