@@ -62,7 +62,7 @@ def test_random_kills_leave_old_or_new(tmp_path, capture):
         assert code in (0, 130, -signal.SIGINT, -signal.SIGTERM), (code, stderr)
         outcomes["finished" if code == 0 else "interrupted"] += 1
         # no staging folders or temp files are left behind
-        assert sorted(p.name for p in tmp_path.iterdir()) == [".out.lock", "out", "slow.toml"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "slow.toml"]
         now = _snapshot(out)
         assert set(now) == set(previous)
         assert _complete(out)
@@ -110,6 +110,6 @@ def test_sigkill_leaves_old_or_new_and_the_next_run_cleans_up(tmp_path, capture)
     print(seen)
     assert len(seen) == 2  # some kills came after the swap, so the outcome really varied
     assert subprocess.run(args(short), cwd=REPO, capture_output=True).returncode == 0
-    # the staging folders of killed runs are gone; only the lock file stays beside --out
-    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == [".out.lock"]
+    # the staging folders (and lock files) of killed runs are gone
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
     assert _run_of(out, lengths) == str(short)

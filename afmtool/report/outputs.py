@@ -11,8 +11,8 @@ first and put back by the next run if a kill lands between the two
 renames.)
 
 A run holds an exclusive ``flock`` on ``.<name>.lock`` beside ``--out``
-from start to finish: a second run on the same folder fails at once, or
-waits with ``afmtool --wait``.  Under that lock the run first removes the
+from start to finish (the file exists only meanwhile): a second run on the
+same folder fails at once, or waits with ``afmtool --wait``.  Under that lock the run first removes the
 staging folders that killed runs left behind.
 
 An existing ``--out`` is replaced as a whole, so it must be an afmtool
@@ -112,6 +112,7 @@ class OutputDir:
         self._key = name
         self._staging: Path | None = None
         self._lock_fd: int | None = None
+        self._lock_path: Path | None = None
         self._created: list[Path] = []
         self._names: list[str] = []
 
@@ -157,20 +158,36 @@ class OutputDir:
             self._created.append(folder)
 
     def _lock(self) -> None:
+        """Hold ``.<name>.lock`` beside ``--out`` exclusively; it exists only while a run holds it.
+
+        The holder deletes the lock file before it lets go, so a waiter may
+        wake up holding a file nobody can see any more: it then tries again
+        on the new one (the file at the path must be the one it locked).
+        """
         import fcntl
 
         path = self._final.parent / f".{self._key}.lock"
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
-        self._lock_fd = fd
-        if os.environ.get(WAIT_ENV):
-            fcntl.flock(fd, fcntl.LOCK_EX)
-            return
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise OutputError(
-                f"--out {self.out}: another afmtool run is writing this folder; wait for it, or give afmtool --wait"
-            ) from None
+        wait = bool(os.environ.get(WAIT_ENV))
+        while True:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise OutputError(
+                    f"--out {self.out}: another afmtool run is writing this folder; wait for it, or give afmtool --wait"
+                ) from None
+            except BaseException:
+                os.close(fd)
+                raise
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                self._lock_fd, self._lock_path = fd, path
+                return
+            os.close(fd)  # the previous holder removed it while we waited
 
     def _remove_stale(self) -> None:
         """Under the lock: drop what killed runs left; restore a folder a kill left aside."""
@@ -228,14 +245,15 @@ class OutputDir:
 
     def _release(self, *, failed: bool) -> None:
         if self._lock_fd is not None:
+            try:
+                self._lock_path.unlink()  # while still holding it: see _lock
+            except OSError:
+                pass
             os.close(self._lock_fd)  # releases the flock
             self._lock_fd = None
         if failed:
             for folder in reversed(self._created):
                 try:
-                    for entry in folder.iterdir():  # only our lock file may be in there
-                        if entry.name == f".{self._key}.lock":
-                            entry.unlink()
                     folder.rmdir()
                 except OSError:
                     break
