@@ -433,8 +433,8 @@ def _sample_rate_attr(path: Path, value) -> float:
 
 def _text_attr(path: Path, name: str, value) -> str:
     """A string attribute as text; refuse bytes that are not UTF-8 and non-string values."""
-    if isinstance(value, np.ndarray) and value.shape == ():
-        value = value[()]
+    if isinstance(value, np.ndarray) and value.size == 1:  # a scalar, or a 1-element array
+        value = value.reshape(-1)[0]
     if isinstance(value, np.void):
         value = value.tobytes()
     if isinstance(value, bytes):
