@@ -236,6 +236,7 @@ def test_compressed_chunks_are_each_read_once():
     assert sum(b - a for a, b in dataset.reads) == 10_000  # no sample (so no chunk) twice
 
 
+@pytest.mark.slow
 def test_gzip_bomb_ends_within_10_s(tmp_path):
     path = tmp_path / "bomb.h5"
     n = 1 << 25  # 256 MiB of zeros in a few hundred kB
@@ -269,6 +270,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     return made
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt", ["hdf5", "csv", "ros1", "ros2-mcap"])
 def test_convert_never_overwrites_its_input(tmp_path, inputs, fmt):
     source = inputs[fmt]
@@ -290,6 +292,7 @@ def test_convert_never_overwrites_its_input(tmp_path, inputs, fmt):
         assert _state(source) == before
 
 
+@pytest.mark.slow
 def test_report_output_onto_a_capture_is_refused(tmp_path, inputs):
     out = tmp_path / "reep"
     assert run_cli("reep", inputs["hdf5"], "--out", out, "-q", "--no-input").returncode == 0
@@ -336,6 +339,7 @@ def _lock_is_held(lock: Path) -> bool:
     return False
 
 
+@pytest.mark.slow
 def test_two_concurrent_runs_one_succeeds_the_other_fails_at_once(tmp_path):
     long = tmp_path / "long.h5"
     assert run_cli("simulate", "ltv", "-o", long, "--set", "duration_s=0.6").returncode == 0
@@ -357,6 +361,7 @@ def test_two_concurrent_runs_one_succeeds_the_other_fails_at_once(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
 
 
+@pytest.mark.slow
 def test_wait_waits_for_the_lock(tmp_path, inputs):
     import fcntl
 
@@ -371,6 +376,7 @@ def test_wait_waits_for_the_lock(tmp_path, inputs):
     assert (out / "report.json").is_file()
 
 
+@pytest.mark.slow
 def test_runs_in_turn_leave_only_the_second_runs_files(tmp_path):
     from tests.conftest import SAMPLE_DATA
 
@@ -678,6 +684,7 @@ def test_closed_stdin_and_stdout(inputs):
 # -- 6. batch resume that checks ------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_batch_redoes_a_deleted_or_changed_output(tmp_path, inputs):
     from afmtool.analyses.batch import plan_batch, run_one
 
