@@ -759,3 +759,30 @@ def test_warnings_go_into_the_report():
     assert any(w.startswith("RuntimeWarning: overflow") for w in got), got
     assert "UserWarning: chunk cache too small" in got
     assert drain() == []
+
+
+def test_input_guard_compares_real_paths_and_inodes(tmp_path, monkeypatch):
+    from afmtool.report import input_guard
+    from afmtool.report.input_guard import InputOverwriteError, refuse_output_over_inputs, register_input
+
+    monkeypatch.setattr(input_guard, "_inputs", [])
+    capture = tmp_path / "data" / "cap.h5"
+    capture.parent.mkdir()
+    capture.write_bytes(b"x")
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("x")
+    register_input(capture)
+    register_input(bag)
+    register_input("-")  # stdin: nothing to protect
+    os.link(capture, tmp_path / "hard.h5")
+    (tmp_path / "sym.h5").symlink_to(capture)
+    refused = [capture, tmp_path / "data" / ".." / "data" / "cap.h5", tmp_path / "hard.h5", tmp_path / "sym.h5",
+               bag, bag / "out.h5", bag / "sub" / "deeper"]
+    for path in refused:
+        with pytest.raises(InputOverwriteError):
+            refuse_output_over_inputs(path)
+    with pytest.raises(InputOverwriteError):
+        refuse_output_over_inputs(tmp_path / "data", directory=True)  # replacing it would delete the capture
+    refuse_output_over_inputs(tmp_path / "data" / "other.h5")
+    refuse_output_over_inputs(tmp_path / "out", directory=True)

@@ -60,6 +60,8 @@ def test_random_kills_leave_old_or_new(tmp_path, capture):
         assert "Traceback" not in stderr
         # 130: interrupted in afmtool; -2/-15: the signal arrived while Python was still starting
         assert code in (0, 130, -signal.SIGINT, -signal.SIGTERM), (code, stderr)
+        if code == 130:
+            assert stderr.strip().splitlines()[-1] == "afmtool: interrupted", stderr
         outcomes["finished" if code == 0 else "interrupted"] += 1
         # no staging folders or temp files are left behind
         assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "slow.toml"]
