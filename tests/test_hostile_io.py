@@ -786,3 +786,24 @@ def test_input_guard_compares_real_paths_and_inodes(tmp_path, monkeypatch):
         refuse_output_over_inputs(tmp_path / "data", directory=True)  # replacing it would delete the capture
     refuse_output_over_inputs(tmp_path / "data" / "other.h5")
     refuse_output_over_inputs(tmp_path / "out", directory=True)
+
+
+@pytest.mark.parametrize(
+    "exc, code",
+    [
+        (PermissionError(13, "Permission denied", "/x"), 13),
+        (OSError(36, "File name too long", "/x" * 200), 36),
+        (OSError(40, "Too many levels of symbolic links", "/a/b"), 40),
+        (RuntimeError("Can't close file (file write failed: errno = 28, error message = 'No space left on device')"), 28),
+        (OSError("[Errno 122] Disk quota exceeded"), 122),
+        (ValueError("not a fault"), None),
+        (OSError(2, "No such file or directory"), None),
+    ],
+)
+def test_environment_faults_are_recognised(exc, code):
+    from afmtool.report.faults import environment_fault, fault_message
+
+    assert environment_fault(exc) == code
+    if code is not None:
+        message = fault_message(exc, code, "where")
+        assert "\n" not in message and os.strerror(code) in message
