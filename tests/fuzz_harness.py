@@ -194,6 +194,95 @@ def materialise(seed: Path, data: bytes, folder: Path) -> Path:
     return target
 
 
+# ------------------------------------------------------------ structural mutations
+
+#: One case in this many is a structural mutation (issue 20) instead of a byte-level one.
+STRUCTURAL_EVERY = 8
+
+
+def _hdf5_hostile(seed: Path, folder: Path, rng: np.random.Generator) -> tuple[Path, bool]:
+    """A copy of the HDF5 seed made hostile in one way; ``True`` if it must be refused."""
+    import h5py
+
+    target = folder / "case.h5"
+    shutil.copyfile(seed, target)
+    other = folder / "outside.h5"
+    with h5py.File(other, "w") as f:
+        f.create_dataset("s", data=np.full(64, 42.0))
+        f.create_dataset("g/s", data=np.full(64, 43.0))
+    kind = int(rng.integers(0, 7))
+    where = "channels" if rng.random() < 0.5 else "truth"
+    with h5py.File(target, "a") as f:
+        if kind == 0:  # size claim: unallocated chunks read as fill values
+            f.create_dataset(f"{where}/claim", shape=(10 ** int(rng.integers(7, 16)),), dtype="f8", chunks=(4096,))
+            return target, False  # refused by the ratio check, or read within budget (small claims)
+        if kind == 1:  # compression bomb: zeros, gzip
+            n = 1 << int(rng.integers(16, 22))
+            ds = f.create_dataset(f"{where}/bomb", shape=(n,), dtype="f8", chunks=(min(n, 1 << 18),), compression="gzip")
+            ds[:] = 0.0
+            return target, False
+        if kind == 2:  # soft links (a chain of 1-3) to an external link
+            f["ext"] = h5py.ExternalLink(str(other), "/" if rng.random() < 0.5 else "/g")
+            previous = "/ext/s"
+            for hop in range(int(rng.integers(0, 3))):
+                f[f"hop{hop}"] = h5py.SoftLink(previous.rsplit("/", 1)[0])
+                previous = f"/hop{hop}/s"
+            f[f"{where}/leak"] = h5py.SoftLink(previous)
+            return target, True
+        if kind == 3:  # external raw storage
+            raw = folder / "raw.bin"
+            raw.write_bytes(b"secret!!" * 64)
+            f.create_dataset(f"{where}/leak", shape=(64,), dtype="f8", external=[(str(raw), 0, 512)])
+            return target, True
+        if kind == 4:  # virtual dataset
+            layout = h5py.VirtualLayout(shape=(64,), dtype="f8")
+            layout[:] = h5py.VirtualSource(str(other), "s", shape=(64,))
+            f.create_virtual_dataset(f"{where}/leak", layout)
+            return target, True
+        if kind == 5:  # deep metadata JSON
+            depth = int(rng.integers(10, 20_000))
+            f.attrs["metadata"] = "[" * depth + "]" * depth
+            return target, depth > 64
+        f["a"] = h5py.SoftLink("/b")  # a soft-link loop
+        f["b"] = h5py.SoftLink("/a")
+        f[f"{where}/loop"] = h5py.SoftLink("/a/x")
+        return target, True
+
+
+def _text_hostile(reader: str, seed: Path, folder: Path, rng: np.random.Generator) -> tuple[Path, bool]:
+    """Huge CSV headers and lines, deeply nested JSON and TOML."""
+    target = folder / ("case" + seed.suffix)
+    depth = int(rng.integers(10, 20_000))
+    if reader == "csv":
+        lines = seed.read_text(encoding="utf-8").splitlines(keepends=True)
+        header = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+        if rng.random() < 0.5:  # a header of up to 5,000 columns
+            extra = int(rng.integers(1, 5000))
+            lines[header] = lines[header].rstrip("\n") + "".join(f",c{i}" for i in range(extra)) + "\n"
+        else:  # one very long row
+            lines.insert(header + 1, ",".join(["1"] * int(rng.integers(1000, 200_000))) + "\n")
+        target.write_text("".join(lines), encoding="utf-8")
+        return target, False
+    if reader == "metadata":
+        target.write_text('{"a":' * depth + "1" + "}" * depth)
+        return target, depth > 64
+    target.write_text("x = " + "[" * depth + "]" * depth + "\n")  # toml
+    return target, depth > 16
+
+
+def structural_case(reader: str, seed: Path, folder: Path, rng: np.random.Generator) -> tuple[Path, bool] | None:
+    """A hostile input of the kinds issue 20 lists, or ``None`` where the reader has none.
+
+    Returns the path and whether it must be refused (data from outside the
+    file, nesting past the limits): reading it cleanly is then a finding.
+    """
+    if reader == "hdf5":
+        return _hdf5_hostile(seed, folder, rng)
+    if reader in ("csv", "metadata", "toml"):
+        return _text_hostile(reader, seed, folder, rng)
+    return None
+
+
 # ------------------------------------------------------------------------- targets
 
 def read_target(reader: str) -> Callable[[Path], None]:
@@ -257,13 +346,19 @@ def _worker(reader: str, seed_dir: str, start: int, stop: int, rng_seed: int, ti
     try:
         for case in range(start, stop):
             case_rng = np.random.default_rng([rng_seed, case])
-            data = mutate_zip(original, case_rng) if reader in _ZIP_READERS else mutate(original, case_rng)
-            path = materialise(seed, data, work)
+            structural = structural_case(reader, seed, work, case_rng) if case % STRUCTURAL_EVERY == 0 else None
+            if structural is None:
+                data = mutate_zip(original, case_rng) if reader in _ZIP_READERS else mutate(original, case_rng)
+                must_refuse = False
+                path = materialise(seed, data, work)
+            else:
+                path, must_refuse = structural
+                data = f"structural case {case}".encode()
             conn.send(("start", case, data))
             signal.setitimer(signal.ITIMER_REAL, timeout)
             try:
                 target(path)
-                outcome = ("ok", case, None)
+                outcome = ("leak", case, "read cleanly, must be refused") if must_refuse else ("ok", case, None)
             except AfmtoolError as exc:
                 message = str(exc)
                 outcome = ("rejected", case, None) if "\n" not in message.strip() else ("multiline", case, message)
@@ -281,7 +376,7 @@ def _worker(reader: str, seed_dir: str, start: int, stop: int, rng_seed: int, ti
 
 def fuzz_reader(reader: str, cases: int, seed: int = 0, timeout: float = 10.0) -> dict:
     """Run ``cases`` mutated inputs through ``reader``; return counts and findings."""
-    counts = {"ok": 0, "rejected": 0, "crash": 0, "hang": 0, "multiline": 0, "died": 0}
+    counts = {"ok": 0, "rejected": 0, "crash": 0, "hang": 0, "multiline": 0, "died": 0, "leak": 0}
     findings: list[dict] = []
     seed_dir = tempfile.mkdtemp(prefix=f"fuzz-seed-{reader}-")
     context = mp.get_context("spawn")

@@ -44,6 +44,7 @@ def test_random_kills_leave_old_or_new(tmp_path, capture):
     config = tmp_path / "slow.toml"
     config.write_text("[reep]\nchunk_samples = 20000\n")  # many chunks: kills land mid-stream
     args = [sys.executable, "-m", "afmtool", "reep", str(capture), "--out", str(out), "--config", str(config), "-q"]
+    assert subprocess.run(args, cwd=REPO, capture_output=True).returncode == 0  # compiles, caches
     start = time.monotonic()
     assert subprocess.run(args, cwd=REPO, capture_output=True).returncode == 0
     full_run_s = time.monotonic() - start
@@ -59,6 +60,8 @@ def test_random_kills_leave_old_or_new(tmp_path, capture):
         assert "Traceback" not in stderr
         # 130: interrupted in afmtool; -2/-15: the signal arrived while Python was still starting
         assert code in (0, 130, -signal.SIGINT, -signal.SIGTERM), (code, stderr)
+        if code == 130:
+            assert stderr.strip().splitlines()[-1] == "afmtool: interrupted", stderr
         outcomes["finished" if code == 0 else "interrupted"] += 1
         # no staging folders or temp files are left behind
         assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "slow.toml"]
@@ -69,3 +72,46 @@ def test_random_kills_leave_old_or_new(tmp_path, capture):
             assert now == previous  # nothing new
     print(outcomes)
     assert outcomes["interrupted"] >= KILLS // 2  # the kills really landed mid-run
+
+
+def _run_of(folder, lengths: dict[str, int]) -> str:
+    """Which capture the run in ``folder`` read, checked against the series it wrote: never a mix."""
+    report = json.loads((folder / "report.json").read_text())
+    assert sorted(p.name for p in folder.iterdir()) == sorted(report["outputs"])  # exactly one run's files
+    with h5py.File(folder / "reep.h5") as f:
+        n = len(f["t"])
+    source = report["inputs"][0]["path"]
+    assert lengths.setdefault(source, n) == n, (source, n, lengths)
+    return source
+
+
+def test_sigkill_leaves_old_or_new_and_the_next_run_cleans_up(tmp_path, capture):
+    short = tmp_path / "short.h5"
+    assert run_cli("simulate", "ltv", "-o", short, "--set", "duration_s=0.5", "--set", "step_time_s=10.0").returncode == 0
+    out = tmp_path / "out"
+    config = tmp_path / "slow.toml"
+    config.write_text("[reep]\nchunk_samples = 20000\n")
+
+    def args(source):
+        return [sys.executable, "-m", "afmtool", "reep", str(source), "--out", str(out), "--config", str(config), "-q"]
+
+    lengths: dict[str, int] = {}
+    start = time.monotonic()
+    assert subprocess.run(args(capture), cwd=REPO, capture_output=True).returncode == 0
+    full_run_s = time.monotonic() - start
+    _run_of(out, lengths)
+    assert subprocess.run(args(short), cwd=REPO, capture_output=True).returncode == 0
+    seen = {_run_of(out, lengths)}
+    rng = np.random.default_rng(2027)
+    for k in range(KILLS):
+        proc = subprocess.Popen(args(capture if k % 2 else short), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(0.1, 1.2) * full_run_s)
+        proc.kill()
+        proc.wait(timeout=60)
+        seen.add(_run_of(out, lengths))  # the old folder or the new one, complete
+    print(seen)
+    assert len(seen) == 2  # some kills came after the swap, so the outcome really varied
+    assert subprocess.run(args(short), cwd=REPO, capture_output=True).returncode == 0
+    # the staging folders (and lock files) of killed runs are gone
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+    assert _run_of(out, lengths) == str(short)

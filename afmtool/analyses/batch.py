@@ -67,10 +67,21 @@ def expand_inputs(patterns: Sequence[str]) -> list[Path]:
 
 
 def plan_batch(inputs: Sequence[Path], out: Path) -> list[BatchItem]:
-    """A distinct output subfolder per input, named after it."""
+    """A distinct output subfolder per input, named after it.
+
+    Inputs are confined to captures: a file, or a ROS2 bag folder; never the
+    batch root or anything inside it (an input of ``.`` would otherwise name
+    the root itself as its output folder).
+    """
     items, used = [], set()
+    root = Path(out).resolve()
     for path in inputs:
-        name = path.name.replace(".", "_")
+        real = path.resolve()
+        if not (real.is_file() or (real / "metadata.yaml").is_file()):
+            raise InputError(f"{path}: not a capture file or a ROS2 bag folder")
+        if real == root or root in real.parents or real in root.parents:
+            raise InputError(f"{path}: is, holds or lies inside the batch folder {out}; inputs must be elsewhere")
+        name = (real.name or "input").replace(".", "_")
         candidate, k = name, 2
         while candidate in used:
             candidate, k = f"{name}_{k}", k + 1
@@ -79,17 +90,42 @@ def plan_batch(inputs: Sequence[Path], out: Path) -> list[BatchItem]:
     return items
 
 
+#: Beside each finished output folder: the sha256 of every file in it, written by the batch.
+MANIFEST_SUFFIX = ".outputs.json"
+
+
+def _manifest_path(item: BatchItem) -> Path:
+    out = Path(item.out_dir)
+    return out.with_name(f".{out.name}{MANIFEST_SUFFIX}")
+
+
+def _output_hashes(folder: Path, names: Sequence[str]) -> dict[str, str]:
+    return {name: sha256_file(folder / name) for name in names if (folder / name).is_file()}
+
+
 def _complete(item: BatchItem) -> dict | None:
-    """The existing report if the subfolder already holds this input's finished result."""
-    report_path = Path(item.out_dir) / "report.json"
+    """The existing report if the subfolder holds this input's finished result, every file intact.
+
+    Intact means: report.json is for the same input bytes, and every output
+    it lists is there with the sha256 the batch recorded when the run ended
+    (a file deleted or changed by hand is redone).
+    """
+    folder = Path(item.out_dir)
+    report_path = folder / "report.json"
     if not report_path.is_file() or not Path(item.source).exists():
         return None
     try:
         report = json.loads(report_path.read_text())
         recorded = report["inputs"][0]["sha256"]
-    except (json.JSONDecodeError, KeyError, IndexError, OSError):
+        names = [str(name) for name in report["outputs"]]
+        manifest = json.loads(_manifest_path(item).read_text())
+    except (ValueError, KeyError, IndexError, TypeError, OSError, RecursionError):
         return None
-    return report if recorded == sha256_file(Path(item.source)) else None
+    if recorded != sha256_file(Path(item.source)):
+        return None
+    if any(not (folder / name).exists() for name in names):
+        return None
+    return report if manifest == _output_hashes(folder, names) else None
 
 
 def headline(command: str, report: dict) -> dict:
@@ -162,18 +198,31 @@ def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], 
     if known is not None:
         return BatchOutcome(item.source, item.out_dir, "failed", f"{known} (unchanged since the last run)", {})
     args = [sys.executable, "-m", "afmtool", *command, item.source, "--out", item.out_dir, "--quiet", *extra_args]
+    _manifest_path(item).unlink(missing_ok=True)
     proc = subprocess.run(args, capture_output=True, text=True)
+    if _killed(proc.returncode):
+        proc = subprocess.run(args, capture_output=True, text=True)  # once more: OOM killer, a stray signal
     if proc.returncode != 0:
         reason = (proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
         reason = reason.removeprefix("afmtool: error: ")
+        if _killed(proc.returncode):
+            # not a verdict on the input: the next batch run tries it again
+            return BatchOutcome(item.source, item.out_dir, "failed", f"killed by a signal ({reason})", {})
         Path(item.out_dir).mkdir(parents=True, exist_ok=True)
         (Path(item.out_dir) / FAILURE_FILE).write_text(
             json.dumps({"input": item.source, "sha256": _sha_or_none(item.source), "reason": reason}) + "\n"
         )
         return BatchOutcome(item.source, item.out_dir, "failed", reason, {})
-    (Path(item.out_dir) / FAILURE_FILE).unlink(missing_ok=True)
-    report = json.loads((Path(item.out_dir) / "report.json").read_text())
+    folder = Path(item.out_dir)
+    (folder / FAILURE_FILE).unlink(missing_ok=True)
+    report = json.loads((folder / "report.json").read_text())
+    _manifest_path(item).write_text(json.dumps(_output_hashes(folder, report["outputs"])) + "\n")
     return BatchOutcome(item.source, item.out_dir, "ok", "", headline(name, report))
+
+
+def _killed(returncode: int) -> bool:
+    """A child that a signal ended (negative status) or that was interrupted (130)."""
+    return returncode < 0 or returncode == 130
 
 
 def write_summary(path: Path, outcomes: Sequence[BatchOutcome]) -> None:

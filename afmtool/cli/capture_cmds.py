@@ -160,10 +160,52 @@ def report(
     from afmtool.report.atomic import write_text_atomic
     from afmtool.report.html import report_pages
 
+    _check_report_folder(folder, output or folder / "report.html")
     pages = report_pages(folder, output)
     for path, page in pages:
         write_text_atomic(path, page)
     stderr_console(quiet).print(f"wrote {pages[-1][0]}", highlight=False)
+
+
+def _check_report_folder(folder: Path, target: Path) -> None:
+    """The page is HTML, never replaces the folder's report or the run's inputs; report.json is sound.
+
+    report.json comes from disk and may be anything: its shape is checked
+    here (an object with the fields the page shows, of their types) so that
+    a damaged one is one line and exit 2, not an internal error.
+    """
+    from afmtool.errors import ConfigError, InputError
+    from afmtool.io.metadata import MAX_JSON_DEPTH, json_depth
+    from afmtool.report.input_guard import register_input
+
+    if target.suffix.lower() not in (".html", ".htm"):
+        raise ConfigError(f"--output {target}: must end in .html or .htm (refusing to overwrite other files)")
+    report_path = folder / "report.json"
+    if not report_path.is_file() and (folder / "summary.csv").is_file():
+        return  # a batch folder: report_pages renders each run's page from its own report
+    if not report_path.is_file():
+        raise InputError(f"{folder}: no report.json (not an afmtool output folder)")
+    register_input(report_path)
+    try:
+        text = report_path.read_text(encoding="utf-8")
+        if json_depth(text) > MAX_JSON_DEPTH:
+            raise InputError(f"{report_path}: nested more than {MAX_JSON_DEPTH} deep; not an afmtool report")
+        report = json.loads(text)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{report_path}: not valid JSON ({exc})") from None
+    shape = {"command": str, "inputs": list, "outputs": list, "warnings": list, "results": dict, "parameters": dict}
+    if not isinstance(report, dict) or not isinstance(report.get("command"), str):
+        raise InputError(f"{report_path}: not an afmtool report")
+    for key, kind in shape.items():
+        if key in report and not isinstance(report[key], kind):
+            raise InputError(f"{report_path}: {key} must be a JSON {kind.__name__}; not an afmtool report")
+    if not all(isinstance(i, dict) for i in report.get("inputs", [])) or not all(
+        isinstance(w, str) for w in report.get("warnings", []) + report.get("outputs", [])
+    ):
+        raise InputError(f"{report_path}: inputs, outputs or warnings of the wrong type; not an afmtool report")
+    for item in report.get("inputs", []):
+        if isinstance(item.get("path"), str):
+            register_input(item["path"])
 
 
 def register(app: typer.Typer) -> None:

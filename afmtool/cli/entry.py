@@ -23,6 +23,7 @@ _MMAP_THRESHOLD_BYTES = 32 << 20
 
 
 def _while_starting(signum, frame) -> None:  # noqa: ARG001
+    os.write(2, b"afmtool: interrupted\n")
     os._exit(130)
 
 
@@ -49,10 +50,63 @@ def _reuse_freed_memory() -> None:
         pass
 
 
+class _ClosedStdout:
+    """Stands for a stdout the caller closed: writing to it is a one-line error (exit 2)."""
+
+    encoding = "utf-8"
+    errors = "strict"
+
+    def write(self, text: str) -> int:
+        from afmtool.errors import AfmtoolError
+
+        if not text:
+            return 0
+        raise AfmtoolError("stdout is closed; nothing can be printed (redirect it, e.g. > file)")
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+    def fileno(self) -> int:
+        return 1
+
+
+def _occupy_closed_standard_fds() -> None:
+    """Put /dev/null on a closed fd 0, 1 or 2, and make a closed stdout an error.
+
+    A process started with a standard fd closed would otherwise hand that
+    number to the next file it opens: an output file on fd 1 would receive
+    whatever a library prints.  Python sets ``sys.stdin``/``sys.stdout`` to
+    None then, which fails deep inside a command; stdin now reads as empty.
+    """
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            opened = os.open(os.devnull, os.O_RDWR)
+            if opened != fd:  # a lower fd was closed too and took it; fixed on its turn
+                os.dup2(opened, fd)
+                os.close(opened)
+    if sys.stdin is None:
+        sys.stdin = open(0, encoding="utf-8", closefd=False)  # noqa: SIM115 - lives as long as the process
+    if sys.stdout is None:
+        sys.stdout = _ClosedStdout()
+    if sys.stderr is None:
+        sys.stderr = open(2, "w", encoding="utf-8", closefd=False)  # noqa: SIM115
+
+
 def main() -> None:
     signal.signal(signal.SIGINT, _while_starting)
     signal.signal(signal.SIGTERM, _while_starting)
+    _occupy_closed_standard_fds()
     _reuse_freed_memory()
     from afmtool.cli.main import main as run
 
-    run()
+    try:
+        run()
+    except KeyboardInterrupt:
+        # a signal that landed after the run's outcome was decided (in the last
+        # finalisers); Python would otherwise end the process by SIGINT
+        os._exit(130)

@@ -10,7 +10,8 @@ from __future__ import annotations
 import os
 import signal
 import sys
-from typing import Annotated
+import threading
+from typing import Annotated, Optional
 
 import typer
 
@@ -58,8 +59,26 @@ def _root(
     version: Annotated[
         bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")
     ] = False,
+    max_samples: Annotated[
+        Optional[int],
+        typer.Option(
+            "--max-samples",
+            min=1,
+            help="Accept HDF5 captures of up to N samples per dataset whatever their size on disk "
+            "(by default what a file claims may be at most 1000x its size).",
+        ),
+    ] = None,
+    wait: Annotated[
+        bool, typer.Option("--wait", help="Wait for another run writing the same --out, instead of failing.")
+    ] = False,
 ) -> None:
     """afmtool: capture -> chunks -> kernel -> result -> writer."""
+    # Process-wide settings read where files are opened; the environment carries them to
+    # batch workers too.
+    if max_samples is not None:
+        os.environ["AFMTOOL_MAX_SAMPLES"] = str(max_samples)
+    if wait:
+        os.environ["AFMTOOL_WAIT"] = "1"
 
 
 identify_app = typer.Typer(help="Identify models: the free-air cantilever, ...", no_args_is_help=True)
@@ -83,39 +102,142 @@ def _error(message: str, code: int) -> None:
     sys.exit(code)
 
 
+#: After a SIGINT or SIGTERM the process ends within this time, s, whatever it is doing.
+INTERRUPT_DEADLINE_S = 1.5
+
+
+class _Signals:
+    """What the handlers saw: signals received, interrupts raised and swallowed."""
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+        self.raised = 0
+        self.swallowed = 0
+        self.reported = False
+        self.deadline: threading.Timer | None = None
+
+    def __bool__(self) -> bool:
+        return bool(self.received)
+
+    def report(self) -> None:
+        if not self.reported:
+            self.reported = True
+            os.write(2, b"afmtool: interrupted\n")
+
+
+def _give_up(state: _Signals) -> None:
+    # The unwinding did not finish in time (a signal swallowed where nothing can unwind, a
+    # long call into a library): end the process. Outputs are staged; the next run removes
+    # what this one leaves, and --out is the old folder or the new one.
+    state.report()
+    os._exit(130)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point with afmtool's exit-code contract."""
+    from afmtool.report.faults import environment_fault
+    from afmtool.report.interrupts import interrupt_now
+
     # SIGINT and SIGTERM unwind as KeyboardInterrupt, so staged outputs are cleaned up.
-    signals: list[int] = []
+    state = _Signals()
 
     def interrupt(signum, frame) -> None:  # noqa: ARG001
-        signals.append(signum)
-        raise KeyboardInterrupt
+        state.received.append(signum)
+        if state.deadline is None:
+            state.deadline = threading.Timer(INTERRUPT_DEADLINE_S, _give_up, (state,))
+            state.deadline.daemon = True
+            state.deadline.start()
+        if state.raised > state.swallowed or state.reported:
+            return  # one interrupt is already unwinding the run, or the run has ended
+        if interrupt_now(signum):
+            state.raised += 1
+            raise KeyboardInterrupt
 
     signal.signal(signal.SIGINT, interrupt)
     signal.signal(signal.SIGTERM, interrupt)
     default_unraisable = sys.unraisablehook
 
     def unraisable(info) -> None:
-        # A signal that lands in a finaliser or weakref callback cannot unwind anything;
-        # Python would print it as 'Exception ignored' with a traceback. The run goes on
-        # and ends normally, with complete outputs.
+        # A signal that lands in a finaliser or weakref callback (h5py closes objects in
+        # them) cannot unwind anything there; Python would print it as 'Exception ignored'.
+        # Deliver the signal again a moment later, where it can unwind the run.
+        if info.exc_value is not None and environment_fault(info.exc_value) is not None:
+            # h5py dropping an object of a file the disk has no room for: the write that
+            # failed first raised in the run already, and is reported as one line
+            return
         if info.exc_type is not None and issubclass(info.exc_type, KeyboardInterrupt):
+            state.swallowed += 1
+            signum = state.received[-1] if state.received else signal.SIGINT
+            again = threading.Timer(0.01, os.kill, (os.getpid(), signum))
+            again.daemon = True
+            again.start()
             return
         default_unraisable(info)
 
     sys.unraisablehook = unraisable
+    default_excepthook = sys.excepthook
+
+    def excepthook(exc_type, exc, tb) -> None:
+        # Cython finalisers (h5py's ObjectID) print through sys.excepthook before the
+        # unraisable hook; a full disk is reported once, as the run's one line.
+        if exc is not None and environment_fault(exc) is not None:
+            return
+        default_excepthook(exc_type, exc, tb)
+
+    sys.excepthook = excepthook
+    from afmtool.report.captured_warnings import capture_warnings
+
+    capture_warnings()
     try:
-        _run(argv, signals)
+        _run(argv, state)
+    except SystemExit as done:
+        _exit_now_if_hdf5_is_stuck(done.code)
+        raise
     finally:
-        # Outputs are committed or cleaned up by now; a signal during interpreter
-        # shutdown should end the process, not print a traceback from a finaliser.
-        signal.signal(signal.SIGINT, signal.SIG_DFL)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        sys.unraisablehook = default_unraisable
+        # Outputs are committed or cleaned up by now, and the outcome printed: a signal
+        # during interpreter shutdown (or one re-delivered late) changes nothing.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        # The run has reported its outcome in one line; what finalisers meet while the
+        # interpreter tears down (h5py objects on a full disk) is not printed after it.
+        sys.unraisablehook = _silent
 
 
-def _run(argv: list[str] | None, signals: list[int]) -> None:
+def _silent(info) -> None:  # noqa: ARG001
+    return
+
+
+def _hdf5_files_open() -> bool:
+    """Whether h5py still holds a file open (one a failed write could not close)."""
+    h5py = sys.modules.get("h5py")
+    if h5py is None:
+        return False
+    try:
+        return bool(h5py.h5f.get_obj_ids(types=h5py.h5f.OBJ_FILE))
+    except Exception:  # noqa: BLE001 - asking must never fail the exit
+        return True
+
+
+def _exit_now_if_hdf5_is_stuck(code: object) -> None:
+    """End a failed run without the interpreter's teardown when an HDF5 file is still open.
+
+    A file whose flush failed (a full disk) cannot be closed: libhdf5 tries
+    the flush again, in h5py's finalisers at teardown or in an explicit
+    close, and has crashed there (SIGSEGV, SIGBUS).  The run's outcome is
+    decided and printed, its outputs are staged and removed, so nothing is
+    lost by skipping teardown: flush Python's own streams and leave.
+    """
+    if code in (0, None) or not _hdf5_files_open():
+        return
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code if isinstance(code, int) else 1)
+
+
+def _run(argv: list[str] | None, signals: _Signals) -> None:
     try:
         # inside the try: building the command evaluates every option's annotations, a
         # moment a signal can land in
@@ -131,7 +253,7 @@ def _run(argv: list[str] | None, signals: list[int]) -> None:
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except (KeyboardInterrupt, typer.Abort):
-        print("afmtool: interrupted", file=sys.stderr)
+        signals.report()
         sys.exit(130)
     except BrokenPipeError:
         # A closed downstream pipe (| head) is a normal way to stop reading.
@@ -139,12 +261,26 @@ def _run(argv: list[str] | None, signals: list[int]) -> None:
         os.dup2(devnull, sys.stdout.fileno())
         sys.exit(0)
     except Exception as exc:  # noqa: BLE001 - the one place unexpected errors are reported
+        from afmtool.report.faults import environment_fault, fault_message
+
+        code = environment_fault(exc)
+        if code is not None:  # disk full, read-only, permissions: the environment, not a bug
+            _error(fault_message(exc, code), 2)
         if signals:
             # the interrupt surfaced as another exception, e.g. an extension module whose
             # import it cut short reports 'ImportError: initialization failed'
-            print("afmtool: interrupted", file=sys.stderr)
+            signals.report()
             sys.exit(130)
         if os.environ.get("AFMTOOL_DEBUG"):
             raise
         _error(f"internal error ({type(exc).__name__}: {exc}); rerun with AFMTOOL_DEBUG=1 for a traceback", 1)
+    if result == 130 or (signals and result not in (0, None)):
+        # typer turns a KeyboardInterrupt it meets into a bare return value of 130
+        signals.report()
+        sys.exit(130)
+    if result in (0, None):
+        from afmtool.report.captured_warnings import drain
+
+        for warning in drain():  # commands without a report.json: afmtool's one-line form, at the end
+            print(f"afmtool: warning: {warning}", file=sys.stderr)
     sys.exit(result if isinstance(result, int) else 0)

@@ -9,6 +9,9 @@ user's file, and supplies ``--help`` texts, so the three cannot drift.
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
+import stat
 import tomllib
 import types
 import typing
@@ -35,11 +38,49 @@ def help_for(cls: type, name: str) -> str:
     return f"{f.metadata.get('help', '')}{units}"
 
 
+#: Largest config file read, bytes, and its deepest nesting of tables and arrays.
+MAX_CONFIG_BYTES = 1 << 20
+MAX_CONFIG_DEPTH = 16
+
+
+def _read_regular_file(path: Path) -> bytes:
+    """The bytes of ``path`` if it is a regular file of at most MAX_CONFIG_BYTES.
+
+    Opened non-blocking and checked with fstat before reading, so a FIFO or
+    a device is refused at once instead of hanging the run.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ConfigError(f"--config {path}: not a regular file")
+        if info.st_size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"--config {path}: {info.st_size:,} bytes; a config file is at most {MAX_CONFIG_BYTES:,}")
+        with os.fdopen(fd, "rb", closefd=False) as handle:
+            return handle.read(MAX_CONFIG_BYTES + 1)
+    finally:
+        os.close(fd)
+
+
+def _depth(document: Any) -> int:
+    """Deepest nesting of tables and arrays in a parsed document (iterative)."""
+    deepest, stack = 0, [(document, 0)]
+    while stack:
+        node, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if isinstance(node, Mapping):
+            stack.extend((v, depth + 1) for v in node.values())
+        elif isinstance(node, list):
+            stack.extend((v, depth + 1) for v in node)
+    return deepest
+
+
 def load_toml(path: Path) -> dict:
     """Read a user config file; errors become :class:`ConfigError`."""
     try:
-        with open(path, "rb") as handle:
-            return tomllib.load(handle)
+        document = tomllib.loads(_read_regular_file(path).decode("utf-8"))
+    except RecursionError:
+        raise ConfigError(f"--config {path}: nested too deeply") from None
     except FileNotFoundError:
         raise ConfigError(f"--config {path}: no such file") from None
     except tomllib.TOMLDecodeError as exc:
@@ -48,6 +89,9 @@ def load_toml(path: Path) -> dict:
         raise ConfigError(f"--config {path}: not UTF-8 text") from None
     except OSError as exc:
         raise ConfigError(f"--config {path}: cannot read ({exc.strerror})") from None
+    if _depth(document) > MAX_CONFIG_DEPTH:
+        raise ConfigError(f"--config {path}: nested more than {MAX_CONFIG_DEPTH} deep")
+    return document
 
 
 def _section(document: Mapping, dotted: str) -> Mapping:
@@ -61,6 +105,8 @@ def _section(document: Mapping, dotted: str) -> Mapping:
 
 def _coerce(cls: type, name: str, kind: Any, value: Any, where: str) -> Any:
     if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        if not math.isfinite(value):
+            raise ConfigError(f"{where}{name}={value!r} must be a finite number")
         return float(value)
     if kind is int and isinstance(value, int) and not isinstance(value, bool):
         return value

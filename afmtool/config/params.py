@@ -8,6 +8,7 @@ mean "automatic" where a help text says so, because TOML has no null.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from afmtool.config import field
@@ -43,7 +44,7 @@ def parse_interval(text: str, option: str) -> tuple[float, float] | None:
         interval = (float(start), float(end))
     except ValueError:
         raise ConfigError(f"{option}={text!r} must look like START:END in seconds") from None
-    if not sep or not 0 <= interval[0] < interval[1]:
+    if not sep or not (math.isfinite(interval[0]) and math.isfinite(interval[1])) or not 0 <= interval[0] < interval[1]:
         raise ConfigError(f"{option}={text!r} must look like START:END with 0 <= START < END (s)")
     return interval
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -27,7 +28,7 @@ from afmtool.errors import InputError
 from afmtool.io.capture import ReaderBase, CaptureInfo, ChannelSpec, Chunk
 from afmtool.io.metadata import parse_metadata_json
 
-__all__ = ["Hdf5Reader", "Hdf5Writer"]
+__all__ = ["Hdf5Reader", "Hdf5Writer", "dataset_name", "max_samples_override"]
 
 _WRITE_CHUNK = 1 << 16
 
@@ -109,19 +110,74 @@ def check_attributes_terminate(path: Path, timeout_s: float = ATTRIBUTE_TIMEOUT_
         raise InputError(f"{path}: libhdf5 crashed reading its attributes (signal {os.WTERMSIG(status)}); the file is damaged")
 
 
-def _refuse_external_link(path: Path, h5: h5py.File, dataset_path: str) -> None:
-    """Refuse a dataset reached through an external link anywhere along its path."""
-    node = ""
-    for part in [p for p in dataset_path.split("/") if p]:
-        node = f"{node}/{part}"
+#: Most soft links followed while resolving one path; more means a loop.
+MAX_LINK_HOPS = 32
+
+#: Largest ratio of the bytes a file's datasets claim to the file's own size.  gzip cannot
+#: compress better than about 1032:1, so a larger claim is either a lie or fill values.
+MAX_COMPRESSION_RATIO = 1000
+
+#: Largest chunk read at once, bytes: a compressed chunk is decompressed whole.
+MAX_CHUNK_BYTES = 256 << 20
+
+#: Environment variable set by ``afmtool --max-samples N``: the largest capture accepted
+#: without the compression-ratio check.
+MAX_SAMPLES_ENV = "AFMTOOL_MAX_SAMPLES"
+
+_TRUTH_KINDS = "fiub"
+
+
+def _local_path(path: Path, h5: h5py.File, object_path: str) -> str | None:
+    """The hard-link path of ``object_path``, following soft links; refuse external ones.
+
+    Every component is resolved by this code, not by libhdf5, so that a soft
+    link to an external link (``/channels/x -> /ext/s`` with ``/ext`` external)
+    is caught like a direct one.  Relative soft links are relative to the
+    group holding them, as in HDF5.  ``None`` when nothing is there.
+
+    Raises
+    ------
+    InputError
+        An external or user-defined link on the way, or a soft-link loop.
+    """
+    node = "/"
+    parts = [p for p in object_path.split("/") if p and p != "."]
+    hops = 0
+    while parts:
+        part = parts.pop(0)
+        candidate = node.rstrip("/") + "/" + part
         try:
-            link = h5.get(node, getlink=True)
-        except (KeyError, OSError, ValueError):
-            return
-        if isinstance(link, h5py.ExternalLink):
-            raise InputError(f"{path}: {node} is an external link to {link.filename}; refusing data outside the file")
+            link = h5.get(candidate, getlink=True)
+        except (KeyError, OSError, ValueError, RuntimeError):
+            return None
         if link is None:
-            return
+            return None
+        if isinstance(link, h5py.ExternalLink):
+            raise InputError(f"{path}: {candidate} is an external link to {link.filename}; refusing data outside the file")
+        if isinstance(link, h5py.SoftLink):
+            hops += 1
+            if hops > MAX_LINK_HOPS:
+                raise InputError(f"{path}: more than {MAX_LINK_HOPS} soft links resolving {object_path} (a loop?)")
+            target = [p for p in link.path.split("/") if p and p != "."]
+            if link.path.startswith("/"):
+                node = "/"
+            parts = target + parts
+            continue
+        if not isinstance(link, h5py.HardLink):
+            raise InputError(f"{path}: {candidate} is a {type(link).__name__}; refusing links afmtool cannot check")
+        node = candidate
+    return node
+
+
+def _local_object(path: Path, h5: h5py.File, object_path: str):
+    """The object at ``object_path`` (links resolved by :func:`_local_path`), or ``None``."""
+    resolved = _local_path(path, h5, object_path)
+    if resolved is None:
+        return None
+    obj = h5.get(resolved)
+    if isinstance(obj, h5py.Dataset):
+        _check_local(path, object_path, obj)
+    return obj
 
 
 def _check_local(path: Path, name: str, dataset: h5py.Dataset) -> None:
@@ -130,6 +186,57 @@ def _check_local(path: Path, name: str, dataset: h5py.Dataset) -> None:
         raise InputError(f"{path}: dataset {name} is a virtual dataset; refusing data outside the file")
     if dataset.external:
         raise InputError(f"{path}: dataset {name} stores its data in external files; refusing")
+
+
+def max_samples_override() -> int | None:
+    """``afmtool --max-samples N``, or ``None`` when not given."""
+    text = os.environ.get(MAX_SAMPLES_ENV, "").strip()
+    if not text:
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise InputError(f"--max-samples {text!r} must be a whole number") from None
+    if value < 1:
+        raise InputError(f"--max-samples {value} must be at least 1")
+    return value
+
+
+def _claimed_bytes(dataset: h5py.Dataset) -> int:
+    return int(np.prod(dataset.shape, dtype=object)) * dataset.dtype.itemsize
+
+
+def _check_claims(path: Path, datasets: Mapping[str, h5py.Dataset], n_samples: int) -> None:
+    """Refuse a file whose datasets claim more data than it can hold.
+
+    What a dataset claims (shape x itemsize) is checked against the file
+    size times :data:`MAX_COMPRESSION_RATIO` before anything is read: a
+    400 kB file claiming 1e15 samples would otherwise be read for ever (the
+    missing chunks read as fill values).  ``--max-samples N`` replaces the
+    ratio check by ``n_samples <= N``.
+    """
+    file_bytes = max(path.stat().st_size, 1)
+    limit = max_samples_override()
+    largest_chunk = max(
+        (int(np.prod(d.chunks, dtype=object)) * d.dtype.itemsize for d in datasets.values() if d.chunks), default=0
+    )
+    if largest_chunk > MAX_CHUNK_BYTES:
+        raise InputError(
+            f"{path}: a dataset has chunks of {largest_chunk / 2**20:.0f} MiB; afmtool reads chunks of at most "
+            f"{MAX_CHUNK_BYTES >> 20} MiB"
+        )
+    if limit is not None:
+        for name, d in datasets.items():
+            if d.size > limit:
+                raise InputError(f"{path}: dataset {name} has {d.size:,} elements, more than --max-samples {limit:,}")
+        return
+    claimed = sum(_claimed_bytes(d) for d in datasets.values())
+    if claimed > file_bytes * MAX_COMPRESSION_RATIO:
+        raise InputError(
+            f"{path}: its datasets claim {claimed:,} bytes ({n_samples:,} samples per channel) in a "
+            f"{file_bytes:,}-byte file, more than {MAX_COMPRESSION_RATIO}x compression; "
+            "give afmtool --max-samples N to read it anyway"
+        )
 
 
 class Hdf5Reader(ReaderBase):
@@ -174,22 +281,18 @@ class Hdf5Reader(ReaderBase):
         path, h5 = self._path, self._file
         if channel_map:
             mapping = dict(channel_map)
-        elif "channels" in h5 and isinstance(h5["channels"], h5py.Group):
-            mapping = {name: f"/channels/{name}" for name in h5["channels"]}
         else:
-            raise InputError(
-                f"{path}: no /channels group; map datasets with --channel NAME=/path/to/dataset"
-            )
+            group = _local_object(path, h5, "/channels")
+            if not isinstance(group, h5py.Group):
+                raise InputError(
+                    f"{path}: no /channels group; map datasets with --channel NAME=/path/to/dataset"
+                )
+            mapping = {name: f"/channels/{name}" for name in group}
         datasets = {}
         for name, dataset_path in mapping.items():
-            _refuse_external_link(path, h5, dataset_path)
-            try:
-                obj = h5.get(dataset_path)
-            except (KeyError, OSError, ValueError):
-                obj = None
+            obj = _local_object(path, h5, dataset_path)
             if not isinstance(obj, h5py.Dataset):
                 raise InputError(f"{path}: no dataset {dataset_path!r} for channel {name!r}")
-            _check_local(path, dataset_path, obj)
             if obj.ndim != 1 or obj.dtype.kind not in "fiu":
                 raise InputError(f"{path}: dataset {dataset_path} must be 1-D numeric, is {obj.shape} {obj.dtype}")
             datasets[name] = obj
@@ -198,58 +301,157 @@ class Hdf5Reader(ReaderBase):
         lengths = {len(d) for d in datasets.values()}
         if len(lengths) != 1:
             raise InputError(f"{path}: channels have different lengths {sorted(lengths)}")
+        self._truth = self._find_truth()
+        _check_claims(path, {**datasets, **{f"/truth/{k}": v for k, v in self._truth.items()}}, lengths.pop())
         return datasets
+
+    def _find_truth(self) -> dict[str, h5py.Dataset]:
+        """The ``/truth`` datasets, each checked like a channel (local, numeric)."""
+        path, h5 = self._path, self._file
+        group = _local_object(path, h5, "/truth")
+        if group is None:
+            return {}
+        if not isinstance(group, h5py.Group):
+            raise InputError(f"{path}: /truth must be a group of datasets")
+        truth = {}
+        for name in group:
+            obj = _local_object(path, h5, f"/truth/{name}")
+            if not isinstance(obj, h5py.Dataset):
+                raise InputError(f"{path}: /truth/{name} must be a dataset")
+            if obj.dtype.kind not in _TRUTH_KINDS or obj.dtype.fields is not None:
+                raise InputError(f"{path}: /truth/{name} must be numeric, is {obj.dtype}")
+            truth[name] = obj
+        return truth
 
     def _make_info(self, sample_rate_hz: float | None) -> CaptureInfo:
         path, attrs = self._path, self._file.attrs
         if sample_rate_hz is None:
             if "sample_rate_hz" not in attrs:
                 raise InputError(f"{path}: no sample_rate_hz attribute; give --sample-rate")
-            sample_rate_hz = float(np.asarray(attrs["sample_rate_hz"]).reshape(-1)[0])
+            sample_rate_hz = _sample_rate_attr(path, attrs["sample_rate_hz"])
         if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
             raise InputError(f"{path}: sample rate {sample_rate_hz!r} must be a positive number")
         metadata = {}
         if "metadata" in attrs:
-            raw = attrs["metadata"]
-            text = raw.decode() if isinstance(raw, bytes) else str(raw)
-            metadata = parse_metadata_json(text, str(path))
+            metadata = parse_metadata_json(_text_attr(path, "metadata", attrs["metadata"]), str(path))
         channels = tuple(
-            ChannelSpec(name, _decode_attr(d.attrs.get("units", ""))) for name, d in self._datasets.items()
+            ChannelSpec(name, _units_attr(path, name, d.attrs.get("units", ""))) for name, d in self._datasets.items()
         )
         n_samples = len(next(iter(self._datasets.values())))
-        truth = self._file.get("truth")
-        truth_names = tuple(truth) if isinstance(truth, h5py.Group) else ()
+        truth_names = tuple(self._truth)
         return CaptureInfo(str(path), "hdf5", float(sample_rate_hz), channels, n_samples, metadata, truth_names)
 
     def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
         n = self.info.n_samples
+        windows = {name: _ChunkWindow(self._datasets[name]) for name in channels}
         for start in range(0, n, block_samples):
             stop = min(start + block_samples, n)
             data = {}
             for name in channels:
-                buffer = np.empty(stop - start, dtype=np.float64)
                 try:
-                    self._datasets[name].read_direct(buffer, np.s_[start:stop])
+                    data[name] = windows[name].read(start, stop)
                 except (OSError, RuntimeError, ValueError) as exc:
                     raise InputError(f"{self._path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
-                data[name] = buffer
             yield Chunk(start, data)
 
     def truth(self) -> dict[str, np.ndarray]:
         try:
-            group = self._file.get("truth")
-            if not isinstance(group, h5py.Group):
-                return {}
-            return {name: ds[()] for name, ds in group.items() if isinstance(ds, h5py.Dataset)}
+            return {name: ds[()] for name, ds in self._truth.items()}
         except (OSError, RuntimeError, KeyError, ValueError) as exc:
             raise InputError(f"{self._path}: cannot read /truth ({_first_line(exc)})") from None
 
     def close(self) -> None:
+        # Close every object explicitly (h5py's close is strong), before the interpreter's
+        # teardown, so no finaliser runs libhdf5 later.
+        self._datasets, self._truth = {}, {}
         self._file.close()
+
+
+class _ChunkWindow:
+    """Sequential reads of one dataset in whole chunks, so each chunk is decompressed once.
+
+    A block that ends inside a chunk would make libhdf5 decompress that
+    chunk again for the next block (twice or, with chunks much larger than
+    the blocks and than the chunk cache, dozens of times).  Reads here
+    extend to the next chunk boundary and keep the tail for the next block.
+    Contiguous datasets are read as asked.
+    """
+
+    def __init__(self, dataset: h5py.Dataset) -> None:
+        self._dataset = dataset
+        self._n = dataset.shape[0]
+        self._chunk = dataset.chunks[0] if dataset.chunks else 0
+        self._start = self._stop = 0
+        self._buffer = np.empty(0, dtype=np.float64)
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        buffer = np.empty(stop - start, dtype=np.float64)
+        if stop > start:
+            self._dataset.read_direct(buffer, np.s_[start:stop])
+        return buffer
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        if not self._chunk:
+            return self._read(start, stop)
+        if not self._start <= start <= self._stop:
+            self._start = self._stop = start - start % self._chunk
+            self._buffer = np.empty(0, dtype=np.float64)
+        if stop > self._stop:
+            end = min(-(-stop // self._chunk) * self._chunk, self._n)
+            kept = self._buffer[start - self._start :]
+            self._buffer = np.concatenate([kept, self._read(self._stop, end)])
+            self._start, self._stop = start, end
+        return self._buffer[start - self._start : stop - self._start].copy()
 
 
 def _first_line(exc: BaseException) -> str:
     return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def dataset_name(name: str, what: str = "channel") -> str:
+    """``name`` if it can be one dataset name inside its group, else :class:`InputError`.
+
+    A channel name from a CSV header or a bag topic becomes an HDF5 link
+    name; ``/`` would place it elsewhere in the file (``/truth/x`` would
+    plant fake ground truth), and ``.``, ``..`` or control characters are
+    not names anyone means.
+    """
+    if not name or name in (".", "..") or "/" in name or not name.isprintable():
+        raise InputError(f"{what} name {name!r} cannot be an HDF5 dataset name (no '/', '.', '..' or control characters)")
+    return name
+
+
+def _sample_rate_attr(path: Path, value) -> float:
+    """The root attribute ``sample_rate_hz``: one real number, not a flag, text or array."""
+    array = np.asarray(value)
+    if array.size != 1 or array.dtype.kind not in "fiu":
+        raise InputError(
+            f"{path}: attribute sample_rate_hz must be one real number, is {array.dtype} of shape {array.shape}"
+        )
+    return float(array.reshape(-1)[0])
+
+
+def _text_attr(path: Path, name: str, value) -> str:
+    """A string attribute as text; refuse bytes that are not UTF-8 and non-string values."""
+    if isinstance(value, np.ndarray) and value.size == 1:  # a scalar, or a 1-element array
+        value = value.reshape(-1)[0]
+    if isinstance(value, np.void):
+        value = value.tobytes()
+    if isinstance(value, bytes):
+        try:
+            return value.decode("utf-8")
+        except UnicodeDecodeError:
+            raise InputError(f"{path}: attribute {name} is not UTF-8 text") from None
+    if isinstance(value, str):
+        return value
+    raise InputError(f"{path}: attribute {name} must be a string, is {type(value).__name__}")
+
+
+def _units_attr(path: Path, channel: str, value) -> str:
+    units = _text_attr(path, f"units of {channel}", value)
+    if not units.isprintable() or len(units) > 64:
+        raise InputError(f"{path}: units of {channel} {units[:64]!r} must be one short printable line")
+    return units
 
 
 def _decode_attr(value) -> str:
@@ -273,6 +475,8 @@ class Hdf5Writer:
         dtype: str = "float64",
         compression: str | None = None,
     ) -> None:
+        for spec in channels:
+            dataset_name(spec.name)
         self._file = h5py.File(path, "w", rdcc_nbytes=0)  # flat memory while appending (see io.results)
         self._file.attrs["sample_rate_hz"] = float(sample_rate_hz)
         if metadata:
@@ -298,6 +502,7 @@ class Hdf5Writer:
     def write_truth(self, truth: Mapping[str, np.ndarray]) -> None:
         group = self._file.require_group("truth")
         for name, values in truth.items():
+            dataset_name(name, "ground-truth")
             values = np.asarray(values)
             if values.ndim == 0:
                 group.create_dataset(name, data=values)
@@ -312,4 +517,10 @@ class Hdf5Writer:
                 )
 
     def close(self) -> None:
-        self._file.close()
+        try:
+            self._file.close()
+        except BaseException:
+            from afmtool.report.faults import keep_until_exit
+
+            keep_until_exit(self._file, self._datasets, sys.exc_info()[2])  # see keep_until_exit: no finaliser may flush
+            raise

@@ -15,9 +15,13 @@ from typing import Any
 
 from afmtool.errors import InputError
 
-__all__ = ["parse_metadata_json", "validate_metadata"]
+__all__ = ["MAX_JSON_DEPTH", "json_depth", "parse_metadata_json", "validate_metadata"]
 
 _POSITIVE = "a number > 0"
+
+
+#: Largest scan image (lines x pixels per line) accepted: 2^26 pixels, 512 MiB as float64.
+MAX_SCAN_PIXELS = 1 << 26
 
 
 def _is_number(value: Any) -> bool:
@@ -72,6 +76,11 @@ def validate_metadata(metadata: Any) -> dict:
                 raise InputError(f"metadata scan needs {key}")
         _check_int("scan.lines", scan["lines"])
         _check_int("scan.pixels_per_line", scan["pixels_per_line"])
+        if scan["lines"] * scan["pixels_per_line"] > MAX_SCAN_PIXELS:
+            raise InputError(
+                f"metadata scan of {scan['lines']} x {scan['pixels_per_line']} pixels exceeds {MAX_SCAN_PIXELS:,} "
+                "(an image afmtool would have to hold in memory)"
+            )
         _check_number("scan.scan_size_m", scan["scan_size_m"])
         _check_number("scan.line_rate_hz", scan["line_rate_hz"])
         if "trace_retrace" in scan and not isinstance(scan["trace_retrace"], bool):
@@ -102,8 +111,41 @@ def validate_metadata(metadata: Any) -> dict:
 
 def parse_metadata_json(text: str, where: str) -> dict:
     """Parse and validate a metadata JSON string found in ``where``."""
+    depth = json_depth(text)
+    if depth > MAX_JSON_DEPTH:
+        raise InputError(f"{where}: metadata JSON is nested {depth} deep, more than {MAX_JSON_DEPTH}")
     try:
         value = json.loads(text)
-    except (json.JSONDecodeError, TypeError) as exc:
+    except (json.JSONDecodeError, TypeError, RecursionError) as exc:
         raise InputError(f"{where}: metadata is not valid JSON ({exc})") from None
     return validate_metadata(value)
+
+
+#: Deepest nesting of arrays and objects accepted in metadata JSON (the schema needs 3).
+MAX_JSON_DEPTH = 64
+
+
+def json_depth(text: str) -> int:
+    """The deepest nesting of ``[`` and ``{`` in JSON ``text``, outside strings; linear, no recursion.
+
+    Measured before parsing: Python's ``json`` recurses once per level and
+    ends in RecursionError (or, at 1e5 levels, a stack overflow).
+    """
+    depth = deepest = 0
+    in_string = escaped = False
+    for char in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif char == "\\":
+                escaped = True
+            elif char == '"':
+                in_string = False
+        elif char == '"':
+            in_string = True
+        elif char in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in "]}":
+            depth -= 1
+    return deepest

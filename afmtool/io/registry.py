@@ -109,6 +109,9 @@ def open_capture(
     a segmented file.
     """
     fmt = input_format(path)
+    from afmtool.report.input_guard import register_input
+
+    register_input(path)  # so that no output of this run can overwrite it
     native_segment = segment if fmt in _NATIVE_SEGMENTS else None
     reader = _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, native_segment)
     try:

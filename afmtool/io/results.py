@@ -7,6 +7,7 @@ Columns are appended chunk by chunk to resizable datasets, each with a
 from __future__ import annotations
 
 import queue
+import sys
 import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -98,14 +99,27 @@ class ResultWriter:
                 if rest.shape[-1]:
                     _write_at_end(self._series[name], rest)
             self._pending.clear()
-        finally:
-            self._file.close()
+        except BaseException:
+            _close_or_keep(self)
+            raise
+        _close_or_keep(self)
 
     def __enter__(self) -> ResultWriter:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _close_or_keep(writer: ResultWriter) -> None:
+    """Close the file; if that fails (a full disk), keep its objects from finalisers and re-raise."""
+    try:
+        writer._file.close()
+    except BaseException:
+        from afmtool.report.faults import keep_until_exit
+
+        keep_until_exit(writer._file, writer._series, sys.exc_info()[2])
+        raise
 
 
 def _write_at_end(ds: h5py.Dataset, block: np.ndarray) -> None:

@@ -30,6 +30,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from afmtool.errors import AfmtoolError
+from afmtool.report.input_guard import refuse_output_over_inputs
 
 __all__ = ["OutputError", "PendingPath", "atomic_path", "write_bytes_atomic", "write_text_atomic"]
 
@@ -118,6 +119,7 @@ class PendingPath:
         final = Path(final)
         if final.name in ("", ".", ".."):
             raise ValueError(f"final={str(final)!r} must name a file or directory, not {final.name!r}")
+        refuse_output_over_inputs(final, directory=directory)
         parent = final.parent
         if not parent.is_dir():
             raise OutputError(f"{final}: directory {parent} does not exist")

@@ -43,6 +43,9 @@ def input_record(path: Path | str, role: str = "capture") -> dict:
     """``{"path", "role", "sha256"}``; stdin has no hash."""
     if str(path) == "-":
         return {"path": "-", "role": role, "sha256": None}
+    from afmtool.report.input_guard import register_input
+
+    register_input(path)  # no output of this run may overwrite what it hashed
     return {"path": str(path), "role": role, "sha256": sha256_file(Path(path))}
 
 

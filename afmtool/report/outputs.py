@@ -1,40 +1,73 @@
-"""An output folder that appears complete or not at all.
+"""An output folder that appears complete or not at all, written by one run at a time.
 
-Analyses write every file into a hidden staging folder beside ``--out``;
-``commit`` moves each one into place with ``os.replace`` (atomic on one
-filesystem).  If the run fails or is killed first, the staging folder is
-removed and ``--out`` is untouched: no half-written output, ever.
+Analyses write every file into a hidden staging folder beside ``--out``.
+On success the staging folder is flushed to disk (every file, then the
+folders) and swapped with ``--out`` in one ``renameat2(RENAME_EXCHANGE)``:
+at every instant ``--out`` is the complete old folder or the complete new
+one, and afterwards it holds exactly this run's files.  The old folder,
+now at the staging name, is deleted only after the swap has succeeded.
+(Where the exchange is not supported, the old folder is renamed aside
+first and put back by the next run if a kill lands between the two
+renames.)
+
+A run holds an exclusive ``flock`` on ``.<name>.lock`` beside ``--out``
+from start to finish (the file exists only meanwhile): a second run on the
+same folder fails at once, or waits with ``afmtool --wait``.  Under that lock the run first removes the
+staging folders that killed runs left behind.
+
+An existing ``--out`` is replaced as a whole, so it must be an afmtool
+output folder (it holds ``report.json``) or empty: ``--out .`` in a home
+folder is refused rather than emptied.
 """
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import hashlib
 import os
 import shutil
-import signal
 import tempfile
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 from afmtool.errors import AfmtoolError
+from afmtool.report.atomic import OutputError, _fsync_dir, _fsync_tree
+from afmtool.report.faults import environment_fault
+from afmtool.report.input_guard import refuse_output_over_inputs
+from afmtool.report.interrupts import signals_deferred
 
-__all__ = ["OutputDir"]
+__all__ = ["OutputDir", "WAIT_ENV"]
 
-_DEFERRED_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+#: Environment variable set by ``afmtool --wait``: wait for the lock instead of failing.
+WAIT_ENV = "AFMTOOL_WAIT"
+
+_STAGING = ".staging-"
+_ASIDE = ".old-"
+#: Characters the staging name adds to the key: "." + key + ".staging-" + 8 random + slack.
+_STAGING_EXTRA = 1 + len(_STAGING) + 8 + 8
+_NAME_MAX = 255
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
 
 
-@contextmanager
-def _signals_deferred() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM for the duration; they are delivered on exit."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED_SIGNALS)
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap ``a`` and ``b`` atomically (Linux ``renameat2``); ``False`` where unsupported."""
     try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False
+    raise OSError(code, os.strerror(code), str(b))
+
+
+def _describe(exc: OSError) -> str:
+    return exc.strerror or str(exc)
 
 
 class OutputDir:
@@ -44,25 +77,131 @@ class OutputDir:
 
         with OutputDir(out) as staged:
             write_report(staged.path("report.json"), ...)
-        # on success every staged file is now in ``out``
+        # on success ``out`` holds exactly the staged files
+
+    Raises
+    ------
+    OutputError
+        ``out`` is empty, a dangling symlink, a file, a folder that is not
+        an afmtool output, an input (or holds or lies in one), locked by
+        another run, or cannot be created, staged or swapped in.
     """
 
     def __init__(self, out: Path) -> None:
+        if not os.fspath(out).strip():
+            raise OutputError("--out '': give a folder name")
         self.out = Path(out)
+        if self.out.is_symlink() and not self.out.exists():
+            raise OutputError(f"--out {self.out}: is a dangling symbolic link")
         if self.out.exists() and not self.out.is_dir():
-            raise AfmtoolError(f"--out {self.out}: exists and is not a directory")
+            raise OutputError(f"--out {self.out}: exists and is not a directory")
+        # The swap happens where the folder really is (through a symlinked --out or parent).
+        self._final = Path(os.path.realpath(self.out))
+        name = self._final.name
+        if not name:
+            raise OutputError(f"--out {self.out}: is the file-system root")
+        cwd = Path(os.path.realpath(os.getcwd()))
+        if self._final == cwd or self._final in cwd.parents:
+            # typer reads --out "" as "."; the folder is replaced as a whole, so never the one we are in
+            raise OutputError(f"--out {os.fspath(out)!r}: is the current folder or holds it; name a folder for the outputs")
+        if len(os.fsencode(name)) > _NAME_MAX:
+            raise OutputError(f"--out {self.out}: file name too long ({len(os.fsencode(name))} bytes, at most {_NAME_MAX})")
+        # Long names get a hashed staging key, so the staging prefix never exceeds NAME_MAX.
+        if len(os.fsencode(name)) + _STAGING_EXTRA > _NAME_MAX:
+            name = hashlib.sha256(os.fsencode(name)).hexdigest()[:32]
+        self._key = name
         self._staging: Path | None = None
+        self._lock_fd: int | None = None
+        self._lock_path: Path | None = None
+        self._created: list[Path] = []
         self._names: list[str] = []
 
+    # -- set-up ---------------------------------------------------------------------------
+
     def __enter__(self) -> OutputDir:
-        parent = self.out.resolve().parent
-        # "created if missing" includes its parents: `--out results/reep` on a fresh checkout
+        refuse_output_over_inputs(self._final, directory=True, what="--out")
+        self._refuse_foreign_folder()
         try:
-            parent.mkdir(parents=True, exist_ok=True)
+            self._make_parents()
+            self._lock()
+            self._remove_stale()
+            self._staging = Path(tempfile.mkdtemp(prefix=f".{self._key}{_STAGING}", dir=self._final.parent))
         except OSError as exc:
-            raise AfmtoolError(f"--out {self.out}: cannot create parent folder {parent}: {exc.strerror}") from None
-        self._staging = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.staging-", dir=parent))
+            self._release(failed=True)
+            raise OutputError(f"--out {self.out}: {_describe(exc)} ({exc.filename or self._final.parent})") from None
+        except BaseException:
+            self._release(failed=True)
+            raise
         return self
+
+    def _refuse_foreign_folder(self) -> None:
+        final = self._final
+        try:
+            ours = (final / "report.json").is_file() or (final / "failure.json").is_file()  # failure: afmtool batch
+            if final.is_dir() and not ours and any(final.iterdir()):
+                raise OutputError(
+                    f"--out {self.out}: exists and is not an afmtool output folder (no report.json); "
+                    "refusing to replace it"
+                )
+        except OSError as exc:
+            raise OutputError(f"--out {self.out}: {_describe(exc)}") from None
+
+    def _make_parents(self) -> None:
+        """Create missing parent folders, remembering them so a failed run removes them."""
+        missing = []
+        parent = self._final.parent
+        while not parent.exists():
+            missing.append(parent)
+            parent = parent.parent
+        for folder in reversed(missing):
+            folder.mkdir()
+            self._created.append(folder)
+
+    def _lock(self) -> None:
+        """Hold ``.<name>.lock`` beside ``--out`` exclusively; it exists only while a run holds it.
+
+        The holder deletes the lock file before it lets go, so a waiter may
+        wake up holding a file nobody can see any more: it then tries again
+        on the new one (the file at the path must be the one it locked).
+        """
+        import fcntl
+
+        path = self._final.parent / f".{self._key}.lock"
+        wait = bool(os.environ.get(WAIT_ENV))
+        while True:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise OutputError(
+                    f"--out {self.out}: another afmtool run is writing this folder; wait for it, or give afmtool --wait"
+                ) from None
+            except BaseException:
+                os.close(fd)
+                raise
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                self._lock_fd, self._lock_path = fd, path
+                return
+            os.close(fd)  # the previous holder removed it while we waited
+
+    def _remove_stale(self) -> None:
+        """Under the lock: drop what killed runs left; restore a folder a kill left aside."""
+        parent, final = self._final.parent, self._final
+        for entry in sorted(parent.iterdir()):
+            if entry.name.startswith(f".{self._key}{_ASIDE}") and entry.is_dir() and not entry.is_symlink():
+                old = entry / "old"
+                if old.is_dir() and not os.path.lexists(final):
+                    os.rename(old, final)  # killed between the two renames of the fallback swap
+                shutil.rmtree(entry, ignore_errors=True)
+            elif entry.name.startswith(f".{self._key}{_STAGING}") and entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+
+    # -- use --------------------------------------------------------------------------------
 
     def path(self, name: str) -> Path:
         """A path inside the staging folder for the output ``name``."""
@@ -79,31 +218,75 @@ class OutputDir:
     def names(self) -> tuple[str, ...]:
         return tuple(self._names)
 
+    # -- finish -----------------------------------------------------------------------------
+
     def __exit__(self, exc_type, exc, tb) -> None:
+        committed = False
         try:
+            code = environment_fault(exc) if exc is not None and not isinstance(exc, AfmtoolError) else None
+            if code is not None:
+                # a full disk (or a read-only one...) while the analysis wrote into staging
+                raise OutputError(f"--out {self.out}: could not be written ({os.strerror(code)})") from None
             if exc_type is None:
-                self._commit()
+                try:
+                    self._commit()
+                except (OSError, RuntimeError) as error:
+                    if isinstance(error, RuntimeError) and environment_fault(error) is None:
+                        raise
+                    raise OutputError(
+                        f"--out {self.out}: could not be written ({_describe(error)}, {error.filename or self._final})"
+                    ) from None
+                committed = True
         finally:
             if self._staging is not None:
                 shutil.rmtree(self._staging, ignore_errors=True)
                 self._staging = None
+            self._release(failed=not committed)
+
+    def _release(self, *, failed: bool) -> None:
+        if self._lock_fd is not None:
+            try:
+                self._lock_path.unlink()  # while still holding it: see _lock
+            except OSError:
+                pass
+            os.close(self._lock_fd)  # releases the flock
+            self._lock_fd = None
+        if failed:
+            for folder in reversed(self._created):
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
+            self._created = []
 
     def _commit(self) -> None:
-        # SIGINT/SIGTERM wait until every file is in place: a run interrupted
-        # here would otherwise leave new files beside old ones.
-        with _signals_deferred():
-            self._move_into_place()
+        # SIGINT/SIGTERM wait until the swap is done; a kill at any point leaves the old
+        # folder or the new one (and a staging folder the next run removes).
+        with signals_deferred():
+            self._swap_into_place()
 
-    def _move_into_place(self) -> None:
-        self.out.mkdir(parents=False, exist_ok=True)
-        for name in self._names:
-            staged = self._staging / name
-            if not staged.exists():
-                continue
-            final = self.out / name
-            if staged.is_dir():
-                if final.exists():
-                    shutil.rmtree(final)
-                os.replace(staged, final)
-            else:
-                os.replace(staged, final)
+    def _swap_into_place(self) -> None:
+        staging, final = self._staging, self._final
+        wanted = set(self._names)
+        for entry in staging.iterdir():  # only the outputs this run named
+            if entry.name not in wanted:
+                shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
+        staging.chmod(0o777 & ~_umask())
+        _fsync_tree(staging)
+        if not os.path.lexists(final):
+            os.rename(staging, final)
+        elif _exchange(staging, final):
+            shutil.rmtree(staging, ignore_errors=True)  # now the old folder
+        else:
+            aside = Path(tempfile.mkdtemp(prefix=f".{self._key}{_ASIDE}", dir=final.parent))
+            os.rename(final, aside / "old")
+            os.rename(staging, final)
+            shutil.rmtree(aside, ignore_errors=True)
+        self._staging = None
+        _fsync_dir(final.parent)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

@@ -28,6 +28,9 @@ def finish_run(
         encoding="utf-8",
     )
     report_path = staged.path("report.json")
+    from afmtool.report.captured_warnings import drain
+
+    warnings = [*warnings, *drain()]  # numpy/h5py warnings of this run, recorded instead of printed
     report = build_report(command, inputs, parameters_dict(params), results, staged.names, warnings)
     report_path.write_text(dumps(report), encoding="utf-8")
     return report

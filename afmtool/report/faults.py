@@ -1,0 +1,77 @@
+"""Faults of the environment (disk full, read-only, permissions, names) as one-line errors.
+
+A full disk reaches afmtool as an ``OSError`` from Python, or as an
+exception from h5py whose message carries the C library's ``errno = 28``
+somewhere in a multi-line libhdf5 error stack.  Either way it is not an
+internal error: :func:`environment_fault` recognises it, and the CLI
+prints one line naming the path and the cause, with exit status 2.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+
+__all__ = ["FAULT_ERRNOS", "environment_fault", "fault_message", "keep_until_exit"]
+
+#: errno values that mean "the environment refused", not "afmtool is wrong".
+FAULT_ERRNOS = frozenset(
+    code
+    for code in (
+        errno.ENOSPC,
+        getattr(errno, "EDQUOT", None),
+        errno.EROFS,
+        errno.EACCES,
+        errno.EPERM,
+        errno.ENAMETOOLONG,
+        errno.ELOOP,
+        errno.EFBIG,
+        errno.EIO,
+        errno.ENOTDIR,
+        errno.EISDIR,
+        errno.EMFILE,
+        errno.ENFILE,
+    )
+    if code is not None
+)
+
+_ERRNO_IN_TEXT = re.compile(r"(?:errno\s*=\s*|\[Errno\s+)(\d+)")
+
+
+def environment_fault(exc: BaseException) -> int | None:
+    """The errno of ``exc`` (or of an exception it wraps) if it is an environment fault."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        code = getattr(exc, "errno", None)
+        if isinstance(code, int) and code in FAULT_ERRNOS:
+            return code
+        match = _ERRNO_IN_TEXT.search(str(exc))
+        if match and int(match.group(1)) in FAULT_ERRNOS:
+            return int(match.group(1))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def fault_message(exc: BaseException, code: int, where: object = None) -> str:
+    """One line: the path (``exc.filename``, else ``where``) and the cause."""
+    path = getattr(exc, "filename", None) or where
+    cause = os.strerror(code)
+    return f"{path}: {cause}" if path else cause
+
+
+_kept: list[object] = []
+
+
+def keep_until_exit(*objects: object) -> None:
+    """Hold ``objects`` (h5py files whose close failed, and the traceback) so no finaliser runs on them.
+
+    Dropping an h5py object of a file that could not be flushed makes
+    libhdf5 try the flush again in the finaliser, which prints a traceback
+    from inside h5py and has crashed libhdf5.  The CLI ends such a run with
+    ``os._exit`` after its one-line error, so these are never finalised.
+    The traceback is kept too: h5py's ``File.close`` holds the ids it could
+    not close in its own frame.
+    """
+    _kept.extend(objects)
