@@ -19,6 +19,7 @@ __all__ = [
     "ProbeLossParams",
     "FreeAirParams",
     "AveragingParams",
+    "DesignExcitationParams",
     "TheoryCompareParams",
     "KalmanBankParams",
     "ObserverTheoryParams",
@@ -521,6 +522,29 @@ class ElectrostaticFitParams:
             raise ConfigError(f"max_relative_std={self.max_relative_std!r} must be > 0")
 
 
+@dataclass(frozen=True)
+class DesignExcitationParams:
+    """``afmtool design excitation``: the three-sine REEP dither of §3.3.2 for one cantilever."""
+
+    amplitude_nm: float = field(20.0, "Free-air response amplitude at the main line (model deflection units)", "nm")
+    dac_rate_hz: float = field(2.0e6, "Sample rate of the exported loop (a whole number of Hz)", "Hz")
+    drive_frequency_hz: float = field(0.0, "Main line; 0 = the model's f0", "Hz")
+    offset_hz: float = field(0.0, "Side-line offset; 0 = min(20 f0/Q, f0/10)", "Hz")
+    beat_tolerance: float = field(0.05, "Largest relative excursion of the response envelope (side lines / main)")
+    max_side_scale: float = field(0.5, "Largest side-line amplitude as a share of the main line's (thesis: 1/2)")
+    resolution_hz: float = field(0.0, "Frequency grid of the loop; 0 = f0/(100 Q)", "Hz")
+
+    def validate(self) -> None:
+        for name in ("amplitude_nm", "dac_rate_hz", "beat_tolerance", "max_side_scale"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be > 0")
+        for name in ("drive_frequency_hz", "offset_hz", "resolution_hz"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
+        if self.dac_rate_hz != int(self.dac_rate_hz):
+            raise ConfigError(f"dac_rate_hz={self.dac_rate_hz!r} must be a whole number of Hz (a WAV header holds an integer)")
+
+
 #: Config-file section -> parameter model.
 SECTIONS: dict[str, type] = {
     "identify.freeair": FreeAirParams,
@@ -534,4 +558,5 @@ SECTIONS: dict[str, type] = {
     "theory.compare": TheoryCompareParams,
     "kalman-bank": KalmanBankParams,
     "theory.observer": ObserverTheoryParams,
+    "design.excitation": DesignExcitationParams,
 }
