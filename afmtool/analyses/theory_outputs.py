@@ -15,7 +15,9 @@ from afmtool.config.params import AveragingParams, TheoryCompareParams
 from afmtool.errors import InputError
 from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
+from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
+from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -30,7 +32,8 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
 
     params = resolve_from(AveragingParams, "theory.averaging", load_toml(config) if config else None, flags)
     cantilever = Cantilever(params.f0_hz, params.q)
-    force = THESIS_FORCE_SETS[params.force_set]
+    force, force_name = chosen_force(params.force, params.force_set)
+    q_values = parse_q_values(params.q_values)
     drive = SinusoidalDrive.for_free_amplitude(
         cantilever, params.free_amplitude_nm, params.f0_hz + params.drive_offset_hz
     )
@@ -39,7 +42,8 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
         "approach": theoretical_force_curve(approach_path, drive, cantilever, force),
         "retract": theoretical_force_curve(approach_path[::-1], drive, cantilever, force),
     }
-    results = {"drive_amplitude_nm": drive.amplitude_nm, "drive_frequency_hz": drive.frequency_hz}
+    results = {"drive_amplitude_nm": drive.amplitude_nm, "drive_frequency_hz": drive.frequency_hz,
+               "force": {"name": force_name, "spec": format_force_spec(force)}}
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("theory.h5"), {}) as writer:
             for leg, curve in legs.items():
@@ -76,14 +80,23 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
         ]
         write_multi_panel_png(
             staged.path("averaging.png"), panels, x_label="separation l (nm)",
-            title=f"Averaging theory, {params.force_set} force (f0 {params.f0_hz:g} Hz, Q {params.q:g})",
+            title=f"Averaging theory, {force_name} force (f0 {params.f0_hz:g} Hz, Q {params.q:g})",
         )
+        if q_values:
+            results["q_overlay"] = write_q_overlay(staged, q_values, params, force, force_name, approach_path)
         return finish_run(staged, "theory averaging", [], "theory.averaging", params, results, [])
 
 
-def _force_from(metadata: Mapping, force_set: str) -> tuple[PiecewiseLinearForce, str]:
-    if force_set:
-        return THESIS_FORCE_SETS[force_set], force_set
+def chosen_force(spec: str, force_set: str) -> tuple[PiecewiseLinearForce, str]:
+    """A custom ``--force`` spec wins over a thesis ``--force-set``."""
+    if spec:
+        return parse_force_spec(spec), "custom"
+    return THESIS_FORCE_SETS[force_set], force_set
+
+
+def _force_from(metadata: Mapping, force_set: str, spec: str = "") -> tuple[PiecewiseLinearForce, str]:
+    if spec or force_set:
+        return chosen_force(spec, force_set)
     meta = metadata.get("force")
     if not meta:
         raise InputError("the capture has no force metadata; give --force-set")
@@ -110,7 +123,7 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
             separation = f["truth/separation_nm"][()]
     except (OSError, KeyError):
         raise InputError(f"{capture}: the REEP input must be a simulated HDF5 capture with /truth/separation_nm") from None
-    force, force_name = _force_from(metadata, params.force_set)
+    force, force_name = _force_from(metadata, params.force_set, params.force)
     cantilever_meta = metadata.get("cantilever") or reep_report["results"]["free_air_model"]
     cantilever = Cantilever(cantilever_meta["f0_hz"], cantilever_meta["q"])
     decimate = reep_report["results"]["decimate"]

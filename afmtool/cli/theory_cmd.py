@@ -18,12 +18,29 @@ app = typer.Typer(
 )
 
 
+def _q_flags(text: Optional[str]) -> tuple[Optional[float], Optional[str]]:
+    """``--q 200`` -> (200, None); ``--q 50,100`` -> (50, "50,100"): the first Q is the main run's."""
+    if text is None:
+        return None, None
+    from afmtool.analyses.theory_q_overlay import parse_q_values
+
+    values = parse_q_values(text)
+    if not values:
+        raise typer.BadParameter(f"--q {text!r}: give one or more numbers")
+    return values[0], (text if len(values) > 1 else None)
+
+
 @app.command("averaging")
 def averaging(
     out: OutOpt = Path("theory"),
     f0: Annotated[Optional[float], typer.Option("--f0", help="Free-air f0 (Hz).")] = None,
-    q: Annotated[Optional[float], typer.Option("--q", help="Free-air Q.")] = None,
+    q: Annotated[
+        Optional[str], typer.Option("--q", help="Free-air Q; several (50,100,200,400) add an overlay figure.")
+    ] = None,
     force_set: Annotated[Optional[str], typer.Option("--force-set", help="Thesis force parameter set.")] = None,
+    force: Annotated[
+        Optional[str], typer.Option("--force", help="Custom force d=NM,wa2=1/S2,wb2=1/S2,ca=1/S,cb=1/S.")
+    ] = None,
     free_amplitude: Annotated[Optional[float], typer.Option("--free-amplitude", help="Free amplitude (nm).")] = None,
     json_output: JsonOpt = False,
     config: ConfigOpt = None,
@@ -36,7 +53,9 @@ def averaging(
     """
     from afmtool.analyses.theory_outputs import run_averaging_command
 
-    flags = {"f0_hz": f0, "q": q, "force_set": force_set, "free_amplitude_nm": free_amplitude}
+    q_first, q_values = _q_flags(q)
+    flags = {"f0_hz": f0, "q": q_first, "q_values": q_values, "force_set": force_set, "force": force,
+             "free_amplitude_nm": free_amplitude}
     finish_command(run_averaging_command(out, config, flags), out, json_output, quiet)
 
 

@@ -189,6 +189,8 @@ class AveragingParams:
     f0_hz: float = field(80318.0, "Free-air resonant frequency", "Hz")
     q: float = field(168.0, "Free-air quality factor")
     force_set: str = field("attractive", "Piecewise-linear force parameters (thesis sets)", choices=_FORCE_SETS)
+    force: str = field("", "Custom force d=...,wa2=...,wb2=...,ca=...,cb=... (nm, 1/s^2, 1/s); overrides force_set")
+    q_values: str = field("", "Several free-air Q overlaid in one figure, e.g. 50,100,200,400 (Figs. 4.2-4.5)")
     free_amplitude_nm: float = field(20.0, "Free-air oscillation amplitude at the drive", "nm")
     drive_offset_hz: float = field(0.0, "Drive frequency minus f0", "Hz")
     separation_from_nm: float = field(30.0, "Force curve start (largest separation)", "nm")
@@ -210,6 +212,7 @@ class TheoryCompareParams:
     """``afmtool theory compare``: REEP output beside averaging theory (§3.4.3)."""
 
     force_set: str = field("", "Force parameters; empty = the capture's metadata force", choices=("",) + _FORCE_SETS)
+    force: str = field("", "Custom force d=...,wa2=...,wb2=...,ca=...,cb=... (nm, 1/s^2, 1/s); overrides force_set")
     amplitude_fraction: float = field(0.6, "Compare where the amplitude is above this share of the free amplitude")
     tolerance: float = field(0.25, "Pass when the worst error is within this share of the theory's change")
 
