@@ -61,23 +61,39 @@ def averaging(
 
 @app.command("compare")
 def compare(
-    reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a simulated force curve.")],
+    reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a force curve.")],
     out: OutOpt = Path("theory_compare"),
     force_set: Annotated[
         Optional[str], typer.Option("--force-set", help="Force parameters (default: the capture's metadata).")
+    ] = None,
+    force: Annotated[
+        Optional[str], typer.Option("--force", help="Custom force d=NM,wa2=1/S2,wb2=1/S2,ca=1/S,cb=1/S.")
+    ] = None,
+    separation: Annotated[
+        Optional[str], typer.Option("--separation", help="auto (/truth when present), truth or z-piezo.")
+    ] = None,
+    z_sensitivity: Annotated[
+        Optional[float], typer.Option("--z-sensitivity", help="nm per z_piezo unit (default: its length units).")
+    ] = None,
+    contact_z: Annotated[
+        Optional[float], typer.Option("--contact-z", help="z_piezo at contact, l = 0 (default: aligned).")
     ] = None,
     json_output: JsonOpt = False,
     config: ConfigOpt = None,
     quiet: QuietOpt = False,
 ) -> None:
-    """Put REEP's f0' and Q' beside averaging theory along a simulated force curve (§3.4.3).
+    """Put REEP's f0' and Q' beside averaging theory along a force curve (§3.4.3).
 
-    The theory uses the true separation (/truth) and REEP's measured amplitude;
-    the report says how far apart they are and whether that is within tolerance.
+    The theory uses REEP's measured amplitude and the separation: the true one
+    (/truth) on a simulation, else l = s·(z_piezo − z_c) with the contact point
+    z_c aligned on the approach's amplitude curve (or --contact-z).  The report
+    says how far apart they are and whether that is within tolerance.
     """
     from afmtool.analyses.theory_outputs import run_compare_command
 
-    report = run_compare_command(reep_dir, out, config, {"force_set": force_set})
+    flags = {"force_set": force_set, "force": force, "separation": separation, "z_sensitivity": z_sensitivity,
+             "contact_z": None if contact_z is None else repr(contact_z)}
+    report = run_compare_command(reep_dir, out, config, flags)
     finish_command(report, out, json_output, quiet)
 
 

@@ -215,8 +215,17 @@ class TheoryCompareParams:
     force: str = field("", "Custom force d=...,wa2=...,wb2=...,ca=...,cb=... (nm, 1/s^2, 1/s); overrides force_set")
     amplitude_fraction: float = field(0.6, "Compare where the amplitude is above this share of the free amplitude")
     tolerance: float = field(0.25, "Pass when the worst error is within this share of the theory's change")
+    separation: str = field("auto", "Separation from /truth or from z_piezo; auto = /truth when present",
+                            choices=("auto", "truth", "z-piezo"))
+    z_sensitivity: float = field(0.0, "z_piezo sensitivity; 0 = from the channel's length units", "nm/unit")
+    contact_z: str = field("", "z_piezo reading at contact (l = 0); empty = aligned on the approach amplitude")
 
     def validate(self) -> None:
+        if self.contact_z:
+            try:
+                float(self.contact_z)
+            except ValueError:
+                raise ConfigError(f"contact_z={self.contact_z!r} must be a number") from None
         if not 0 < self.amplitude_fraction < 1:
             raise ConfigError(f"amplitude_fraction={self.amplitude_fraction!r} must be in (0, 1)")
         if self.tolerance <= 0:
