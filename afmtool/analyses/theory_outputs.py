@@ -116,7 +116,7 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
     capture = Path(reep_report["inputs"][0]["path"])
     with h5py.File(series_path, "r") as f:
         series = {name: f[name][()] for name in ("t", "f0_hz", "q", "amplitude")}
-        z_series = (f["z"][()], str(f["z"].attrs.get("units", ""))) if "z" in f else None
+        z_series = (f["z"][()], _z_units(f)) if "z" in f else None
     metadata, fs, truth_separation = _capture_side(capture, reep_report)
     force, force_name = _force_from(metadata, params.force_set, params.force)
     cantilever_meta = metadata.get("cantilever") or reep_report["results"]["free_air_model"]
@@ -145,6 +145,15 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
         inputs = [input_record(report_path, "reep report"), input_record(series_path, "reep series")]
         inputs += [input_record(capture)] if capture.is_file() else []
         return finish_run(staged, "theory compare", inputs, "theory.compare", params, results, warnings)
+
+
+def _z_units(series: h5py.File) -> str:
+    """Units of reep.h5's z; the force-curve tables carry them where the series does not."""
+    units = str(series["z"].attrs.get("units", ""))
+    for leg in ("approach", "retract"):
+        if not units and f"force_curve/{leg}/z" in series:
+            units = str(series[f"force_curve/{leg}/z"].attrs.get("units", ""))
+    return units
 
 
 def _capture_side(capture: Path, reep_report: Mapping) -> tuple[Mapping, float, np.ndarray | None]:
