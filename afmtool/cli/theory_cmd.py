@@ -97,6 +97,30 @@ def compare(
     finish_command(report, out, json_output, quiet)
 
 
+@app.command("fit")
+def fit(
+    reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a force curve (needs z).")],
+    out: OutOpt = Path("theory_fit"),
+    z_sensitivity: Annotated[
+        Optional[float], typer.Option("--z-sensitivity", help="nm per z_piezo unit (default: its length units).")
+    ] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Fit d, ωa², ωb², ca, cb and the contact point so averaging theory reproduces the approach.
+
+    scipy.optimize.least_squares on REEP's f0', Q' and amplitude; fit.json holds
+    values, uncertainties and which parameters this curve determines (an SVD of
+    the Jacobian, as in 'identify electrostatic'); fit.png the curves with the
+    fitted theory over them.
+    """
+    from afmtool.analyses.theory_fit import run_theory_fit_command
+
+    report = run_theory_fit_command(reep_dir, out, config, {"z_sensitivity": z_sensitivity})
+    finish_command(report, out, json_output, quiet)
+
+
 @app.command("observer")
 def observer(
     out: OutOpt = Path("theory_observer"),

@@ -20,6 +20,7 @@ __all__ = [
     "FreeAirParams",
     "AveragingParams",
     "DesignExcitationParams",
+    "TheoryFitParams",
     "TheoryCompareParams",
     "KalmanBankParams",
     "ObserverTheoryParams",
@@ -557,6 +558,25 @@ class DesignExcitationParams:
             raise ConfigError(f"dac_rate_hz={self.dac_rate_hz!r} must be a whole number of Hz (a WAV header holds an integer)")
 
 
+@dataclass(frozen=True)
+class TheoryFitParams:
+    """``afmtool theory fit``: force parameters fitted to REEP's approach (ch. 4)."""
+
+    amplitude_fraction: float = field(0.3, "Fit where the amplitude is above this share of the free amplitude")
+    max_relative_std: float = field(0.1, "A parameter with a larger relative standard deviation is not identified")
+    z_sensitivity: float = field(0.0, "z_piezo sensitivity; 0 = from the channel's length units", "nm/unit")
+    skip_s: float = field(5e-3, "Leave out REEP's start-up", "s")
+    max_samples: int = field(3000, "Fit at most this many (evenly thinned) approach samples")
+
+    def validate(self) -> None:
+        if not 0 <= self.amplitude_fraction < 1:
+            raise ConfigError(f"amplitude_fraction={self.amplitude_fraction!r} must be in [0, 1)")
+        if self.max_relative_std <= 0:
+            raise ConfigError(f"max_relative_std={self.max_relative_std!r} must be > 0")
+        if self.max_samples < 20:
+            raise ConfigError(f"max_samples={self.max_samples!r} must be >= 20")
+
+
 #: Config-file section -> parameter model.
 SECTIONS: dict[str, type] = {
     "identify.freeair": FreeAirParams,
@@ -571,4 +591,5 @@ SECTIONS: dict[str, type] = {
     "kalman-bank": KalmanBankParams,
     "theory.observer": ObserverTheoryParams,
     "design.excitation": DesignExcitationParams,
+    "theory.fit": TheoryFitParams,
 }
