@@ -87,6 +87,8 @@ class ForceFit:
     null_directions: tuple
     singular_values: np.ndarray
     prediction: tuple[np.ndarray, np.ndarray, np.ndarray]
+    repulsive_share: float
+    onset_nm: tuple[float, float]
 
     @property
     def force(self) -> PiecewiseLinearForce:
@@ -158,7 +160,7 @@ def _onset_z(data: ForceFitData, drop: float) -> float:
 
 
 def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: float = 0.02,
-              rank_tolerance: float = 1e-7) -> ForceFit:
+              rank_tolerance: float = 1e-7, n_starts: int = len(_TRIAL_D_NM)) -> ForceFit:
     """Fit θ = (d, ω_a², ω_b², c_a, c_b, z_c) (module docstring)."""
     from scipy.optimize import least_squares
 
@@ -170,12 +172,18 @@ def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: 
         z_c = z_on - (data.free_amplitude_nm + d) / data.nm_per_unit
         theta0 = np.concatenate([[d], _linear_start(d, z_c, data), [z_c]])
         starts.append((float(np.sum(_residual(theta0, data) ** 2)), theta0))
-    theta0 = min(starts, key=lambda item: item[0])[1]
-    scale = np.maximum(np.abs(theta0), [0.1, 1e8, 1e9, 1e2, 1e3, 0.1])
     lower = np.array([0.0, 0.0, 0.0, 0.0, 0.0, -np.inf])
-    theta0 = np.maximum(theta0, lower + 1e-9 * scale)
-    solution = least_squares(_residual, theta0, args=(data,), bounds=(lower, np.full(6, np.inf)),
-                             x_scale=scale, method="trf", max_nfev=400)
+    best = None
+    # the curve can have several local minima (a short d with a stiff wall mimics a long soft one):
+    # every trial start is run to convergence and the lowest cost wins
+    for _, theta0 in sorted(starts, key=lambda item: item[0])[:n_starts]:
+        scale = np.maximum(np.abs(theta0), [0.1, 1e8, 1e9, 1e2, 1e3, 0.1])
+        theta0 = np.maximum(theta0, lower + 1e-9 * scale)
+        solution = least_squares(_residual, theta0, args=(data,), bounds=(lower, np.full(6, np.inf)),
+                                 x_scale=scale, method="trf", max_nfev=400)
+        if best is None or solution.cost < best[0].cost:
+            best = (solution, scale)
+    solution, scale = best
     theta, residual = solution.x, solution.fun
     jac = solution.jac * scale  # ∂r per unit of each parameter's scale
     n, p = jac.shape
@@ -187,6 +195,8 @@ def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: 
     cov = sigma2 * (vt.T / s_safe**2) @ vt
     std = np.sqrt(np.diag(cov)) * scale
     in_null = {name for nd in ident.null_directions for name in nd.parameters}
+    m = data.fit_mask
+    reach = float(np.mean(data.nm_per_unit * (data.z[m] - theta[5]) < data.amplitude_nm[m]))
     status, reasons = [], []
     for j, name in enumerate(FIT_NAMES):
         value = theta[j]
@@ -204,10 +214,22 @@ def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: 
             status.append("identified"), reasons.append(f"relative std {relative:.3g}")
         else:
             status.append("not identifiable"), reasons.append(f"relative std {relative:.3g} > {max_relative_std:g}")
+    # Outside the repulsive zone the model sees d and l only as d − l = d − s(z − z_c): d and z_c
+    # trade off exactly.  They separate only through the repulsive terms (y = −l/a), so unless
+    # ω_b² or c_b is identified, only the onset d + s·z_c is determined.
+    if not any(status[FIT_NAMES.index(n)] == "identified" for n in ("omega_b2", "c_b")):
+        for name in ("d_nm", "contact_z"):
+            j = FIT_NAMES.index(name)
+            status[j] = "not identifiable"
+            reasons[j] = ("neither omega_b2 nor c_b is identified, so d and the contact point enter only as the "
+                          "onset d + s*contact_z (reported)")
     rms_blocks = np.split(residual, 3)
     rms = tuple(float(np.sqrt(np.mean(r**2)) * sig) for r, sig in zip(rms_blocks, data.sigma))
+    onset = float(theta[0] + data.nm_per_unit * theta[5])
+    onset_std = float(math.sqrt(max(0.0, cov[0, 0] * scale[0] ** 2 + data.nm_per_unit**2 * cov[5, 5] * scale[5] ** 2
+                                    + 2 * data.nm_per_unit * cov[0, 5] * scale[0] * scale[5])))
     return ForceFit(theta, std, tuple(status), tuple(reasons), float(solution.cost), rms,
-                    ident.null_directions, s, _model(theta, data))
+                    ident.null_directions, s, _model(theta, data), float(reach), (onset, onset_std))
 
 
 # --------------------------------------------------------------------------- command
@@ -238,8 +260,11 @@ def _load(reep_dir: Path, params) -> ForceFitData:
     start = max(2, len(s["t"]) // 20)
     early = slice(max(1, start // 4), start)  # free air, after REEP has converged
     free_amplitude = metadata.get("drive", {}).get("free_amplitude_nm") or float(np.nanmedian(s["amplitude"][early]))
-    sigma = tuple(max(float(np.nanstd(s[k][early])), floor) for k, floor in
-                  (("f0_hz", 0.05), ("q", 0.01), ("amplitude", 1e-3)))
+    # each series' scatter in free air, but not below what the model itself is good for: REEP's
+    # off-sample accuracy (2 Hz, 2 % of Q) and 1 % of the free amplitude for the averaged amplitude
+    # (the three-sine beat and the lock-in are outside averaging theory)
+    floors = {"f0_hz": 2.0, "q": 0.02 * cantilever.q, "amplitude": 0.01 * free_amplitude}
+    sigma = tuple(max(float(np.nanstd(s[k][early])), floors[k]) for k in ("f0_hz", "q", "amplitude"))
     decimate = reep_report["results"]["decimate"]
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
     finite = np.isfinite(s["f0_hz"]) & np.isfinite(s["q"]) & np.isfinite(s["amplitude"])
@@ -263,6 +288,8 @@ def _record(fit: ForceFit, data: ForceFitData) -> dict:
     return {
         "parameters": params,
         "separation_offset_nm": float(-data.nm_per_unit * fit.theta[5]),
+        "onset_d_plus_s_contact_z_nm": {"value": fit.onset_nm[0], "std": fit.onset_nm[1]},
+        "repulsive_share": fit.repulsive_share,
         "nm_per_unit": data.nm_per_unit,
         "identified": [n for n, st in zip(FIT_NAMES, fit.status) if st == "identified"],
         "not_identified": [n for n, st in zip(FIT_NAMES, fit.status) if st != "identified"],
