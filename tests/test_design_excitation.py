@@ -18,7 +18,10 @@ import numpy as np
 import pytest
 
 from afmtool.errors import ConfigError
-from afmtool.models.excitation_design import design_three_sine, dither_samples, response_envelope
+from afmtool.models.excitation_design import (
+    design_three_sine,
+    response_envelope,
+)
 from tests import reference_sim as rs
 from tests.conftest import run_cli, validate_report
 

@@ -26,13 +26,18 @@ import numpy as np
 
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import DesignExcitationParams
-from afmtool.models.excitation_design import ExcitationDesign, design_three_sine, dither_samples, response_envelope
+from afmtool.models.excitation_design import (
+    ExcitationDesign,
+    design_three_sine,
+    dither_samples,
+    response_envelope,
+)
 from afmtool.models.free_air import load_free_air_model
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
-__all__ = ["run_design_excitation_command", "design_record", "write_wav_float32"]
+__all__ = ["design_record", "run_design_excitation_command", "write_wav_float32"]
 
 
 def design_record(design: ExcitationDesign) -> dict:

@@ -48,7 +48,7 @@ from afmtool.errors import InputError
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import PiecewiseLinearForce
 
-__all__ = ["FIT_NAMES", "FIT_UNITS", "ForceFitData", "ForceFit", "fit_force", "run_theory_fit_command"]
+__all__ = ["FIT_NAMES", "FIT_UNITS", "ForceFit", "ForceFitData", "fit_force", "run_theory_fit_command"]
 
 FIT_NAMES = ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b", "contact_z")
 FIT_UNITS = {"d_nm": "nm", "omega_a2": "1/s^2", "omega_b2": "1/s^2", "c_a": "1/s", "c_b": "1/s",
@@ -236,8 +236,8 @@ def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: 
 
 
 def _load(reep_dir: Path, params) -> ForceFitData:
-    from afmtool.analyses.theory_outputs import _capture_side, _z_units
     from afmtool.analyses.theory import jump_neighbourhood
+    from afmtool.analyses.theory_outputs import _capture_side, _z_units
     from afmtool.analyses.theory_separation import z_sensitivity_nm
 
     report_path, series_path = reep_dir / "report.json", reep_dir / "reep.h5"

@@ -41,7 +41,11 @@ def parse_q_values(text: str) -> list[float]:
 def write_q_overlay(staged, q_values: Sequence[float], params, force, force_name: str, approach_path) -> dict:
     """Approach curves for each Q into ``theory_q.h5`` and ``averaging_q.png``/``averaging_q_sensitivity.png``."""
     from afmtool.io.results import ResultWriter
-    from afmtool.models.averaging import SinusoidalDrive, theoretical_force_curve, topography_sensitivities
+    from afmtool.models.averaging import (
+        SinusoidalDrive,
+        theoretical_force_curve,
+        topography_sensitivities,
+    )
     from afmtool.models.cantilever import Cantilever
     from afmtool.report.images import write_multi_panel_png
 

@@ -31,7 +31,7 @@ from afmtool.errors import InputError
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import PiecewiseLinearForce
 
-__all__ = ["NM_PER_LENGTH_UNIT", "SeparationEstimate", "z_sensitivity_nm", "separation_from_z"]
+__all__ = ["NM_PER_LENGTH_UNIT", "SeparationEstimate", "separation_from_z", "z_sensitivity_nm"]
 
 #: Length units a z_piezo channel may carry, nm per unit.
 NM_PER_LENGTH_UNIT = {"pm": 1e-3, "nm": 1.0, "um": 1e3, "µm": 1e3, "μm": 1e3, "mm": 1e6, "m": 1e9}
@@ -69,7 +69,7 @@ def _approach(z: np.ndarray, nm_per_unit: float) -> np.ndarray:
     return np.arange(turn + 1)
 
 
-def separation_from_z(  # noqa: PLR0913
+def separation_from_z(
     z: np.ndarray,
     amplitude_nm: np.ndarray,
     *,

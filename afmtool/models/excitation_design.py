@@ -51,13 +51,13 @@ from afmtool.errors import ConfigError
 
 __all__ = [
     "DEFAULT_OFFSET_BANDWIDTHS",
-    "ExcitationLine",
     "ExcitationDesign",
+    "ExcitationLine",
     "default_offset_hz",
-    "free_air_response",
     "design_three_sine",
-    "response_envelope",
     "dither_samples",
+    "free_air_response",
+    "response_envelope",
 ]
 
 #: Default side-line offset in resonance bandwidths f0/Q: 20 f0/Q gives the thesis's
@@ -186,7 +186,7 @@ def _loop_grid(drive_hz: float, offset_hz: float, dac_rate_hz: float, resolution
     return per_beat, beats
 
 
-def design_three_sine(  # noqa: PLR0913
+def design_three_sine(
     f0_hz: float,
     q: float,
     gain: float,

@@ -13,7 +13,7 @@ import math
 from afmtool.errors import ConfigError
 from afmtool.models.forces import PiecewiseLinearForce
 
-__all__ = ["FORCE_KEYS", "parse_force_spec", "format_force_spec"]
+__all__ = ["FORCE_KEYS", "format_force_spec", "parse_force_spec"]
 
 #: Accepted keys -> PiecewiseLinearForce field, with units.
 FORCE_KEYS = {"d": ("d_nm", "nm"), "wa2": ("omega_a2", "1/s^2"), "wb2": ("omega_b2", "1/s^2"),
