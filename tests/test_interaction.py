@@ -107,3 +107,36 @@ def test_quantities_from_reep_match_the_simulated_force(l_nm):
     assert amplitude_share > 0.3
     for value in errors.values():
         assert abs(value) <= 0.10
+
+
+def test_reep_writes_interaction_series_only_with_a_spring_constant(tmp_path):
+    import json
+
+    import h5py
+
+    from tests.conftest import run_cli, validate_report
+
+    cap = rs.simulate(f0_hz=F0, q=Q, gain_nm_per_v=1.0, sample_rate_hz=500e3, duration_s=0.02,
+                      drive=rs.three_sine(F0, 6000.0, 20.0 / Q, 0.25), noise_nm=0.05, seed=2)
+    reports = {}
+    for name, extra in (("no_k", None), ("k", {"cantilever": {"f0_hz": F0, "q": Q, "spring_constant_n_per_m": K}})):
+        capture = rs.write_capture_h5(tmp_path / f"{name}.h5", rs.Capture(
+            cap.sample_rate_hz, cap.channels, cap.units, cap.truth, {**cap.metadata, **(extra or {})}))
+        result = run_cli("reep", capture, "--out", tmp_path / name, "--json", "-q")
+        assert result.returncode == 0, result.stderr.decode()
+        reports[name] = json.loads(result.stdout)
+        validate_report(reports[name])
+    assert reports["no_k"]["results"]["interaction"]["written"] is False
+    assert "spring constant" in reports["no_k"]["results"]["interaction"]["reason"]
+    with h5py.File(tmp_path / "no_k" / "reep.h5") as f:
+        assert "interaction" not in f
+    section = reports["k"]["results"]["interaction"]
+    assert section["written"] is True and section["series"]["energy_per_cycle_ev"] == "eV"
+    with h5py.File(tmp_path / "k" / "reep.h5") as f:
+        g = f["interaction"]
+        assert g["force_gradient_n_per_m"].attrs["units"] == "N/m" and len(g["k_e_n_per_m"]) == len(f["t"])
+        settled = f["t"][()] > 0.005
+        # free air: no interaction, so the tip-sample energy is a small fraction of the lever's own loss
+        own_loss_ev = math.pi * K / Q * (20e-9) ** 2 * EV_PER_J
+        assert np.nanmedian(np.abs(g["energy_per_cycle_ev"][()][settled])) < 0.02 * own_loss_ev
+        assert np.nanmedian(g["k_e_n_per_m"][()][settled]) == pytest.approx(K, rel=1e-3)
