@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 
 from afmtool.analyses.theory import compare_with_theory
+from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import AveragingParams, TheoryCompareParams
 from afmtool.errors import InputError
@@ -17,12 +18,11 @@ from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
-from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
-__all__ = ["run_averaging_command", "run_compare_command"]
+__all__ = ["chosen_force", "run_averaging_command", "run_compare_command"]
 
 
 def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dict:
