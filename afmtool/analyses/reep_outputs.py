@@ -54,6 +54,10 @@ def run_reep_command(
             _write_images(staged, writer, result, deflection_units)
         results = dict(result.results)
         results.update(_time_series(staged, reader, result, deflection_units))
+        from afmtool.analyses.interaction_outputs import add_interaction_series
+
+        results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.metadata,
+                                                        deflection_units)
         if result.force_curves:
             results["force_curve"] = _curve_summary(result)
         if result.geometry is not None:

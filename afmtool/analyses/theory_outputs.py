@@ -10,17 +10,19 @@ import h5py
 import numpy as np
 
 from afmtool.analyses.theory import compare_with_theory
+from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import AveragingParams, TheoryCompareParams
 from afmtool.errors import InputError
 from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
+from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
-__all__ = ["run_averaging_command", "run_compare_command"]
+__all__ = ["chosen_force", "run_averaging_command", "run_compare_command"]
 
 
 def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dict:
@@ -30,7 +32,8 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
 
     params = resolve_from(AveragingParams, "theory.averaging", load_toml(config) if config else None, flags)
     cantilever = Cantilever(params.f0_hz, params.q)
-    force = THESIS_FORCE_SETS[params.force_set]
+    force, force_name = chosen_force(params.force, params.force_set)
+    q_values = parse_q_values(params.q_values)
     drive = SinusoidalDrive.for_free_amplitude(
         cantilever, params.free_amplitude_nm, params.f0_hz + params.drive_offset_hz
     )
@@ -39,7 +42,8 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
         "approach": theoretical_force_curve(approach_path, drive, cantilever, force),
         "retract": theoretical_force_curve(approach_path[::-1], drive, cantilever, force),
     }
-    results = {"drive_amplitude_nm": drive.amplitude_nm, "drive_frequency_hz": drive.frequency_hz}
+    results = {"drive_amplitude_nm": drive.amplitude_nm, "drive_frequency_hz": drive.frequency_hz,
+               "force": {"name": force_name, "spec": format_force_spec(force)}}
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("theory.h5"), {}) as writer:
             for leg, curve in legs.items():
@@ -76,14 +80,23 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
         ]
         write_multi_panel_png(
             staged.path("averaging.png"), panels, x_label="separation l (nm)",
-            title=f"Averaging theory, {params.force_set} force (f0 {params.f0_hz:g} Hz, Q {params.q:g})",
+            title=f"Averaging theory, {force_name} force (f0 {params.f0_hz:g} Hz, Q {params.q:g})",
         )
+        if q_values:
+            results["q_overlay"] = write_q_overlay(staged, q_values, params, force, force_name, approach_path)
         return finish_run(staged, "theory averaging", [], "theory.averaging", params, results, [])
 
 
-def _force_from(metadata: Mapping, force_set: str) -> tuple[PiecewiseLinearForce, str]:
-    if force_set:
-        return THESIS_FORCE_SETS[force_set], force_set
+def chosen_force(spec: str, force_set: str) -> tuple[PiecewiseLinearForce, str]:
+    """A custom ``--force`` spec wins over a thesis ``--force-set``."""
+    if spec:
+        return parse_force_spec(spec), "custom"
+    return THESIS_FORCE_SETS[force_set], force_set
+
+
+def _force_from(metadata: Mapping, force_set: str, spec: str = "") -> tuple[PiecewiseLinearForce, str]:
+    if spec or force_set:
+        return chosen_force(spec, force_set)
     meta = metadata.get("force")
     if not meta:
         raise InputError("the capture has no force metadata; give --force-set")
@@ -107,37 +120,94 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
             trusted = f["flag"][()] == 0
             series["f0_hz"] = np.where(trusted, series["f0_hz"], np.nan)
             series["q"] = np.where(trusted, series["q"], np.nan)
-    try:
-        with h5py.File(capture, "r") as f:
-            metadata = json.loads(f.attrs.get("metadata", "{}"))
-            fs = float(f.attrs["sample_rate_hz"])
-            separation = f["truth/separation_nm"][()]
-    except (OSError, KeyError):
-        raise InputError(f"{capture}: the REEP input must be a simulated HDF5 capture with /truth/separation_nm") from None
-    force, force_name = _force_from(metadata, params.force_set)
+        z_series = (f["z"][()], _z_units(f)) if "z" in f else None
+    metadata, fs, truth_separation = _capture_side(capture, reep_report)
+    force, force_name = _force_from(metadata, params.force_set, params.force)
     cantilever_meta = metadata.get("cantilever") or reep_report["results"]["free_air_model"]
     cantilever = Cantilever(cantilever_meta["f0_hz"], cantilever_meta["q"])
-    decimate = reep_report["results"]["decimate"]
-    index = np.round(series["t"] * fs).astype(int)
     free_amplitude = metadata.get("drive", {}).get("free_amplitude_nm") or float(
         np.nanmedian(series["amplitude"][: max(1, len(series["t"]) // 20)])
     )
+    separation, separation_record = _separation(params, truth_separation, z_series, series, fs, reep_report,
+                                                cantilever, force, free_amplitude)
+    decimate = reep_report["results"]["decimate"]
     comparison = compare_with_theory(
-        series["t"], series["f0_hz"], series["q"], series["amplitude"], separation[index],
+        series["t"], series["f0_hz"], series["q"], series["amplitude"], separation,
         drive_frequency_hz=reep_report["results"]["drive_frequency_hz"], cantilever=cantilever, force=force,
         forgetting_factor=reep_report["results"]["forgetting_factor"] ** decimate,
         free_amplitude_nm=free_amplitude, amplitude_fraction=params.amplitude_fraction,
     )
     summary = comparison.summary()
     passed = comparison.f0_error_fraction <= params.tolerance and comparison.q_error_fraction <= params.tolerance
-    results = {"force_set": force_name, "free_amplitude_nm": free_amplitude, **summary, "pass": passed}
+    results = {"force_set": force_name, "free_amplitude_nm": free_amplitude, "separation": separation_record,
+               **summary, "pass": passed}
     warnings = [] if passed else [
         f"REEP and averaging theory differ by more than {params.tolerance:.0%} of the theory's change"
     ]
     with OutputDir(out) as staged:
-        _plot_comparison(staged.path("compare.png"), series, separation[index], comparison)
-        inputs = [input_record(report_path, "reep report"), input_record(series_path, "reep series"), input_record(capture)]
+        _plot_comparison(staged.path("compare.png"), series, separation, comparison)
+        inputs = [input_record(report_path, "reep report"), input_record(series_path, "reep series")]
+        inputs += [input_record(capture)] if capture.is_file() else []
         return finish_run(staged, "theory compare", inputs, "theory.compare", params, results, warnings)
+
+
+def _z_units(series: h5py.File) -> str:
+    """Units of reep.h5's z; the force-curve tables carry them where the series does not."""
+    units = str(series["z"].attrs.get("units", ""))
+    for leg in ("approach", "retract"):
+        if not units and f"force_curve/{leg}/z" in series:
+            units = str(series[f"force_curve/{leg}/z"].attrs.get("units", ""))
+    return units
+
+
+def _capture_side(capture: Path, reep_report: Mapping) -> tuple[Mapping, float, np.ndarray | None]:
+    """(metadata, sample rate, /truth/separation_nm or None) of REEP's input capture."""
+    truth = None
+    if capture.suffix.lower() in (".h5", ".hdf5"):
+        try:
+            with h5py.File(capture, "r") as f:
+                metadata = json.loads(f.attrs.get("metadata", "{}"))
+                fs = float(f.attrs["sample_rate_hz"])
+                if "truth/separation_nm" in f:
+                    truth = f["truth/separation_nm"][()]
+            return metadata, fs, truth
+        except (OSError, KeyError, ValueError):
+            pass
+    if capture.is_file():
+        from afmtool.io.registry import open_capture
+
+        reader = open_capture(capture)
+        try:
+            return dict(reader.info.metadata), float(reader.info.sample_rate_hz), None
+        finally:
+            reader.close()
+    # the capture moved: what the REEP report recorded is enough for z-piezo separations
+    return {}, float(reep_report["results"].get("sample_rate_hz") or 0.0), None
+
+
+def _separation(params, truth, z_series, series, fs, reep_report, cantilever, force, free_amplitude):
+    """The separation per REEP sample and a record of where it came from."""
+    from afmtool.analyses.theory_separation import separation_from_z, z_sensitivity_nm
+
+    use_truth = params.separation == "truth" or (params.separation == "auto" and truth is not None)
+    if use_truth:
+        if truth is None:
+            raise InputError("--separation truth: the REEP input has no /truth/separation_nm")
+        index = np.round(series["t"] * fs).astype(int)
+        return truth[index], {"source": "truth"}
+    if z_series is None:
+        raise InputError("no /truth separation and no z_piezo in reep.h5: the force curve has no separation axis")
+    z, units = z_series
+    estimate = separation_from_z(
+        z, series["amplitude"], nm_per_unit=z_sensitivity_nm(units, params.z_sensitivity),
+        drive_frequency_hz=reep_report["results"]["drive_frequency_hz"], cantilever=cantilever, force=force,
+        free_amplitude_nm=free_amplitude, contact_z=float(params.contact_z) if params.contact_z else None,
+    )
+    return estimate.separation_nm, {
+        "source": "z-piezo", "z_units": units, "nm_per_unit": estimate.nm_per_unit,
+        "contact_z": estimate.contact_z, "contact_method": estimate.method,
+        "amplitude_rms_residual_nm": estimate.amplitude_rms_residual_nm,
+    }
 
 
 def _plot_comparison(path: Path, series, separation, comparison) -> None:

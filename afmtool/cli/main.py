@@ -26,6 +26,7 @@ from afmtool.cli import (
     capture_cmds,
     config_cmd,
     decode_cmd,
+    design_cmd,
     identify_cmd,
     kalman_bank_cmd,
     probeloss_cmd,
@@ -93,6 +94,7 @@ kalman_bank_cmd.register(app)
 probeloss_cmd.register(app)
 app.add_typer(identify_app, name="identify")
 app.add_typer(theory_cmd.app, name="theory")
+app.add_typer(design_cmd.app, name="design")
 app.add_typer(config_cmd.app, name="config")
 
 

@@ -19,12 +19,29 @@ app = typer.Typer(
 )
 
 
+def _q_flags(text: Optional[str]) -> tuple[Optional[float], Optional[str]]:
+    """``--q 200`` -> (200, None); ``--q 50,100`` -> (50, "50,100"): the first Q is the main run's."""
+    if text is None:
+        return None, None
+    from afmtool.analyses.theory_q_overlay import parse_q_values
+
+    values = parse_q_values(text)
+    if not values:
+        raise typer.BadParameter(f"--q {text!r}: give one or more numbers")
+    return values[0], (text if len(values) > 1 else None)
+
+
 @app.command("averaging")
 def averaging(
     out: OutOpt = Path("theory"),
     f0: Annotated[Optional[float], typer.Option("--f0", help="Free-air f0 (Hz).")] = None,
-    q: Annotated[Optional[float], typer.Option("--q", help="Free-air Q (dimensionless).")] = None,
+    q: Annotated[
+        Optional[str], typer.Option("--q", help="Free-air Q (dimensionless); several (50,100,200,400) add an overlay figure.")
+    ] = None,
     force_set: Annotated[Optional[str], typer.Option("--force-set", help="Thesis force parameter set.")] = None,
+    force: Annotated[
+        Optional[str], typer.Option("--force", help="Custom force d=NM,wa2=1/S2,wb2=1/S2,ca=1/S,cb=1/S.")
+    ] = None,
     free_amplitude: Annotated[Optional[float], typer.Option("--free-amplitude", help="Free amplitude (nm).")] = None,
     json_output: JsonOpt = False,
     config: ConfigOpt = None,
@@ -37,29 +54,71 @@ def averaging(
     """
     from afmtool.analyses.theory_outputs import run_averaging_command
 
-    flags = {"f0_hz": f0, "q": q, "force_set": force_set, "free_amplitude_nm": free_amplitude}
+    q_first, q_values = _q_flags(q)
+    flags = {"f0_hz": f0, "q": q_first, "q_values": q_values, "force_set": force_set, "force": force,
+             "free_amplitude_nm": free_amplitude}
     finish_command(run_averaging_command(out, config, flags), out, json_output, quiet)
 
 
 @app.command("compare")
 def compare(
-    reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a simulated force curve.")],
+    reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a force curve.")],
     out: OutOpt = Path("theory_compare"),
     force_set: Annotated[
         Optional[str], typer.Option("--force-set", help="Force parameters (default: the capture's metadata).")
+    ] = None,
+    force: Annotated[
+        Optional[str], typer.Option("--force", help="Custom force d=NM,wa2=1/S2,wb2=1/S2,ca=1/S,cb=1/S.")
+    ] = None,
+    separation: Annotated[
+        Optional[str], typer.Option("--separation", help="auto (/truth when present), truth or z-piezo.")
+    ] = None,
+    z_sensitivity: Annotated[
+        Optional[float], typer.Option("--z-sensitivity", help="nm per z_piezo unit (default: its length units).")
+    ] = None,
+    contact_z: Annotated[
+        Optional[float], typer.Option("--contact-z", help="z_piezo at contact, l = 0 (default: aligned).")
     ] = None,
     json_output: JsonOpt = False,
     config: ConfigOpt = None,
     quiet: QuietOpt = False,
 ) -> None:
-    """Put REEP's f0' and Q' beside averaging theory along a simulated force curve (§3.4.3).
+    """Put REEP's f0' and Q' beside averaging theory along a force curve (§3.4.3).
 
-    The theory uses the true separation (/truth) and REEP's measured amplitude;
-    the report says how far apart they are and whether that is within tolerance.
+    The theory uses REEP's measured amplitude and the separation: the true one
+    (/truth) on a simulation, else l = s·(z_piezo − z_c) with the contact point
+    z_c aligned on the approach's amplitude curve (or --contact-z).  The report
+    says how far apart they are and whether that is within tolerance.
     """
     from afmtool.analyses.theory_outputs import run_compare_command
 
-    report = run_compare_command(reep_dir, out, config, {"force_set": force_set})
+    flags = {"force_set": force_set, "force": force, "separation": separation, "z_sensitivity": z_sensitivity,
+             "contact_z": None if contact_z is None else repr(contact_z)}
+    report = run_compare_command(reep_dir, out, config, flags)
+    finish_command(report, out, json_output, quiet)
+
+
+@app.command("fit")
+def fit(
+    reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a force curve (needs z).")],
+    out: OutOpt = Path("theory_fit"),
+    z_sensitivity: Annotated[
+        Optional[float], typer.Option("--z-sensitivity", help="nm per z_piezo unit (default: its length units).")
+    ] = None,
+    json_output: JsonOpt = False,
+    config: ConfigOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Fit d, ωa², ωb², ca, cb and the contact point so averaging theory reproduces the approach.
+
+    scipy.optimize.least_squares on REEP's f0', Q' and amplitude; fit.json holds
+    values, uncertainties and which parameters this curve determines (an SVD of
+    the Jacobian, as in 'identify electrostatic'); fit.png the curves with the
+    fitted theory over them.
+    """
+    from afmtool.analyses.theory_fit import run_theory_fit_command
+
+    report = run_theory_fit_command(reep_dir, out, config, {"z_sensitivity": z_sensitivity})
     finish_command(report, out, json_output, quiet)
 
 

@@ -20,6 +20,8 @@ __all__ = [
     "ProbeLossParams",
     "FreeAirParams",
     "AveragingParams",
+    "DesignExcitationParams",
+    "TheoryFitParams",
     "TheoryCompareParams",
     "TheoryControllersParams",
     "KalmanBankParams",
@@ -215,6 +217,8 @@ class AveragingParams:
     f0_hz: float = field(80318.0, "Free-air resonant frequency", "Hz")
     q: float = field(168.0, "Free-air quality factor")
     force_set: str = field("attractive", "Piecewise-linear force parameters (thesis sets)", choices=_FORCE_SETS)
+    force: str = field("", "Custom force d=...,wa2=...,wb2=...,ca=...,cb=... (nm, 1/s^2, 1/s); overrides force_set")
+    q_values: str = field("", "Several free-air Q overlaid in one figure, e.g. 50,100,200,400 (Figs. 4.2-4.5)")
     free_amplitude_nm: float = field(20.0, "Free-air oscillation amplitude at the drive", "nm")
     drive_offset_hz: float = field(0.0, "Drive frequency minus f0", "Hz")
     separation_from_nm: float = field(30.0, "Force curve start (largest separation)", "nm")
@@ -236,10 +240,20 @@ class TheoryCompareParams:
     """``afmtool theory compare``: REEP output beside averaging theory (§3.4.3)."""
 
     force_set: str = field("", "Force parameters; empty = the capture's metadata force", choices=("",) + _FORCE_SETS)
+    force: str = field("", "Custom force d=...,wa2=...,wb2=...,ca=...,cb=... (nm, 1/s^2, 1/s); overrides force_set")
     amplitude_fraction: float = field(0.6, "Compare where the amplitude is above this share of the free amplitude")
     tolerance: float = field(0.25, "Pass when the worst error is within this share of the theory's change")
+    separation: str = field("auto", "Separation from /truth or from z_piezo; auto = /truth when present",
+                            choices=("auto", "truth", "z-piezo"))
+    z_sensitivity: float = field(0.0, "z_piezo sensitivity; 0 = from the channel's length units", "nm/unit")
+    contact_z: str = field("", "z_piezo reading at contact (l = 0); empty = aligned on the approach amplitude")
 
     def validate(self) -> None:
+        if self.contact_z:
+            try:
+                float(self.contact_z)
+            except ValueError:
+                raise ConfigError(f"contact_z={self.contact_z!r} must be a number") from None
         if not 0 < self.amplitude_fraction < 1:
             raise ConfigError(f"amplitude_fraction={self.amplitude_fraction!r} must be in (0, 1)")
         if self.tolerance <= 0:
@@ -617,6 +631,48 @@ class SpringConstantParams:
             raise ConfigError("the Sader method needs both length_um and width_um (--length, --width)")
 
 
+@dataclass(frozen=True)
+class DesignExcitationParams:
+    """``afmtool design excitation``: the three-sine REEP dither of §3.3.2 for one cantilever."""
+
+    amplitude_nm: float = field(20.0, "Free-air response amplitude at the main line (model deflection units)", "nm")
+    dac_rate_hz: float = field(2.0e6, "Sample rate of the exported loop (a whole number of Hz)", "Hz")
+    drive_frequency_hz: float = field(0.0, "Main line; 0 = the model's f0", "Hz")
+    offset_hz: float = field(0.0, "Side-line offset; 0 = min(20 f0/Q, f0/10)", "Hz")
+    beat_tolerance: float = field(0.05, "Largest relative excursion of the response envelope (side lines / main)")
+    max_side_scale: float = field(0.5, "Largest side-line amplitude as a share of the main line's (thesis: 1/2)")
+    resolution_hz: float = field(0.0, "Frequency grid of the loop; 0 = f0/(100 Q)", "Hz")
+
+    def validate(self) -> None:
+        for name in ("amplitude_nm", "dac_rate_hz", "beat_tolerance", "max_side_scale"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be > 0")
+        for name in ("drive_frequency_hz", "offset_hz", "resolution_hz"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r} must be >= 0")
+        if self.dac_rate_hz != int(self.dac_rate_hz):
+            raise ConfigError(f"dac_rate_hz={self.dac_rate_hz!r} must be a whole number of Hz (a WAV header holds an integer)")
+
+
+@dataclass(frozen=True)
+class TheoryFitParams:
+    """``afmtool theory fit``: force parameters fitted to REEP's approach (ch. 4)."""
+
+    amplitude_fraction: float = field(0.3, "Fit where the amplitude is above this share of the free amplitude")
+    max_relative_std: float = field(0.1, "A parameter with a larger relative standard deviation is not identified")
+    z_sensitivity: float = field(0.0, "z_piezo sensitivity; 0 = from the channel's length units", "nm/unit")
+    skip_s: float = field(5e-3, "Leave out REEP's start-up", "s")
+    max_samples: int = field(3000, "Fit at most this many (evenly thinned) approach samples")
+
+    def validate(self) -> None:
+        if not 0 <= self.amplitude_fraction < 1:
+            raise ConfigError(f"amplitude_fraction={self.amplitude_fraction!r} must be in [0, 1)")
+        if self.max_relative_std <= 0:
+            raise ConfigError(f"max_relative_std={self.max_relative_std!r} must be > 0")
+        if self.max_samples < 20:
+            raise ConfigError(f"max_samples={self.max_samples!r} must be >= 20")
+
+
 #: Config-file section -> parameter model.
 SECTIONS: dict[str, type] = {
     "identify.freeair": FreeAirParams,
@@ -633,4 +689,6 @@ SECTIONS: dict[str, type] = {
     "theory.observer": ObserverTheoryParams,
     "identify.invols": InvolsParams,
     "identify.spring_constant": SpringConstantParams,
+    "design.excitation": DesignExcitationParams,
+    "theory.fit": TheoryFitParams,
 }

@@ -1,0 +1,80 @@
+"""Interaction quantities per REEP output sample, added to reep.h5 (issue 17 item 1).
+
+:func:`add_interaction_series` reads the finished ``f0_hz``, ``q`` and
+``amplitude`` series of a staged reep.h5 in blocks and writes
+``/interaction/<quantity>`` (each with its ``units`` attribute) by
+:func:`afmtool.models.interaction.interaction_quantities`.  It needs the
+spring constant (metadata ``cantilever.spring_constant_n_per_m``); without it
+nothing is written and the report says why.  The amplitude must be a length:
+the deflection units are converted to nm here.
+
+The free-air reference f0, Q is REEP's own median over the settled part of
+the free-air segment when the capture has one (a small REEP bias then cancels
+from the tip-sample parts), else the free-air model's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+__all__ = ["add_interaction_series"]
+
+_NM_PER_UNIT = {"pm": 1e-3, "nm": 1.0, "um": 1e3, "µm": 1e3, "μm": 1e3, "mm": 1e6, "m": 1e9}
+_BLOCK = 1 << 20
+
+
+def _free_reference(f: h5py.File, results: Mapping) -> tuple[float, float, str]:
+    segment = results.get("free_air_segment_s")
+    model = results.get("free_air_model") or {}
+    if segment:
+        t = f["t"][()]
+        start, end = segment
+        settled = (t >= start + 0.2 * (end - start)) & (t <= end)
+        if settled.sum() >= 10:
+            f0 = float(np.nanmedian(f["f0_hz"][()][settled]))
+            q = float(np.nanmedian(f["q"][()][settled]))
+            if np.isfinite(f0) and np.isfinite(q):
+                return f0, q, "REEP's median over the settled free-air segment"
+    if model:
+        return float(model["f0_hz"]), float(model["q"]), "the free-air model"
+    raise ValueError("no free-air reference")
+
+
+def add_interaction_series(path: Path, results: Mapping, metadata: Mapping, amplitude_units: str) -> dict:
+    """Write ``/interaction/...`` into the reep.h5 at ``path``; return the report section."""
+    from afmtool.models.interaction import InteractionQuantities, interaction_quantities
+
+    cantilever = metadata.get("cantilever") if isinstance(metadata.get("cantilever"), Mapping) else {}
+    k = cantilever.get("spring_constant_n_per_m")
+    if not k:
+        return {"written": False, "reason": "no spring constant (metadata cantilever.spring_constant_n_per_m): "
+                                              "k_e, the force gradient, damping, Phi_c, Phi_d, energy and virial need it"}
+    scale = _NM_PER_UNIT.get(str(amplitude_units).strip())
+    if scale is None:
+        return {"written": False, "reason": f"the amplitude is in {amplitude_units!r}, not a length (no InvOLS applied)"}
+    with h5py.File(path, "r+") as f:
+        try:
+            free_f0, free_q, source = _free_reference(f, results)
+        except ValueError:
+            return {"written": False, "reason": "no free-air reference f0, Q"}
+        n = f["t"].shape[0]
+        group = f.create_group("interaction")
+        units = InteractionQuantities.units()
+        datasets = {name: group.create_dataset(name, shape=(n,), dtype="f8") for name in units}
+        for name, ds in datasets.items():
+            ds.attrs["units"] = units[name]
+        for start in range(0, n, _BLOCK):
+            stop = min(n, start + _BLOCK)
+            out = interaction_quantities(
+                f["f0_hz"][start:stop], f["q"][start:stop], f["amplitude"][start:stop] * scale,
+                free_f0_hz=free_f0, free_q=free_q, spring_constant_n_per_m=float(k),
+                drive_frequency_hz=float(results["drive_frequency_hz"]),
+            )
+            for name, ds in datasets.items():
+                ds[start:stop] = getattr(out, name)
+    return {"written": True, "spring_constant_n_per_m": float(k), "free_f0_hz": free_f0, "free_q": free_q,
+            "free_reference": source, "series": {name: units[name] for name in units}}
