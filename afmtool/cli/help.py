@@ -28,12 +28,13 @@ PANELS = ("Input", "Model", "Estimator", "Output")
 _INPUT = frozenset({
     "--channel", "--topic", "--sample-rate", "--chunk-samples", "--contact", "--psd", "--iv", "--z-curve",
     "--vr-sweep", "--reep", "--voltage-channel", "--sweep", "--config", "--arg",
+    "--segment", "--units", "--invols", "--z-sensitivity", "--z-channel", "--deflection-channel", "--leg",
 })
 _MODEL = frozenset({
     "--model", "--models", "--free-air", "--thermal-model", "--spring-constant", "--temperature",
     "--room-temperature", "--breakdown-temperature", "--f0", "--q", "--f0-low", "--q-low", "--f0-scale",
     "--force-set", "--sensor", "--l0", "--nominal", "--actuation-hz", "--free-amplitude", "--at-z",
-    "--drive-hold",
+    "--drive-hold", "--drive", "--detection", "--length", "--width", "--fluid", "--contact-z", "--separation",
     "--seed", "--set",  # simulate: the simulated plant and its noise
 })
 _OUTPUT = frozenset({
