@@ -58,6 +58,8 @@ def run_reep_command(
 
         results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.metadata,
                                                         deflection_units)
+        if results["interaction"].get("written"):
+            _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz, results)
         if result.force_curves:
             results["force_curve"] = _curve_summary(result)
         if result.geometry is not None:
@@ -183,3 +185,54 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, d
         write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})",
                         z_label=title)
         write_gsf(staged.path(f"{stem}.gsf"), top_first, size, y_size, xy_units="m", z_units=units, title=f"{title} {direction}")
+
+
+#: Image titles of the /interaction quantities (afmtool.models.interaction).
+_INTERACTION_TITLES = {
+    "k_e_n_per_m": "k_e", "force_gradient_n_per_m": "force gradient k_e - k", "damping_n_s_per_m": "damping c_e",
+    "damping_ts_n_s_per_m": "tip-sample damping c_ts", "phi_c_n": "Phi_c", "phi_d_n": "Phi_d",
+    "energy_per_cycle_ev": "E_ts per cycle", "power_w": "dissipated power", "virial_j": "virial",
+}
+
+
+def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepParams, sample_rate_hz: float,
+                            results: dict) -> None:
+    """The /interaction series binned as f0', Q' are: force-curve tables, images, PNG and .gsf."""
+    import h5py
+
+    from afmtool.analyses.interaction_maps import bin_interaction_series
+
+    path = staged.path("reep.h5")
+    binned = bin_interaction_series(
+        path, sample_rate_hz=sample_rate_hz, warmup_samples=int(result.results["summary_after_warmup_samples"]),
+        z_bin=params.z_bin if result.force_curves else None, geometry=result.geometry,
+    )
+    if binned is None:
+        return
+    with h5py.File(path, "r+") as f:
+        for leg, table in binned.force_curves.items():
+            for name, values in table.means.items():
+                ds = f.create_dataset(f"force_curve/{leg}/{name}", data=values)
+                ds.attrs["units"] = binned.units[name]
+        for key, image in sorted(binned.images.items()):
+            ds = f.create_dataset(f"images/{key}", data=image)
+            ds.attrs["units"] = binned.units[key.split("/")[0]]
+            ds.attrs["row0"] = "first line scanned"
+    section = results["interaction"]
+    if binned.force_curves:
+        section["force_curve"] = {leg: sorted(table.means) for leg, table in binned.force_curves.items()}
+    if binned.images:
+        from afmtool.report.images import write_gsf, write_image_png
+
+        size = result.geometry.scan_size_m
+        y_size = size * result.geometry.lines / result.geometry.pixels_per_line
+        for key, image in sorted(binned.images.items()):
+            quantity, direction = key.split("/")
+            title, units = _INTERACTION_TITLES.get(quantity, quantity), binned.units[quantity]
+            top_first = image[::-1]  # last line scanned at the top, as _write_images
+            stem = f"{quantity}_{direction}"
+            write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units,
+                            title=f"{title} ({direction})", z_label=title)
+            write_gsf(staged.path(f"{stem}.gsf"), top_first, size, y_size, xy_units="m", z_units=units,
+                      title=f"{title} {direction}")
+        section["images"] = {key: {"mean": _finite_mean(image)} for key, image in sorted(binned.images.items())}
