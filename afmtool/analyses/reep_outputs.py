@@ -59,7 +59,7 @@ def run_reep_command(
         results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.metadata,
                                                         deflection_units)
         if results["interaction"].get("written"):
-            _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz, results)
+            _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz)
         if result.force_curves:
             results["force_curve"] = _curve_summary(result)
         if result.geometry is not None:
@@ -195,9 +195,12 @@ _INTERACTION_TITLES = {
 }
 
 
-def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepParams, sample_rate_hz: float,
-                            results: dict) -> None:
-    """The /interaction series binned as f0', Q' are: force-curve tables, images, PNG and .gsf."""
+def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepParams, sample_rate_hz: float) -> None:
+    """The /interaction series binned as f0', Q' are: force-curve tables, images, PNG and .gsf.
+
+    The report's ``interaction`` section is left as it was (the golden reports pin it); the
+    binned quantities are in reep.h5 beside f0', Q', with their units.
+    """
     import h5py
 
     from afmtool.analyses.interaction_maps import bin_interaction_series
@@ -218,9 +221,6 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
             ds = f.create_dataset(f"images/{key}", data=image)
             ds.attrs["units"] = binned.units[key.split("/")[0]]
             ds.attrs["row0"] = "first line scanned"
-    section = results["interaction"]
-    if binned.force_curves:
-        section["force_curve"] = {leg: sorted(table.means) for leg, table in binned.force_curves.items()}
     if binned.images:
         from afmtool.report.images import write_gsf, write_image_png
 
@@ -235,4 +235,3 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
                             title=f"{title} ({direction})", z_label=title)
             write_gsf(staged.path(f"{stem}.gsf"), top_first, size, y_size, xy_units="m", z_units=units,
                       title=f"{title} {direction}")
-        section["images"] = {key: {"mean": _finite_mean(image)} for key, image in sorted(binned.images.items())}
