@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from afmtool.models.interaction import InteractionQuantities
 from afmtool.report.images import read_gsf, write_gsf
 from tests.conftest import REPO, SAMPLE_DATA, run_cli
 
@@ -50,6 +51,8 @@ DIRECTIONS = ("trace", "retrace")
 # Every .gsf the CLI writes, by the command that writes it (see test_every_gsf_writer_is_covered).
 GSF_NAMES = sorted(
     [f"reep/{q}_{d}.gsf" for q in ("f0_hz", "q", "amplitude", "phase_deg") for d in DIRECTIONS]
+    # the raster capture's metadata has k, so REEP also writes the interaction maps (issue 17 item 1)
+    + [f"reep/{q}_{d}.gsf" for q in InteractionQuantities.units() for d in DIRECTIONS]
     + [f"probeloss/{q}_{d}.gsf" for q in ("loss_mask", "index") for d in DIRECTIONS]
 )
 CAPTURE = SAMPLE_DATA / "raster_grating.h5"  # 3 lines x 32 pixels, trace and retrace
