@@ -22,7 +22,12 @@ from typing import NamedTuple
 import h5py
 import numpy as np
 
-from afmtool.analyses.accumulators import ForceCurveAccumulator, ForceCurveTable, ImageAccumulator, ScanGeometry
+from afmtool.analyses.accumulators import (
+    ForceCurveAccumulator,
+    ForceCurveTable,
+    ImageAccumulator,
+    ScanGeometry,
+)
 
 __all__ = ["BinnedInteraction", "bin_interaction_series"]
 
