@@ -112,3 +112,55 @@ def test_ibw_with_a_huge_declared_section_is_refused_before_allocating(tmp_path)
         with pytest.raises(InputError, match="declares"):
             open_capture(path)
         assert time.monotonic() - start < 2
+
+
+def test_jpk_zip_of_an_unknown_version_is_an_input_error(tmp_path):
+    """Long run (seed 1), jpk case 1285: zipfile raised NotImplementedError ("zip file version
+    11.0") for a central directory that asks for a newer ZIP version than Python reads."""
+    import struct
+    import zipfile
+
+    from afmtool.errors import InputError
+    from afmtool.io.registry import open_capture
+
+    path = tmp_path / "case1285.jpk-force"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("header.properties", "jpk-data-file=spm-forcefile\n")
+    data = bytearray(path.read_bytes())
+    central = data.index(b"PK\x01\x02")
+    struct.pack_into("<H", data, central + 6, 110)  # version needed to extract: 11.0
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="not a readable JPK file"):
+        open_capture(path)
+
+
+@pytest.mark.parametrize("kind", ["datatype", "external", "soft"])
+def test_labone_field_that_is_not_a_local_dataset_is_refused(tmp_path, kind):
+    """Long run (seed 1), labone-hdf5 cases 3312 and 4314: a demodulator field that was a
+    committed datatype raised AttributeError; a field behind an external or soft link must not be
+    followed either (issue 20: nothing read from outside the capture)."""
+    import h5py
+    import numpy as np
+
+    from afmtool.errors import InputError
+    from afmtool.io.registry import open_capture
+
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f["x"] = np.ones(100)
+    path = tmp_path / "labone.h5"
+    with h5py.File(path, "w") as f:
+        sample = f.create_group("000/dev1234/demods/0/sample")
+        sample["timestamp"] = np.arange(100, dtype=np.uint64) * 60
+        sample["y"] = np.zeros(100)
+        sample.attrs["clockbase"] = 60e6
+        if kind == "datatype":
+            sample["x"] = np.dtype("f8")
+        elif kind == "external":
+            sample["x"] = h5py.ExternalLink(str(other), "/x")
+        else:
+            f["elsewhere"] = np.ones(100)
+            sample["x"] = h5py.SoftLink("/elsewhere")
+    with pytest.raises(InputError, match="x"):
+        with open_capture(path) as reader:
+            reader.info

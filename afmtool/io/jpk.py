@@ -154,7 +154,7 @@ class JpkReader(ReaderBase):
         self._path = Path(path)
         try:
             self._zip = zipfile.ZipFile(self._path)
-        except (zipfile.BadZipFile, EOFError, ValueError) as exc:
+        except (zipfile.BadZipFile, EOFError, ValueError, NotImplementedError) as exc:
             raise InputError(f"{path}: not a readable JPK file (not a complete ZIP archive: {_first_line(exc)})") from None
         except OSError as exc:
             raise InputError(f"{path}: cannot read ({exc.strerror or _first_line(exc)})") from None

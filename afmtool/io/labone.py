@@ -247,6 +247,20 @@ class LaboneHdf5Reader(ReaderBase):
             str(self._path), "labone-hdf5", layout["rate"], layout["channels"], layout["n"], metadata, (), segments
         )
 
+    def _member(self, group, name: str):
+        """``group[name]`` when it is a dataset stored in this file: soft and external links are refused."""
+        import h5py
+
+        link = group.get(name, getlink=True)
+        if not isinstance(link, h5py.HardLink):
+            raise InputError(f"{self._path}: {group.name}/{name} is a {type(link).__name__}; afmtool reads no data "
+                             "from outside the capture's own objects")
+        dataset = group[name]
+        if not isinstance(dataset, h5py.Dataset):
+            raise InputError(f"{self._path}: {group.name}/{name} is not a dataset")
+        self._check_claim(f"{group.name}/{name}", dataset)
+        return dataset
+
     def _check_claim(self, name: str, dataset) -> None:
         from afmtool.io.hdf5 import _check_local
 
@@ -265,8 +279,7 @@ class LaboneHdf5Reader(ReaderBase):
         for group in members:
             lengths = set()
             for field in ("timestamp", *fields):
-                dataset = group[field]
-                self._check_claim(f"{group.name}/{field}", dataset)
+                dataset = self._member(group, field)
                 if dataset.ndim != 1:
                     raise InputError(f"{self._path}: {group.name}/{field} must be 1-D, is {dataset.shape}")
                 lengths.add(len(dataset))
@@ -292,8 +305,7 @@ class LaboneHdf5Reader(ReaderBase):
                 "channels": channels, "clockbase": clockbase, "first_tick": first_tick}
 
     def _scope_layout(self, group, sample_rate_hz: float | None) -> dict:
-        dataset = group["wave"]
-        self._check_claim(f"{group.name}/wave", dataset)
+        dataset = self._member(group, "wave")
         if dataset.ndim not in (1, 2):
             raise InputError(f"{self._path}: {group.name}/wave must be (channels, samples), is {dataset.shape}")
         n_channels = 1 if dataset.ndim == 1 else dataset.shape[0]
