@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         _run(argv, state)
     except SystemExit as done:
-        _exit_now_if_hdf5_is_stuck(done.code)
+        _exit_now_if_teardown_unsafe(done.code)
         raise
     finally:
         # Outputs are committed or cleaned up by now, and the outcome printed: a signal
@@ -220,8 +220,21 @@ def _hdf5_files_open() -> bool:
         return True
 
 
-def _exit_now_if_hdf5_is_stuck(code: object) -> None:
-    """End a failed run without the interpreter's teardown when an HDF5 file is still open.
+def _threads_still_running() -> bool:
+    """Whether a helper thread (the input hash, a read-ahead) outlived the failed run."""
+    main_thread = threading.main_thread()
+    return any(t is not main_thread and t.is_alive() for t in threading.enumerate())
+
+
+def _exit_now_if_teardown_unsafe(code: object) -> None:
+    """End a failed run without the interpreter's teardown when it is not safe.
+
+    Two states make teardown unsafe.  A daemon thread still inside C code
+    that released the GIL (hashlib on a large block, an HDF5 read) when an
+    interrupt ends the run: CPython finalises around it, and the thread's
+    return into the interpreter aborted the process (SIGABRT, "PyThreadState_Get:
+    the function must be called with the GIL held") in about 1 in 40 SIGTERMs.
+    And an HDF5 file that is still open.
 
     A file whose flush failed (a full disk) cannot be closed: libhdf5 tries
     the flush again, in h5py's finalisers at teardown or in an explicit
@@ -229,7 +242,9 @@ def _exit_now_if_hdf5_is_stuck(code: object) -> None:
     decided and printed, its outputs are staged and removed, so nothing is
     lost by skipping teardown: flush Python's own streams and leave.
     """
-    if code in (0, None) or not _hdf5_files_open():
+    if code in (0, None):
+        return
+    if not (_hdf5_files_open() or _threads_still_running()):
         return
     for stream in (sys.stdout, sys.stderr):
         try:
