@@ -56,6 +56,7 @@ __all__ = [
     "SineSegment",
     "detect_segments",
     "stepped_sine_response",
+    "SteppedSineAccumulator",
     "TransferFunctionFit",
     "fit_transfer_function",
     "SecondOrderFit",
@@ -490,22 +491,6 @@ def _as_segment(k: int, seg) -> SineSegment:
     return SineSegment(float(start), float(end), float(freq))
 
 
-def _lock_in(values: np.ndarray, first: int, frequency_hz: float, fs: float) -> tuple[complex, float]:
-    """Complex amplitude at ``frequency_hz`` and total (mean-removed) power of a window.
-
-    Ŷ = (2/N) Σ_n (y[n] − ȳ) e^{−j2πf n/fs}: for y = A sin(2πf n/fs + φ)
-    over an integer number of periods, Ŷ = A·e^{j(φ − π/2)}, and the line
-    power is |Ŷ|²/2.  Time is absolute (sample index ``first`` onwards) so
-    input and output share the phase reference.
-    """
-    n = np.arange(first, first + values.size)
-    centred = values - values.mean()
-    phasor = np.exp(-2j * np.pi * frequency_hz / fs * n)
-    amplitude = 2.0 * np.dot(centred, phasor) / values.size
-    power = float(np.dot(centred, centred)) / values.size
-    return complex(amplitude), power
-
-
 def stepped_sine_response(
     x,
     y,
@@ -546,7 +531,7 @@ def stepped_sine_response(
     In each step, the steady-state window is the last N samples of the step
     holding an integer number P = ⌊(1 − settle_fraction)·duration·f⌋ of
     periods, N = round(P·fs/f).  Input and output are demodulated at the
-    step frequency over that window (complex demodulation, :func:`_lock_in`)
+    step frequency over that window (complex demodulation, :class:`_LockInSums`)
     and H = Ŷ/X̂.
 
     ``coherence`` is the fraction of the output power in the window that is
@@ -570,22 +555,31 @@ def stepped_sine_response(
         with fewer than ``min_periods`` steady-state periods, or with no
         input at its frequency.
     """
-    fs = _check_positive("sample_rate_hz", sample_rate_hz)
-    if not (_is_real(settle_fraction) and 0 <= settle_fraction < 1):
-        raise ConfigError(f"settle_fraction={settle_fraction!r} must be a number in [0, 1)")
-    min_periods = _check_int("min_periods", min_periods, 1)
     xa, ya = _signal_pair(x, y)
-    if isinstance(segments, (str, bytes, Mapping)) or not isinstance(segments, Sequence) or not segments:
-        raise InputError("segments must be a non-empty list of {start_s, end_s, frequency_hz}")
-    steps = [_as_segment(k, seg) for k, seg in enumerate(segments)]
-    duration = xa.size / fs
-    rows = []
+    accumulator = SteppedSineAccumulator(
+        sample_rate_hz, segments, settle_fraction=settle_fraction, min_periods=min_periods
+    )
+    accumulator.add(xa, ya)
+    return accumulator.result()
+
+
+class _StepWindow(NamedTuple):
+    """The steady-state window [first, stop) of one step, in samples from the record's start."""
+
+    index: int
+    frequency_hz: float
+    end_s: float
+    first: int
+    stop: int
+
+
+def _step_windows(steps: Sequence[SineSegment], fs: float, settle_fraction: float, min_periods: int) -> list:
+    """Each step's steady-state window (see :func:`stepped_sine_response`, Notes), checked."""
+    windows = []
     for k, (start, end, freq) in enumerate(steps):
-        if end > duration * (1 + 1e-12):
-            raise InputError(f"segments[{k}] ends at {end!r} s, after the records end ({duration:g} s)")
         if freq >= fs / 2:
             raise InputError(f"segments[{k}].frequency_hz={freq!r} is not below the Nyquist frequency {fs / 2:g} Hz")
-        stop = min(int(math.floor(end * fs + 1e-9)), xa.size)
+        stop = int(math.floor(end * fs + 1e-9))
         steady_s = (1.0 - settle_fraction) * (end - start)
         periods = int(math.floor(steady_s * freq + 1e-9))
         n = int(round(periods * fs / freq))
@@ -593,28 +587,145 @@ def stepped_sine_response(
             raise InputError(
                 f"segments[{k}] ({freq:g} Hz) holds {periods} steady-state periods, fewer than {min_periods=}"
             )
-        first = stop - n
-        x_amp, x_power = _lock_in(xa[first:stop], first, freq, fs)
-        y_amp, y_power = _lock_in(ya[first:stop], first, freq, fs)
-        if abs(x_amp) == 0 or x_power == 0:
-            raise InputError(f"segments[{k}]: the input has no component at {freq:g} Hz")
-        gx = min(abs(x_amp) ** 2 / 2 / x_power, 1.0)
-        gy = min(abs(y_amp) ** 2 / 2 / y_power, 1.0) if y_power > 0 else 0.0
-        # relative lock-in errors of X̂ and Ŷ (Notes); gx > 0 here
-        rel = math.sqrt((1 - gx) / (n * gx) + ((1 - gy) / (n * gy) if gy > 0 else math.inf))
-        rows.append((freq, y_amp / x_amp, gy, rel))
-    rows.sort(key=lambda r: r[0])
-    freq = np.array([r[0] for r in rows])
-    response = np.array([r[1] for r in rows], dtype=np.complex128)
-    rel = np.array([r[3] for r in rows])
-    return FrequencyResponse(
-        frequency_hz=_frozen(freq),
-        response=_frozen(response),
-        coherence=_frozen(np.array([r[2] for r in rows])),
-        magnitude_std=_frozen(np.abs(response) * rel),
-        phase_std_rad=_frozen(rel),
-        method="stepped",
-    )
+        windows.append(_StepWindow(k, freq, end, stop - n, stop))
+    return windows
+
+
+class _LockInSums:
+    """Lock-in sums of one channel over one step window, added chunk by chunk.
+
+    The lock-in of a window of N samples is Ŷ = (2/N) Σ_n (y[n] − ȳ) e[n],
+    e[n] = e^{−j2πf n/fs} with n the absolute sample index (so input and
+    output share the phase reference): for y = A sin(2πf n/fs + φ) over an
+    integer number of periods, Ŷ = A·e^{j(φ − π/2)}, and the line power is
+    |Ŷ|²/2.  The mean-removed power is σ² = Σ(y − ȳ)²/N.  With v = y − K
+    (K the window's first sample, against cancellation in σ²) and the sums
+    S1 = Σv, S2 = Σv², P = Σv·e, E = Σe:  Ŷ = (2/N)(P − (S1/N)·E) and
+    σ² = S2/N − (S1/N)².
+    """
+
+    __slots__ = ("shift", "s1", "s2", "p", "e", "n")
+
+    def __init__(self) -> None:
+        self.shift: float | None = None
+        self.s1 = self.s2 = 0.0
+        self.p = self.e = 0j
+        self.n = 0
+
+    def add(self, values: np.ndarray, phasor: np.ndarray) -> None:
+        if self.shift is None:
+            self.shift = float(values[0])
+        shifted = values - self.shift
+        self.s1 += float(np.sum(shifted))
+        self.s2 += float(np.dot(shifted, shifted))
+        self.p += complex(np.dot(shifted, phasor))
+        self.e += complex(np.sum(phasor))
+        self.n += values.size
+
+    def lock_in(self) -> tuple[complex, float]:
+        """(Ŷ, σ²) of the whole window."""
+        mean = self.s1 / self.n
+        amplitude = 2.0 * (self.p - mean * self.e) / self.n
+        power = max(self.s2 / self.n - mean * mean, 0.0)
+        return complex(amplitude), power
+
+
+class SteppedSineAccumulator:
+    """Streaming stepped-sine response: per-step lock-in sums accumulated over chunks.
+
+    Feed the input and output records in chunks of any size with
+    :meth:`add`; :meth:`result` gives :func:`stepped_sine_response` of the
+    concatenated records (to rounding: the sums run in another order).
+    Memory is O(number of steps), whatever the record length.
+
+    Parameters
+    ----------
+    sample_rate_hz, segments, settle_fraction, min_periods
+        As in :func:`stepped_sine_response`.
+
+    Raises
+    ------
+    ConfigError
+        For a bad ``sample_rate_hz``, ``settle_fraction`` or ``min_periods``.
+    InputError
+        For bad segments, a step at or above the Nyquist frequency or with
+        fewer than ``min_periods`` steady-state periods; for bad chunks (in
+        :meth:`add`); for a step ending after the records (in :meth:`result`).
+    """
+
+    def __init__(
+        self, sample_rate_hz: float, segments: Sequence, *, settle_fraction: float = 0.5, min_periods: int = 10
+    ) -> None:
+        fs = _check_positive("sample_rate_hz", sample_rate_hz)
+        if not (_is_real(settle_fraction) and 0 <= settle_fraction < 1):
+            raise ConfigError(f"settle_fraction={settle_fraction!r} must be a number in [0, 1)")
+        min_periods = _check_int("min_periods", min_periods, 1)
+        if isinstance(segments, (str, bytes, Mapping)) or not isinstance(segments, Sequence) or not segments:
+            raise InputError("segments must be a non-empty list of {start_s, end_s, frequency_hz}")
+        steps = [_as_segment(k, seg) for k, seg in enumerate(segments)]
+        self._fs = fs
+        self._windows = _step_windows(steps, fs, settle_fraction, min_periods)
+        self._first = np.array([w.first for w in self._windows], dtype=np.int64)
+        self._stop = np.array([w.stop for w in self._windows], dtype=np.int64)
+        self._sums = [(_LockInSums(), _LockInSums()) for _ in self._windows]
+        self._n_samples = 0
+
+    @property
+    def n_samples(self) -> int:
+        """Samples added so far."""
+        return self._n_samples
+
+    def add(self, x_chunk, y_chunk) -> None:
+        """Accumulate the next chunk of input and output samples (any length ≥ 0)."""
+        xc, yc = _signal_pair(x_chunk, y_chunk)
+        lo, hi = self._n_samples, self._n_samples + xc.size
+        for k in np.flatnonzero((self._first < hi) & (self._stop > lo)):
+            window = self._windows[k]
+            a, b = max(window.first, lo), min(window.stop, hi)
+            # time is absolute (sample index) so input and output share the phase reference
+            phasor = np.exp(-2j * np.pi * window.frequency_hz / self._fs * np.arange(a, b))
+            sx, sy = self._sums[k]
+            sx.add(xc[a - lo : b - lo], phasor)
+            sy.add(yc[a - lo : b - lo], phasor)
+        self._n_samples = hi
+
+    def result(self) -> FrequencyResponse:
+        """The response of every step (see :func:`stepped_sine_response`).
+
+        Raises
+        ------
+        InputError
+            If a step ends after the samples added so far, or its input has
+            no component at its frequency.
+        """
+        duration = self._n_samples / self._fs
+        rows = []
+        for window, (sx, sy) in zip(self._windows, self._sums):
+            k, freq = window.index, window.frequency_hz
+            if window.end_s > duration * (1 + 1e-12) or window.stop > self._n_samples:
+                raise InputError(f"segments[{k}] ends at {window.end_s!r} s, after the records end ({duration:g} s)")
+            n = window.stop - window.first
+            x_amp, x_power = sx.lock_in()
+            y_amp, y_power = sy.lock_in()
+            if abs(x_amp) == 0 or x_power == 0:
+                raise InputError(f"segments[{k}]: the input has no component at {freq:g} Hz")
+            gx = min(abs(x_amp) ** 2 / 2 / x_power, 1.0)
+            gy = min(abs(y_amp) ** 2 / 2 / y_power, 1.0) if y_power > 0 else 0.0
+            # relative lock-in errors of X̂ and Ŷ (stepped_sine_response, Notes); gx > 0 here
+            rel = math.sqrt((1 - gx) / (n * gx) + ((1 - gy) / (n * gy) if gy > 0 else math.inf))
+            rows.append((freq, y_amp / x_amp, gy, rel))
+        rows.sort(key=lambda r: r[0])
+        freq = np.array([r[0] for r in rows])
+        response = np.array([r[1] for r in rows], dtype=np.complex128)
+        rel = np.array([r[3] for r in rows])
+        return FrequencyResponse(
+            frequency_hz=_frozen(freq),
+            response=_frozen(response),
+            coherence=_frozen(np.array([r[2] for r in rows])),
+            magnitude_std=_frozen(np.abs(response) * rel),
+            phase_std_rad=_frozen(rel),
+            method="stepped",
+        )
 
 
 #: A step's unwrapped phase may depart from a straight line by this much (rms, rad);

@@ -51,7 +51,6 @@ __all__ = [
     "separation_from_current",
     "ThermalDynamics",
     "thermal_dynamics",
-    "ThermalModel",
 ]
 
 
@@ -573,60 +572,3 @@ def thermal_dynamics(
     point = {"v_r_v": v_r0_v, "current_a": current0_a, "resistance_ohm": r0, "temperature_c": t0,
              "dg_dt_ohm_per_k": slope}
     return ThermalDynamics(c_fr, h_fr, point)
-
-
-# --------------------------------------------------------------------------- the saved model
-
-
-class ThermalModel(NamedTuple):
-    """What ``identify thermal`` learns, as saved in ``thermal_sensor.json``.
-
-    g_fit : ResistanceFit or None
-    breakdown_temperature_c : float
-    k_tp_k_per_w : float or None
-        From the I-V knee, at the ramp's separation.
-    knee_power_w, knee_voltage_v : float or None
-    k_tp_separation_m, k_tp_table_k_per_w : tuple of float or None
-        K_TP(t_s) from a z force curve (t_s from the snap-in).
-    contact_k_tp_k_per_w : float or None
-    """
-
-    g_fit: ResistanceFit | None
-    breakdown_temperature_c: float
-    k_tp_k_per_w: float | None = None
-    knee_power_w: float | None = None
-    knee_voltage_v: float | None = None
-    k_tp_separation_m: tuple[float, ...] | None = None
-    k_tp_table_k_per_w: tuple[float, ...] | None = None
-    contact_k_tp_k_per_w: float | None = None
-
-    def to_dict(self) -> dict:
-        return {
-            "g": None if self.g_fit is None else self.g_fit.to_dict(),
-            "breakdown_temperature_c": self.breakdown_temperature_c,
-            "k_tp_k_per_w": self.k_tp_k_per_w,
-            "knee_power_w": self.knee_power_w,
-            "knee_voltage_v": self.knee_voltage_v,
-            "k_tp_table": None
-            if self.k_tp_separation_m is None
-            else {"separation_m": list(self.k_tp_separation_m), "k_tp_k_per_w": list(self.k_tp_table_k_per_w)},
-            "contact_k_tp_k_per_w": self.contact_k_tp_k_per_w,
-            "k_tp_definition": "DC gain of Gamma_TP, (T - T_r)/P, K/W",
-        }
-
-    @classmethod
-    def from_dict(cls, data) -> ThermalModel:
-        try:
-            table = data.get("k_tp_table")
-            return cls(
-                g_fit=None if data.get("g") is None else ResistanceFit.from_dict(data["g"]),
-                breakdown_temperature_c=float(data["breakdown_temperature_c"]),
-                k_tp_k_per_w=data.get("k_tp_k_per_w"),
-                knee_power_w=data.get("knee_power_w"),
-                knee_voltage_v=data.get("knee_voltage_v"),
-                k_tp_separation_m=None if table is None else tuple(float(x) for x in table["separation_m"]),
-                k_tp_table_k_per_w=None if table is None else tuple(float(x) for x in table["k_tp_k_per_w"]),
-                contact_k_tp_k_per_w=data.get("contact_k_tp_k_per_w"),
-            )
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise InputError(f"not a thermal sensor model: {exc}") from None
