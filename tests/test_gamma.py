@@ -17,7 +17,7 @@ import pytest
 from scipy.optimize import brentq
 
 from afmtool import sim
-from afmtool.analyses.gamma import (
+from afmtool.estimators.sensing_gamma import (
     auto_nperseg,
     canonical_scale,
     combine_gamma,
@@ -164,7 +164,7 @@ def test_streaming_chunks_equal_one_batch(gammas):
 
 def test_propagated_error_matches_monte_carlo(rng):
     """σ_Γ² = (σ_A² + σ_B²)/|G|² + |Γ|²σ_G²/|G|² against scatter of (A − B)/G."""
-    from afmtool.analyses.gamma import sensing_response
+    from afmtool.estimators.sensing_gamma import sensing_response
 
     f = np.array([1.0, 2.0])
     a, b, g = np.array([2.0 + 1j, 1.0]), np.array([0.3j, 0.1]), np.array([1.5 - 0.5j, 0.8j])
@@ -266,7 +266,7 @@ def test_stepped_segments_are_detected_when_the_metadata_lacks_them():
 
 
 def test_split_steps_are_merged():
-    from afmtool.analyses.gamma import merge_split_steps
+    from afmtool.estimators.sensing_gamma import merge_split_steps
     from afmtool.estimators.frequency_response import SineSegment
 
     pieces = [SineSegment(0.0, 0.1, 100.0), SineSegment(0.1, 0.102, 103.0), SineSegment(0.1025, 0.2, 101.0),

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from afmtool import sim
-from afmtool.analyses.gamma import auto_nperseg, combine_gamma, responses_from_chunks, scale_response
-from afmtool.analyses.thermal_sensor import (
+from afmtool.estimators.sensing_gamma import auto_nperseg, combine_gamma, responses_from_chunks, scale_response
+from afmtool.estimators.thermal_sensor import (
     detect_knee,
     identify_iv,
     identify_z_curve,

@@ -9,16 +9,17 @@ from pathlib import Path
 
 import numpy as np
 
-from afmtool.analyses.electrostatic_fit import ElectrostaticFit, fit_electrostatic, select_before_snap_in
-from afmtool.analyses.gamma import canonical_scale
-from afmtool.analyses.thermal_outputs import THERMAL_MODEL_FILE, load_thermal_model
-from afmtool.analyses.thermal_sensor import separation_from_current
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import ElectrostaticFitParams
 from afmtool.errors import ConfigError, InputError
+from afmtool.estimators.electrostatic_fit import ElectrostaticFit, fit_electrostatic, select_before_snap_in
+from afmtool.estimators.sensing_gamma import canonical_scale
+from afmtool.estimators.stages import RecordStage
+from afmtool.estimators.thermal_sensor import separation_from_current
 from afmtool.io.capture import CaptureReader
-from afmtool.io.chunks import iter_chunks
 from afmtool.io.units import calibration_record
+from afmtool.models.thermal_model import THERMAL_MODEL_FILE, load_thermal_model
+from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -44,10 +45,13 @@ def _sensor(params: ElectrostaticFitParams, reader: CaptureReader, model_path) -
 
 
 def _read(reader: CaptureReader, names: tuple[str, ...]) -> dict[str, np.ndarray]:
-    blocks = list(iter_chunks(reader, names, 1 << 20))
-    if not blocks:
-        raise InputError(f"{reader.info.source}: the capture is empty")
-    return {name: np.concatenate([b.data[name] for b in blocks]) for name in names}
+    """The whole approach curve of ``names``.
+
+    The fit picks the part before snap-in and the CSV keeps every sample, so
+    the records are kept: memory one float64 array per channel.
+    """
+    (data,) = run_stream(reader, [RecordStage(names)], channels=names, chunk_samples=1 << 20)
+    return data
 
 
 def _v_r(params: ElectrostaticFitParams, reader: CaptureReader, data: Mapping[str, np.ndarray]) -> float:

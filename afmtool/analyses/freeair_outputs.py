@@ -8,14 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
-from afmtool.analyses.freeair import free_air_from_segment, read_segment
+from afmtool.analyses.freeair import free_air_from_segment
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import FreeAirParams, SpringConstantParams, parse_interval
 from afmtool.errors import ConfigError
+from afmtool.estimators.stages import ChannelMeans, RecordStage, ResponseStage, SegmentStage
 from afmtool.io.capture import CaptureReader
-from afmtool.io.chunks import iter_chunks
 from afmtool.io.units import calibration_record
 from afmtool.models.free_air import FreeAirModel
+from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -32,8 +33,10 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tu
         raise ConfigError("give --free-air START:END (s) or a capture with metadata free_air")
     fs = reader.info.sample_rate_hz
     start, end = round(interval[0] * fs), round(interval[1] * fs)
-    chunks = iter_chunks(reader, ("deflection", "dither"), 1 << 20, progress=progress)
-    segment, _ = read_segment(chunks, ("deflection", "dither"), start, end)
+    stage = SegmentStage(("deflection", "dither"), start, end)
+    # the capture is read only up to the segment's end
+    (segment,) = run_stream(reader, [stage], channels=("deflection", "dither"), chunk_samples=1 << 20,
+                            progress=progress, prologue=stage.until_end)
     model = free_air_from_segment(segment["deflection"], segment["dither"], fs)
     return model, {"segment_s": list(interval), "segment_samples": end - start}
 
@@ -82,22 +85,52 @@ def write_sweep_bode_png(path: Path, fr, model: FreeAirModel, units: str) -> Non
     )
 
 
-def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress):
-    """(model, details, warnings, plot): ``plot`` draws the spectral methods' Bode figure (None for ``record``)."""
-    from afmtool.estimators.frequency_response import sweep_frequency_response
-    from afmtool.estimators.sweep_record import identify_sweep
+def _sweep_stage(reader: CaptureReader, params: FreeAirParams):
+    """The stage measuring the sweep in one pass, with flat memory where the method allows.
 
-    chunks = list(iter_chunks(reader, ("dither", "deflection"), 1 << 20, progress=progress))
-    dither = np.concatenate([c.data["dither"] for c in chunks])
-    deflection = np.concatenate([c.data["deflection"] for c in chunks])
+    ``h1`` on a capture of known length: Welch cross spectra accumulated per
+    segment (memory O(nperseg + chunk)); ``stepped`` with metadata segments:
+    lock-in sums per step (memory O(steps)).  The ``record`` fit (a DFT of the
+    whole record), a stepped sine whose steps are found from the dither, and
+    H1 on a stream of unknown length (its segment length depends on it) keep
+    the dither and deflection records: memory two float64 arrays of the
+    capture's length.
+    """
+    from afmtool.estimators.frequency_response import default_nperseg
+
+    method, n = params.sweep_method, reader.info.n_samples
+    segments = reader.info.metadata.get("segments") if method == "stepped" else None
+    if method == "h1" and n:
+        return ResponseStage("dither", ("deflection",), method="h1", nperseg=default_nperseg(n))
+    if method == "stepped" and segments is not None:
+        return ResponseStage("dither", ("deflection",), method="stepped", segments=segments)
+    return RecordStage(("dither", "deflection"))
+
+
+def _identify_sweep(reader: CaptureReader, params: FreeAirParams, progress):
+    """(SweepIdentification, samples read): one pass over the capture through :func:`_sweep_stage`."""
+    from afmtool.estimators.sweep_record import check_sweep_options, identify_sweep, identify_sweep_response
+
+    check_sweep_options(params.sweep_method, params.drive_hold)
+    stage = _sweep_stage(reader, params)
+    measured, means = run_stream(reader, [stage, ChannelMeans()], channels=("dither", "deflection"),
+                                 chunk_samples=1 << 20, progress=progress)
+    if isinstance(stage, ResponseStage):
+        return identify_sweep_response(measured["deflection"]), means.count
     segments = reader.info.metadata.get("segments") if params.sweep_method == "stepped" else None
     found = identify_sweep(
-        dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method, segments=segments,
-        hold=params.drive_hold,
+        measured["dither"], measured["deflection"], reader.info.sample_rate_hz, method=params.sweep_method,
+        segments=segments, hold=params.drive_hold,
     )
+    return found, means.count
+
+
+def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress):
+    """(model, details, warnings, plot): ``plot`` draws the spectral methods' Bode figure (None for ``record``)."""
+    found, samples = _identify_sweep(reader, params, progress)
     details = {
         "sweep_method": params.sweep_method,
-        "samples": len(dither),
+        "samples": samples,
         "drive_hold": found.hold,
         "drive_hold_reason": found.hold_reason,
     }
@@ -112,11 +145,9 @@ def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress):
             _fit=found.fit,
         )
         return found.model, details, list(found.warnings), None
-    fr = sweep_frequency_response(dither, deflection, reader.info.sample_rate_hz, method=params.sweep_method,
-                                  segments=segments)
     info = reader.info
     units = f"{info.units('deflection')}/{info.units('dither')}".strip("/") or "input units"
-    plot = lambda path: write_sweep_bode_png(path, fr, found.model, units)  # noqa: E731 - drawn once the folder is staged
+    plot = lambda path: write_sweep_bode_png(path, found.response, found.model, units)  # noqa: E731 - drawn once the folder is staged
     return found.model, details, list(found.warnings), plot
 
 

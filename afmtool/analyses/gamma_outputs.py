@@ -7,29 +7,29 @@ from pathlib import Path
 
 import numpy as np
 
-from afmtool.analyses.gamma import (
+from afmtool.config import load_toml, resolve_from
+from afmtool.config.params import GammaParams
+from afmtool.errors import InputError
+from afmtool.estimators.frequency_response import FrequencyResponse, frf_table
+from afmtool.estimators.sensing_gamma import (
     CANONICAL_UNITS,
     GammaResponses,
-    RunningMeans,
     SensingSummary,
     auto_nperseg,
     canonical_scale,
     combine_gamma,
     feedthrough_rise,
     fit_feedthrough,
-    progress_offset,
-    responses_from_chunks,
+    gamma_response_stage,
     scale_response,
     sensing_summary,
     usable_band,
     usable_mask,
 )
-from afmtool.config import load_toml, resolve_from
-from afmtool.config.params import GammaParams
-from afmtool.errors import InputError
-from afmtool.estimators.frequency_response import FrequencyResponse, frf_table
+from afmtool.estimators.stages import ChannelMeans, progress_offset
 from afmtool.io.capture import CaptureReader
-from afmtool.io.chunks import iter_chunks, require_channels
+from afmtool.io.chunks import require_channels
+from afmtool.pipeline import run_stream
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
 from afmtool.report.json_report import input_record
@@ -70,21 +70,16 @@ def _scales(reader: CaptureReader, channels: Mapping[str, str], warnings: list[s
 
 def _estimate(
     reader: CaptureReader, ys: tuple[str, ...], params: GammaParams, method: str, nperseg: int, progress
-) -> tuple[dict[str, FrequencyResponse], RunningMeans]:
+) -> tuple[dict[str, FrequencyResponse], ChannelMeans]:
+    """One pass over ``reader``: the responses from v_sub to ``ys`` and the channels' means (flat memory)."""
     segments = reader.info.metadata.get("segments") if method == "stepped" else None
-    chunks = RunningMeans(iter_chunks(reader, ("v_sub", *ys), params.chunk_samples, progress=progress))
-    responses = responses_from_chunks(
-        chunks,
-        reader.info.sample_rate_hz,
-        "v_sub",
-        ys,
-        method=method,
-        nperseg=nperseg,
-        segments=segments,
-        settle_fraction=params.settle_fraction,
-        min_periods=params.min_periods,
+    stage = gamma_response_stage(
+        "v_sub", ys, method=method, nperseg=nperseg, segments=segments,
+        settle_fraction=params.settle_fraction, min_periods=params.min_periods,
     )
-    return responses, chunks
+    responses, means = run_stream(reader, [stage, ChannelMeans()], channels=("v_sub", *ys),
+                                  chunk_samples=params.chunk_samples, progress=progress)
+    return responses, means
 
 
 def estimate_from_captures(

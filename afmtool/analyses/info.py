@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES, CaptureReader, SegmentSpec
-from afmtool.io.chunks import iter_chunks
+from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES, CaptureReader, Chunk, SegmentSpec
+from afmtool.pipeline import run_stream
 
 __all__ = ["ChannelStats", "CaptureSummary", "summarize"]
 
@@ -68,26 +68,46 @@ class _RunningStats:
         return ChannelStats(name, units, self.min, self.max, self.total / self.n, math.sqrt(self.total_sq / self.n))
 
 
+class _SummaryStage:
+    """Per-channel running statistics over the chunk stream (a :class:`afmtool.pipeline.Stage`)."""
+
+    def __init__(self, names) -> None:
+        self.stats = {name: _RunningStats() for name in names}
+        self.n_samples = 0
+
+    def prepare(self, head) -> None:
+        """Nothing to set up."""
+
+    def step(self, chunk: Chunk) -> None:
+        for name, values in chunk.data.items():
+            self.stats[name].add(values)
+        self.n_samples = chunk.start + len(chunk)
+
+    def finish(self) -> _SummaryStage:
+        return self
+
+
 def summarize(
     reader: CaptureReader,
     chunk_samples: int = DEFAULT_CHUNK_SAMPLES,
     progress: Callable[[int], None] | None = None,
 ) -> CaptureSummary:
-    """Stream every channel once and summarise it."""
+    """Stream every channel once and summarise it.
+
+    A capture known to be empty (its reader says 0 samples) is summarised
+    without streaming, with NaN statistics: that it is empty is the answer.
+    """
     info = reader.info
-    stats = {name: _RunningStats() for name in info.channel_names}
-    n_samples = 0
-    for chunk in iter_chunks(reader, info.channel_names, chunk_samples, progress=progress):
-        for name, values in chunk.data.items():
-            stats[name].add(values)
-        n_samples = chunk.start + len(chunk)
-    channels = tuple(stats[c.name].finish(c.name, c.units) for c in info.channels)
+    stage = _SummaryStage(info.channel_names)
+    if info.n_samples != 0:
+        run_stream(reader, [stage], channels=info.channel_names, chunk_samples=chunk_samples, progress=progress)
+    channels = tuple(stage.stats[c.name].finish(c.name, c.units) for c in info.channels)
     return CaptureSummary(
         info.source,
         info.format,
         info.sample_rate_hz,
-        n_samples,
-        n_samples / info.sample_rate_hz,
+        stage.n_samples,
+        stage.n_samples / info.sample_rate_hz,
         channels,
         dict(info.metadata),
         info.truth_names,

@@ -20,9 +20,10 @@ from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import InvolsParams
 from afmtool.errors import InputError
 from afmtool.estimators.invols import ContactFit, approach_part, fit_contact_slope
+from afmtool.estimators.stages import RecordStage
 from afmtool.io.capture import CaptureReader
-from afmtool.io.chunks import iter_chunks
 from afmtool.io.units import calibration_record, parse_unit
+from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -52,11 +53,9 @@ def identify_invols(reader: CaptureReader, params: InvolsParams, warnings: list[
     """
     names = (params.z_channel, params.deflection_channel)
     info = reader.info
-    blocks = list(iter_chunks(reader, names, 1 << 20))
-    if not blocks:
-        raise InputError(f"{info.source}: the capture is empty")
-    z = np.concatenate([b.data[params.z_channel] for b in blocks])
-    d = np.concatenate([b.data[params.deflection_channel] for b in blocks])
+    # the leg and its contact point are found on the whole curve: it is kept (one float64 array per channel)
+    (curve,) = run_stream(reader, [RecordStage(names)], channels=names, chunk_samples=1 << 20)
+    z, d = curve[params.z_channel], curve[params.deflection_channel]
     z_units, d_units = info.units(params.z_channel), info.units(params.deflection_channel)
     for name, units in ((params.z_channel, z_units), (params.deflection_channel, d_units)):
         try:

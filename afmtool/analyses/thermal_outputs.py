@@ -9,39 +9,39 @@ from typing import NamedTuple
 
 import numpy as np
 
-from afmtool.analyses.gamma import (
-    CANONICAL_UNITS,
-    RunningMeans,
-    auto_nperseg,
-    canonical_scale,
-    resample_response,
-    responses_from_chunks,
-    scale_response,
-    sensing_summary,
-)
-from afmtool.analyses.thermal_sensor import (
-    IvIdentification,
-    KtpCurve,
-    ThermalDynamics,
-    ThermalModel,
-    identify_iv,
-    identify_z_curve,
-    thermal_dynamics,
-)
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import ThermalParams
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.frequency_response import FrequencyResponse, frf_table
+from afmtool.estimators.sensing_gamma import (
+    CANONICAL_UNITS,
+    auto_nperseg,
+    canonical_scale,
+    gamma_response_stage,
+    resample_response,
+    scale_response,
+    sensing_summary,
+)
+from afmtool.estimators.stages import ChannelMeans, RecordStage
+from afmtool.estimators.thermal_sensor import (
+    IvIdentification,
+    KtpCurve,
+    ThermalDynamics,
+    identify_iv,
+    identify_z_curve,
+    thermal_dynamics,
+)
 from afmtool.io.capture import CaptureReader
-from afmtool.io.chunks import iter_chunks, require_channels
+from afmtool.io.chunks import require_channels
 from afmtool.io.results import ResultWriter
+from afmtool.models.thermal_model import THERMAL_MODEL_FILE, ThermalModel, load_thermal_model
+from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
 __all__ = ["run_thermal_command", "load_thermal_model", "read_gamma_ir_ts", "GammaFile", "THERMAL_MODEL_FILE"]
 
-THERMAL_MODEL_FILE = "thermal_sensor.json"
 #: Most points drawn per scatter in the PNGs (the CSV tables keep every sample).
 _PLOT_POINTS = 20000
 #: Relative difference of the mean currents above which two sweeps are not at one operating point.
@@ -49,20 +49,6 @@ _SAME_POINT = 0.01
 
 
 # --------------------------------------------------------------------------- files in
-
-
-def load_thermal_model(path: Path) -> ThermalModel:
-    """``thermal_sensor.json`` (or the ``identify thermal`` folder holding it)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / THERMAL_MODEL_FILE
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such thermal sensor model") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: cannot read the thermal sensor model ({exc})") from None
-    return ThermalModel.from_dict(data.get("thermal_sensor", data))
 
 
 class GammaFile(NamedTuple):
@@ -111,14 +97,19 @@ def _scale(reader: CaptureReader, name: str, kind: str, warnings: list) -> float
 def _read_all(
     reader: CaptureReader, channels: dict[str, str], params: ThermalParams, progress, warnings: list
 ) -> dict[str, np.ndarray]:
-    """Whole quasi-static ramps (small captures) in SI units: A for currents, m for lengths, V for voltages."""
+    """Whole quasi-static ramps in SI units: A for currents, m for lengths, V for voltages.
+
+    The routes fit and write every sample (iv.csv, the K_TP scatter), so the
+    records are kept: memory one float64 array per channel read.
+    """
     require_channels(reader.info, tuple(channels))
     to_si = {"current": 1e-6, "length": 1e-9, "voltage": 1.0}
     scale = {name: _scale(reader, name, kind, warnings) * to_si[kind] for name, kind in channels.items()}
-    blocks = list(iter_chunks(reader, tuple(channels), params.chunk_samples, progress=progress))
-    if not blocks:
-        raise InputError(f"{reader.info.source}: the capture is empty")
-    return {name: np.concatenate([b.data[name] for b in blocks]) * scale[name] for name in channels}
+    (data,) = run_stream(reader, [RecordStage(tuple(channels))], channels=tuple(channels),
+                         chunk_samples=params.chunk_samples, progress=progress)
+    for name in channels:
+        data[name] *= scale[name]
+    return data
 
 
 # --------------------------------------------------------------------------- routes
@@ -178,12 +169,13 @@ def _vr_route(
     outputs = ["thermal_current"] + (["deflection"] if "deflection" in reader.info.channel_names else [])
     d_scale = _scale(reader, "deflection", "length", warnings) if "deflection" in outputs else 1.0
     nperseg = params.nperseg or auto_nperseg(reader.info.n_samples or 0)
-    chunks = RunningMeans(iter_chunks(reader, ("v_r", *outputs), params.chunk_samples, progress=progress))
-    responses = responses_from_chunks(
-        chunks, reader.info.sample_rate_hz, "v_r", outputs, method=method, nperseg=nperseg,
+    stage = gamma_response_stage(
+        "v_r", outputs, method=method, nperseg=nperseg,
         segments=reader.info.metadata.get("segments") if method == "stepped" else None,
         settle_fraction=params.settle_fraction, min_periods=params.min_periods,
     )
+    responses, chunks = run_stream(reader, [stage, ChannelMeans()], channels=("v_r", *outputs),
+                                   chunk_samples=params.chunk_samples, progress=progress)
     ir_vr = scale_response(responses["thermal_current"], i_scale / v_scale)  # µA/V
     ir_ts = None
     removed = False

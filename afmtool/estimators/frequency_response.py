@@ -64,6 +64,7 @@ __all__ = [
     "free_air_from_sweep",
     "free_air_from_response",
     "sweep_frequency_response",
+    "default_nperseg",
     "spectral_sweep_fit",
     "frf_table",
 ]
@@ -1512,6 +1513,14 @@ def spectral_sweep_fit(
     return free_air_from_response(fr, band=band, delay=delay)
 
 
+def default_nperseg(n_samples: int) -> int:
+    """Default H1 segment length for ``n_samples``: the largest power of two ≤ n/16, at least 256.
+
+    That is about 31 Welch averages at 50 % overlap.
+    """
+    return max(256, 1 << max(int(math.floor(math.log2(max(n_samples, 1) / 16))), 0))
+
+
 def sweep_frequency_response(
     dither,
     deflection,
@@ -1532,7 +1541,7 @@ def sweep_frequency_response(
             raise ConfigError("segments apply to method='stepped', not method='h1'")
         n = np.shape(dither)[0] if np.ndim(dither) else 0
         if nperseg is None:
-            nperseg = max(256, 1 << max(int(math.floor(math.log2(max(n, 1) / 16))), 0))
+            nperseg = default_nperseg(n)
         return h1_estimate(dither, deflection, fs, nperseg=nperseg)
     if method == "stepped":
         if segments is None:

@@ -13,8 +13,9 @@ From a sweep of V_sub near the sample (channels ``v_sub``,
   Γ_IR,V/Γ_ts,V (eq. 6.16), whose magnitude rises falsely at high frequency.
 
 The frequency responses come from :mod:`afmtool.estimators.frequency_response`
-(H1, streamed chunk by chunk through :class:`H1Accumulator`, or lock-in per
-stepped-sine segment).  Units are brought to µA, nm and V, so Γ_IR,ts is in
+(H1, streamed chunk by chunk through :class:`H1Accumulator`, or lock-in sums
+per stepped-sine segment), as a stage of :func:`afmtool.pipeline.run_stream`
+(:func:`gamma_response_stage`).  Units are brought to µA, nm and V, so Γ_IR,ts is in
 µA/nm, Γ_IR,V and Γ_sp in µA/V and Γ_ts,V in nm/V.  Nothing here reads or
 writes files; :mod:`afmtool.analyses.gamma_outputs` does.
 """
@@ -22,7 +23,7 @@ writes files; :mod:`afmtool.analyses.gamma_outputs` does.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -31,13 +32,13 @@ import numpy as np
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.frequency_response import (
     FrequencyResponse,
-    H1Accumulator,
     SineSegment,
     TransferFunctionFit,
+    default_nperseg,
     detect_segments,
     fit_transfer_function,
-    stepped_sine_response,
 )
+from afmtool.estimators.stages import ResponseStage, run_stages
 from afmtool.io.capture import Chunk
 
 __all__ = [
@@ -62,8 +63,7 @@ __all__ = [
     "FeedthroughFit",
     "fit_feedthrough",
     "auto_nperseg",
-    "RunningMeans",
-    "progress_offset",
+    "gamma_response_stage",
 ]
 
 #: Factors to the canonical units µA (current), nm (length) and V (voltage).
@@ -107,34 +107,41 @@ def _frozen(values) -> np.ndarray:
     return arr
 
 
-class RunningMeans:
-    """Pass chunks through while summing each channel, for the DC operating point of a sweep."""
-
-    def __init__(self, chunks: Iterable[Chunk]) -> None:
-        self._chunks = chunks
-        self.sums: dict[str, float] = {}
-        self.count = 0
-
-    def __iter__(self) -> Iterator[Chunk]:
-        for chunk in self._chunks:
-            for name, values in chunk.data.items():
-                self.sums[name] = self.sums.get(name, 0.0) + float(np.sum(values))
-            self.count += len(chunk)
-            yield chunk
-
-    def mean(self, name: str) -> float:
-        """Mean of channel ``name`` over the chunks passed so far."""
-        if self.count == 0:
-            raise InputError("no samples were read")
-        return self.sums[name] / self.count
-
-
 def auto_nperseg(n_samples: int) -> int:
     """Largest power of two ≤ n/16 (≈ 31 Welch averages at 50 % overlap), at least 256."""
-    return max(256, 1 << max(int(math.floor(math.log2(max(n_samples, 1) / 16))), 0))
+    return default_nperseg(n_samples)
 
 
 # --------------------------------------------------------------------------- estimation
+
+
+def gamma_response_stage(
+    x: str,
+    ys: Sequence[str],
+    *,
+    method: str,
+    nperseg: int,
+    segments: Sequence | None = None,
+    settle_fraction: float = 0.5,
+    min_periods: int = 4,
+) -> ResponseStage:
+    """The stage measuring the responses from channel ``x`` to each of ``ys`` for a Γ sweep.
+
+    ``"h1"``: Welch H1 per output (memory O(nperseg + chunk)).
+    ``"stepped"``: lock-in per step, the steps from ``segments`` (metadata;
+    memory O(steps)) or, when None, found in the drive by
+    :func:`detect_segments` and :func:`merge_split_steps` (the records are
+    then kept: memory one float64 array per channel).  See
+    :class:`~afmtool.estimators.stages.ResponseStage`.
+    """
+    return ResponseStage(
+        x, ys, method=method, nperseg=nperseg, segments=segments, find_steps=_find_steps,
+        settle_fraction=settle_fraction, min_periods=min_periods,
+    )
+
+
+def _find_steps(x: np.ndarray, sample_rate_hz: float) -> tuple[SineSegment, ...]:
+    return merge_split_steps(detect_segments(x, sample_rate_hz))
 
 
 def responses_from_chunks(
@@ -149,7 +156,7 @@ def responses_from_chunks(
     settle_fraction: float = 0.5,
     min_periods: int = 4,
 ) -> dict[str, FrequencyResponse]:
-    """Frequency responses from channel ``x`` to each channel of ``ys``, one pass over ``chunks``.
+    """Frequency responses from channel ``x`` to each channel of ``ys``, one pass over ``chunks`` in memory.
 
     Parameters
     ----------
@@ -157,48 +164,19 @@ def responses_from_chunks(
         Aligned blocks holding ``x`` and every name in ``ys``.
     sample_rate_hz : float
         Hz.
-    x : str
-        The input channel (the perturbed voltage).
-    ys : sequence of str
-        Output channels.
-    method : {"h1", "stepped"}
-        ``"h1"``: one :class:`H1Accumulator` per output, fed chunk by
-        chunk (memory O(nperseg + chunk)).  ``"stepped"``: the records are
-        gathered and demodulated per segment (:func:`stepped_sine_response`).
-    nperseg : int
-        H1 segment length.
-    segments : sequence, optional
-        Stepped-sine segments (metadata); detected from ``x`` when None.
-    settle_fraction, min_periods
-        Passed to :func:`stepped_sine_response`.
+    x, ys, method, nperseg, segments, settle_fraction, min_periods
+        As :func:`gamma_response_stage`, which this runs over ``chunks``
+        (a capture streams it through :func:`afmtool.pipeline.run_stream`).
 
     Returns
     -------
     dict
         Output channel → FrequencyResponse in the capture's units.
     """
-    if method == "h1":
-        accumulators = {y: H1Accumulator(sample_rate_hz, nperseg) for y in ys}
-        for chunk in chunks:
-            for y, acc in accumulators.items():
-                acc.add(chunk.data[x], chunk.data[y])
-        if any(acc.n_segments == 0 for acc in accumulators.values()):
-            raise InputError(f"the sweep is shorter than one H1 segment ({nperseg=} samples)")
-        return {y: acc.result() for y, acc in accumulators.items()}
-    if method != "stepped":
-        raise ConfigError(f"method={method!r} must be 'h1' or 'stepped'")
-    blocks = list(chunks)
-    records = {name: np.concatenate([c.data[name] for c in blocks]) for name in (x, *ys)}
-    if segments is None:
-        segments = merge_split_steps(detect_segments(records[x], sample_rate_hz))
-        if not segments:
-            raise InputError(f"no stepped-sine steps found in channel {x!r}; give segments in the metadata")
-    return {
-        y: stepped_sine_response(
-            records[x], records[y], sample_rate_hz, segments, settle_fraction=settle_fraction, min_periods=min_periods
-        )
-        for y in ys
-    }
+    stage = gamma_response_stage(x, ys, method=method, nperseg=nperseg, segments=segments,
+                                 settle_fraction=settle_fraction, min_periods=min_periods)
+    (responses,) = run_stages(chunks, [stage], sample_rate_hz)
+    return responses
 
 
 #: Touching detected steps closer in frequency than this fraction are one step split by edge ringing.
@@ -632,10 +610,3 @@ def fit_feedthrough(fr: FrequencyResponse, min_coherence: float) -> FeedthroughF
     a0 = fit.denominator[1]
     # Γ_sp(s) ≈ (b0 + b1·s)/a0 below the pole: the capacitive part b1/a0 (µA/V·s) = C_c·1e6
     return FeedthroughFit(b1 / a0 * 1e-6 * 1e12, a0 / (2 * math.pi), fit, (float(f[use].min()), float(f[use].max())))
-
-
-def progress_offset(progress: Callable[[int], None] | None, offset: int) -> Callable[[int], None] | None:
-    """A progress callback that adds ``offset`` samples (for a second capture)."""
-    if progress is None:
-        return None
-    return lambda done: progress(offset + done)

@@ -81,7 +81,9 @@ __all__ = [
     "SweepIdentification",
     "drive_switch_times",
     "fit_record_response",
+    "check_sweep_options",
     "identify_sweep",
+    "identify_sweep_response",
     "record_response_model",
     "record_start_values",
 ]
@@ -714,6 +716,9 @@ class SweepIdentification(NamedTuple):
     warnings : tuple of str
         What the user should know about the fit (e.g. drive switches not
         modelled).
+    response : FrequencyResponse or None
+        The measured response the spectral methods fitted (H1 or stepped
+        sine); None for ``"record"``, whose measurement is ``fit``'s own.
     """
 
     model: object
@@ -722,6 +727,7 @@ class SweepIdentification(NamedTuple):
     hold_reason: str
     fit: object
     warnings: tuple[str, ...] = ()
+    response: object = None
 
 
 def _auto_hold(continuous: RecordFit, sample_rate_hz: float) -> tuple[str, str]:
@@ -834,28 +840,54 @@ def identify_sweep(
     InputError
         For bad records, or one too short for the resonance's bandwidth.
     """
-    from afmtool.models.free_air import FreeAirModel
+    check_sweep_options(method, hold)
+    if method != "record":
+        from afmtool.estimators.frequency_response import sweep_frequency_response
 
+        fr = sweep_frequency_response(
+            dither, deflection, sample_rate_hz, method=method, segments=segments, nperseg=nperseg
+        )
+        return identify_sweep_response(fr, band=band, delay=delay)
+    if segments is not None or nperseg is not None:
+        raise ConfigError("segments and nperseg apply to method='h1' or 'stepped', not method='record'")
+    band = _check_band(band)
+    fit, chosen, reason, warnings = _record_route(dither, deflection, float(sample_rate_hz), delay, band, hold)
+    return SweepIdentification(_sweep_model(fit), method, chosen, reason, fit, warnings)
+
+
+def check_sweep_options(method: str, hold: str) -> None:
+    """Raise ConfigError for a ``method`` or ``hold`` that :func:`identify_sweep` refuses (before any data is read)."""
     if method not in SWEEP_METHODS:
         raise ConfigError(f"method={method!r} must be one of {SWEEP_METHODS}")
     if hold != "auto" and hold not in HOLDS:
         raise ConfigError(f"hold={hold!r} must be 'auto' or one of {HOLDS}")
-    if method != "record":
-        from afmtool.estimators.frequency_response import spectral_sweep_fit
+    if method != "record" and hold == "zoh":
+        raise ConfigError(f"hold='zoh' needs method='record'; method={method!r} fits the continuous model")
 
-        if hold == "zoh":
-            raise ConfigError(f"hold='zoh' needs method='record'; method={method!r} fits the continuous model")
-        fit = spectral_sweep_fit(
-            dither, deflection, sample_rate_hz, method=method, segments=segments, band=band, nperseg=nperseg,
-            delay=delay,
-        )
-        chosen, reason, warnings = "continuous", "the spectral fit's delay absorbs any hold", ()
-    else:
-        if segments is not None or nperseg is not None:
-            raise ConfigError("segments and nperseg apply to method='h1' or 'stepped', not method='record'")
-        band = _check_band(band)
-        fit, chosen, reason, warnings = _record_route(dither, deflection, float(sample_rate_hz), delay, band, hold)
-    model = FreeAirModel(
+
+def identify_sweep_response(fr, *, band: tuple[float, float] | None = None, delay: bool | float = True):
+    """The spectral methods of :func:`identify_sweep` from a response already measured.
+
+    ``fr`` is an H1 or stepped-sine :class:`~afmtool.estimators.frequency_response.FrequencyResponse`
+    of the sweep (e.g. accumulated chunk by chunk); the delayed second-order
+    model is fitted to it by
+    :func:`~afmtool.estimators.frequency_response.free_air_from_response`.
+    ``band`` and ``delay`` as in :func:`identify_sweep`.  The result carries
+    ``fr`` as its ``response``.
+    """
+    from afmtool.estimators.frequency_response import free_air_from_response
+
+    fit = free_air_from_response(fr, band=band, delay=delay)
+    return SweepIdentification(
+        _sweep_model(fit), fr.method, "continuous", "the spectral fit's delay absorbs any hold", fit, (), fr
+    )
+
+
+def _sweep_model(fit):
+    """The FreeAirModel (``source="sweep"``) of a record or second-order fit."""
+    from afmtool.models.free_air import FreeAirModel
+
+    return FreeAirModel(
         f0_hz=fit.f0_hz,
         q=fit.q,
         gain=fit.gain,
@@ -865,4 +897,3 @@ def identify_sweep(
         source="sweep",
         delay_s=fit.delay_s,
     )
-    return SweepIdentification(model, method, chosen, reason, fit, warnings)
