@@ -23,6 +23,9 @@ from afmtool.report.run import finish_run
 
 __all__ = ["run_freeair_command"]
 
+#: Samples per chunk of the free-air routes (read ahead two at a time).
+_CHUNK_SAMPLES = 1 << 20
+
 
 def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tuple[FreeAirModel, dict]:
     interval = parse_interval(params.free_air, "--free-air")
@@ -35,7 +38,7 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tu
     start, end = round(interval[0] * fs), round(interval[1] * fs)
     stage = SegmentStage(("deflection", "dither"), start, end)
     # the capture is read only up to the segment's end
-    (segment,) = run_stream(reader, [stage], channels=("deflection", "dither"), chunk_samples=1 << 20,
+    (segment,) = run_stream(reader, [stage], channels=("deflection", "dither"), chunk_samples=_CHUNK_SAMPLES,
                             progress=progress, prologue=stage.until_end)
     model = free_air_from_segment(segment["deflection"], segment["dither"], fs)
     return model, {"segment_s": list(interval), "segment_samples": end - start}
@@ -114,7 +117,7 @@ def _identify_sweep(reader: CaptureReader, params: FreeAirParams, progress):
     check_sweep_options(params.sweep_method, params.drive_hold)
     stage = _sweep_stage(reader, params)
     measured, means = run_stream(reader, [stage, ChannelMeans()], channels=("dither", "deflection"),
-                                 chunk_samples=1 << 20, progress=progress)
+                                 chunk_samples=_CHUNK_SAMPLES, progress=progress)
     if isinstance(stage, ResponseStage):
         return identify_sweep_response(measured["deflection"]), means.count
     segments = reader.info.metadata.get("segments") if params.sweep_method == "stepped" else None

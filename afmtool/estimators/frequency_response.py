@@ -619,7 +619,8 @@ class _LockInSums:
         shifted = values - self.shift
         self.s1 += float(np.sum(shifted))
         self.s2 += float(np.dot(shifted, shifted))
-        self.p += complex(np.dot(shifted, phasor))
+        # two real dots: numpy's float-by-complex dot takes a slow generic loop (50x slower here)
+        self.p += complex(float(np.dot(shifted, phasor.real)), float(np.dot(shifted, phasor.imag)))
         self.e += complex(np.sum(phasor))
         self.n += values.size
 
