@@ -319,11 +319,10 @@ class ProbeLossStage:
     def finish(self) -> tuple[Events, Events]:
         """The loss events of the index and of the amplitude baseline, in capture samples."""
         index_events = Events.concatenate([*self.index_events, runs_finish(self.index_runs, self.n_samples)])
-        # amplitude runs are counted in kept samples; the k-th kept sample is n = decimate − 1 + k·decimate
+        # amplitude runs are counted in kept samples (Decimation.index_of_kept maps them to capture samples)
         amp_runs = Events.concatenate([*self.amp_events, runs_finish(self.amp_runs, self.kept_seen)])
-        decimate = self.setup.decimate
-        start = decimate - 1 + amp_runs.start * decimate
-        end = np.minimum(decimate - 1 + amp_runs.end * decimate, self.n_samples)
+        start = self.decimation.index_of_kept(amp_runs.start)
+        end = np.minimum(self.decimation.index_of_kept(amp_runs.end), self.n_samples)
         return index_events, Events(start, end)
 
 
