@@ -275,12 +275,7 @@ class _Tuning(NamedTuple):
 def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: int) -> _Tuning:
     """Measurement noise, ℓ0 and process noise: given, or from the nominal segment."""
     from afmtool.estimators.ekf import EkfModel, thermal_force_asd
-    from afmtool.estimators.ekf_tuning import (
-        estimate_l0,
-        estimate_measurement_noise,
-        estimate_process_noise,
-        innovation_stats,
-    )
+    from afmtool.estimators.ekf_tuning import estimate_process_noise, innovation_stats
 
     warnings: list[str] = []
     es = setup.electrostatic
@@ -296,53 +291,16 @@ def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: i
                 f"{', '.join(missing)}; or give them"
             )
     y, v = segment if segment is not None else (None, None)
-    if params.measurement_noise_nm:
-        r_nm, noise["measurement_source"] = params.measurement_noise_nm, "parameter"
-    else:
-        if 0.3 * fs < 3.0 * setup.f0_hz:
-            raise ConfigError(
-                f"the PSD floor above 0.3·fs = {0.3 * fs:g} Hz is not clear of the resonance f0 = {setup.f0_hz:g} Hz; "
-                "give --measurement-noise"
-            )
-        r_nm, noise["measurement_source"] = estimate_measurement_noise(y, fs), "PSD floor of the nominal segment"
-        if not r_nm >= _MIN_MEASUREMENT_NOISE_NM:
-            warnings.append(
-                f"the deflection's noise floor is {r_nm:.3g} nm (a noise-free capture?); the EKF assumes "
-                f"{_MIN_MEASUREMENT_NOISE_NM:g} nm"
-            )
-            r_nm = _MIN_MEASUREMENT_NOISE_NM
-    noise["measurement_noise_nm"] = r_nm
+    r_nm = _measurement_noise(setup, params, fs, y, noise, warnings)
     q_start = params.process_noise_n_per_rthz or thermal
     if not q_start > 0:
         raise ConfigError("the process noise is 0: give --process-noise or a temperature_k > 0")
     model = EkfModel(setup.f0_hz, setup.q, es, q_start, r_nm)
-    l0_result: dict
-    curve = None
     if params.l0_nm:
-        l0_result = {"estimate_nm": params.l0_nm, "source": "parameter"}
+        l0_result: dict = {"estimate_nm": params.l0_nm, "source": "parameter"}
+        curve = None
     else:
-        if params.l0_bracket_nm:
-            low, high = parse_bracket_nm(params.l0_bracket_nm)
-        else:
-            guess = es.l0_m * 1e9
-            low, high = max(0.75 * guess, 1.01 * es.tip_height_m * 1e9), 1.33 * guess
-        search = estimate_l0(
-            model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup
-        )
-        model = model.with_l0(search.l0_m)
-        curve = (search.curve_l0_m * 1e9, search.curve_rms_nm)
-        l0_result = {
-            "estimate_nm": search.l0_m * 1e9,
-            "source": "innovation RMS minimum on the nominal segment (§7.4)",
-            "rms_at_minimum_nm": search.rms_nm,
-            "bracket_nm": [low, high],
-            "grid_points": search.grid_points,
-            "evaluations": int(search.curve_l0_m.size),
-            "unique_minimum": search.unique,
-            "process_noise_used_n_per_rthz": q_start,
-        }
-        if not search.unique:
-            warnings.append(f"l0: no unique minimum of the innovation RMS: {search.note}")
+        model, l0_result, curve = _search_l0(model, params, es, segment, fs, warmup, warnings)
     if params.process_noise_n_per_rthz:
         noise["process_noise_n_per_rthz"], noise["process_source"] = params.process_noise_n_per_rthz, "parameter"
     else:
@@ -360,6 +318,58 @@ def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: i
         noise["nominal_innovation_rms_nm"] = stats.rms_nm
         noise["nominal_mean_nis"] = stats.mean_nis
     return _Tuning(model, {"l0": l0_result, "noise": noise}, curve, warnings)
+
+
+def _measurement_noise(setup: ModelSetup, params: DecodeParams, fs: float, y, noise: dict, warnings: list) -> float:
+    """R of the EKF, nm: given, or the PSD floor of the nominal segment (recorded in ``noise``)."""
+    from afmtool.estimators.ekf_tuning import estimate_measurement_noise
+
+    if params.measurement_noise_nm:
+        r_nm, noise["measurement_source"] = params.measurement_noise_nm, "parameter"
+    else:
+        if 0.3 * fs < 3.0 * setup.f0_hz:
+            raise ConfigError(
+                f"the PSD floor above 0.3·fs = {0.3 * fs:g} Hz is not clear of the resonance f0 = {setup.f0_hz:g} Hz; "
+                "give --measurement-noise"
+            )
+        r_nm, noise["measurement_source"] = estimate_measurement_noise(y, fs), "PSD floor of the nominal segment"
+        if not r_nm >= _MIN_MEASUREMENT_NOISE_NM:
+            warnings.append(
+                f"the deflection's noise floor is {r_nm:.3g} nm (a noise-free capture?); the EKF assumes "
+                f"{_MIN_MEASUREMENT_NOISE_NM:g} nm"
+            )
+            r_nm = _MIN_MEASUREMENT_NOISE_NM
+    noise["measurement_noise_nm"] = r_nm
+    return r_nm
+
+
+def _search_l0(model, params: DecodeParams, es: ElectrostaticParams, segment, fs: float, warmup: int,
+               warnings: list) -> tuple:
+    """ℓ0 by §7.4 on the nominal segment: (model with it, the report's ``l0``, the RMS curve in nm)."""
+    from afmtool.estimators.ekf_tuning import estimate_l0
+
+    y, v = segment
+    if params.l0_bracket_nm:
+        low, high = parse_bracket_nm(params.l0_bracket_nm)
+    else:
+        guess = es.l0_m * 1e9
+        low, high = max(0.75 * guess, 1.01 * es.tip_height_m * 1e9), 1.33 * guess
+    search = estimate_l0(
+        model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup
+    )
+    l0_result = {
+        "estimate_nm": search.l0_m * 1e9,
+        "source": "innovation RMS minimum on the nominal segment (§7.4)",
+        "rms_at_minimum_nm": search.rms_nm,
+        "bracket_nm": [low, high],
+        "grid_points": search.grid_points,
+        "evaluations": int(search.curve_l0_m.size),
+        "unique_minimum": search.unique,
+        "process_noise_used_n_per_rthz": model.process_noise_n_per_rthz,
+    }
+    if not search.unique:
+        warnings.append(f"l0: no unique minimum of the innovation RMS: {search.note}")
+    return model.with_l0(search.l0_m), l0_result, (search.curve_l0_m * 1e9, search.curve_rms_nm)
 
 
 def _group_delay_samples(lowpass_hz: float, order: int, fs: float) -> float:
