@@ -63,13 +63,21 @@ class Decimation:
         """Offset, within a chunk starting at sample ``start``, of its first kept sample."""
         return (-(int(start) + 1)) % self.every
 
+    def keep(self, start: int) -> slice:
+        """The kept samples of a chunk starting at sample ``start``, as a slice (``values[..., keep]``)."""
+        return slice(self.first_kept(start), None, self.every)
+
     def take(self, values: np.ndarray, start: int) -> np.ndarray:
         """The kept samples of ``values``, a chunk starting at sample ``start``: ``values[first_kept::every]``."""
-        return values[self.first_kept(start) :: self.every]
+        return values[self.keep(start)]
 
     def kept_index(self, start: int, n: int) -> np.ndarray:
         """Capture indices (int64) of the kept samples in [start, start + n)."""
         return np.arange(start + self.first_kept(start), start + n, self.every, dtype=np.int64)
+
+    def index_of_kept(self, k):
+        """Capture index of the k-th kept sample of the stream (k from 0; int or integer array)."""
+        return k * self.every + (self.every - 1)
 
     def count(self, start: int, n: int) -> int:
         """How many samples of [start, start + n) are kept."""

@@ -180,8 +180,12 @@ def test_decimation_matches_the_naive_rule(rng: np.random.Generator) -> None:
         assert decimation.count(start, n) == len(expected)
         values = np.arange(start, start + n)
         assert decimation.take(values, start).tolist() == expected
+        assert np.vstack([values, values])[:, decimation.keep(start)].tolist() == [expected, expected]
         if expected:
             assert start + decimation.first_kept(start) == expected[0]
+    every = 7
+    whole = _naive_kept(0, 100, every)
+    assert Decimation(every).index_of_kept(np.arange(len(whole))).tolist() == whole
 
 
 def test_decimation_over_chunks_is_the_decimation_of_the_whole(rng: np.random.Generator) -> None:

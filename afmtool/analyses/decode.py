@@ -21,20 +21,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator, Mapping
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from afmtool.analyses.freeair import read_segment, replay_held
+from afmtool.analyses.freeair import read_segment
 from afmtool.config.params import DecodeParams, parse_bracket_nm, parse_interval
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
-from afmtool.io.chunks import iter_chunks
-from afmtool.io.prefetch import prefetch
 from afmtool.io.results import ResultWriter
 from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, LeverVoltages, actuation_voltage
+from afmtool.pipeline import Decimation, Head, run_stream
 
 if TYPE_CHECKING:  # numba and scipy load when a decode runs, not on import
     from afmtool.estimators.lockin import LockIn
@@ -277,12 +275,7 @@ class _Tuning(NamedTuple):
 def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: int) -> _Tuning:
     """Measurement noise, ℓ0 and process noise: given, or from the nominal segment."""
     from afmtool.estimators.ekf import EkfModel, thermal_force_asd
-    from afmtool.estimators.ekf_tuning import (
-        estimate_l0,
-        estimate_measurement_noise,
-        estimate_process_noise,
-        innovation_stats,
-    )
+    from afmtool.estimators.ekf_tuning import estimate_process_noise, innovation_stats
 
     warnings: list[str] = []
     es = setup.electrostatic
@@ -298,53 +291,16 @@ def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: i
                 f"{', '.join(missing)}; or give them"
             )
     y, v = segment if segment is not None else (None, None)
-    if params.measurement_noise_nm:
-        r_nm, noise["measurement_source"] = params.measurement_noise_nm, "parameter"
-    else:
-        if 0.3 * fs < 3.0 * setup.f0_hz:
-            raise ConfigError(
-                f"the PSD floor above 0.3·fs = {0.3 * fs:g} Hz is not clear of the resonance f0 = {setup.f0_hz:g} Hz; "
-                "give --measurement-noise"
-            )
-        r_nm, noise["measurement_source"] = estimate_measurement_noise(y, fs), "PSD floor of the nominal segment"
-        if not r_nm >= _MIN_MEASUREMENT_NOISE_NM:
-            warnings.append(
-                f"the deflection's noise floor is {r_nm:.3g} nm (a noise-free capture?); the EKF assumes "
-                f"{_MIN_MEASUREMENT_NOISE_NM:g} nm"
-            )
-            r_nm = _MIN_MEASUREMENT_NOISE_NM
-    noise["measurement_noise_nm"] = r_nm
+    r_nm = _measurement_noise(setup, params, fs, y, noise, warnings)
     q_start = params.process_noise_n_per_rthz or thermal
     if not q_start > 0:
         raise ConfigError("the process noise is 0: give --process-noise or a temperature_k > 0")
     model = EkfModel(setup.f0_hz, setup.q, es, q_start, r_nm)
-    l0_result: dict
-    curve = None
     if params.l0_nm:
-        l0_result = {"estimate_nm": params.l0_nm, "source": "parameter"}
+        l0_result: dict = {"estimate_nm": params.l0_nm, "source": "parameter"}
+        curve = None
     else:
-        if params.l0_bracket_nm:
-            low, high = parse_bracket_nm(params.l0_bracket_nm)
-        else:
-            guess = es.l0_m * 1e9
-            low, high = max(0.75 * guess, 1.01 * es.tip_height_m * 1e9), 1.33 * guess
-        search = estimate_l0(
-            model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup
-        )
-        model = model.with_l0(search.l0_m)
-        curve = (search.curve_l0_m * 1e9, search.curve_rms_nm)
-        l0_result = {
-            "estimate_nm": search.l0_m * 1e9,
-            "source": "innovation RMS minimum on the nominal segment (§7.4)",
-            "rms_at_minimum_nm": search.rms_nm,
-            "bracket_nm": [low, high],
-            "grid_points": search.grid_points,
-            "evaluations": int(search.curve_l0_m.size),
-            "unique_minimum": search.unique,
-            "process_noise_used_n_per_rthz": q_start,
-        }
-        if not search.unique:
-            warnings.append(f"l0: no unique minimum of the innovation RMS: {search.note}")
+        model, l0_result, curve = _search_l0(model, params, es, segment, fs, warmup, warnings)
     if params.process_noise_n_per_rthz:
         noise["process_noise_n_per_rthz"], noise["process_source"] = params.process_noise_n_per_rthz, "parameter"
     else:
@@ -362,6 +318,58 @@ def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: i
         noise["nominal_innovation_rms_nm"] = stats.rms_nm
         noise["nominal_mean_nis"] = stats.mean_nis
     return _Tuning(model, {"l0": l0_result, "noise": noise}, curve, warnings)
+
+
+def _measurement_noise(setup: ModelSetup, params: DecodeParams, fs: float, y, noise: dict, warnings: list) -> float:
+    """R of the EKF, nm: given, or the PSD floor of the nominal segment (recorded in ``noise``)."""
+    from afmtool.estimators.ekf_tuning import estimate_measurement_noise
+
+    if params.measurement_noise_nm:
+        r_nm, noise["measurement_source"] = params.measurement_noise_nm, "parameter"
+    else:
+        if 0.3 * fs < 3.0 * setup.f0_hz:
+            raise ConfigError(
+                f"the PSD floor above 0.3·fs = {0.3 * fs:g} Hz is not clear of the resonance f0 = {setup.f0_hz:g} Hz; "
+                "give --measurement-noise"
+            )
+        r_nm, noise["measurement_source"] = estimate_measurement_noise(y, fs), "PSD floor of the nominal segment"
+        if not r_nm >= _MIN_MEASUREMENT_NOISE_NM:
+            warnings.append(
+                f"the deflection's noise floor is {r_nm:.3g} nm (a noise-free capture?); the EKF assumes "
+                f"{_MIN_MEASUREMENT_NOISE_NM:g} nm"
+            )
+            r_nm = _MIN_MEASUREMENT_NOISE_NM
+    noise["measurement_noise_nm"] = r_nm
+    return r_nm
+
+
+def _search_l0(model, params: DecodeParams, es: ElectrostaticParams, segment, fs: float, warmup: int,
+               warnings: list) -> tuple:
+    """ℓ0 by §7.4 on the nominal segment: (model with it, the report's ``l0``, the RMS curve in nm)."""
+    from afmtool.estimators.ekf_tuning import estimate_l0
+
+    y, v = segment
+    if params.l0_bracket_nm:
+        low, high = parse_bracket_nm(params.l0_bracket_nm)
+    else:
+        guess = es.l0_m * 1e9
+        low, high = max(0.75 * guess, 1.01 * es.tip_height_m * 1e9), 1.33 * guess
+    search = estimate_l0(
+        model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup
+    )
+    l0_result = {
+        "estimate_nm": search.l0_m * 1e9,
+        "source": "innovation RMS minimum on the nominal segment (§7.4)",
+        "rms_at_minimum_nm": search.rms_nm,
+        "bracket_nm": [low, high],
+        "grid_points": search.grid_points,
+        "evaluations": int(search.curve_l0_m.size),
+        "unique_minimum": search.unique,
+        "process_noise_used_n_per_rthz": model.process_noise_n_per_rthz,
+    }
+    if not search.unique:
+        warnings.append(f"l0: no unique minimum of the innovation RMS: {search.note}")
+    return model.with_l0(search.l0_m), l0_result, (search.curve_l0_m * 1e9, search.curve_rms_nm)
 
 
 def _group_delay_samples(lowpass_hz: float, order: int, fs: float) -> float:
@@ -506,7 +514,7 @@ class _Hold:
         self.last = 0.0
 
     def __call__(self, start: int, n: int, kept: np.ndarray) -> np.ndarray:
-        first = (-(start + 1)) % self.keep
+        first = Decimation(self.keep).first_kept(start)
         out = np.empty(n)
         out[: min(first, n)] = self.last
         if kept.size:
@@ -583,45 +591,20 @@ def run_decode(
     -------
     DecodeResult
     """
-    from afmtool.estimators.ekf import discretise
-
     info = reader.info
     fs = info.sample_rate_hz
     setup = resolve_model(info, params)
     if setup.f0_hz >= fs / 2:
         raise InputError(f"f0 = {setup.f0_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
     channels = ("deflection",) + ((params.voltage_channel,) if params.voltage_channel else ("v_sub", "v_r"))
-    chunks: Iterator[Chunk] = iter_chunks(reader, channels, params.chunk_samples, progress=progress)
-    nominal = _nominal_interval(info, params)
-    segment = None
-    if nominal is not None:
-        held, chunks = read_segment(chunks, channels, round(nominal[0] * fs), round(nominal[1] * fs))
-        segment = (held["deflection"], _voltage(held, params, setup.electrostatic.alpha_r))
-        del held
-    first = next(chunks, None)
-    if first is None:
-        raise InputError(f"{info.source}: the capture has no samples")
-    probe = segment[1] if segment is not None else _voltage(first.data, params, setup.electrostatic.alpha_r)
-    actuation_hz, actuation_source = _actuation_hz(info, params, probe)
-    if not 0 < actuation_hz < fs / 2:
-        raise InputError(f"actuation frequency {actuation_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
-    mean_window = params.mean_window or max(1, int(round(fs / actuation_hz)))
-    warmup = int(round(params.warmup_s * fs))
-    if segment is not None and warmup >= len(segment[0]) // 2:
-        raise ConfigError(f"warmup_s={params.warmup_s!r} leaves too little of the {len(segment[0])}-sample nominal segment")
-    tuning = _tune(setup, params, fs, segment, warmup)
-    del segment, probe
-    design = discretise(tuning.model, fs, mean_window)
-    if params.bits_from_s >= 0:
-        bits_start = int(round(params.bits_from_s * fs))
-    else:
-        bits_start = round(nominal[1] * fs) if nominal is not None else 0
-    baseline = _Baseline.create(params, fs, actuation_hz, mean_window)
-    stage = _BitStage(fs, bits_start, params, actuation_hz, baseline.delay_primary, baseline.delay_aux)
-    psd = _PsdBuffer(bits_start, int(round(params.psd_window_s * fs)))
-    if on_stream_start is not None:
-        on_stream_start()
-    totals = _stream(replay_held([first], chunks), design, baseline, stage, psd, writer, params, setup, bits_start)
+    decoding = _DecodeStage(info, params, setup, channels, on_stream_start)
+    (totals,) = run_stream(
+        reader, [decoding], writer, channels=channels, chunk_samples=params.chunk_samples, progress=progress,
+        prologue=decoding.nominal_prologue, read_ahead=_READ_AHEAD,
+    )
+    tuning, stage, nominal, mean_window = decoding.tuning, decoding.bits, decoding.nominal, decoding.mean_window
+    baseline, psd, bits_start = decoding.baseline, decoding.psd, decoding.bits_start
+    actuation_hz, actuation_source = decoding.actuation_hz, decoding.actuation_source
     warnings = list(tuning.warnings)
     decided = _decide(stage, params, mean_window, writer, warnings)
     if tuning.l0_curve_nm is not None:
@@ -705,40 +688,106 @@ class _Totals(NamedTuple):
     bit_stream_rms_nm: float | None
 
 
-def _stream(chunks, design, baseline: _Baseline, stage: _BitStage, psd: _PsdBuffer, writer,  # noqa: PLR0913
-            params: DecodeParams, setup: ModelSetup, bits_start: int) -> _Totals:
-    """EKF and lock-in over every chunk; the lock-in runs in a worker thread (both kernels release the GIL)."""
-    from afmtool.estimators.ekf import EkfState, ekf_update
+class _DecodeStage:
+    """The EKF and the lock-in baseline as a :mod:`afmtool.pipeline` stage.
 
-    fs = design.sample_rate_hz
-    window = design.mean_window
-    ekf_state = EkfState.initial(design, stats_from=bits_start)  # the kernel sums ε² over the bit stream
-    lock_state = baseline.lockin.initial_state(1)
-    held = _Hold(baseline.keep)
-    n_total = 0
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        for chunk in prefetch(chunks, _READ_AHEAD):
-            y = chunk.data["deflection"]
-            n = len(y)
-            demodulating = pool.submit(baseline.lockin.process, (y,), lock_state, baseline.keep)
-            step = ekf_update(design, ekf_state, y, _lever_voltages(chunk.data, params, setup.electrostatic.alpha_r))
-            ekf_state = step.state
-            innovation, mean = step.block
-            # Per sample, t = n / sample_rate_hz (a root attribute of decode.h5), and float32: its
-            # resolution (~1e-7 of the value) is far below the measurement noise, and at 1e8 samples
-            # a float64 series with its t column was 1.6 GB to write.
-            writer.append({"innovation": innovation.astype(np.float32)})
-            kept = np.arange((-(chunk.start + 1)) % window, n, window)
-            writer.append({"t_mean": (chunk.start + kept) / fs, "innovation_mean": mean[kept]})
-            psd.feed(chunk.start, y, innovation)
-            (demod,), lock_state = demodulating.result()
-            stage.feed(chunk.start, mean, held(chunk.start, n, demod.amplitude))
-            n_total = chunk.start + n
-    stage.finish()
-    if stage.clock is None:
-        raise InputError(f"the bit stream (from {bits_start / fs:g} s) is empty; check --bits-from")
-    stats = ekf_state.stats()
-    return _Totals(n_total, stats.rms_nm if stats.count else None)
+    ``nominal_prologue`` reads the nominal segment ahead; ``prepare`` tunes
+    the EKF on it (ℓ0, noise) and sets the clock, the baseline and the PSD
+    buffer up; ``step`` runs the EKF here and the lock-in on the side
+    thread (both kernels release the GIL); ``finish`` returns the totals.
+    """
+
+    def __init__(self, info: CaptureInfo, params: DecodeParams, setup: ModelSetup, channels: tuple[str, ...],
+                 on_stream_start: Callable[[], None] | None) -> None:
+        self.info = info
+        self.params = params
+        self.setup = setup
+        self.channels = channels
+        self.on_stream_start = on_stream_start
+        self.fs = info.sample_rate_hz
+        self.nominal = _nominal_interval(info, params)
+        self.segment = None
+        self.n_total = 0
+
+    def nominal_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:
+        """Read the nominal segment ahead (when there is one); hand the whole stream on."""
+        if self.nominal is not None:
+            fs, alpha_r = self.fs, self.setup.electrostatic.alpha_r
+            held, chunks = read_segment(chunks, self.channels, round(self.nominal[0] * fs), round(self.nominal[1] * fs))
+            self.segment = (held["deflection"], _voltage(held, self.params, alpha_r))
+            del held
+        return chunks
+
+    def prepare(self, head: Head) -> None:
+        """Actuation, tuning (ℓ0, noise), the EKF design, the clock, baseline and PSD buffer."""
+        from afmtool.estimators.ekf import EkfState, discretise
+
+        params, fs, setup, segment, nominal = self.params, self.fs, self.setup, self.segment, self.nominal
+        probe = segment[1] if segment is not None else _voltage(head.first.data, params, setup.electrostatic.alpha_r)
+        self.actuation_hz, self.actuation_source = _actuation_hz(self.info, params, probe)
+        if not 0 < self.actuation_hz < fs / 2:
+            raise InputError(
+                f"actuation frequency {self.actuation_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz"
+            )
+        self.mean_window = params.mean_window or max(1, int(round(fs / self.actuation_hz)))
+        warmup = int(round(params.warmup_s * fs))
+        if segment is not None and warmup >= len(segment[0]) // 2:
+            raise ConfigError(
+                f"warmup_s={params.warmup_s!r} leaves too little of the {len(segment[0])}-sample nominal segment"
+            )
+        self.tuning = _tune(setup, params, fs, segment, warmup)
+        self.segment = None
+        self.design = discretise(self.tuning.model, fs, self.mean_window)
+        if params.bits_from_s >= 0:
+            self.bits_start = int(round(params.bits_from_s * fs))
+        else:
+            self.bits_start = round(nominal[1] * fs) if nominal is not None else 0
+        self.baseline = _Baseline.create(params, fs, self.actuation_hz, self.mean_window)
+        self.bits = _BitStage(fs, self.bits_start, params, self.actuation_hz, self.baseline.delay_primary,
+                              self.baseline.delay_aux)
+        self.psd = _PsdBuffer(self.bits_start, int(round(params.psd_window_s * fs)))
+        self.ekf_state = EkfState.initial(self.design, stats_from=self.bits_start)  # sums ε² over the bit stream
+        self.lock_state = self.baseline.lockin.initial_state(1)
+        self.held = _Hold(self.baseline.keep)
+        self.mean_kept = Decimation(self.design.mean_window)
+        self.side = head.side
+        if self.on_stream_start is not None:
+            self.on_stream_start()
+
+    def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
+        """The innovation per sample and its running mean at the end of each window."""
+        from afmtool.estimators.ekf import ekf_update
+
+        y = chunk.data["deflection"]
+        n = len(y)
+        demodulating = self.side.submit(self.baseline.lockin.process, (y,), self.lock_state, self.baseline.keep)
+        step = ekf_update(
+            self.design, self.ekf_state, y, _lever_voltages(chunk.data, self.params, self.setup.electrostatic.alpha_r)
+        )
+        self.ekf_state = step.state
+        innovation, mean = step.block
+        kept = self.mean_kept.kept_index(chunk.start, n)
+        # Per sample, t = n / sample_rate_hz (a root attribute of decode.h5), and float32: its
+        # resolution (~1e-7 of the value) is far below the measurement noise, and at 1e8 samples
+        # a float64 series with its t column was 1.6 GB to write.
+        columns = {
+            "innovation": innovation.astype(np.float32),
+            "t_mean": kept / self.fs,
+            "innovation_mean": self.mean_kept.take(mean, chunk.start),
+        }
+        self.psd.feed(chunk.start, y, innovation)
+        (demod,), self.lock_state = demodulating.result()
+        self.bits.feed(chunk.start, mean, self.held(chunk.start, n, demod.amplitude))
+        self.n_total = chunk.start + n
+        return columns
+
+    def finish(self) -> _Totals:
+        """Close the last bit cell; the sample count and the bit stream's innovation RMS."""
+        self.bits.finish()
+        if self.bits.clock is None:
+            raise InputError(f"the bit stream (from {self.bits_start / self.fs:g} s) is empty; check --bits-from")
+        stats = self.ekf_state.stats()
+        return _Totals(self.n_total, stats.rms_nm if stats.count else None)
 
 
 class _Decided(NamedTuple):

@@ -63,7 +63,7 @@ def run_decode_stream(reader: CaptureReader, config: Path | None, flags: Mapping
     Per-sample innovation rows at MHz rates would swamp a pipe; one row per
     actuation period is what a live display needs.
     """
-    run_stream(run_decode, DecodeParams, "decode", reader, config, flags, fmt, rows_with="innovation_mean")
+    run_stream(run_decode, DecodeParams, "decode", reader, config, flags, fmt, row_columns=("t_mean", "innovation_mean"))
 
 
 def _write_time_series(staged: OutputDir, reader: CaptureReader, results: Mapping) -> None:

@@ -90,8 +90,9 @@ from afmtool.analyses.kalman_bank_verdict import (
 from afmtool.config.params import KalmanBankParams
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
-from afmtool.io.chunks import iter_chunks, require_channels
+from afmtool.io.chunks import require_channels
 from afmtool.models.free_air import FreeAirModel
+from afmtool.pipeline import Decimation, Head, Warmup, run_stream
 
 __all__ = ["SERIES_UNITS", "KalmanBankResult", "BankSetup", "build_bank", "run_kalman_bank"]
 
@@ -287,17 +288,53 @@ def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
 
 
 class _PassTwo:
-    """Pass 2's carried state: observers, REEP, delay lines, accumulators, counters."""
+    """Pass 2 as a :mod:`afmtool.pipeline` stage: observers, REEP, delay lines, accumulators, counters.
 
-    def __init__(self, setup: BankSetup, coefficients, params: KalmanBankParams, fs: float) -> None:
+    The bank's kernel runs on the side thread while REEP and the adaptive
+    observer run on this one (the kernels release the GIL; their states are
+    apart, so the result does not depend on the threads).
+    """
+
+    def __init__(self, reader: CaptureReader, params: KalmanBankParams, *, model: FreeAirModel | None, lam: float,
+                 tables, segment_s, route, reep_results) -> None:
+        self.reader = reader
+        self.params = params
+        self.model = model
+        self.lam = lam
+        self.tables = tables
+        self.segment_s = segment_s
+        self.route = route
+        self.route_warnings: tuple[str, ...] = ()
+        self.reep_results = reep_results
+        self.fs = reader.info.sample_rate_hz
+        self.n_total = 0
+
+    def free_air_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:
+        """Identify the free-air model when none is known yet (its segment read ahead)."""
+        if self.model is None:
+            self.model, chunks, self.segment_s, self.route, self.route_warnings = _identify_free_air(
+                self.reader, self.params, chunks
+            )
+        return chunks
+
+    def prepare(self, head: Head) -> None:
+        """Build the bank and the adaptive observer; REEP's coefficients internal or held from ``--reep``."""
         from afmtool.estimators.observer import AdaptiveState, BankState
 
-        numerator = setup.model.numerator_at(fs)
+        fs, params, model, reep_results = self.fs, self.params, self.model, self.reep_results
+        setup = _setup(self.reader, params, model, self.segment_s, self.lam, self.tables)
         self.setup = setup
-        self.fs = fs
+        self.coefficients = (
+            HeldReepCoefficients(reep_results.series["t"], reep_results.series["b1"], reep_results.series["b0"], fs)
+            if reep_results is not None
+            else InternalReep(self.lam, model.numerator_at(fs))
+        )
+        self.decimation = Decimation(setup.decimate)
+        self.warmup = Warmup(setup.warmup)
+        self.side = head.side
         self.bank = BankState.initial(setup.designs, setup.window)
-        self.adaptive = AdaptiveState.initial(numerator, setup.model.denominator_at(fs), setup.radius, setup.window)
-        self.coefficients = coefficients
+        self.adaptive = AdaptiveState.initial(model.numerator_at(fs), model.denominator_at(fs), setup.radius,
+                                              setup.window)
         self.z_delay = DelayLine(setup.rms_delay)
         names = tuple(f"rms_{k}" for k in range(len(setup.designs))) + ("adaptive", "lowest")
         self.accumulator = ForceCurveAccumulator(params.z_bin, names)
@@ -307,29 +344,29 @@ class _PassTwo:
         self.z_travel = 0.0  # Σ|Δz| between kept samples
         self.moving = 0  # kept samples whose z moved
         self.last_z = math.nan
-        self.n_total = 0
 
-    def process(self, chunk: Chunk, writer) -> None:
-        """One chunk: observers, kept samples to ``writer``, statistics."""
+    def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
+        """One chunk: observers; the kept samples' columns for the writer; statistics."""
         from afmtool.estimators.observer import adaptive_update, bank_update
         from afmtool.models.discretisation import resonance_from_denominator
 
         y, g = chunk.data["deflection"], chunk.data["dither"]
-        b1, b0 = self.coefficients.block(chunk)
-        bank_step = bank_update(self.bank, y, g)
-        adaptive_step = adaptive_update(self.adaptive, y, g, b1, b0)
+        banking = self.side.submit(bank_update, self.bank, y, g)
+        try:
+            b1, b0 = self.coefficients.block(chunk)
+            adaptive_step = adaptive_update(self.adaptive, y, g, b1, b0)
+        finally:
+            bank_step = banking.result()
         self.bank, self.adaptive = bank_step.state, adaptive_step.state
         z_rms = self.z_delay(chunk.data["z_piezo"])
-        # kept samples: n with (n + 1) % decimate == 0, as REEP keeps them
-        keep = slice((-(chunk.start + 1)) % self.setup.decimate, None, self.setup.decimate)
-        index = np.arange(chunk.start, chunk.start + len(y))[keep]
+        keep = self.decimation.keep(chunk.start)  # the samples REEP keeps
+        index = self.decimation.kept_index(chunk.start, len(y))
         t = index / self.fs
         z = chunk.data["z_piezo"][keep]
         rms = bank_step.block.rms[:, keep]
         adaptive = adaptive_step.block.rms[keep]
         f0, q, _ = resonance_from_denominator(b1[keep], b0[keep], self.fs)
-        writer.append({"t": t, "z": z_rms[keep], "rms": rms, "adaptive_rms": adaptive, "reep_f0_hz": f0, "reep_q": q})
-        settled = index >= self.setup.warmup
+        settled = self.warmup.settled(index)
         lowest = adaptive < rms.min(axis=0)
         self.counted += int(np.count_nonzero(settled))
         self.lowest += int(np.count_nonzero(lowest & settled))
@@ -339,6 +376,11 @@ class _PassTwo:
         self.reep_binner.append({"t": t, "z": z, "f0_hz": f0, "q": q})
         self._travel(z)
         self.n_total = chunk.start + len(y)
+        return {"t": t, "z": z_rms[keep], "rms": rms, "adaptive_rms": adaptive, "reep_f0_hz": f0, "reep_q": q}
+
+    def finish(self) -> _PassTwo:
+        """The stage itself: its counters, accumulators and setup are the pass's result."""
+        return self
 
     def _travel(self, z: np.ndarray) -> None:
         steps = np.abs(np.diff(np.concatenate(([self.last_z], z))))
@@ -445,24 +487,15 @@ def run_kalman_bank(
         first = reep_pass_one(reader, params, model, progress_one)
         tables, model, segment_s, route = first.tables, first.model, first.segment_s, first.route
         source = reopen() if reopen is not None else reader
+    stream = _PassTwo(source, params, model=model, lam=lam, tables=tables, segment_s=segment_s, route=route,
+                      reep_results=reep_results)
     try:
-        chunks: Iterator[Chunk] = iter_chunks(source, _CHANNELS, params.chunk_samples, progress=progress_two)
-        if model is None:
-            model, chunks, segment_s, route, route_warnings = _identify_free_air(source, params, chunks)
-        setup = _setup(source, params, model, segment_s, lam, tables)
-        coefficients = (
-            HeldReepCoefficients(reep_results.series["t"], reep_results.series["b1"], reep_results.series["b0"], fs)
-            if reep_results is not None
-            else InternalReep(lam, model.numerator_at(fs))
-        )
-        stream = _PassTwo(setup, coefficients, params, fs)
-        for chunk in chunks:
-            stream.process(chunk, writer)
+        run_stream(source, [stream], writer, channels=_CHANNELS, chunk_samples=params.chunk_samples,
+                   progress=progress_two, prologue=stream.free_air_prologue)
     finally:
         if source is not reader:
             source.close()
-    if stream.n_total == 0:
-        raise InputError(f"{info.source}: the capture has no samples")
+    setup, coefficients, route, route_warnings = stream.setup, stream.coefficients, stream.route, stream.route_warnings
     if reep_results is not None and coefficients.last_sample >= stream.n_total:
         raise InputError(f"--reep {reep_results.path}: REEP's series runs past the capture's {stream.n_total} samples")
     result = _judge(params, setup, stream, tables, info.units("z_piezo"), reep_results)

@@ -2,8 +2,8 @@
 
 Two sources, one interface:
 
-* internal: pass 1 runs :func:`afmtool.analyses.reep.run_reep` (its columns
-  go to a :class:`ReepBinner`), and pass 2 runs the same REEP kernel again
+* internal: pass 1 runs REEP's stage (:class:`afmtool.analyses.reep.ReepStage`;
+  its columns go to a :class:`ReepBinner`), and pass 2 runs the same REEP kernel again
   chunk by chunk (:class:`InternalReep`), which reproduces pass 1 bit for
   bit;
 * a finished run (``--reep``): its decimated series are binned the same way
@@ -191,25 +191,31 @@ class InternalReep:
         return step.block.b1, step.block.b0
 
 
-class _LazyBinner:
-    """A :class:`ReepBinner` that learns REEP's decimation from the first block's times."""
+class _ReepTables:
+    """REEP's stage with its model binned against z as it streams (pass 1; no series written).
 
-    def __init__(self, params: KalmanBankParams, sample_rate_hz: float) -> None:
+    The binner's window-centroid delay is in kept samples, so it is built
+    from the decimation REEP's stage chose, once that stage is prepared.
+    """
+
+    def __init__(self, reep, params: KalmanBankParams, sample_rate_hz: float) -> None:
+        self.reep = reep
         self.params = params
         self.fs = sample_rate_hz
         self.binner: ReepBinner | None = None
 
-    def append(self, columns) -> None:
-        if self.binner is None:
-            t = np.asarray(columns["t"])
-            decimate = self.params.decimate or (round((t[1] - t[0]) * self.fs) if len(t) > 1 else 1)
-            lam = self.params.lam
-            warmup_s = warmup_samples(self.params, lam) / self.fs
-            self.binner = ReepBinner(self.params.z_bin, reep_delay(lam, decimate), warmup_s)
-        self.binner.append(columns)
+    def prepare(self, head) -> None:
+        self.reep.prepare(head)
+        lam = self.params.lam
+        warmup_s = warmup_samples(self.params, lam) / self.fs
+        self.binner = ReepBinner(self.params.z_bin, reep_delay(lam, self.reep.decimation.every), warmup_s)
 
-    def put(self, *args, **kwargs) -> None:
-        """Not needed (see :meth:`ReepBinner.put`)."""
+    def step(self, chunk: Chunk) -> None:
+        self.binner.append(self.reep.step(chunk))
+
+    def finish(self):
+        """(REEP's result, its model binned against z per leg)."""
+        return self.reep.finish(), self.binner.tables()
 
 
 class PassOne(NamedTuple):
@@ -233,8 +239,9 @@ class PassOne(NamedTuple):
 
 
 def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel | None, progress) -> PassOne:
-    """Run REEP (``run_reep``, with the bank's λ, z bin and decimation) and bin its model against z."""
-    from afmtool.analyses.reep import run_reep
+    """Run REEP (its stage, with the bank's λ, z bin and decimation) and bin its model against z."""
+    from afmtool.analyses.reep import ReepStage
+    from afmtool.pipeline import run_stream
 
     reep_params = ReepParams(
         lam=params.lam,
@@ -249,14 +256,17 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
         warmup_windows=params.warmup_windows,
         chunk_samples=params.chunk_samples,
     )
-    binner = _LazyBinner(params, reader.info.sample_rate_hz)
-    result = run_reep(reader, reep_params, binner, model=model, progress=progress)
-    if not result.force_curves or binner.binner is None:
+    reep = ReepStage(reader, reep_params, model=model)
+    ((result, tables),) = run_stream(
+        reader, [_ReepTables(reep, params, reader.info.sample_rate_hz)], channels=reep.channels,
+        chunk_samples=reep_params.chunk_samples, progress=progress, prologue=reep.free_air_prologue,
+    )
+    if not result.force_curves:
         raise InputError(f"{reader.info.source}: REEP found no force curve (z_piezo never moves)")
     # the model REEP ran beside: a given one as the route refined it (gain and phase fitted at the drive)
     used = FreeAirModel.from_dict(result.results["free_air_model"], "identified free-air model")
     segment = result.results["free_air_segment_s"]
-    return PassOne(binner.binner.tables(), used, tuple(segment) if segment else None,
+    return PassOne(tables, used, tuple(segment) if segment else None,
                    result.results.get("free_air_route"))
 
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -41,21 +40,18 @@ from afmtool.analyses.probeloss_events import (
 from afmtool.config.params import ProbeLossParams
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
-from afmtool.io.chunks import iter_chunks
-from afmtool.io.prefetch import prefetch
 from afmtool.models.free_air import FreeAirModel
+from afmtool.pipeline import Decimation, Head, run_stream
 
 if TYPE_CHECKING:  # numba-backed modules load when the command runs
     from afmtool.estimators.observer import ObserverDesign
     from afmtool.estimators.reliability import FreeAirCalibration
 
-__all__ = ["ProbeLossResult", "ProbeLossSetup", "prepare_probeloss", "run_probeloss", "SERIES_UNITS"]
+__all__ = ["SERIES_UNITS", "ProbeLossResult", "ProbeLossSetup", "ProbeLossStage", "prepare_probeloss", "run_probeloss"]
 
 #: Decimated series written per kept sample ("" = dimensionless; amplitude in input units).
 SERIES_UNITS = {"t": "s", "index": "", "switch": "", "amplitude": "deflection units", "amplitude_switch": ""}
 _IMAGE_QUANTITIES = ("loss", "index")
-#: Chunks the reader thread may hold ready (memory: about 16·chunk_samples bytes each).
-_READ_AHEAD = 2
 
 
 @dataclass(frozen=True)
@@ -233,27 +229,44 @@ def prepare_probeloss(
 # --------------------------------------------------------------------------- pass
 
 
-class _Pass:
-    """State of the streaming pass: detectors, events, counts, images.
+class ProbeLossStage:
+    """The streaming pass as a :mod:`afmtool.pipeline` stage: detectors, events, counts, images.
 
-    Per chunk the lock-in runs in a worker thread while the observer kernel
-    runs in the caller's (both numba kernels release the GIL); each keeps
-    its own carried state, so the result does not depend on the threads.
+    ``free_air_prologue`` (the run's prologue) reads the free-air segment
+    ahead and fixes the setup (:func:`prepare_probeloss`).  Per chunk the
+    lock-in runs on the side thread while the observer kernel runs in the
+    caller's (both numba kernels release the GIL); each keeps its own
+    carried state, so the result does not depend on the threads.
     """
 
-    def __init__(self, setup: ProbeLossSetup, fs: float, geometry: ScanGeometry | None) -> None:
+    def __init__(self, reader: CaptureReader, params: ProbeLossParams, model: FreeAirModel | None = None) -> None:
+        self.reader = reader
+        self.params = params
+        self.model = model
+        self.fs = reader.info.sample_rate_hz
+        self.geometry = ScanGeometry.from_metadata(reader.info.metadata)
+        self.setup: ProbeLossSetup | None = None
+
+    def free_air_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:
+        """Fix the setup from the free-air segment, read ahead; hand the whole stream on."""
+        self.setup, chunks = prepare_probeloss(self.reader, self.params, chunks, self.model)
+        return chunks
+
+    def prepare(self, head: Head) -> None:
+        """Detectors and counters at their initial state."""
         from afmtool.estimators.lockin import LockIn
         from afmtool.estimators.observer import ObserverState
         from afmtool.estimators.reliability import ReliabilityState
 
-        self.setup = setup
-        self.fs = fs
+        setup = self.setup
+        self.side = head.side
+        self.decimation = Decimation(setup.decimate)
         self.detector = ReliabilityState(
             ObserverState.initial(setup.design, setup.window_samples),
             float(setup.calibration.level),
             setup.calibration.thresholds,
         )
-        self.lockin = LockIn(setup.drive_hz, fs, setup.lowpass_hz)
+        self.lockin = LockIn(setup.drive_hz, self.fs, setup.lowpass_hz)
         self.lock_state = self.lockin.initial_state(1)
         self.amp_switch = 0
         self.kept_seen = 0
@@ -262,15 +275,16 @@ class _Pass:
         self.index_events: list[Events] = []
         self.amp_events: list[Events] = []
         self.n_samples = 0
-        self.images = ImageAccumulator(geometry, _IMAGE_QUANTITIES) if geometry else None
+        self.images = ImageAccumulator(self.geometry, _IMAGE_QUANTITIES) if self.geometry else None
 
-    def chunk(self, chunk: Chunk, pool: ThreadPoolExecutor) -> dict[str, np.ndarray]:
+    def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
+        """The index, switch and amplitude baseline at the kept samples of this chunk."""
         from afmtool.estimators.reliability import hysteresis_update, reliability_update
 
         setup = self.setup
         p = chunk.data["deflection"]
-        # the amplitude at the kept samples n, (n + 1) % decimate == 0, beside the observer
-        demodulating = pool.submit(self.lockin.process, p, self.lock_state, setup.decimate)
+        # the amplitude at the kept samples (Decimation), beside the observer
+        demodulating = self.side.submit(self.lockin.process, p, self.lock_state, setup.decimate)
         try:
             step = reliability_update(self.detector, p, chunk.data["dither"], keep_every=setup.decimate)
         finally:
@@ -280,7 +294,6 @@ class _Pass:
         runs = runs_update(self.index_runs, switch, chunk.start)
         self.index_runs = runs.state
         self.index_events.append(runs.events)
-        keep = slice((-(chunk.start + 1)) % setup.decimate, None, setup.decimate)
         amplitude = demodulated[0].amplitude
         # a skipped baseline (no A_upper) never switches
         upper = setup.amplitude_upper if setup.amplitude_upper is not None else float(np.finfo(np.float64).max)
@@ -289,13 +302,13 @@ class _Pass:
         amp_runs = runs_update(self.amp_runs, amp.switch, self.kept_seen)
         self.amp_runs = amp_runs.state
         self.amp_events.append(amp_runs.events)
-        kept = (self.kept_seen + np.arange(amplitude.size)) * setup.decimate + (setup.decimate - 1)
+        kept = self.decimation.kept_index(chunk.start, len(p))
         self.kept_seen += amplitude.size
         self.n_samples = chunk.start + len(p)
         columns = {
             "t": kept / self.fs,
             "index": step.block.index,
-            "switch": switch[keep],
+            "switch": self.decimation.take(switch, chunk.start),
             "amplitude": amplitude,
             "amplitude_switch": amp.switch,
         }
@@ -304,12 +317,12 @@ class _Pass:
         return columns
 
     def finish(self) -> tuple[Events, Events]:
+        """The loss events of the index and of the amplitude baseline, in capture samples."""
         index_events = Events.concatenate([*self.index_events, runs_finish(self.index_runs, self.n_samples)])
-        # amplitude runs are counted in kept samples; the k-th kept sample is n = decimate − 1 + k·decimate
+        # amplitude runs are counted in kept samples (Decimation.index_of_kept maps them to capture samples)
         amp_runs = Events.concatenate([*self.amp_events, runs_finish(self.amp_runs, self.kept_seen)])
-        decimate = self.setup.decimate
-        start = decimate - 1 + amp_runs.start * decimate
-        end = np.minimum(decimate - 1 + amp_runs.end * decimate, self.n_samples)
+        start = self.decimation.index_of_kept(amp_runs.start)
+        end = np.minimum(self.decimation.index_of_kept(amp_runs.end), self.n_samples)
         return index_events, Events(start, end)
 
 
@@ -493,19 +506,12 @@ def run_probeloss(
     """
     info = reader.info
     fs = info.sample_rate_hz
-    chunks: Iterator[Chunk] = iter_chunks(reader, ("deflection", "dither"), params.chunk_samples)
-    setup, chunks = prepare_probeloss(reader, params, chunks, model)
-    geometry = ScanGeometry.from_metadata(info.metadata)
-    state = _Pass(setup, fs, geometry)
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="afmtool-lockin") as pool:
-        # the reader runs ahead in its own thread (h5py and the numba kernels overlap)
-        for chunk in prefetch(chunks, _READ_AHEAD):
-            writer.append(state.chunk(chunk, pool))
-            if progress is not None:  # from this thread, not the reader's
-                progress(state.n_samples)
-    if state.n_samples == 0:
-        raise InputError(f"{info.source}: the capture has no samples")
-    index_events, amp_events = state.finish()
+    state = ProbeLossStage(reader, params, model)
+    ((index_events, amp_events),) = run_stream(
+        reader, [state], writer, channels=("deflection", "dither"), chunk_samples=params.chunk_samples,
+        progress=progress, prologue=state.free_air_prologue,
+    )
+    setup, geometry = state.setup, state.geometry
     lead = overlapping_lead(index_events, amp_events)
     warnings: list[str] = list(setup.warnings)
     if setup.model_source != "f0-q" and setup.model.delay_s > 1.5 / fs:

@@ -13,13 +13,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
-from afmtool.analyses.freeair import replay_held
 from afmtool.analyses.reep_validity import (
     FlagCounter,
     FreeAirLevels,
@@ -31,12 +29,11 @@ from afmtool.analyses.reep_validity import (
 from afmtool.config.params import ReepParams
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, Chunk
-from afmtool.io.chunks import iter_chunks
-from afmtool.io.prefetch import prefetch
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import FreeAirModel
+from afmtool.pipeline import Decimation, Head, Warmup, run_stream
 
-__all__ = ["ReepResult", "run_reep", "excitation_lines", "SERIES_UNITS"]
+__all__ = ["SERIES_UNITS", "ReepResult", "ReepStage", "excitation_lines", "run_reep"]
 
 #: Quantities kept per decimated sample, with their units ("" = dimensionless).
 SERIES_UNITS = {
@@ -53,8 +50,6 @@ SERIES_UNITS = {
 }
 _IMAGE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
 _CURVE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
-#: Chunks read ahead in a background thread while the kernels run on the current one.
-_READ_AHEAD = 2
 
 
 @dataclass
@@ -192,7 +187,7 @@ def _segment_levels(segment, params: ReepParams, numerator, lockin, bandpass_fac
         demod, _ = lockin.process_against(p, g, lockin.initial_state(2))
     else:
         demod = lockin.process(p, lockin.initial_state(1))[0][0]
-    warmup = int(params.warmup_windows / (1.0 - params.lam))
+    warmup = Warmup.of_windows(params.warmup_windows, params.lam).samples
     return free_air_levels(block.sigma2, demod.amplitude, min(warmup, len(p) // 2))
 
 
@@ -203,6 +198,245 @@ def _metadata_levels(reader: CaptureReader) -> FreeAirLevels:
     if amplitude and reader.info.units("deflection") == "nm":
         return FreeAirLevels(float(amplitude), None, "metadata")
     return FreeAirLevels(None, None, "none")
+
+
+class ReepStage:
+    """REEP as a :mod:`afmtool.pipeline` stage: BCEWRLS and the lock-in over each chunk.
+
+    ``free_air_prologue`` (the run's prologue) resolves the free-air model,
+    reading its segment ahead; ``prepare`` fixes the drive, the lock-in,
+    the decimation and the validity levels from the first chunk; ``step``
+    returns the decimated columns of ``reep.h5`` and adds the trusted ones
+    to the summaries, force curves and images; ``finish`` returns the
+    :class:`ReepResult`.
+
+    Parameters
+    ----------
+    reader : CaptureReader
+        Needs ``deflection``, and ``dither`` unless ``params.use_input`` is off.
+    params : ReepParams
+        Effective parameters.
+    model : FreeAirModel, optional
+        A given free-air model; otherwise it is identified from the
+        free-air segment (``params.free_air`` or the capture metadata).
+    """
+
+    def __init__(self, reader: CaptureReader, params: ReepParams, *, model: FreeAirModel | None = None) -> None:
+        info = reader.info
+        self.reader = reader
+        self.params = params
+        self.model = model
+        self.fs = info.sample_rate_hz
+        self.z_mode = params.vs == "z" or (params.vs == "auto" and "z_piezo" in info.channel_names)
+        #: Channels the stage reads.
+        self.channels = (
+            ["deflection"] + (["dither"] if params.use_input else []) + (["z_piezo"] if self.z_mode else [])
+        )
+        self.warnings: list[str] = []
+        self.segment_s = None
+        self.route = None
+        self._segment = None
+        self.n_total = 0
+
+    def free_air_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:
+        """The free-air route, its segment read ahead (:func:`_resolve_model`); the stream handed on."""
+        self.model, chunks, self.segment_s, resolved = _resolve_model(self.reader, self.params, self.model, chunks)
+        self.route = resolved.report if resolved is not None else None
+        self.warnings.extend(resolved.warnings if resolved is not None else ())
+        self._segment = resolved.segment if resolved is not None else None
+        return chunks
+
+    def prepare(self, head: Head) -> None:
+        """Drive, lock-in, decimation, validity levels and accumulators, from the first chunk."""
+        from afmtool.estimators.lockin import LockIn, default_lowpass_hz
+        from afmtool.estimators.rls import ReepState
+
+        params, fs = self.params, self.fs
+        drive = head.info.metadata.get("drive", {})
+        self.drive_hz = _drive_frequency(params, drive, self.model, head.first.data["deflection"], fs)
+        self.lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(self.drive_hz, drive.get("sideband_offset_hz"))
+        self.decimation = Decimation(params.decimate or max(1, round(fs / self.drive_hz)))
+        self.numerator = self.model.numerator_at(fs) if (self.model is not None and params.use_input) else None
+        self.lines = self._input_checks(head.first.data.get("dither"))
+        self.bandpass = self._make_bandpass()
+        self.state = ReepState.initial(lam=params.lam, p0=params.p0, static_offset=params.static_offset)
+        self.lockin = LockIn(self.drive_hz, fs, self.lowpass_hz)
+        self.lock_state = self.lockin.initial_state(2 if params.use_input else 1)
+        self.warmup = Warmup.of_windows(params.warmup_windows, params.lam)
+        self.limits = ValidityLimits(params.min_amplitude_fraction, params.max_sigma2_ratio, params.max_offset_drift)
+        self.offset_drift = OffsetDrift(params.lam, self.decimation.every) if params.static_offset else None
+        self.levels = self._free_air_levels()
+        self.summaries = {name: _Summary() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
+        self.flag_counter = FlagCounter()
+        self.geometry = ScanGeometry.from_metadata(head.info.metadata)
+        self.image_acc = ImageAccumulator(self.geometry, _IMAGE_QUANTITIES) if self.geometry else None
+        self.curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if self.z_mode else None
+        self._side = head.side
+
+    def _input_checks(self, first_dither: np.ndarray | None) -> list[float]:
+        """The dither's lines near resonance, with warnings on too few lines and an unmodelled delay."""
+        params, fs, model = self.params, self.fs, self.model
+        lines: list[float] = []
+        if params.use_input:
+            lines = excitation_lines(first_dither, fs, model.f0_hz)
+            if len(lines) < 3:
+                self.warnings.append(
+                    f"the dither has {len(lines)} spectral line(s) near resonance; REEP's free-air model needs "
+                    "three to be persistently exciting for five parameters (thesis §3.3.2)"
+                )
+        if model is not None and params.use_input and model.delay_s > 1.5 / fs and (self.route or {}).get("route") != "f0-q":
+            self.warnings.append(
+                f"the free-air model has a drive delay of {model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
+                "fixed numerator does not model; f0' and Q' may be biased"
+            )
+        return lines
+
+    def _make_bandpass(self) -> _Bandpass | None:
+        if not self.params.use_input and self.params.bandpass_half_width_hz > 0:
+            return _Bandpass(self.drive_hz, self.params.bandpass_half_width_hz, self.fs)
+        return None
+
+    def _free_air_levels(self) -> FreeAirLevels:
+        """σ̂² and amplitude in free air (segment, else metadata); a warning per check left without one."""
+        if self._segment is not None:
+            levels = _segment_levels(self._segment, self.params, self.numerator, self.lockin, self._make_bandpass)
+        else:
+            levels = _metadata_levels(self.reader)
+        self._segment = None  # read once; not kept for the run
+        for check, level, name in (
+            (self.limits.min_amplitude_fraction, levels.amplitude, "free amplitude"),
+            (self.limits.max_sigma2_ratio, levels.sigma2, "free-air sigma^2"),
+        ):
+            if check and level is None:
+                self.warnings.append(f"no {name} known (no free-air segment): that validity check is off")
+        return levels
+
+    def _estimate(self, chunk: Chunk):
+        """REEP on this thread, the lock-in on the side thread (both kernels release the GIL)."""
+        from afmtool.estimators.rls import reep_update
+
+        params, every = self.params, self.decimation.every
+        p = chunk.data["deflection"]
+        g = chunk.data.get("dither")
+        if params.use_input:
+            demodulating = self._side.submit(self.lockin.process_against, p, g, self.lock_state, every)
+        else:
+            demodulating = self._side.submit(self.lockin.process, p, self.lock_state, every)
+        try:
+            p_for_rls = self.bandpass(p) if self.bandpass is not None else p
+            block, self.state = reep_update(
+                self.state, p_for_rls, g, self.numerator, bias_compensation=params.bias_compensation,
+                use_input=params.use_input, keep_every=every,
+            )
+        finally:
+            demodulated, self.lock_state = demodulating.result()
+        return block, (demodulated if params.use_input else demodulated[0])
+
+    def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
+        """The decimated columns of this chunk for ``reep.h5``; the trusted ones summarised."""
+        from afmtool.models.discretisation import resonance_from_denominator
+
+        block, demod = self._estimate(chunk)
+        # everything below runs on the kept samples only (Decimation)
+        kept_index = self.decimation.kept_index(chunk.start, len(chunk))
+        f0, q, valid = resonance_from_denominator(block.b1, block.b0, self.fs)
+        offset = None
+        if block.c is not None:
+            # p̄ = c / (1 + b1 + b0), the static deflection offset (reep_update, Notes)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                offset = block.c / (1.0 + block.b1 + block.b0)
+        offset_variance = self.offset_drift(offset) if self.offset_drift is not None else None
+        flags = validity_flags(valid, demod.amplitude, block.sigma2, self.levels, self.limits, offset_variance)
+        columns = {
+            "t": kept_index / self.fs,
+            "f0_hz": f0,
+            "q": q,
+            "b1": block.b1,
+            "b0": block.b0,
+            "sigma2": block.sigma2,
+            "amplitude": demod.amplitude,
+            "phase_deg": np.degrees(demod.phase_rad),
+        }
+        if offset is not None:
+            columns["offset"] = offset
+        columns["flag"] = flags
+        if self.z_mode:
+            columns["z"] = self.decimation.take(chunk.data["z_piezo"], chunk.start)
+        self._account(columns, kept_index, flags)
+        self.n_total = chunk.start + len(chunk)
+        return columns
+
+    def _account(self, columns: dict[str, np.ndarray], kept_index: np.ndarray, flags: np.ndarray) -> None:
+        """Summaries, flag counts, images and force curves, from the trusted values past the warm-up."""
+        # reep.h5 keeps the fitted values; everything else sees NaN where the fit is flagged
+        trusted = dict(
+            columns, f0_hz=np.where(flags == 0, columns["f0_hz"], np.nan), q=np.where(flags == 0, columns["q"], np.nan)
+        )
+        first_settled = self.warmup.first_settled(kept_index)
+        self.flag_counter.add(flags[first_settled:])  # counted over what the summary covers
+        for name, summary in self.summaries.items():
+            summary.add(trusted[name][first_settled:])
+        if self.image_acc is not None:
+            self.image_acc.add(columns["t"], trusted)
+        if self.curve_acc is not None:
+            self.curve_acc.add(columns["z"], {k: self.warmup.mask(trusted[k], kept_index) for k in _CURVE_QUANTITIES})
+
+    def finish(self) -> ReepResult:
+        """The run's results, warnings, images and force-curve tables."""
+        self.warnings.extend(self.flag_counter.warnings(self.limits))
+        force_curves = self.curve_acc.tables() if self.curve_acc is not None else {}
+        images = self.image_acc.images() if self.image_acc is not None else {}
+        z_units = self.reader.info.units("z_piezo") if self.z_mode else ""
+        return ReepResult(self._results(), tuple(self.warnings), images, self.geometry, force_curves, z_units)
+
+    def _results(self) -> dict:
+        params, fs, model, n_total = self.params, self.fs, self.model, self.n_total
+        window = 1.0 / (1.0 - params.lam)
+        limits = self.limits
+        return {
+            "free_air_model": model.to_dict() if model is not None else None,
+            "free_air_segment_s": list(self.segment_s) if self.segment_s else None,
+            "free_air_route": self.route,
+            "forgetting_factor": params.lam,
+            "window_samples": window,
+            "window_us": window / fs * 1e6,
+            "bias_compensation": params.bias_compensation,
+            "use_input": params.use_input,
+            "n_samples": n_total,
+            "duration_s": n_total / fs,
+            "sample_rate_hz": fs,
+            "decimate": self.decimation.every,
+            "drive_frequency_hz": self.drive_hz,
+            "lockin": {"lowpass_hz": self.lowpass_hz, "order": self.lockin.order,
+                       "type": "Butterworth, complex demodulation"},
+            "excitation_lines_hz": self.lines,
+            "static_offset": params.static_offset,
+            "flagged_samples": self.flag_counter.flagged,  # among the decimated output samples after the warm-up
+            "validity": {
+                "min_amplitude_fraction": limits.min_amplitude_fraction,
+                "max_sigma2_ratio": limits.max_sigma2_ratio,
+                "max_offset_drift": limits.max_offset_drift,
+                "free_air_levels": self.levels.as_dict(),
+                "flags": self.flag_counter.as_dict(),
+            },
+            "summary_after_warmup_samples": self.warmup.samples,
+            "summary": {name: s.as_dict() for name, s in self.summaries.items()},
+        }
+
+
+def _drive_frequency(params: ReepParams, drive: dict, model: FreeAirModel | None, first_deflection, fs: float) -> float:
+    """The lock-in's reference: the flag, the metadata, f0, else the first chunk's spectral peak (Hz)."""
+    if params.drive_frequency_hz:
+        drive_hz = params.drive_frequency_hz
+    elif "frequency_hz" in drive:
+        drive_hz = float(drive["frequency_hz"])
+    elif model is not None:
+        drive_hz = model.f0_hz
+    else:
+        drive_hz = _spectral_peak_hz(first_deflection, fs)
+    if not 0 < drive_hz < fs / 2:
+        raise InputError(f"drive frequency {drive_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
+    return drive_hz
 
 
 def run_reep(
@@ -227,178 +461,12 @@ def run_reep(
     model : FreeAirModel, optional
         A given free-air model; otherwise it is identified from the
         free-air segment (``params.free_air`` or the capture metadata).
+    progress : callable, optional
+        Called with the capture samples done so far.
     """
-    from afmtool.estimators.lockin import LockIn, default_lowpass_hz
-    from afmtool.estimators.rls import ReepState, reep_update
-    from afmtool.models.discretisation import resonance_from_denominator
-
-    info = reader.info
-    fs = info.sample_rate_hz
-    warnings: list[str] = []
-    z_mode = params.vs == "z" or (params.vs == "auto" and "z_piezo" in info.channel_names)
-    channels = ["deflection"] + (["dither"] if params.use_input else []) + (["z_piezo"] if z_mode else [])
-    chunks: Iterator[Chunk] = iter_chunks(reader, channels, params.chunk_samples, progress=progress)
-    model, chunks, segment_s, resolved = _resolve_model(reader, params, model, chunks)
-    route = resolved.report if resolved is not None else None
-    warnings.extend(resolved.warnings if resolved is not None else ())
-    segment = resolved.segment if resolved is not None else None
-    first = next(chunks, None)
-    if first is None:
-        raise InputError(f"{info.source}: the capture has no samples")
-    first_deflection = first.data["deflection"]
-    first_dither = first.data.get("dither")
-    chunks = replay_held([first], chunks)
-    del first  # the stream hands it on once; keep no reference for the whole run
-
-    drive = info.metadata.get("drive", {})
-    if params.drive_frequency_hz:
-        drive_hz = params.drive_frequency_hz
-    elif "frequency_hz" in drive:
-        drive_hz = float(drive["frequency_hz"])
-    elif model is not None:
-        drive_hz = model.f0_hz
-    else:
-        drive_hz = _spectral_peak_hz(first_deflection, fs)
-    if not 0 < drive_hz < fs / 2:
-        raise InputError(f"drive frequency {drive_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
-    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, drive.get("sideband_offset_hz"))
-    decimate = params.decimate or max(1, round(fs / drive_hz))
-
-    numerator = model.numerator_at(fs) if (model is not None and params.use_input) else None
-    lines: list[float] = []
-    if params.use_input:
-        lines = excitation_lines(first_dither, fs, model.f0_hz)
-        if len(lines) < 3:
-            warnings.append(
-                f"the dither has {len(lines)} spectral line(s) near resonance; REEP's free-air model needs "
-                "three to be persistently exciting for five parameters (thesis §3.3.2)"
-            )
-    if model is not None and params.use_input and model.delay_s > 1.5 / fs and (route or {}).get("route") != "f0-q":
-        warnings.append(
-            f"the free-air model has a drive delay of {model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
-            "fixed numerator does not model; f0' and Q' may be biased"
-        )
-    def make_bandpass():
-        if not params.use_input and params.bandpass_half_width_hz > 0:
-            return _Bandpass(drive_hz, params.bandpass_half_width_hz, fs)
-        return None
-
-    bandpass = make_bandpass()
-
-    del first_deflection, first_dither
-    state = ReepState.initial(lam=params.lam, p0=params.p0, static_offset=params.static_offset)
-    lockin = LockIn(drive_hz, fs, lowpass_hz)
-    lock_state = lockin.initial_state(2 if params.use_input else 1)
-    warmup = int(params.warmup_windows / (1.0 - params.lam))
-    limits = ValidityLimits(params.min_amplitude_fraction, params.max_sigma2_ratio, params.max_offset_drift)
-    offset_drift = OffsetDrift(params.lam, decimate) if params.static_offset else None
-    if segment is not None:
-        levels = _segment_levels(segment, params, numerator, lockin, make_bandpass)
-    else:
-        levels = _metadata_levels(reader)
-    del segment
-    for check, level, name in (
-        (limits.min_amplitude_fraction, levels.amplitude, "free amplitude"),
-        (limits.max_sigma2_ratio, levels.sigma2, "free-air sigma^2"),
-    ):
-        if check and level is None:
-            warnings.append(f"no {name} known (no free-air segment): that validity check is off")
-    summaries = {name: _Summary() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
-    flag_counter = FlagCounter()
-    n_total = 0
-    geometry = ScanGeometry.from_metadata(info.metadata)
-    image_acc = ImageAccumulator(geometry, _IMAGE_QUANTITIES) if geometry else None
-    curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if z_mode else None
-
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        for chunk in prefetch(chunks, _READ_AHEAD):
-            p = chunk.data["deflection"]
-            g = chunk.data.get("dither")
-            # the lock-in runs in the worker thread beside REEP (both kernels release the GIL)
-            if params.use_input:
-                demodulating = pool.submit(lockin.process_against, p, g, lock_state, decimate)
-            else:
-                demodulating = pool.submit(lockin.process, p, lock_state, decimate)
-            try:
-                p_for_rls = bandpass(p) if bandpass is not None else p
-                block, state = reep_update(
-                    state, p_for_rls, g, numerator, bias_compensation=params.bias_compensation,
-                    use_input=params.use_input, keep_every=decimate,
-                )
-            finally:
-                demodulated, lock_state = demodulating.result()
-            demod = demodulated if params.use_input else demodulated[0]
-            # Everything below runs on the kept samples only: n with (n + 1) % decimate == 0.
-            first_kept = (-(chunk.start + 1)) % decimate
-            kept_index = np.arange(chunk.start + first_kept, chunk.start + len(p), decimate)
-            f0, q, valid = resonance_from_denominator(block.b1, block.b0, fs)
-            offset = None
-            if block.c is not None:
-                # p̄ = c / (1 + b1 + b0), the static deflection offset (reep_update, Notes)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    offset = block.c / (1.0 + block.b1 + block.b0)
-            offset_variance = offset_drift(offset) if offset_drift is not None else None
-            flags = validity_flags(valid, demod.amplitude, block.sigma2, levels, limits, offset_variance)
-            columns = {
-                "t": kept_index / fs,
-                "f0_hz": f0,
-                "q": q,
-                "b1": block.b1,
-                "b0": block.b0,
-                "sigma2": block.sigma2,
-                "amplitude": demod.amplitude,
-                "phase_deg": np.degrees(demod.phase_rad),
-            }
-            if offset is not None:
-                columns["offset"] = offset
-            columns["flag"] = flags
-            if z_mode:
-                columns["z"] = chunk.data["z_piezo"][first_kept::decimate]
-            writer.append(columns)
-            # reep.h5 keeps the fitted values; everything else sees NaN where the fit is flagged
-            trusted = dict(columns, f0_hz=np.where(flags == 0, f0, np.nan), q=np.where(flags == 0, q, np.nan))
-            first_settled = int(np.searchsorted(kept_index, warmup))
-            flag_counter.add(flags[first_settled:])  # counted over what the summary covers
-            for name, summary in summaries.items():
-                summary.add(trusted[name][first_settled:])
-            if image_acc is not None:
-                image_acc.add(columns["t"], trusted)
-            if curve_acc is not None:
-                settled = kept_index >= warmup
-                curve_acc.add(columns["z"], {k: np.where(settled, trusted[k], np.nan) for k in _CURVE_QUANTITIES})
-            n_total = chunk.start + len(p)
-
-    window = 1.0 / (1.0 - params.lam)
-    results = {
-        "free_air_model": model.to_dict() if model is not None else None,
-        "free_air_segment_s": list(segment_s) if segment_s else None,
-        "free_air_route": route,
-        "forgetting_factor": params.lam,
-        "window_samples": window,
-        "window_us": window / fs * 1e6,
-        "bias_compensation": params.bias_compensation,
-        "use_input": params.use_input,
-        "n_samples": n_total,
-        "duration_s": n_total / fs,
-        "sample_rate_hz": fs,
-        "decimate": decimate,
-        "drive_frequency_hz": drive_hz,
-        "lockin": {"lowpass_hz": lowpass_hz, "order": lockin.order, "type": "Butterworth, complex demodulation"},
-        "excitation_lines_hz": lines,
-        "static_offset": params.static_offset,
-        "flagged_samples": flag_counter.flagged,  # among the decimated output samples after the warm-up
-        "validity": {
-            "min_amplitude_fraction": limits.min_amplitude_fraction,
-            "max_sigma2_ratio": limits.max_sigma2_ratio,
-            "max_offset_drift": limits.max_offset_drift,
-            "free_air_levels": levels.as_dict(),
-            "flags": flag_counter.as_dict(),
-        },
-        "summary_after_warmup_samples": warmup,
-        "summary": {name: s.as_dict() for name, s in summaries.items()},
-    }
-    warnings.extend(flag_counter.warnings(limits))
-    force_curves = curve_acc.tables() if curve_acc is not None else {}
-    images = image_acc.images() if image_acc is not None else {}
-    z_units = info.units("z_piezo") if z_mode else ""
-    return ReepResult(results, tuple(warnings), images, geometry, force_curves, z_units)
+    stage = ReepStage(reader, params, model=model)
+    (result,) = run_stream(
+        reader, [stage], writer, channels=stage.channels, chunk_samples=params.chunk_samples,
+        progress=progress, prologue=stage.free_air_prologue,
+    )
+    return result

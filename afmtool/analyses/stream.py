@@ -23,15 +23,15 @@ STREAM_CHUNK_SAMPLES = 4096
 
 
 class _Selected:
-    """Pass on only the appended blocks that hold column ``key`` (one row schema per stream)."""
+    """Pass on only the columns ``names`` of the blocks that hold them (one row schema per stream)."""
 
-    def __init__(self, rows: RowWriter, key: str) -> None:
+    def __init__(self, rows: RowWriter, names: tuple[str, ...]) -> None:
         self._rows = rows
-        self._key = key
+        self._names = names
 
     def append(self, columns: Mapping) -> None:
-        if self._key in columns:
-            self._rows.append(columns)
+        if all(name in columns for name in self._names):
+            self._rows.append({name: columns[name] for name in self._names})
 
     def put(self, *args, **kwargs) -> None:
         """Whole arrays are dropped, as by :meth:`RowWriter.put`."""
@@ -46,7 +46,7 @@ def run_stream(
     flags: Mapping,
     fmt: str,
     *,
-    rows_with: str | None = None,
+    row_columns: tuple[str, ...] | None = None,
 ) -> None:
     """Resolve ``[section]`` parameters and run ``analysis(reader, params, writer)`` into stdout rows.
 
@@ -61,13 +61,13 @@ def run_stream(
         :data:`STREAM_CHUNK_SAMPLES` unless a flag sets it.
     fmt : str
         ``"csv"`` or ``"jsonl"``.
-    rows_with : str, optional
-        For analyses that append blocks of more than one shape: only blocks
-        holding this column become rows.
+    row_columns : tuple of str, optional
+        For analyses whose blocks hold columns of more than one length: the
+        columns of one length that become rows (others are dropped).
     """
     flags = {"chunk_samples": STREAM_CHUNK_SAMPLES, **{k: v for k, v in flags.items() if v is not None}}
     params = resolve_from(params_cls, section, load_toml(config) if config else None, flags)
     with RowWriter(sys.stdout, fmt) as rows:
-        result = analysis(reader, params, rows if rows_with is None else _Selected(rows, rows_with))
+        result = analysis(reader, params, rows if row_columns is None else _Selected(rows, row_columns))
     for warning in result.warnings:
         print(f"afmtool: warning: {warning}", file=sys.stderr)

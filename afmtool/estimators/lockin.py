@@ -17,6 +17,7 @@ from numba import njit
 
 from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.estimators.filters import butterworth_lowpass_sos
+from afmtool.pipeline import Decimation
 
 __all__ = ["LockIn", "LockInState", "LockInBlock", "default_lowpass_hz"]
 
@@ -253,9 +254,8 @@ class LockIn:
         if any(row.ndim != 1 or row.shape != rows[0].shape for row in rows):
             raise ValueError("the signals must be 1-D and of one length")
         zi = state.zi.copy()
-        first_kept = (-(state.samples_seen + 1)) % keep_every
         n = rows[0].shape[0]
-        n_kept = 0 if first_kept >= n else (n - 1 - first_kept) // keep_every + 1
+        n_kept = Decimation(keep_every).count(state.samples_seen, n)
         out = np.empty((len(rows), n_kept), dtype=np.complex128)
         self._run(rows, state.samples_seen, zi, keep_every, out)
         return out, LockInState(zi, state.samples_seen + n)

@@ -88,6 +88,7 @@ from afmtool.estimators.observer import (
     _window_resync,
     _window_rms,
 )
+from afmtool.pipeline import Decimation
 
 __all__ = [
     "LOSS_WHEN",
@@ -568,8 +569,9 @@ def reliability_update(state: ReliabilityState, deflection, dither, *, keep_ever
     xhat = np.array(observer.estimate, dtype=np.float64).reshape(1, 2)
     ring, sums, counters = observer.window._unpack()
     n = y.shape[0]
-    first_keep = (-(state.samples_seen + 1)) % keep_every
-    n_kept = 0 if first_keep >= n else (n - 1 - first_keep) // keep_every + 1
+    decimation = Decimation(int(keep_every))
+    first_keep = decimation.first_kept(state.samples_seen)
+    n_kept = decimation.count(state.samples_seen, n)
     switch = np.empty(n, dtype=np.int8)
     index = np.empty(n_kept, dtype=np.float64)
     carried = np.array([state.switch], dtype=np.int64)

@@ -36,6 +36,7 @@ from numba import njit
 
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators._common import JIT_OPTIONS, as_signal, check_numerator
+from afmtool.pipeline import Decimation
 
 __all__ = [
     "DEFAULT_FORGETTING_FACTOR",
@@ -701,8 +702,7 @@ def reep_update(
     if not (isinstance(keep_every, (int, np.integer)) and keep_every >= 1):
         raise ConfigError(f"keep_every={keep_every!r} must be an integer >= 1")
     carried = state._to_array()
-    first_kept = (-(state.n_samples + state.n_past + 1)) % keep_every
-    n_kept = max(0, (p.shape[0] - 1 - first_kept) // keep_every + 1)
+    n_kept = Decimation(int(keep_every)).count(state.n_samples + state.n_past, p.shape[0])
     b1 = np.empty(n_kept, dtype=np.float64)
     b0 = np.empty(n_kept, dtype=np.float64)
     sigma2 = np.empty(n_kept, dtype=np.float64)
