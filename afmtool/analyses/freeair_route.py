@@ -268,44 +268,65 @@ def resolve_free_air(  # noqa: PLR0913
         raise ConfigError(f"drive_hold={drive_hold!r} must be one of {DRIVE_HOLD_CHOICES}")
     if bool(f0_hz) != bool(q):
         raise ConfigError(f"--f0 and --q go together (got f0={f0_hz!r}, q={q!r})")
-    fs = reader.info.sample_rate_hz
-    metadata = reader.info.metadata
     interval = free_air_interval(reader, free_air)
     segment = None
     if interval is not None:
         segment, chunks = read_free_air(reader, chunks, interval, names)
-    warnings: list[str] = []
-
-    source = None
-    if f0_hz:
-        source = ((float(f0_hz), float(q)), "flags")
-    elif given is not None:
-        if given.numerator is not None and given.sample_rate_hz == fs:
-            source = None
-        elif segment is not None:
-            source = ((given.f0_hz, given.q), "model")
-    elif _metadata_f0_q(metadata) is not None:
-        f0_meta, q_meta = _metadata_f0_q(metadata)
-        if _single_tone(metadata, segment, fs, f0_meta):
-            source = ((f0_meta, q_meta), "metadata")
-
+    source = _f0_q_source(reader, given, segment, f0_hz, q)
     if source is not None:
-        (f0_use, q_use), origin = source
-        if segment is None:
-            raise ConfigError(
-                f"the f0/Q route ({origin}) fits the gain and phase at the drive on a free-air segment: "
-                "give --free-air START:END or capture metadata free_air"
-            )
-        probe = FreeAirModel(f0_use, q_use)
-        drive_hz = drive_frequency(reader, drive_frequency_hz, probe)
-        model, report = _fit_f0_q(f0_use, q_use, segment, fs, drive_hz, _drive_lines(metadata, drive_hz),
-                                  drive_hold, origin)
-        warnings += _hold_warning(report)
-        return FreeAirRoute(model, "f0-q", segment, drive_hz, report, tuple(warnings)), chunks
+        return _f0_q_route(reader, source, segment, drive_hold, drive_frequency_hz), chunks
+    if given is None and segment is None:
+        if not required:
+            return None, chunks
+        raise ConfigError(
+            "no free-air model: give --free-air START:END, --model free_air.json, --f0/--q with a free-air "
+            "segment, or capture metadata free_air"
+        )
+    return _model_route(reader, given, segment, drive_hold, drive_frequency_hz), chunks
 
+
+def _f0_q_source(reader: CaptureReader, given: FreeAirModel | None, segment, f0_hz: float, q: float):
+    """((f0, Q), origin) when the f0/Q route applies: flags, a model without this rate's numerator, or metadata."""
+    fs = reader.info.sample_rate_hz
+    metadata = reader.info.metadata
+    if f0_hz:
+        return (float(f0_hz), float(q)), "flags"
+    if given is not None:
+        if given.numerator is not None and given.sample_rate_hz == fs:
+            return None
+        return ((given.f0_hz, given.q), "model") if segment is not None else None
+    meta = _metadata_f0_q(metadata)
+    if meta is not None and _single_tone(metadata, segment, fs, meta[0]):
+        return meta, "metadata"
+    return None
+
+
+def _f0_q_route(reader: CaptureReader, source, segment, drive_hold: str, drive_frequency_hz: float) -> FreeAirRoute:
+    """The f0/Q route: gain and phase fitted at the drive on the free-air segment."""
+    (f0_use, q_use), origin = source
+    if segment is None:
+        raise ConfigError(
+            f"the f0/Q route ({origin}) fits the gain and phase at the drive on a free-air segment: "
+            "give --free-air START:END or capture metadata free_air"
+        )
+    fs = reader.info.sample_rate_hz
+    metadata = reader.info.metadata
+    drive_hz = drive_frequency(reader, drive_frequency_hz, FreeAirModel(f0_use, q_use))
+    model, report = _fit_f0_q(f0_use, q_use, segment, fs, drive_hz, _drive_lines(metadata, drive_hz),
+                              drive_hold, origin)
+    return FreeAirRoute(model, "f0-q", segment, drive_hz, report, tuple(_hold_warning(report)))
+
+
+def _model_route(
+    reader: CaptureReader, given: FreeAirModel | None, segment, drive_hold: str, drive_frequency_hz: float
+) -> FreeAirRoute:
+    """The given model, or the ARX fit on the segment (the metadata f0/Q route if that fit fails)."""
+    fs = reader.info.sample_rate_hz
+    metadata = reader.info.metadata
+    warnings: list[str] = []
     if given is not None:
         model, route = given, "model"
-    elif segment is not None:
+    else:
         try:
             model, route = identify_from_segment(segment, fs), "segment"
             if _single_tone(metadata, segment, fs, model.f0_hz):
@@ -321,14 +342,7 @@ def resolve_free_air(  # noqa: PLR0913
             drive_hz = drive_frequency(reader, drive_frequency_hz, FreeAirModel(*meta))
             model, report = _fit_f0_q(*meta, segment, fs, drive_hz, _drive_lines(metadata, drive_hz), drive_hold,
                                       "metadata")
-            return FreeAirRoute(model, "f0-q", segment, drive_hz, report, tuple(warnings)), chunks
-    else:
-        if not required:
-            return None, chunks
-        raise ConfigError(
-            "no free-air model: give --free-air START:END, --model free_air.json, --f0/--q with a free-air "
-            "segment, or capture metadata free_air"
-        )
+            return FreeAirRoute(model, "f0-q", segment, drive_hz, report, tuple(warnings))
     drive_hz = drive_frequency(reader, drive_frequency_hz, model)
     report = {"route": route, "f0_q_from": None,
               **_record_hold(model, segment, fs, drive_hz, _drive_lines(metadata, drive_hz), drive_hold)}
@@ -341,4 +355,4 @@ def resolve_free_air(  # noqa: PLR0913
             **{**model.to_dict(), "sample_rate_hz": fs, "numerator": numerator, "denominator": model.denominator_at(fs)}
         )
     warnings += _hold_warning(report)
-    return FreeAirRoute(model, route, segment, drive_hz, report, tuple(warnings)), chunks
+    return FreeAirRoute(model, route, segment, drive_hz, report, tuple(warnings))
