@@ -349,25 +349,8 @@ def fit_electrostatic(
     InputError
         For fewer points than parameters + 2, or non-finite data.
     """
-    if sensor not in SENSORS:
-        raise ConfigError(f"sensor={sensor!r} must be one of {', '.join(SENSORS)}")
-    if spring_constant_n_per_m is not None and not (
-        math.isfinite(spring_constant_n_per_m) and spring_constant_n_per_m > 0
-    ):
-        raise ConfigError(f"spring_constant_n_per_m={spring_constant_n_per_m!r} must be a finite number > 0")
-    if not (math.isfinite(v_r_v)):
-        raise ConfigError(f"v_r_v={v_r_v!r} must be finite")
-    if not 0 < max_relative_std:
-        raise ConfigError(f"max_relative_std={max_relative_std!r} must be > 0")
-    v = np.asarray(v_sub, dtype=np.float64)
-    y = np.asarray(y_m, dtype=np.float64)
+    v, y = _checked_inputs(v_sub, y_m, v_r_v, sensor, spring_constant_n_per_m, max_relative_std)
     names = PARAMETERS[sensor]
-    if v.shape != y.shape or v.ndim != 1:
-        raise InputError(f"v_sub and y_m must be 1-D of equal length, got {v.shape} and {y.shape}")
-    if not (np.all(np.isfinite(v)) and np.all(np.isfinite(y))):
-        raise InputError("v_sub and y_m must be finite (drop unconverted samples first)")
-    if v.size < len(names) + 2:
-        raise InputError(f"{v.size} points cannot fit {len(names)} parameters")
     log_mask = np.array([name != "alpha_r" for name in names])
     k_value = spring_constant_n_per_m if spring_constant_n_per_m is not None else _REFERENCE_K
     starts = _initial_guess(v, y, v_r_v, sensor, k_value)
@@ -376,29 +359,11 @@ def fit_electrostatic(
     theta0 = np.array([starts[0][n] for n in names])
     jac0 = relative_jacobian(lambda th: (predict(_unpack(th, names), v, v_r_v, sensor) - y) * 1e9, theta0, log_mask)
     null0 = analyse_identifiability(jac0, names, rank_tolerance=rank_tolerance).null_directions
-    fixed = {"spring_constant_n_per_m"} if spring_constant_n_per_m is not None else set()
-    unresolved: set[str] = set()  # in a null direction fixed only at a placeholder: no value
-    for direction in null0:
-        if fixed.intersection(direction.parameters) == {"spring_constant_n_per_m"} and spring_constant_n_per_m:
-            continue  # resolved by the given spring constant
-        if not fixed.intersection(direction.parameters):
-            fixed.add(next(n for n in _FIX_PRIORITY if n in direction.parameters))
-        unresolved.update(direction.parameters)
+    fixed, unresolved = _structural_fixes(null0, spring_constant_n_per_m)
     free = np.array([n not in fixed for n in names])
 
     # (2) least squares from each start
-    best = None
-    costs = []
-    for start in starts:
-        theta_start = np.array([start[n] for n in names])
-        full, residual = _residual_fn(v, y, v_r_v, sensor, names, free, theta_start, log_mask)
-        x0 = np.array([math.log(t) if lg else t for t, lg in zip(theta_start[free], log_mask[free])])
-        sol = scipy.optimize.least_squares(residual, x0, x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14,
-                                           max_nfev=2000)
-        costs.append(float(sol.cost))
-        if best is None or sol.cost < best[0].cost:
-            best = (sol, full)
-    sol, full = best
+    sol, full, costs = _best_start(v, y, v_r_v, sensor, names, free, starts, log_mask)
     theta = full(sol.x)
 
     # (3) identifiability and covariance at the solution
@@ -427,6 +392,63 @@ def fit_electrostatic(
         cost_starts=tuple(costs),
         residual_autocorrelation=_lag1(r_nm[np.argsort(v, kind="stable")]),
     )
+
+
+def _checked_inputs(v_sub, y_m, v_r_v, sensor, spring_constant_n_per_m, max_relative_std):
+    """The validated (V_sub, y) arrays of :func:`fit_electrostatic`; its ConfigError/InputError checks."""
+    if sensor not in SENSORS:
+        raise ConfigError(f"sensor={sensor!r} must be one of {', '.join(SENSORS)}")
+    if spring_constant_n_per_m is not None and not (
+        math.isfinite(spring_constant_n_per_m) and spring_constant_n_per_m > 0
+    ):
+        raise ConfigError(f"spring_constant_n_per_m={spring_constant_n_per_m!r} must be a finite number > 0")
+    if not (math.isfinite(v_r_v)):
+        raise ConfigError(f"v_r_v={v_r_v!r} must be finite")
+    if not 0 < max_relative_std:
+        raise ConfigError(f"max_relative_std={max_relative_std!r} must be > 0")
+    v = np.asarray(v_sub, dtype=np.float64)
+    y = np.asarray(y_m, dtype=np.float64)
+    names = PARAMETERS[sensor]
+    if v.shape != y.shape or v.ndim != 1:
+        raise InputError(f"v_sub and y_m must be 1-D of equal length, got {v.shape} and {y.shape}")
+    if not (np.all(np.isfinite(v)) and np.all(np.isfinite(y))):
+        raise InputError("v_sub and y_m must be finite (drop unconverted samples first)")
+    if v.size < len(names) + 2:
+        raise InputError(f"{v.size} points cannot fit {len(names)} parameters")
+    return v, y
+
+
+def _structural_fixes(null_directions, spring_constant_n_per_m) -> tuple[set[str], set[str]]:
+    """(fixed, unresolved): one parameter fixed per structural null direction, by ``_FIX_PRIORITY``.
+
+    ``unresolved``: the parameters of a null direction fixed only at a
+    placeholder, which get no value.
+    """
+    fixed = {"spring_constant_n_per_m"} if spring_constant_n_per_m is not None else set()
+    unresolved: set[str] = set()
+    for direction in null_directions:
+        if fixed.intersection(direction.parameters) == {"spring_constant_n_per_m"} and spring_constant_n_per_m:
+            continue  # resolved by the given spring constant
+        if not fixed.intersection(direction.parameters):
+            fixed.add(next(n for n in _FIX_PRIORITY if n in direction.parameters))
+        unresolved.update(direction.parameters)
+    return fixed, unresolved
+
+
+def _best_start(v, y, v_r_v, sensor, names, free, starts, log_mask):
+    """(solution, its full-θ map, the cost from each start): least squares from every start, lowest cost kept."""
+    best = None
+    costs = []
+    for start in starts:
+        theta_start = np.array([start[n] for n in names])
+        full, residual = _residual_fn(v, y, v_r_v, sensor, names, free, theta_start, log_mask)
+        x0 = np.array([math.log(t) if lg else t for t, lg in zip(theta_start[free], log_mask[free])])
+        sol = scipy.optimize.least_squares(residual, x0, x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14,
+                                           max_nfev=2000)
+        costs.append(float(sol.cost))
+        if best is None or sol.cost < best[0].cost:
+            best = (sol, full)
+    return best[0], best[1], costs
 
 
 def _lag1(r: np.ndarray) -> float:
