@@ -505,32 +505,14 @@ def fit_record_response(
         fewer than twice as many real equations as unknowns (the record is
         too short for the resolution the resonance needs: N/fs ≳ 4Q/f0).
     """
-    fs = _check_positive("sample_rate_hz", sample_rate_hz)
-    f0_start = _check_positive("f0_start_hz", f0_start_hz)
-    q_start = _check_positive("q_start", q_start)
-    _check_positive("band_halfwidths", band_halfwidths)
-    if hold not in HOLDS:
-        raise ConfigError(f"hold={hold!r} must be one of {HOLDS}")
-    if isinstance(transient_order, bool) or not isinstance(transient_order, (int, np.integer)) or transient_order < 1:
-        raise ConfigError(f"transient_order={transient_order!r} must be an integer >= 1")
-    if isinstance(delay, (bool, np.bool_)):
-        fixed_delay = None if delay else 0.0
-    elif isinstance(delay, (int, float)) and math.isfinite(delay):
-        fixed_delay = float(delay)
-    else:
-        raise ConfigError(f"delay={delay!r} must be True, False or a delay in s")
-    band = _check_band(band)
-    if not f0_start < fs / 2:
-        raise ConfigError(f"f0_start_hz={f0_start_hz!r} must be below the Nyquist frequency {fs / 2:g} Hz")
+    fs, f0_start, q_start, fixed_delay, band, order, edges = _record_options(
+        sample_rate_hz, f0_start_hz, q_start, band_halfwidths, hold, transient_order, delay, band, drive_edges_s
+    )
     x, y, x_scale, y_scale = _records(dither, deflection)
     n = x.size
     spectrum_u = np.fft.rfft(x)
     spectrum_y = np.fft.rfft(y)
     freq = np.fft.rfftfreq(n, 1.0 / fs)
-    order = int(transient_order)
-    edges = tuple(float(t) for t in drive_edges_s)
-    if not all(math.isfinite(t) for t in edges):
-        raise ConfigError(f"drive_edges_s={drive_edges_s!r} must be finite times in s")
     n_linear = 1 + 2 * (order + 1) + 2 * (_EDGE_ORDER + 1) * len(edges)
     tau0 = float(delay_start_s) if fixed_delay is None else fixed_delay
 
@@ -556,8 +538,41 @@ def fit_record_response(
         else:
             fit = _fit_band(data, fs, hold, f0, q, tau, tau if fixed_delay is None else tau0, fixed_delay, n)
         f0, q, tau = fit.f0_hz, fit.q, fit.delay_s
-    result = fit.result
-    unit = y_scale / x_scale
+    return _checked_result(fit.result, y_scale / x_scale, y_scale, fs)
+
+
+def _record_options(sample_rate_hz, f0_start_hz, q_start, band_halfwidths, hold, transient_order, delay, band,
+                    drive_edges_s):
+    """The checked options of :func:`fit_record_response`.
+
+    Returns (fs, f0 start, Q start, the fixed delay or None, band, transient
+    order, drive edges).
+    """
+    fs = _check_positive("sample_rate_hz", sample_rate_hz)
+    f0_start = _check_positive("f0_start_hz", f0_start_hz)
+    q_start = _check_positive("q_start", q_start)
+    _check_positive("band_halfwidths", band_halfwidths)
+    if hold not in HOLDS:
+        raise ConfigError(f"hold={hold!r} must be one of {HOLDS}")
+    if isinstance(transient_order, bool) or not isinstance(transient_order, (int, np.integer)) or transient_order < 1:
+        raise ConfigError(f"transient_order={transient_order!r} must be an integer >= 1")
+    if isinstance(delay, (bool, np.bool_)):
+        fixed_delay = None if delay else 0.0
+    elif isinstance(delay, (int, float)) and math.isfinite(delay):
+        fixed_delay = float(delay)
+    else:
+        raise ConfigError(f"delay={delay!r} must be True, False or a delay in s")
+    band = _check_band(band)
+    if not f0_start < fs / 2:
+        raise ConfigError(f"f0_start_hz={f0_start_hz!r} must be below the Nyquist frequency {fs / 2:g} Hz")
+    edges = tuple(float(t) for t in drive_edges_s)
+    if not all(math.isfinite(t) for t in edges):
+        raise ConfigError(f"drive_edges_s={drive_edges_s!r} must be finite times in s")
+    return fs, f0_start, q_start, fixed_delay, band, int(transient_order), edges
+
+
+def _checked_result(result: RecordFit, unit: float, y_scale: float, fs: float) -> RecordFit:
+    """``result`` back in the records' units (gain × ``unit``, noise × ``y_scale``); InputError if degenerate."""
     result = replace(
         result, gain=result.gain * unit, gain_std=result.gain_std * unit, noise_std=result.noise_std * y_scale,
         measured_response=_frozen(result.measured_response * unit),
