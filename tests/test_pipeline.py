@@ -69,6 +69,32 @@ def test_state_across_chunks_does_not_depend_on_chunk_size(chunk_samples: int) -
     np.testing.assert_allclose(chunked, whole, rtol=1e-12, atol=1e-12)
 
 
+def test_without_read_ahead_the_consumer_reads() -> None:
+    reader = _reader(1000)
+    readers: dict[int, int] = {}  # chunk start -> thread that read it
+    blocks = reader.blocks
+
+    def watched(channels, block_samples):
+        for chunk in blocks(channels, block_samples):
+            readers[chunk.start] = threading.get_ident()
+            yield chunk
+
+    reader.blocks = watched
+    recorder = _Recorder()
+    (cumsum,) = run_stream(reader, [recorder], channels=["x"], chunk_samples=300, read_ahead=0)
+    assert set(readers.values()) == {threading.get_ident()}
+    assert recorder.starts == [0, 300, 600, 900]
+    np.testing.assert_allclose(cumsum, np.cumsum(reader._data["x"]), rtol=1e-12, atol=1e-12)
+    readers.clear()
+    run_stream(reader, [_Recorder()], channels=["x"], chunk_samples=300, read_ahead=2)
+    # the first chunk is read before the stages are prepared; the rest by one read-ahead thread
+    assert readers[0] == threading.get_ident()
+    ahead = {readers[start] for start in (300, 600, 900)}
+    assert len(ahead) == 1 and threading.get_ident() not in ahead
+    with pytest.raises(ValueError, match="read_ahead"):
+        run_stream(reader, [_Recorder()], channels=["x"], chunk_samples=300, read_ahead=-1)
+
+
 def test_empty_capture_is_an_input_error() -> None:
     reader = ArrayReader(1e6, [ChannelSpec("x")], {"x": np.zeros(0)}, source="empty.h5")
     with pytest.raises(InputError, match="empty.h5: the capture has no samples"):
