@@ -241,7 +241,9 @@ def run_stream(
         Maps the chunk stream to the stream the stages see (e.g. reads a
         free-air segment ahead and replays it); it runs before ``prepare``.
     read_ahead : int
-        Chunks read ahead in a background thread (>= 1).
+        Chunks read ahead in a background thread; 0 reads each chunk in
+        this thread when it is needed (memory: up to ``read_ahead + 2``
+        chunks are held at once with read-ahead, one without).
 
     Returns
     -------
@@ -256,6 +258,8 @@ def run_stream(
     ValueError
         Two stages write the same column.
     """
+    if read_ahead < 0:
+        raise ValueError(f"{read_ahead=} must be >= 0")
     chunks = iter_chunks(reader, channels, chunk_samples)
     if prologue is not None:
         chunks = prologue(chunks)
@@ -266,7 +270,9 @@ def run_stream(
         head = Head(reader, reader.info, first, side)
         for stage in stages:
             stage.prepare(head)
-        stream = prefetch(_replay([first], chunks), read_ahead)
+        stream = _replay([first], chunks)
+        if read_ahead:
+            stream = prefetch(stream, read_ahead)
         del head, first  # the stream hands the first chunk on once; keep no reference for the whole run
         try:
             for chunk in stream:

@@ -69,6 +69,32 @@ def test_state_across_chunks_does_not_depend_on_chunk_size(chunk_samples: int) -
     np.testing.assert_allclose(chunked, whole, rtol=1e-12, atol=1e-12)
 
 
+def test_without_read_ahead_the_consumer_reads() -> None:
+    reader = _reader(1000)
+    readers: dict[int, int] = {}  # chunk start -> thread that read it
+    blocks = reader.blocks
+
+    def watched(channels, block_samples):
+        for chunk in blocks(channels, block_samples):
+            readers[chunk.start] = threading.get_ident()
+            yield chunk
+
+    reader.blocks = watched
+    recorder = _Recorder()
+    (cumsum,) = run_stream(reader, [recorder], channels=["x"], chunk_samples=300, read_ahead=0)
+    assert set(readers.values()) == {threading.get_ident()}
+    assert recorder.starts == [0, 300, 600, 900]
+    np.testing.assert_allclose(cumsum, np.cumsum(reader._data["x"]), rtol=1e-12, atol=1e-12)
+    readers.clear()
+    run_stream(reader, [_Recorder()], channels=["x"], chunk_samples=300, read_ahead=2)
+    # the first chunk is read before the stages are prepared; the rest by one read-ahead thread
+    assert readers[0] == threading.get_ident()
+    ahead = {readers[start] for start in (300, 600, 900)}
+    assert len(ahead) == 1 and threading.get_ident() not in ahead
+    with pytest.raises(ValueError, match="read_ahead"):
+        run_stream(reader, [_Recorder()], channels=["x"], chunk_samples=300, read_ahead=-1)
+
+
 def test_empty_capture_is_an_input_error() -> None:
     reader = ArrayReader(1e6, [ChannelSpec("x")], {"x": np.zeros(0)}, source="empty.h5")
     with pytest.raises(InputError, match="empty.h5: the capture has no samples"):
@@ -211,3 +237,73 @@ def test_warmup_masks_the_first_samples() -> None:
     assert np.isnan(masked[:first]).all() and (masked[first:] == 1).all()
     with pytest.raises(ValueError):
         Warmup(-1)
+
+
+class _Series:
+    """A ResultWriter stand-in: keeps the appended columns in memory."""
+
+    def __init__(self) -> None:
+        self.parts: dict[str, list[np.ndarray]] = {}
+
+    def append(self, columns) -> None:
+        for name, values in columns.items():
+            self.parts.setdefault(name, []).append(np.asarray(values))
+
+    def put(self, *args, **kwargs) -> None:
+        """Whole arrays are not compared here."""
+
+    def series(self, prefix: str = "") -> dict[str, np.ndarray]:
+        return {prefix + name: np.concatenate(parts) for name, parts in self.parts.items()}
+
+
+class _Prefixed:
+    """A stage whose columns are renamed, so two analyses can share one sink."""
+
+    def __init__(self, stage, prefix: str) -> None:
+        self.stage, self.prefix = stage, prefix
+
+    def prepare(self, head: Head) -> None:
+        self.stage.prepare(head)
+
+    def step(self, chunk):
+        return {self.prefix + name: values for name, values in self.stage.step(chunk).items()}
+
+    def finish(self):
+        return self.stage.finish()
+
+
+def test_two_analyses_in_one_pass_equal_their_own_runs() -> None:
+    """REEP and probe loss composed on one read of the capture give what each gives alone, to the bit."""
+    from afmtool.analyses.probeloss import ProbeLossStage, run_probeloss
+    from afmtool.analyses.reep import ReepStage, run_reep
+    from afmtool.config import resolve
+    from afmtool.config.params import ProbeLossParams, ReepParams
+    from afmtool.io.registry import open_capture
+    from tests.conftest import SAMPLE_DATA
+
+    reep_params = resolve(ReepParams, {"chunk_samples": 30_000})
+    loss_params = resolve(ProbeLossParams, {"chunk_samples": 30_000})
+    with open_capture(SAMPLE_DATA / "raster_grating.h5") as reader:
+        alone_reep, alone_loss = _Series(), _Series()
+        reep_result = run_reep(reader, reep_params, alone_reep)
+        loss_result = run_probeloss(reader, loss_params, alone_loss)
+        reep, loss = ReepStage(reader, reep_params), ProbeLossStage(reader, loss_params)
+
+        def both_free_air(chunks):  # each reads its free-air segment ahead of the same stream
+            return loss.free_air_prologue(reep.free_air_prologue(chunks))
+
+        together = _Series()
+        reep_together, loss_events = run_stream(
+            reader, [_Prefixed(reep, "reep/"), _Prefixed(loss, "loss/")], together,
+            channels=sorted({*reep.channels, "deflection", "dither"}), chunk_samples=30_000, prologue=both_free_air,
+        )
+    expected = {**alone_reep.series("reep/"), **alone_loss.series("loss/")}
+    actual = together.series()
+    assert sorted(actual) == sorted(expected)
+    for name, values in expected.items():
+        np.testing.assert_array_equal(actual[name], values, err_msg=name)
+    assert reep_together.results == reep_result.results
+    index_events, _ = loss_events
+    assert len(index_events) == loss_result.results["events_total"] > 0
+    n = loss_result.results["n_samples"]
+    assert float(np.sum(index_events.duration)) / n == loss_result.results["loss_fraction"]

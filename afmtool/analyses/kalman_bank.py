@@ -106,6 +106,9 @@ SERIES_UNITS = {
     "reep_q": "",
 }
 _CHANNELS = ("deflection", "dither", "z_piezo")
+#: Pass 2 reads in the consumer thread: read-ahead held three more chunks (20 MB at the default
+#: chunk size) above pass 1's peak RSS, and the kernels, not the reads, set its pace.
+_PASS_TWO_READ_AHEAD = 0
 
 
 @dataclass(frozen=True)
@@ -290,9 +293,11 @@ def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
 class _PassTwo:
     """Pass 2 as a :mod:`afmtool.pipeline` stage: observers, REEP, delay lines, accumulators, counters.
 
-    The bank's kernel runs on the side thread while REEP and the adaptive
-    observer run on this one (the kernels release the GIL; their states are
-    apart, so the result does not depend on the threads).
+    Everything runs in the consumer thread, with no read-ahead
+    (``_PASS_TWO_READ_AHEAD``): the bank's kernel on the side thread
+    allocated its N × chunk outputs in a second malloc arena, and read-ahead
+    held three more chunks; either raised the command's peak RSS by 15 to
+    25 MB above pass 1's, for no gain a loaded 2-core machine could show.
     """
 
     def __init__(self, reader: CaptureReader, params: KalmanBankParams, *, model: FreeAirModel | None, lam: float,
@@ -331,7 +336,6 @@ class _PassTwo:
         )
         self.decimation = Decimation(setup.decimate)
         self.warmup = Warmup(setup.warmup)
-        self.side = head.side
         self.bank = BankState.initial(setup.designs, setup.window)
         self.adaptive = AdaptiveState.initial(model.numerator_at(fs), model.denominator_at(fs), setup.radius,
                                               setup.window)
@@ -351,12 +355,9 @@ class _PassTwo:
         from afmtool.models.discretisation import resonance_from_denominator
 
         y, g = chunk.data["deflection"], chunk.data["dither"]
-        banking = self.side.submit(bank_update, self.bank, y, g)
-        try:
-            b1, b0 = self.coefficients.block(chunk)
-            adaptive_step = adaptive_update(self.adaptive, y, g, b1, b0)
-        finally:
-            bank_step = banking.result()
+        b1, b0 = self.coefficients.block(chunk)
+        bank_step = bank_update(self.bank, y, g)
+        adaptive_step = adaptive_update(self.adaptive, y, g, b1, b0)
         self.bank, self.adaptive = bank_step.state, adaptive_step.state
         z_rms = self.z_delay(chunk.data["z_piezo"])
         keep = self.decimation.keep(chunk.start)  # the samples REEP keeps
@@ -491,7 +492,7 @@ def run_kalman_bank(
                       reep_results=reep_results)
     try:
         run_stream(source, [stream], writer, channels=_CHANNELS, chunk_samples=params.chunk_samples,
-                   progress=progress_two, prologue=stream.free_air_prologue)
+                   progress=progress_two, prologue=stream.free_air_prologue, read_ahead=_PASS_TWO_READ_AHEAD)
     finally:
         if source is not reader:
             source.close()

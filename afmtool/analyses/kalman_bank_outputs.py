@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afmtool.analyses.command_inputs import channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.kalman_bank import SERIES_UNITS, KalmanBankResult, run_kalman_bank
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import KalmanBankParams
@@ -20,7 +21,6 @@ from afmtool.errors import ConfigError
 from afmtool.io.capture import CaptureReader
 from afmtool.io.matrix_results import MatrixResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.models.free_air import load_free_air_model
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -49,14 +49,11 @@ def run_kalman_bank_command(
             "kalman-bank reads a capture twice (REEP first, then the bank); stdin cannot be re-read: "
             "give --reep REEP_DIR (a finished 'afmtool reep' run) or --models"
         )
-    model = load_free_air_model(Path(params.model)) if params.model else None
-    deflection_units = reader.info.units("deflection") if "deflection" in reader.info.channel_names else ""
-    z_units = reader.info.units("z_piezo") if "z_piezo" in reader.info.channel_names else ""
+    model = given_free_air_model(params.model)
+    deflection_units = channel_units(reader, "deflection")
+    z_units = channel_units(reader, "z_piezo")
     units = {**SERIES_UNITS, "z": z_units, "rms": deflection_units, "adaptive_rms": deflection_units}
-    inputs = [input_record(capture)]
-    if params.model:
-        model_path = Path(params.model)
-        inputs.append(input_record(model_path / "free_air.json" if model_path.is_dir() else model_path, "model"))
+    inputs = [input_record(capture), *model_input_records(params.model)]
     reep_results = open_reep_results(params.reep) if params.reep else None
     try:
         if reep_results is not None:

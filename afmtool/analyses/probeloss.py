@@ -232,7 +232,7 @@ def prepare_probeloss(
 class ProbeLossStage:
     """The streaming pass as a :mod:`afmtool.pipeline` stage: detectors, events, counts, images.
 
-    ``free_air_prologue`` (the run's prologue) reads the free-air segment
+    ``free_air_prologue`` (the run's prologue, required) reads the free-air segment
     ahead and fixes the setup (:func:`prepare_probeloss`).  Per chunk the
     lock-in runs on the side thread while the observer kernel runs in the
     caller's (both numba kernels release the GIL); each keeps its own
@@ -259,6 +259,8 @@ class ProbeLossStage:
         from afmtool.estimators.reliability import ReliabilityState
 
         setup = self.setup
+        if setup is None:
+            raise RuntimeError("ProbeLossStage runs with prologue=stage.free_air_prologue (the free-air setup)")
         self.side = head.side
         self.decimation = Decimation(setup.decimate)
         self.detector = ReliabilityState(

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afmtool.analyses.command_inputs import channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.probeloss import SERIES_UNITS, ProbeLossResult, run_probeloss
 from afmtool.analyses.stream import run_stream
 from afmtool.config import load_toml, resolve_from
@@ -14,8 +15,7 @@ from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.models.free_air import load_free_air_model
-from afmtool.report.json_report import PendingInputRecord, input_record
+from afmtool.report.json_report import PendingInputRecord
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -26,8 +26,7 @@ _IMAGE_STEMS = {"loss": "loss_mask", "index": "index"}
 
 
 def _units(reader: CaptureReader) -> dict[str, str]:
-    deflection_units = reader.info.units("deflection") if "deflection" in reader.info.channel_names else ""
-    return dict(SERIES_UNITS, amplitude=deflection_units)
+    return dict(SERIES_UNITS, amplitude=channel_units(reader, "deflection"))
 
 
 def run_probeloss_command(
@@ -45,7 +44,7 @@ def run_probeloss_command(
     the CLI before its imports); by default it starts here.
     """
     params = resolve_from(ProbeLossParams, "probeloss", load_toml(config) if config else None, flags)
-    model = load_free_air_model(Path(params.model)) if params.model else None
+    model = given_free_air_model(params.model)
     capture_record = capture_record or PendingInputRecord(capture)
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"}) as writer:
@@ -55,11 +54,7 @@ def run_probeloss_command(
         _write_time_series(staged, reader, results)
         if result.setup is not None and result.setup.model_source == "segment":
             result.setup.model.save(staged.path("free_air.json"))
-        inputs = [{**capture_record.result(), **calibration_record(reader)}]
-        if params.model:
-            model_path = Path(params.model)
-            model_file = model_path if model_path.is_file() else model_path / "free_air.json"
-            inputs.append(input_record(model_file, "model"))
+        inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_input_records(params.model)]
         return finish_run(staged, "probeloss", inputs, "probeloss", params, results, result.warnings)
 
 
@@ -67,7 +62,7 @@ def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapp
     """Run the analysis and write decimated rows to stdout as each chunk completes (``--stream``)."""
 
     def analysis(reader: CaptureReader, params: ProbeLossParams, writer) -> ProbeLossResult:
-        model = load_free_air_model(Path(params.model)) if params.model else None
+        model = given_free_air_model(params.model)
         return run_probeloss(reader, params, writer, model=model)
 
     run_stream(analysis, ProbeLossParams, "probeloss", reader, config, flags, fmt)

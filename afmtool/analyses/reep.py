@@ -203,7 +203,7 @@ def _metadata_levels(reader: CaptureReader) -> FreeAirLevels:
 class ReepStage:
     """REEP as a :mod:`afmtool.pipeline` stage: BCEWRLS and the lock-in over each chunk.
 
-    ``free_air_prologue`` (the run's prologue) resolves the free-air model,
+    ``free_air_prologue`` (the run's prologue, required) resolves the free-air model,
     reading its segment ahead; ``prepare`` fixes the drive, the lock-in,
     the decimation and the validity levels from the first chunk; ``step``
     returns the decimated columns of ``reep.h5`` and adds the trusted ones
@@ -236,6 +236,7 @@ class ReepStage:
         self.segment_s = None
         self.route = None
         self._segment = None
+        self._resolved = False
         self.n_total = 0
 
     def free_air_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:
@@ -244,6 +245,7 @@ class ReepStage:
         self.route = resolved.report if resolved is not None else None
         self.warnings.extend(resolved.warnings if resolved is not None else ())
         self._segment = resolved.segment if resolved is not None else None
+        self._resolved = True
         return chunks
 
     def prepare(self, head: Head) -> None:
@@ -251,6 +253,8 @@ class ReepStage:
         from afmtool.estimators.lockin import LockIn, default_lowpass_hz
         from afmtool.estimators.rls import ReepState
 
+        if not self._resolved:
+            raise RuntimeError("ReepStage runs with prologue=stage.free_air_prologue (the free-air route)")
         params, fs = self.params, self.fs
         drive = head.info.metadata.get("drive", {})
         self.drive_hz = _drive_frequency(params, drive, self.model, head.first.data["deflection"], fs)

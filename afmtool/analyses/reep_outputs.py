@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afmtool.analyses.command_inputs import channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.reep import SERIES_UNITS, ReepResult, run_reep
 from afmtool.analyses.stream import run_stream
 from afmtool.config import load_toml, resolve_from
@@ -14,8 +15,7 @@ from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.models.free_air import load_free_air_model
-from afmtool.report.json_report import PendingInputRecord, input_record
+from afmtool.report.json_report import PendingInputRecord
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -39,14 +39,11 @@ def run_reep_command(
     the CLI before its imports); by default it starts here.
     """
     params = resolve_from(ReepParams, "reep", load_toml(config) if config else None, flags)
-    model = load_free_air_model(Path(params.model)) if params.model else None
-    deflection_units = reader.info.units("deflection") if "deflection" in reader.info.channel_names else ""
+    model = given_free_air_model(params.model)
+    deflection_units = channel_units(reader, "deflection")
     units = dict(SERIES_UNITS, amplitude=deflection_units, sigma2=f"{deflection_units}^2" if deflection_units else "")
     capture_record = capture_record or PendingInputRecord(capture)
-    model_records = []
-    if params.model:
-        model_path = Path(params.model)
-        model_records.append(input_record(model_path if model_path.is_file() else model_path / "free_air.json", "model"))
+    model_records = model_input_records(params.model)
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
             result = run_reep(reader, params, writer, model=model, progress=progress)
@@ -78,7 +75,7 @@ def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, 
     """Run REEP and write decimated rows to stdout as each chunk completes (``--stream``)."""
 
     def analysis(reader: CaptureReader, params: ReepParams, writer) -> ReepResult:
-        model = load_free_air_model(Path(params.model)) if params.model else None
+        model = given_free_air_model(params.model)
         return run_reep(reader, params, writer, model=model)
 
     run_stream(analysis, ReepParams, "reep", reader, config, flags, fmt)
