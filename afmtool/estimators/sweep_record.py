@@ -846,6 +846,15 @@ def identify_sweep(
     -------
     SweepIdentification
 
+    Notes
+    -----
+    Memory: ``"record"`` needs the whole records and their DFTs (about six
+    float64 arrays of the record's length at the peak); a capture streams
+    only the two records into it.  The spectral methods need no record when
+    their response is accumulated chunk by chunk
+    (:class:`~afmtool.estimators.stages.ResponseStage`, then
+    :func:`identify_sweep_response`).
+
     Raises
     ------
     ConfigError
