@@ -305,7 +305,8 @@ def run_controllers_command(
         rows.append(Ch2Row(rate, *(controller_row(runs[c]) for c in CONTROLLERS)))
     checks = {f"{row.line_rate_hz:g}": criteria(row, params.tolerance) for row in rows}
     required = ("high_below_low", "high_least_loss", "switching_loss_within", "switching_force_within")
-    passed = all(check[name] for check in checks.values() for name in required)
+    # issue 14's acceptance: every claim at >= 3 line rates (at 4 Hz the high and switching gains tie)
+    passed = sum(all(check[name] for name in required) for check in checks.values()) >= min(3, len(checks))
     base = RasterParams()
     results = {
         "line_rates_hz": list(rates),

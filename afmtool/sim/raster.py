@@ -103,10 +103,15 @@ more than the low pair at 12 Hz and above).  Nearer the limit (s ≥ 1.2)
 the high gain's ringing keeps the tip in light, intermittent contact, which
 the reliability index reads as probe loss (the index's per-event precision
 on the ch. 2 captures falls below 0.95), so the default stays at the
-Ziegler-Nichols margin.  In this simulator the switching gain loses even
-less than the constant high gain: after a rising edge its on-sample low
-gain lifts the tip off less.  ``afmtool theory controllers`` tabulates the
-three controllers (docs/ch2_table.json).
+Ziegler-Nichols margin.  At the top of each rising edge the constant high
+gain overshoots and pulls the sample off the tip (the amplitude grows back
+only at the free-air rate ω0/2Q of eq. 2.1 while the integrator keeps
+retracting); the switching gain, on its low pair there, does not.  That
+lift-off is the high gain's edge ringing of §2.5, not probe loss in the
+sense of §2.2 (the surface falling away), and ``afmtool theory
+controllers`` reports the two apart (:func:`afmtool.analyses.controllers.classify_loss`,
+docs/ch2_table.json): in probe loss the high gain is the least of the
+three, the switching gain a drive period or so per pit behind it.
 
 Truth
 -----
