@@ -53,9 +53,19 @@ def test_in_loop_index_is_the_observer_window_rms(short_run):
     np.testing.assert_array_equal(short_run.rms_nm, step.block.rms)
 
 
+def test_closest_approach_is_the_contact_truth(short_run):
+    """closest_nm is t_s at the step boundaries where contact is read: contact iff t_s < d somewhere."""
+    d = short_run.params.force().d_nm
+    np.testing.assert_array_equal(short_run.contact, (short_run.closest_nm < d).astype(np.uint8))
+    # and it is the tip's lowest point: about l − A on the free-air hold (sample retracted 30 nm beyond A0)
+    params = short_run.params
+    free = slice(int(0.5 * params.free_air_s * params.sample_rate_hz), int(params.free_air_s * params.sample_rate_hz))
+    assert np.min(short_run.closest_nm[free]) == pytest.approx(params.retract_nm, abs=0.5)
+
+
 def test_chunk_size_does_not_change_the_run(short_run):
     other = run_raster(short_run.params, seed=5, chunk_samples=4099)
-    for name in ("deflection_nm", "z_piezo_nm", "amplitude_nm", "force_n", "switch", "contact"):
+    for name in ("deflection_nm", "z_piezo_nm", "amplitude_nm", "force_n", "switch", "contact", "closest_nm"):
         np.testing.assert_array_equal(getattr(other, name), getattr(short_run, name), err_msg=name)
 
 
