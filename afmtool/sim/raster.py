@@ -469,8 +469,7 @@ def _plant_period(plant, g_row, eta, u, h_half, base, nsub, dt, w0q, w0sq, wpq, 
         h1 = h_half[j + 1]
         h2 = h_half[j + 2]
         ts = p + z - h0
-        if ts < closest:
-            closest = ts
+        closest = min(closest, ts)
         if ts < d:
             touched = 1
         # k1 = f(t, y)
