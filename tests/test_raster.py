@@ -53,9 +53,19 @@ def test_in_loop_index_is_the_observer_window_rms(short_run):
     np.testing.assert_array_equal(short_run.rms_nm, step.block.rms)
 
 
+def test_closest_approach_is_the_contact_truth(short_run):
+    """closest_nm is t_s at the step boundaries where contact is read: contact iff t_s < d somewhere."""
+    d = short_run.params.force().d_nm
+    np.testing.assert_array_equal(short_run.contact, (short_run.closest_nm < d).astype(np.uint8))
+    # and it is the tip's lowest point: about l − A on the free-air hold (sample retracted 30 nm beyond A0)
+    params = short_run.params
+    free = slice(int(0.5 * params.free_air_s * params.sample_rate_hz), int(params.free_air_s * params.sample_rate_hz))
+    assert np.min(short_run.closest_nm[free]) == pytest.approx(params.retract_nm, abs=0.5)
+
+
 def test_chunk_size_does_not_change_the_run(short_run):
     other = run_raster(short_run.params, seed=5, chunk_samples=4099)
-    for name in ("deflection_nm", "z_piezo_nm", "amplitude_nm", "force_n", "switch", "contact"):
+    for name in ("deflection_nm", "z_piezo_nm", "amplitude_nm", "force_n", "switch", "contact", "closest_nm"):
         np.testing.assert_array_equal(getattr(other, name), getattr(short_run, name), err_msg=name)
 
 
@@ -142,22 +152,33 @@ def test_validation():
 def test_ch2_table_switching_gain(table_runs, tmp_path):
     """Thesis §2.5 at 4, 8, 12 (grating) and 30 Hz: switching loses like the high gain, presses like the low."""
     rows = ch2_table(TABLE_RATES_HZ, runs=table_runs)
-    print("\nline rate | loss area low / high / switching | peak force (nN) low / high / switching | ratios")
+    print("\nline rate | probe-loss area low / high / switching | lift-off area low / high / switching"
+          " | peak force (nN) low / high / switching | ratios")
     for row in rows:
-        print(f"{row.line_rate_hz:5g} Hz | {row.low.loss_area:.3f} / {row.high.loss_area:.3f} / "
-              f"{row.switching.loss_area:.3f} | {row.low.peak_force_n * 1e9:.1f} / {row.high.peak_force_n * 1e9:.1f}"
-              f" / {row.switching.peak_force_n * 1e9:.1f} | loss S/H {row.loss_ratio_to_high:.2f}, "
-              f"force S/L {row.force_ratio_to_low:.2f}")
+        print(f"{row.line_rate_hz:5g} Hz | {row.low.loss_area:.4f} / {row.high.loss_area:.4f} / "
+              f"{row.switching.loss_area:.4f} | {row.low.lift_off_area:.4f} / {row.high.lift_off_area:.4f} / "
+              f"{row.switching.lift_off_area:.4f} | {row.low.peak_force_n * 1e9:.1f} / {row.high.peak_force_n * 1e9:.1f}"
+              f" / {row.switching.peak_force_n * 1e9:.1f} | loss S/H {row.loss_ratio_to_high:.4f}, "
+              f"force S/L {row.force_ratio_to_low:.3f}")
     (tmp_path / "ch2_table.json").write_text(json.dumps([r.as_dict() for r in rows], indent=2))
     for row in rows:
         assert row.high.loss_area < row.low.loss_area, row  # the high gain loses contact less (issue 14, item 8)
         assert row.switching.loss_area <= 1.2 * row.high.loss_area, row
         assert row.switching.peak_force_n <= 1.2 * row.low.peak_force_n, row
+        if row.line_rate_hz >= 8.0:
+            # the high gain has the least probe-loss area: while lost the switching gain runs the high gain
+            # too, and loses one drive period or so per pit to the index's delay and the early switch back
+            assert row.high.loss_area < row.switching.loss_area, row
+        else:
+            # 4 Hz: the two tie within seed-to-seed noise (0.3 %); §2.5 calls them "comparable" there
+            assert row.loss_ratio_to_high == pytest.approx(1.0, abs=0.01), row
         # and it is a real improvement on the low gain, the thesis's point: by 30 % at the grating rates
-        # of §2.5 (4-12 Hz); at 30 Hz (the thesis's DNA rate, here on the 20 nm grating at 600 um/s)
-        # both gains lose the tip on half the scan or more and the switching gain saves a quarter of it
-        improvement = 0.7 if row.line_rate_hz <= 12.0 else 0.8
-        assert row.switching.loss_area < improvement * row.low.loss_area, row
+        # of §2.5 (4-12 Hz) and at 30 Hz (the thesis's DNA rate, here on the 20 nm grating at 600 um/s)
+        assert row.switching.loss_area < 0.7 * row.low.loss_area, row
+        # what the high gain has instead (§2.5, "on sample ringing"): after each rising edge it overshoots
+        # and pulls the sample off the tip, which the switching gain's on-sample low gain does not
+        if row.line_rate_hz >= 8.0:
+            assert row.high.lift_off_area > 1.3 * max(row.switching.lift_off_area, row.low.lift_off_area, 1e-3), row
 
 
 def test_ch2_table_can_fail(table_runs):

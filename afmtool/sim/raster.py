@@ -103,10 +103,15 @@ more than the low pair at 12 Hz and above).  Nearer the limit (s ≥ 1.2)
 the high gain's ringing keeps the tip in light, intermittent contact, which
 the reliability index reads as probe loss (the index's per-event precision
 on the ch. 2 captures falls below 0.95), so the default stays at the
-Ziegler-Nichols margin.  In this simulator the switching gain loses even
-less than the constant high gain: after a rising edge its on-sample low
-gain lifts the tip off less.  ``afmtool theory controllers`` tabulates the
-three controllers (docs/ch2_table.json).
+Ziegler-Nichols margin.  At the top of each rising edge the constant high
+gain overshoots and pulls the sample off the tip (the amplitude grows back
+only at the free-air rate ω0/2Q of eq. 2.1 while the integrator keeps
+retracting); the switching gain, on its low pair there, does not.  That
+lift-off is the high gain's edge ringing of §2.5, not probe loss in the
+sense of §2.2 (the surface falling away), and ``afmtool theory
+controllers`` reports the two apart (:func:`afmtool.analyses.controllers.classify_loss`,
+docs/ch2_table.json): in probe loss the high gain is the least of the
+three, the switching gain a drive period or so per pit behind it.
 
 Truth
 -----
@@ -449,19 +454,23 @@ def _plant_period(plant, g_row, eta, u, h_half, base, nsub, dt, w0q, w0sq, wpq, 
     (j = 0 … 2·nsub): the continuous dither at each stage time, or the
     sample's value throughout for a held one.
 
-    Returns (contact, force extreme per unit mass) over the step boundaries.
+    Returns (contact, force extreme per unit mass, closest tip-surface
+    separation t_s = p + l, nm) over the step boundaries.
     """
     half = 0.5 * dt
     sixth = dt / 6.0
     p, v, z, w = plant[0], plant[1], plant[2], plant[3]
     touched = 0
     extreme = 0.0
+    closest = math.inf
     for k in range(nsub):
         j = base + 2 * k
         h0 = h_half[j]
         h1 = h_half[j + 1]
         h2 = h_half[j + 2]
-        if p + z - h0 < d:
+        ts = p + z - h0
+        closest = min(closest, ts)
+        if ts < d:
             touched = 1
         # k1 = f(t, y)
         a1, b1, f1 = _derivatives(p, v, z, w, g_row[2 * k], eta, u, h0, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb)
@@ -482,7 +491,7 @@ def _plant_period(plant, g_row, eta, u, h_half, base, nsub, dt, w0q, w0sq, wpq, 
         z = z + sixth * (w + 2.0 * w2 + 2.0 * w3 + w4)
         w = w + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
     plant[0], plant[1], plant[2], plant[3] = p, v, z, w
-    return touched, extreme
+    return touched, extreme, closest
 
 
 @njit(**JIT_OPTIONS)
@@ -504,7 +513,7 @@ def _raster_kernel(  # noqa: PLR0913, PLR0915
     obs, xhat, ring, sums, counters,
     cal, sos, zi, cycles_per_sample,
     ctl, schedule, plant, carried,
-    out_y, out_u, out_amp, out_rms, out_switch, out_contact, out_force, out_sep,
+    out_y, out_u, out_amp, out_rms, out_switch, out_contact, out_force, out_sep, out_gap,
 ):
     """Closed loop over one chunk of samples [start, start + T) (module docstring).
 
@@ -589,12 +598,13 @@ def _raster_kernel(  # noqa: PLR0913, PLR0915
                 u = u_int + kp * err
             out_u[i] = u
             out_sep[i] = plant[2] - h_half[2 * nsub * i]
-            touched, extreme = _plant_period(
+            touched, extreme, closest = _plant_period(
                 plant, g_rows[i], eta[i], u, h_half, 2 * nsub * i, nsub, dt,
                 w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb,
             )
             out_contact[i] = touched
             out_force[i] = extreme
+            out_gap[i] = closest
         since = _window_resync(ring, sums, since + (stop - begin))
         begin = stop
     counters[0] = pos
@@ -630,6 +640,10 @@ class RasterRun(NamedTuple):
         The in-loop observer.
     window_samples : int
         Its window W.
+    closest_nm : numpy.ndarray
+        Truth: the closest tip-surface separation t_s = p + l over each
+        sample period's RK4 step boundaries, nm (negative = indentation);
+        not written to captures.
     """
 
     params: RasterParams
@@ -646,6 +660,7 @@ class RasterRun(NamedTuple):
     calibration: FreeAirCalibration | None
     design: ObserverDesign
     window_samples: int
+    closest_nm: np.ndarray
 
 
 def _initial_state(params: RasterParams, excitation: MultiSine) -> tuple[float, float]:
@@ -711,6 +726,7 @@ class _Loop:
             "rms": np.empty(self.n_total), "switch": np.empty(self.n_total, dtype=np.uint8),
             "contact": np.empty(self.n_total, dtype=np.uint8), "force": np.empty(self.n_total),
             "sep": np.empty(self.n_total), "h": np.empty(self.n_total), "dither": np.empty(self.n_total),
+            "gap": np.empty(self.n_total),
         }
 
     def run(self, first: int, last: int, chunk_samples: int) -> None:
@@ -744,7 +760,7 @@ class _Loop:
                 self.cal, self.sos, self.zi, params.f0_hz / self.fs,
                 self.ctl, self.schedule, self.plant, self.carried,
                 o["y"][sl], o["u"][sl], o["amp"][sl], o["rms"][sl], o["switch"][sl], o["contact"][sl],
-                o["force"][sl], o["sep"][sl],
+                o["force"][sl], o["sep"][sl], o["gap"][sl],
             )
             o["h"][sl] = h_half[:-1:per_sample]
             o["dither"][sl] = dither
@@ -793,7 +809,7 @@ def run_raster(params: RasterParams, seed: int, *, chunk_samples: int = _DEFAULT
     o = loop.out
     return RasterRun(
         params, o["y"], o["dither"], o["u"], o["amp"], o["rms"], o["switch"], o["contact"],
-        o["force"] * loop.mass_kg * 1e-9, o["h"], o["sep"], calibration, loop.design, loop.window,
+        o["force"] * loop.mass_kg * 1e-9, o["h"], o["sep"], calibration, loop.design, loop.window, o["gap"],
     )
 
 
