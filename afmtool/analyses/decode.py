@@ -705,7 +705,7 @@ class _Totals(NamedTuple):
     bit_stream_rms_nm: float | None
 
 
-def _stream(chunks, design, baseline: _Baseline, stage: _BitStage, psd: _PsdBuffer, writer,  # noqa: PLR0913
+def _stream(chunks, design, baseline: _Baseline, stage: _BitStage, psd: _PsdBuffer, writer,
             params: DecodeParams, setup: ModelSetup, bits_start: int) -> _Totals:
     """EKF and lock-in over every chunk; the lock-in runs in a worker thread (both kernels release the GIL)."""
     from afmtool.estimators.ekf import EkfState, ekf_update

@@ -382,7 +382,7 @@ class SlicerStep(NamedTuple):
 
 
 @njit(**_JIT_OPTIONS)
-def _slicer_kernel(  # noqa: PLR0912, PLR0913, PLR0915
+def _slicer_kernel(  # noqa: C901, PLR0915 - numba kernel: one scalar recursion
     primary, aux, coef, locked, state, sring, dring_p, dring_a, out_c, out_p, out_a, out_t
 ):
     """Delay, smooth, detect transitions, track the clock and integrate cells, per sample.

@@ -384,7 +384,7 @@ def discretise(
 
 
 @njit(**_JIT_OPTIONS)
-def _ekf_kernel(y, volts_a, volts_b, alpha, beta, coef, state, ring, out_e, out_mean):  # noqa: PLR0913, PLR0915
+def _ekf_kernel(y, volts_a, volts_b, alpha, beta, coef, state, ring, out_e, out_mean):  # noqa: PLR0915 - numba kernel: one scalar recursion
     """Run the EKF over one chunk; ``state`` and ``ring`` are updated in place.
 
     The voltage is V(n) = alpha·volts_a(n) − beta·volts_b(n): α_R, V_R, 1,

@@ -89,7 +89,7 @@ _STATE_LEN = 20
 
 
 @njit(**JIT_OPTIONS)
-def _reep_kernel(  # noqa: PLR0913, PLR0915
+def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, state, out_b1, out_b0, out_sigma2
 ):
     """Run REEP (eq. 3.39 with θ = [b1, b0], Λ = I₂) over one chunk.
@@ -246,7 +246,7 @@ def _reep_kernel(  # noqa: PLR0913, PLR0915
 
 
 @njit(**JIT_OPTIONS)
-def _reep_offset_kernel(  # noqa: PLR0913, PLR0915
+def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, state, out_b1, out_b0, out_sigma2,
     out_c,
 ):
@@ -753,7 +753,7 @@ def reep(
 
 
 @njit(**JIT_OPTIONS)
-def _bcewrls_kernel(phi, y, lam_diag, lam, trace_cap, out_theta_c, out_theta_ls, out_sigma2):
+def _bcewrls_kernel(phi, y, lam_diag, lam, trace_cap, out_theta_c, out_theta_ls, out_sigma2):  # noqa: C901 - numba kernel: one scalar recursion
     """Eq. 3.39 for m parameters; row i of ``phi`` is φᵀ(i+1).
 
     Same guards as ``_reep_kernel``.  P is updated on its upper triangle
@@ -994,7 +994,7 @@ def _noise_pair_covariance(b1: float, b0: float) -> np.ndarray:
 
 
 @njit(**JIT_OPTIONS)
-def _arx_output_kernel(g, a2, a1, a0, b1, b0, out, first, second):  # noqa: PLR0913
+def _arx_output_kernel(g, a2, a1, a0, b1, b0, out, first, second):
     """ARX model output (eq. 3.40 without noise) from ŝ(0) = ``first``, ŝ(1) = ``second``.
 
     ŝ(n) = −b1 ŝ(n−1) − b0 ŝ(n−2) + a2 g(n) + a1 g(n−1) + a0 g(n−2): what
@@ -1152,7 +1152,7 @@ def identify_arx(
         r_inv_lam = np.column_stack([r_inv(col) for col in np.diag(lam_diag)])
         theta = theta_ls.copy()
         sigma2 = float("nan")
-        for n_iter in range(1, max_iter + 1):  # noqa: B007
+        for n_iter in range(1, max_iter + 1):  # noqa: B007 - read after the loop: the iterations taken
             # σ̂²_k = (J/N) / (1 + θ̂_C,kᵀ Λ θ̂_LS)
             den = 1.0 + theta @ (lam_diag * theta_ls)
             if not den > MIN_BIAS_DENOMINATOR:

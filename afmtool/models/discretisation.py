@@ -227,7 +227,7 @@ def is_underdamped(b1, b0) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _resonance_kernel(b1, b0, period, f0_out, q_out):  # noqa: PLR0913
+def _resonance_kernel(b1, b0, period, f0_out, q_out):
     """Eq. 3.48 sample by sample; NaN where (b1, b0) is not under-damped.  Returns that count."""
     flagged = 0
     for i in range(b1.shape[0]):

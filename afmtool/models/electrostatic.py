@@ -130,7 +130,7 @@ class LeverVoltages(NamedTuple):
 
 
 @njit(cache=True)
-def electrostatic_force_scalar(p_m, voltage_v, l0_m, k_esf_f_m, z_m, tip_height_m):  # noqa: PLR0913
+def electrostatic_force_scalar(p_m, voltage_v, l0_m, k_esf_f_m, z_m, tip_height_m):
     """F_esf = −K_esf·V²/max(ℓ0 + p − z, t_h)² (eq. 6.4), N; for numba kernels."""
     separation = l0_m + p_m - z_m
     if separation < tip_height_m:

@@ -73,7 +73,7 @@ __all__ = [
 
 
 @njit(cache=True)
-def force_per_mass(p, v, l, d, wa2, wb2, ca, cb):  # noqa: PLR0913 - the model's own parameters
+def force_per_mass(p, v, l, d, wa2, wb2, ca, cb):  # the model's own parameters
     """Piecewise-linear tip-sample force per unit mass (module docstring).
 
     Parameters
@@ -105,7 +105,7 @@ def force_per_mass(p, v, l, d, wa2, wb2, ca, cb):  # noqa: PLR0913 - the model's
     return force
 
 
-def force_per_mass_array(p, v, l, d, wa2, wb2, ca, cb) -> np.ndarray:  # noqa: PLR0913
+def force_per_mass_array(p, v, l, d, wa2, wb2, ca, cb) -> np.ndarray:
     """Vectorised :func:`force_per_mass` over broadcast arrays (nm/s²)."""
     p, v, l = np.broadcast_arrays(
         np.asarray(p, dtype=np.float64), np.asarray(v, dtype=np.float64), np.asarray(l, dtype=np.float64)

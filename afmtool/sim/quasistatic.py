@@ -40,7 +40,7 @@ _MAX_STEPS = 40000
 
 
 @njit(cache=True)
-def _residual(p, voltage, z, k, kesf, l0, th, d, ka, kr):  # noqa: PLR0913
+def _residual(p, voltage, z, k, kesf, l0, th, d, ka, kr):
     """r(p) = k·p − F_esf − F_ts, N."""
     f_esf = electrostatic_force_scalar(p, voltage, l0, kesf, z, th)
     # t_s = p + l with l = ℓ0 − t_h − z (forces module convention); "unit mass": ω² = stiffness
@@ -49,7 +49,7 @@ def _residual(p, voltage, z, k, kesf, l0, th, d, ka, kr):  # noqa: PLR0913
 
 
 @njit(cache=True)
-def _track_kernel(voltage, z, p_start, k, kesf, l0, th, d, ka, kr, out):  # noqa: PLR0913
+def _track_kernel(voltage, z, p_start, k, kesf, l0, th, d, ka, kr, out):
     p = p_start
     for n in range(voltage.shape[0]):
         v = voltage[n]
