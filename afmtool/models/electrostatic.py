@@ -51,6 +51,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 
 __all__ = [
     "ElectrostaticParams",
@@ -129,7 +130,7 @@ class LeverVoltages(NamedTuple):
     alpha_r: float
 
 
-@njit(cache=True)
+@njit(**JIT_OPTIONS)
 def electrostatic_force_scalar(p_m, voltage_v, l0_m, k_esf_f_m, z_m, tip_height_m):
     """F_esf = −K_esf·V²/max(ℓ0 + p − z, t_h)² (eq. 6.4), N; for numba kernels."""
     separation = l0_m + p_m - z_m

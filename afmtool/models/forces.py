@@ -57,6 +57,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 
 __all__ = [
     "PiecewiseLinearForce",
@@ -72,7 +73,7 @@ __all__ = [
 ]
 
 
-@njit(cache=True)
+@njit(**JIT_OPTIONS)
 def force_per_mass(p, v, l, d, wa2, wb2, ca, cb):  # the model's own parameters
     """Piecewise-linear tip-sample force per unit mass (module docstring).
 

@@ -45,6 +45,7 @@ from numba import njit
 from scipy import signal
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.discretisation import DiscreteNumerator, discrete_denominator, sampled_numerator
@@ -176,7 +177,7 @@ def parameter_profile(t_s: np.ndarray, step_time_s: float, ramp_s: float, step_r
     return np.where(tau < 0, 0.0, s)
 
 
-@njit(cache=True)
+@njit(**JIT_OPTIONS)
 def _ltv_kernel(u, b1, b0, p1, p2, out):
     """p(n) = u(n) − b1(n)p(n−1) − b0(n)p(n−2), from p(−1) = p1, p(−2) = p2."""
     for n in range(u.shape[0]):

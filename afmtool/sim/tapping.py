@@ -39,6 +39,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce, force_per_mass
@@ -214,7 +215,7 @@ class TappingParams:
 # --------------------------------------------------------------------------- kernel
 
 
-@njit(cache=True)
+@njit(**JIT_OPTIONS)
 def _rk4_kernel(g_half, g_held, l_half, accel_noise, nsub, dt, w0q, w0sq, d, wa2, wb2, ca, cb, p0, v0, out_p,
                 out_contact):
     """Integrate n sample periods with ``nsub`` RK4 steps each.
