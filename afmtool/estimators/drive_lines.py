@@ -276,21 +276,25 @@ def fit_drive_phases(
     magnitude = np.abs(d) / amplitudes
     if np.any(magnitude <= 0):
         raise InputError("a drive line has no response in the deflection on the free-air segment")
-    if len(lines) >= 3:
-        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs, hold)
-        source = "line magnitudes"
-    elif f0_hz and q:
-        f0, qf = float(f0_hz), float(q)
-        gain = float(np.mean(magnitude / np.abs(response(frequencies, f0, qf, fs))))
-        source = "metadata cantilever f0_hz, q"
-    else:
-        raise InputError(
-            f"--drive gives {len(lines)} line(s): fitting their phases needs three lines around the resonance, "
-            "or metadata cantilever f0_hz and q"
-        )
+    f0, qf, gain, source = _free_air_of_lines(frequencies, magnitude, fs, hold, f0_hz, q)
     phases = np.angle(d) - np.angle(response(frequencies, f0, qf, fs))
     fitted = tuple(DriveLine(float(f), float(a), float(p)) for f, a, p in zip(frequencies, amplitudes, phases))
     return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)))
+
+
+def _free_air_of_lines(frequencies, magnitude, fs: float, hold: str, f0_hz, q) -> tuple[float, float, float, str]:
+    """(f0, Q, g, source) of H: from |D_i|/A_i with three or more lines, else from the metadata's f0 and Q."""
+    if len(frequencies) >= 3:
+        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs, hold)
+        return f0, qf, gain, "line magnitudes"
+    if f0_hz and q:
+        f0, qf = float(f0_hz), float(q)
+        gain = float(np.mean(magnitude / np.abs(_response(hold)(frequencies, f0, qf, fs))))
+        return f0, qf, gain, "metadata cantilever f0_hz, q"
+    raise InputError(
+        f"--drive gives {len(frequencies)} line(s): fitting their phases needs three lines around the resonance, "
+        "or metadata cantilever f0_hz and q"
+    )
 
 
 def synthesize_drive(lines: tuple[DriveLine, ...], sample_rate_hz: float, start_sample: int, n: int) -> np.ndarray:
