@@ -156,6 +156,14 @@ def continuous_response(frequency_hz, f0_hz: float, q: float, sample_rate_hz: fl
     return 1.0 / (1.0 - u * u + 1j * u / q)
 
 
+#: Largest ln Q the magnitude fit tries; exp overflows at 709.8.
+_MAX_LOG_Q = 700.0
+
+#: Largest Q accepted from the line magnitudes: far above any cantilever (about 1e6 in
+#: ultra-high vacuum).  The fit runs there when the side lines hold only noise.
+_MAX_Q = 1e8
+
+
 def _response(hold: str):
     return zoh_response if hold == "zero-order" else continuous_response
 
@@ -175,6 +183,9 @@ def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float, h
     log_m = np.log(magnitude)
 
     def residual(params: np.ndarray) -> np.ndarray:
+        # ln Q ≥ 700 would overflow exp (lines that hold only noise walk there): a rejected step
+        if not params[1] < _MAX_LOG_Q:
+            return np.full(f.size, np.inf)
         f0, q = params[0], math.exp(params[1])
         if not (0 < f0 < fs / 2 and q > 0.5):
             return np.full(f.size, np.inf)
@@ -200,7 +211,7 @@ def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float, h
             if damping > 1e12:
                 break
     f0, q = float(x[0]), math.exp(x[1])
-    if not (np.all(np.isfinite(r)) and 0 < f0 < fs / 2 and q > 0.5):
+    if not (np.all(np.isfinite(r)) and 0 < f0 < fs / 2 and 0.5 < q < _MAX_Q):
         raise InputError(
             "the drive lines' deflection amplitudes do not fit a second-order resonance; "
             "give lines around the resonance, or metadata cantilever f0_hz and q"
