@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -95,6 +96,41 @@ def test_the_jit_check_finds_a_kernel_with_its_own_options(tmp_path):
     own = tmp_path / "own.py"
     own.write_text("from numba import njit\n\n@njit(cache=True)\ndef k(x):\n    return x\n")
     assert len(_jit_misuses(own)) == 2  # not imported, and its own options
+
+
+# --------------------------------------------------------------------------- noqa reasons
+
+_NOQA = re.compile(r"#\s*noqa\b(?P<rest>[^\n]*)", re.IGNORECASE)
+_NOQA_WITH_REASON = re.compile(r"^:\s*[A-Z]+[0-9]+(\s*,\s*[A-Z]+[0-9]+)*\s+-\s+\S")
+
+
+#: TEMPORARY: files another branch is rewriting (ch2: sim/raster.py, whose three noqa: PLR0913
+#: are also stale, see pyproject.toml per-file-ignores).  Delete the entry when it merges.
+_NOQA_PENDING = {"afmtool/sim/raster.py"}
+
+
+def _noqa_without_reason(path: Path) -> list[str]:
+    found = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        for match in _NOQA.finditer(line):
+            if not _NOQA_WITH_REASON.match(match.group("rest")):
+                found.append(f"{_shown(path)}:{number}: {line.strip()[:100]}")
+    return found
+
+
+def test_every_noqa_names_its_rules_and_says_why():
+    # a bare noqa silences every rule; one without a reason leaves the next reader guessing
+    this_file = Path(__file__).resolve()
+    paths = [p for folder in ("afmtool", "tests", "bench") for p in sorted((ROOT / folder).rglob("*.py"))
+             if p != this_file and p.relative_to(ROOT).as_posix() not in _NOQA_PENDING]
+    missing = [m for path in paths for m in _noqa_without_reason(path)]
+    assert not missing, "write '# noqa: CODE - why':\n" + "\n".join(missing)
+
+
+def test_the_noqa_check_finds_a_bare_noqa(tmp_path):
+    source = tmp_path / "bare.py"
+    source.write_text("import os  # noqa\nimport re  # noqa: F401\nimport io  # noqa: F401 - re-exported\n")
+    assert [m.split(":")[1] for m in _noqa_without_reason(source)] == ["1", "2"]
 
 
 # --------------------------------------------------------------------------- short functions
