@@ -123,7 +123,7 @@ def lfilter_observer(design: ObserverDesign, window: int):
     return run
 
 
-def main() -> dict:  # noqa: PLR0915
+def main() -> dict:  # noqa: PLR0915 - a benchmark script: one printed table, top to bottom
     print(f"python {platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}, {platform.machine()}")
     results: dict = {}
     y, g = make_record(N_KERNEL)

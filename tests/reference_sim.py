@@ -320,7 +320,7 @@ def free_air_response(frequency_hz, f0_hz: float, q: float, gain_nm_per_v: float
 
 
 @njit(cache=True)
-def _rk4(forcing, held, w0sq, w0q, sep, d, wa2, wb2, ca, cb, nsub, h, p, v, out_p, out_contact):  # noqa: PLR0913
+def _rk4(forcing, held, w0sq, w0q, sep, d, wa2, wb2, ca, cb, nsub, h, p, v, out_p, out_contact):  # noqa: PLR0915 - numba kernel: one scalar recursion
     """RK4 over n sample periods, ``nsub`` steps each.
 
     ``forcing``, ``w0sq``, ``w0q`` and ``sep`` are sampled on the half-step
@@ -440,7 +440,7 @@ def _as_function(value, name: str) -> Callable[[np.ndarray], np.ndarray] | None:
     raise ValueError(f"{name}={value!r} must be a number or a callable t -> value")
 
 
-def simulate(  # noqa: PLR0913, PLR0915
+def simulate(  # noqa: C901, PLR0915 - the whole independent simulator, read top to bottom
     *,
     f0_hz: float,
     q: float,

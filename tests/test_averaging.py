@@ -302,7 +302,7 @@ def _accel(t, p, v, l, w0, q, amp, omega, force_args):
 
 
 @njit(cache=False)
-def _rk4_tapping(p, v, l, w0, q, amp, omega, force_args, n_cycles, steps):  # noqa: PLR0913
+def _rk4_tapping(p, v, l, w0, q, amp, omega, force_args, n_cycles, steps):
     """Fixed-step RK4 of the tapping ODE; returns (a, φ) of a·cos(ωt + φ) over the last cycle."""
     dt = 2 * np.pi / omega / steps
     t = 0.0

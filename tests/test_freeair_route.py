@@ -112,7 +112,9 @@ def test_kalman_bank_accepts_the_f0_q_route():
     from afmtool.config import resolve
     from afmtool.config.params import KalmanBankParams
     from tests.test_kalman_bank import Columns
-    from tests.test_kalman_bank_reference import F0 as F0_BANK, Q as Q_BANK, _force_curve
+    from tests.test_kalman_bank_reference import F0 as F0_BANK
+    from tests.test_kalman_bank_reference import Q as Q_BANK
+    from tests.test_kalman_bank_reference import _force_curve
 
     cap = rs.simulate(
         f0_hz=F0_BANK, q=Q_BANK, gain_nm_per_v=1.0, sample_rate_hz=FS, duration_s=0.2,

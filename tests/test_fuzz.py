@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
-
-import time
 
 from tests.fuzz_harness import _FORMATS, READERS, VENDOR_READERS, fuzz_reader
 
@@ -163,4 +162,4 @@ def test_labone_field_that_is_not_a_local_dataset_is_refused(tmp_path, kind):
             sample["x"] = h5py.SoftLink("/elsewhere")
     with pytest.raises(InputError, match="x"):
         with open_capture(path) as reader:
-            reader.info
+            _ = reader.info

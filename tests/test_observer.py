@@ -105,7 +105,7 @@ def kalman_designs(process_nm: float, measurement_nm: float):
 
 def split_points(rng, n: int) -> list[int]:
     """Chunk boundaries with chunks of 0, 1, a few and many samples."""
-    cuts = sorted({0, 1, 1, 2, 5, 1023, 1024, 1500, *rng.integers(0, n, 6).tolist(), n})
+    cuts = sorted({0, 1, 2, 5, 1023, 1024, 1500, *rng.integers(0, n, 6).tolist(), n})
     return [c for c in cuts if c <= n]
 
 

@@ -66,8 +66,9 @@ def test_reep_agrees_with_averaging_theory(force_set):
 
 
 def test_theory_cli_averaging_and_compare(tmp_path):
-    from tests.conftest import run_cli, validate_report
     import json
+
+    from tests.conftest import run_cli, validate_report
 
     result = run_cli("theory", "averaging", "--out", tmp_path / "th", "--force-set", "repulsive", "--json")
     assert result.returncode == 0, result.stderr.decode()

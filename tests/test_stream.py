@@ -69,7 +69,7 @@ def test_first_row_before_producer_finishes(command):
         first = rows.get(timeout=120)  # arrives while stdin is still open
     except queue.Empty:
         consumer.kill()
-        raise AssertionError(f"{command} --stream wrote no row from the first third: {consumer.stderr.read()}")
+        raise AssertionError(f"{command} --stream wrote no row from the first third: {consumer.stderr.read()}") from None
     assert consumer.poll() is None
     record = json.loads(first)
     assert set(record) >= columns

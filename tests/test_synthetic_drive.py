@@ -222,3 +222,14 @@ def test_synthetic_dither_does_not_depend_on_the_chunk_size(tmp_path):
                                       capture["data"]["deflection"])
     np.testing.assert_allclose(series[997], series[1 << 20], rtol=0, atol=1e-12)
     np.testing.assert_allclose(series[4096], series[1 << 20], rtol=0, atol=1e-12)
+
+
+def test_drive_lines_that_hold_only_noise_are_an_input_error():
+    # side lines 1 kHz from a 70 kHz drive whose own side lines are 6 kHz away: their
+    # magnitudes are noise, and the fit ran to ln Q > 709 (OverflowError, exit 1) or Q = 1e156
+    from afmtool.sim import simulate
+
+    capture = simulate("ltv", {"duration_s": 0.01}, seed=1)
+    lines = (DriveLine(69e3, 0.05), DriveLine(70e3, 0.1), DriveLine(71e3, 0.05))
+    with pytest.raises(InputError, match="do not fit a second-order resonance"):
+        fit_drive_phases(capture.data["deflection"][:8000], capture.sample_rate_hz, 0, lines)

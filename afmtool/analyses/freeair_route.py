@@ -226,7 +226,7 @@ def _hold_warning(report: dict) -> list[str]:
     ]
 
 
-def resolve_free_air(  # noqa: PLR0913
+def resolve_free_air(
     reader: CaptureReader,
     chunks: Iterator[Chunk],
     *,

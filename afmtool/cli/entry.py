@@ -22,7 +22,7 @@ _TRIM_THRESHOLD_BYTES = 64 << 20
 _MMAP_THRESHOLD_BYTES = 32 << 20
 
 
-def _while_starting(signum, frame) -> None:  # noqa: ARG001
+def _while_starting(signum, frame) -> None:
     os.write(2, b"afmtool: interrupted\n")
     os._exit(130)
 
@@ -94,7 +94,7 @@ def _occupy_closed_standard_fds() -> None:
     if sys.stdout is None:
         sys.stdout = _ClosedStdout()
     if sys.stderr is None:
-        sys.stderr = open(2, "w", encoding="utf-8", closefd=False)  # noqa: SIM115
+        sys.stderr = open(2, "w", encoding="utf-8", closefd=False)  # noqa: SIM115 - lives as long as the process
 
 
 def main() -> None:

@@ -15,8 +15,7 @@ from afmtool.cli.calibration_options import (
     ZSensitivityOpt,
 )
 from afmtool.cli.common import finish_command, open_calibrated, open_input
-from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, JsonOpt, OutOpt, QuietOpt, SampleRateOpt, TopicOpt
-from afmtool.cli.options import DriveHoldOpt, F0Opt, QOpt
+from afmtool.cli.options import CaptureArg, ChannelOpt, ConfigOpt, DriveHoldOpt, F0Opt, JsonOpt, OutOpt, QOpt, QuietOpt, SampleRateOpt, TopicOpt
 from afmtool.cli.progress import progress_bar
 
 __all__ = ["register"]

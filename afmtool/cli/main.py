@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     # SIGINT and SIGTERM unwind as KeyboardInterrupt, so staged outputs are cleaned up.
     state = _Signals()
 
-    def interrupt(signum, frame) -> None:  # noqa: ARG001
+    def interrupt(signum, frame) -> None:
         state.received.append(signum)
         if state.deadline is None:
             state.deadline = threading.Timer(INTERRUPT_DEADLINE_S, _give_up, (state,))
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.unraisablehook = _silent
 
 
-def _silent(info) -> None:  # noqa: ARG001
+def _silent(info) -> None:
     return
 
 
@@ -277,7 +277,7 @@ def _run(argv: list[str] | None, signals: _Signals) -> None:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         sys.exit(0)
-    except Exception as exc:  # noqa: BLE001 - the one place unexpected errors are reported
+    except Exception as exc:  # the one place unexpected errors are reported
         from afmtool.report.faults import environment_fault, fault_message
 
         code = environment_fault(exc)

@@ -8,7 +8,6 @@ from typing import Annotated, Optional
 import typer
 
 from afmtool.cli.common import finish_command
-
 from afmtool.cli.options import ConfigOpt, JsonOpt, OutOpt, QuietOpt
 
 __all__ = ["app"]

@@ -26,7 +26,7 @@ __all__ = ["field", "load_toml", "packaged_defaults", "resolve", "resolve_from",
 P = TypeVar("P")
 
 
-def field(default: Any, help: str, units: str = "", choices: tuple[str, ...] | None = None):  # noqa: A002
+def field(default: Any, help: str, units: str = "", choices: tuple[str, ...] | None = None):
     """A dataclass field with the help text and units the CLI and TOML show."""
     return dataclasses.field(default=default, metadata={"help": help, "units": units, "choices": choices})
 

@@ -42,6 +42,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError, InputError
+from afmtool.estimators._common import JIT_OPTIONS
 
 __all__ = [
     "TwoClass",
@@ -55,8 +56,6 @@ __all__ = [
     "slicer_update",
     "moving_average",
 ]
-
-_JIT_OPTIONS = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 #: Fewest transitions from which a clock is acquired.
 MIN_TRANSITIONS = 8
@@ -381,8 +380,8 @@ class SlicerStep(NamedTuple):
     state: SlicerState
 
 
-@njit(**_JIT_OPTIONS)
-def _slicer_kernel(  # noqa: PLR0912, PLR0913, PLR0915
+@njit(**JIT_OPTIONS)
+def _slicer_kernel(  # noqa: C901, PLR0915 - numba kernel: one scalar recursion
     primary, aux, coef, locked, state, sring, dring_p, dring_a, out_c, out_p, out_a, out_t
 ):
     """Delay, smooth, detect transitions, track the clock and integrate cells, per sample.

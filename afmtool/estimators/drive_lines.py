@@ -156,6 +156,14 @@ def continuous_response(frequency_hz, f0_hz: float, q: float, sample_rate_hz: fl
     return 1.0 / (1.0 - u * u + 1j * u / q)
 
 
+#: Largest ln Q the magnitude fit tries; exp overflows at 709.8.
+_MAX_LOG_Q = 700.0
+
+#: Largest Q accepted from the line magnitudes: far above any cantilever (about 1e6 in
+#: ultra-high vacuum).  The fit runs there when the side lines hold only noise.
+_MAX_Q = 1e8
+
+
 def _response(hold: str):
     return zoh_response if hold == "zero-order" else continuous_response
 
@@ -175,6 +183,9 @@ def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float, h
     log_m = np.log(magnitude)
 
     def residual(params: np.ndarray) -> np.ndarray:
+        # ln Q ≥ 700 would overflow exp (lines that hold only noise walk there): a rejected step
+        if not params[1] < _MAX_LOG_Q:
+            return np.full(f.size, np.inf)
         f0, q = params[0], math.exp(params[1])
         if not (0 < f0 < fs / 2 and q > 0.5):
             return np.full(f.size, np.inf)
@@ -200,7 +211,7 @@ def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float, h
             if damping > 1e12:
                 break
     f0, q = float(x[0]), math.exp(x[1])
-    if not (np.all(np.isfinite(r)) and 0 < f0 < fs / 2 and q > 0.5):
+    if not (np.all(np.isfinite(r)) and 0 < f0 < fs / 2 and 0.5 < q < _MAX_Q):
         raise InputError(
             "the drive lines' deflection amplitudes do not fit a second-order resonance; "
             "give lines around the resonance, or metadata cantilever f0_hz and q"
@@ -276,21 +287,25 @@ def fit_drive_phases(
     magnitude = np.abs(d) / amplitudes
     if np.any(magnitude <= 0):
         raise InputError("a drive line has no response in the deflection on the free-air segment")
-    if len(lines) >= 3:
-        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs, hold)
-        source = "line magnitudes"
-    elif f0_hz and q:
-        f0, qf = float(f0_hz), float(q)
-        gain = float(np.mean(magnitude / np.abs(response(frequencies, f0, qf, fs))))
-        source = "metadata cantilever f0_hz, q"
-    else:
-        raise InputError(
-            f"--drive gives {len(lines)} line(s): fitting their phases needs three lines around the resonance, "
-            "or metadata cantilever f0_hz and q"
-        )
+    f0, qf, gain, source = _free_air_of_lines(frequencies, magnitude, fs, hold, f0_hz, q)
     phases = np.angle(d) - np.angle(response(frequencies, f0, qf, fs))
     fitted = tuple(DriveLine(float(f), float(a), float(p)) for f, a, p in zip(frequencies, amplitudes, phases))
     return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)))
+
+
+def _free_air_of_lines(frequencies, magnitude, fs: float, hold: str, f0_hz, q) -> tuple[float, float, float, str]:
+    """(f0, Q, g, source) of H: from |D_i|/A_i with three or more lines, else from the metadata's f0 and Q."""
+    if len(frequencies) >= 3:
+        f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs, hold)
+        return f0, qf, gain, "line magnitudes"
+    if f0_hz and q:
+        f0, qf = float(f0_hz), float(q)
+        gain = float(np.mean(magnitude / np.abs(_response(hold)(frequencies, f0, qf, fs))))
+        return f0, qf, gain, "metadata cantilever f0_hz, q"
+    raise InputError(
+        f"--drive gives {len(frequencies)} line(s): fitting their phases needs three lines around the resonance, "
+        "or metadata cantilever f0_hz and q"
+    )
 
 
 def synthesize_drive(lines: tuple[DriveLine, ...], sample_rate_hz: float, start_sample: int, n: int) -> np.ndarray:

@@ -78,6 +78,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.models.electrostatic import ElectrostaticParams, LeverVoltages
 
 __all__ = [
@@ -102,9 +103,6 @@ BOLTZMANN_J_PER_K = 1.380649e-23
 
 #: Initial standard deviation of the position estimate, nm (x̂(0) = 0, eq. 7.14).
 DEFAULT_P0_NM = 1.0e3
-
-#: Compile options of every kernel, in one constant; no fastmath, so NaN propagates.
-_JIT_OPTIONS = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 #: The running-mean sum is recomputed from its ring every this many windows
 #: (aligned to the stream, not to chunks), so rounding cannot accumulate.
@@ -383,8 +381,8 @@ def discretise(
 # --------------------------------------------------------------------------- kernel
 
 
-@njit(**_JIT_OPTIONS)
-def _ekf_kernel(y, volts_a, volts_b, alpha, beta, coef, state, ring, out_e, out_mean):  # noqa: PLR0913, PLR0915
+@njit(**JIT_OPTIONS)
+def _ekf_kernel(y, volts_a, volts_b, alpha, beta, coef, state, ring, out_e, out_mean):  # noqa: PLR0915 - numba kernel: one scalar recursion
     """Run the EKF over one chunk; ``state`` and ``ring`` are updated in place.
 
     The voltage is V(n) = alpha·volts_a(n) − beta·volts_b(n): α_R, V_R, 1,

@@ -56,7 +56,7 @@ class LockInState:
 
 
 @njit(**JIT_OPTIONS)
-def _lockin_kernel(signals, start, cycles_per_sample, sos, zi, keep_every, out):  # noqa: PLR0913
+def _lockin_kernel(signals, start, cycles_per_sample, sos, zi, keep_every, out):
     """Mix each row of ``signals`` with e^{-j2πfn/fs}, filter by the SOS cascade, keep 1 in N.
 
     Every row shares one reference oscillator.  For each section, in direct
@@ -99,7 +99,7 @@ def _lockin_kernel(signals, start, cycles_per_sample, sos, zi, keep_every, out):
 
 
 @njit(**JIT_OPTIONS)
-def _two_sections(v, s1, s2, t1, t2, c):  # noqa: PLR0913
+def _two_sections(v, s1, s2, t1, t2, c):
     """One real lane through a 4th-order cascade (direct form II transposed); c = the 2×6 SOS flattened."""
     y = c[0] * v + s1
     s1 = c[1] * v - c[4] * y + s2
@@ -111,7 +111,7 @@ def _two_sections(v, s1, s2, t1, t2, c):  # noqa: PLR0913
 
 
 @njit(**JIT_OPTIONS)
-def _lockin_order4_kernel(first, second, two, start, cycles_per_sample, sos, zi, keep_every, out):  # noqa: PLR0913, PLR0915
+def _lockin_order4_kernel(first, second, two, start, cycles_per_sample, sos, zi, keep_every, out):
     """:func:`_lockin_kernel` for one or two signals and two sections, with every state a scalar.
 
     The same operations in the same order (bit-for-bit equal results), but

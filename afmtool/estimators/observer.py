@@ -678,7 +678,7 @@ def _window_resync(ring, sums, since):
 
 
 @njit(**JIT_OPTIONS)
-def _bank_kernel(y, g, d, b1, b0, bb1, bb2, l1, l2, xhat, ring, sums, counters, out_rms, out_e):  # noqa: PLR0913
+def _bank_kernel(y, g, d, b1, b0, bb1, bb2, l1, l2, xhat, ring, sums, counters, out_rms, out_e):
     """N fixed observers with a shared numerator over one chunk, one loop.
 
     ``xhat`` (N, 2) holds x̂(n|n−1) of every observer; it, ``ring`` (N, W),
@@ -723,7 +723,7 @@ def _bank_kernel(y, g, d, b1, b0, bb1, bb2, l1, l2, xhat, ring, sums, counters, 
 
 
 @njit(**JIT_OPTIONS)
-def _adaptive_kernel(y, g, b1s, b0s, a2, a1, a0, radius, model, xhat, ring, sums, counters, out_rms, out_e):  # noqa: PLR0913
+def _adaptive_kernel(y, g, b1s, b0s, a2, a1, a0, radius, model, xhat, ring, sums, counters, out_rms, out_e):
     """One observer whose model (b1(n), b0(n)) changes every sample.
 
     ``model`` = [b1, b0, held-sample count] is the model in force, carried:

@@ -334,7 +334,7 @@ def _hysteresis_kernel(x, sign, on, off, carried, out):
 
 @njit(**JIT_OPTIONS)
 def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, off, carried, first_keep, keep_every,
-                        out_switch, out_index):  # noqa: PLR0913
+                        out_switch, out_index):
     """Observer, window RMS, index and switch in one pass over a chunk.
 
     The observer and window steps are the shared helpers of

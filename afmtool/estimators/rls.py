@@ -19,6 +19,46 @@ contain ϑ, plain least squares converges to θ − σ²R⁻¹Λθ (eq. 3.18), n
   Λ = diag(1, 1, 0, 0, 0), by batch bias-compensated least squares (default),
   plain least squares, or the recursive form.
 
+Static offset (``ReepState.static_offset``).  An attractive force adds
+a static part F̄ to the equation of motion, p̈ + (ω′/Q′)ṗ + ω′²p =
+ω0²g + F̄ + (the linearised, sample-dependent part that moves ω′ and Q′).
+Its particular solution is the constant p̄ = F̄/ω′², so p − p̄ obeys
+eq. 3.40, and substituting p = (p − p̄) + p̄ gives
+
+.. math:: p(n) + b_1 p(n-1) + b_0 p(n-2) = a_2 g(n) + a_1 g(n-1) + a_0 g(n-2)
+          + (1 + b_1 + b_0)\\,\\bar p + e(n),
+
+exactly for any hold of g (a constant is the same under every
+discretisation).  Eq. 3.40 has no constant term, so least squares
+absorbs (1 + b1 + b0)p̄ into b1, b0: with an offset of a few nm beside
+an oscillation of 0.3 nm (the bottom of the attractive trap) it drives
+1 + b1 + b0 toward 0, a pole near z = 1, and f0′ ≈ 13 kHz, Q′ ≈ 0.7
+instead of 63 kHz, 8.9.  The constant regressor restores the model:
+θ = [b1, b0, c], φ(n) = [−p(n−1), −p(n−2), 1]ᵀ, c = (1 + b1 + b0)p̄,
+tracked by the same exponential window, so p̄ may drift as the
+separation changes.  The bias compensation stays exact with
+Λ = diag(1, 1, 0): the third regressor is noise-free, so
+E[φ(n)e(n)] = −σ²Λθ (eq. 3.15) and J(n)w_n → σ²(1 + θᵀΛθ̂_LS)
+(eq. 3.31) hold unchanged, and eq. 3.39 reads as in :func:`reep_update` with
+θ̂_C(n) = θ̂_LS(n) + (σ̂²/w_n)P(n)[b̂1_C, b̂0_C, 0]ᵀ(n−1) and the same
+σ̂² denominator 1 + b̂1_C b̂1_LS + b̂0_C b̂0_LS.  (The alternative, one
+high-pass on deflection and dither, keeps eq. 3.40 but colours ϑ, and
+eq. 3.15 needs ϑ white; it would bias the compensation.)  The cost is
+a 3 × 3 P (six scalars) instead of 2 × 2.
+
+Start-up and guards.  The first two samples of a stream only fill p(n−1),
+p(n−2) (and g): their output is θ̂(0) = 0 with σ̂² = NaN.  Two guards, inactive in normal
+operation, extend eq. 3.39 (details in ``_reep_kernel``):
+
+* the compensation of a sample is skipped (σ̂² = NaN, θ̂_C = θ̂_LS) when
+  1 + θ̂_C(n−1)ᵀθ̂_LS(n) ≤ 1/2.  This happens in the first few samples
+  and on a deflection that is noise only, where σ²R⁻¹ ≈ I and the
+  compensation is ill-posed;
+* forgetting is suspended (λ_n = 1) while trace P(n−1) ≥ 2·P0, so a
+  stretch without excitation (zeros) cannot overflow P.  After a long
+  stretch σ̂² reads low until it is forgotten (about 4 ms after 0.4 s of
+  zeros at λ = 0.995).
+
 Units: the default P0 = 1e6 of the thesis assumes deflection and dither in
 nanometres (P(0) must be large against the steady-state P, about
 (1 − λ)/mean(p²)); see :meth:`ReepState.initial`.
@@ -90,7 +130,7 @@ _STATE_LEN = 20
 
 
 @njit(**JIT_OPTIONS)
-def _reep_kernel(  # noqa: PLR0913, PLR0915
+def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, state, out_b1, out_b0, out_sigma2
 ):
     """Run REEP (eq. 3.39 with θ = [b1, b0], Λ = I₂) over one chunk.
@@ -247,7 +287,7 @@ def _reep_kernel(  # noqa: PLR0913, PLR0915
 
 
 @njit(**JIT_OPTIONS)
-def _reep_offset_kernel(  # noqa: PLR0913, PLR0915
+def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, state, out_b1, out_b0, out_sigma2,
     out_c,
 ):
@@ -578,16 +618,25 @@ class ReepStep(NamedTuple):
     state: ReepState
 
 
-def reep_update(
-    state: ReepState,
-    deflection,
-    dither=None,
-    numerator: Sequence[float] | None = None,
-    *,
-    bias_compensation: bool = True,
-    use_input: bool = True,
-    keep_every: int = 1,
-) -> ReepStep:
+def _reep_inputs(state, deflection, dither, numerator, use_input: bool, keep_every) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float]]:
+    """The checked arguments of :func:`reep_update`: p(n), g(n) (empty when output-only) and (a2, a1, a0)."""
+    if not isinstance(state, ReepState):
+        raise ConfigError(f"state must be a ReepState, got {type(state).__name__}")
+    p = as_signal("deflection", deflection)
+    if not (isinstance(keep_every, (int, np.integer)) and keep_every >= 1):
+        raise ConfigError(f"keep_every={keep_every!r} must be an integer >= 1")
+    if not use_input:
+        return p, np.empty(0, dtype=np.float64), (0.0, 0.0, 0.0)
+    if dither is None or numerator is None:
+        raise ConfigError("dither and numerator are required when use_input=True")
+    g = as_signal("dither", dither)
+    if g.shape != p.shape:
+        raise InputError(f"dither has {g.shape[0]} samples but deflection has {p.shape[0]}")
+    return p, g, check_numerator(numerator)
+
+
+def reep_update(state: ReepState, deflection, dither=None, numerator: Sequence[float] | None = None, *,
+                bias_compensation: bool = True, use_input: bool = True, keep_every: int = 1) -> ReepStep:
     """Advance REEP over one chunk of samples (§3.3.3, eq. 3.39).
 
     Parameters
@@ -643,80 +692,23 @@ def reep_update(
 
     Eq. 3.43 of the thesis is a garbled copy of this and is not used.
 
-    **Static offset** (``state.static_offset``).  An attractive force adds
-    a static part F̄ to the equation of motion, p̈ + (ω′/Q′)ṗ + ω′²p =
-    ω0²g + F̄ + (the linearised, sample-dependent part that moves ω′ and Q′).
-    Its particular solution is the constant p̄ = F̄/ω′², so p − p̄ obeys
-    eq. 3.40, and substituting p = (p − p̄) + p̄ gives
-
-    .. math:: p(n) + b_1 p(n-1) + b_0 p(n-2) = a_2 g(n) + a_1 g(n-1) + a_0 g(n-2)
-              + (1 + b_1 + b_0)\\,\\bar p + e(n),
-
-    exactly for any hold of g (a constant is the same under every
-    discretisation).  Eq. 3.40 has no constant term, so least squares
-    absorbs (1 + b1 + b0)p̄ into b1, b0: with an offset of a few nm beside
-    an oscillation of 0.3 nm (the bottom of the attractive trap) it drives
-    1 + b1 + b0 toward 0, a pole near z = 1, and f0′ ≈ 13 kHz, Q′ ≈ 0.7
-    instead of 63 kHz, 8.9.  The constant regressor restores the model:
-    θ = [b1, b0, c], φ(n) = [−p(n−1), −p(n−2), 1]ᵀ, c = (1 + b1 + b0)p̄,
-    tracked by the same exponential window, so p̄ may drift as the
-    separation changes.  The bias compensation stays exact with
-    Λ = diag(1, 1, 0): the third regressor is noise-free, so
-    E[φ(n)e(n)] = −σ²Λθ (eq. 3.15) and J(n)w_n → σ²(1 + θᵀΛθ̂_LS)
-    (eq. 3.31) hold unchanged, and eq. 3.39 reads as above with
-    θ̂_C(n) = θ̂_LS(n) + (σ̂²/w_n)P(n)[b̂1_C, b̂0_C, 0]ᵀ(n−1) and the same
-    σ̂² denominator 1 + b̂1_C b̂1_LS + b̂0_C b̂0_LS.  (The alternative, one
-    high-pass on deflection and dither, keeps eq. 3.40 but colours ϑ, and
-    eq. 3.15 needs ϑ white; it would bias the compensation.)  The cost is
-    a 3 × 3 P (six scalars) instead of 2 × 2.
-
-    The first two samples of a stream only fill p(n−1), p(n−2) (and g): their
-    output is θ̂(0) = 0 with σ̂² = NaN.  Two guards, inactive in normal
-    operation, extend eq. 3.39 (details in ``_reep_kernel``):
-
-    * the compensation of a sample is skipped (σ̂² = NaN, θ̂_C = θ̂_LS) when
-      1 + θ̂_C(n−1)ᵀθ̂_LS(n) ≤ 1/2.  This happens in the first few samples
-      and on a deflection that is noise only, where σ²R⁻¹ ≈ I and the
-      compensation is ill-posed;
-    * forgetting is suspended (λ_n = 1) while trace P(n−1) ≥ 2·P0, so a
-      stretch without excitation (zeros) cannot overflow P.  After a long
-      stretch σ̂² reads low until it is forgotten (about 4 ms after 0.4 s of
-      zeros at λ = 0.995).
+    The static-offset variant (``state.static_offset``) and the two guards
+    that extend eq. 3.39 at start-up and without excitation are described in
+    the module docstring.
 
     A NaN sample makes every later output NaN: split records at gaps and
     start again from :meth:`ReepState.initial`.
     """
-    if not isinstance(state, ReepState):
-        raise ConfigError(f"state must be a ReepState, got {type(state).__name__}")
-    p = as_signal("deflection", deflection)
-    if use_input:
-        if dither is None or numerator is None:
-            raise ConfigError("dither and numerator are required when use_input=True")
-        g = as_signal("dither", dither)
-        if g.shape != p.shape:
-            raise InputError(f"dither has {g.shape[0]} samples but deflection has {p.shape[0]}")
-        a2, a1, a0 = check_numerator(numerator)
-    else:
-        g = np.empty(0, dtype=np.float64)
-        a2 = a1 = a0 = 0.0
-    if not (isinstance(keep_every, (int, np.integer)) and keep_every >= 1):
-        raise ConfigError(f"keep_every={keep_every!r} must be an integer >= 1")
+    p, g, (a2, a1, a0) = _reep_inputs(state, deflection, dither, numerator, use_input, keep_every)
     carried = state._to_array()
     n_kept = Decimation(int(keep_every)).count(state.n_samples + state.n_past, p.shape[0])
-    b1 = np.empty(n_kept, dtype=np.float64)
-    b0 = np.empty(n_kept, dtype=np.float64)
-    sigma2 = np.empty(n_kept, dtype=np.float64)
-    if state.static_offset:
+    b1, b0, sigma2 = (np.empty(n_kept, dtype=np.float64) for _ in range(3))
+    signals = (p, g, a2, a1, a0, bool(use_input), state.lam)
+    if state.static_offset:  # trace P(0) = 3·P0 for the 3 × 3 P
         c = np.empty(n_kept, dtype=np.float64)
-        _reep_offset_kernel(
-            p, g, a2, a1, a0, bool(use_input), state.lam, 3.0 * state.p0, bool(bias_compensation),
-            int(keep_every), carried, b1, b0, sigma2, c,
-        )
+        _reep_offset_kernel(*signals, 3.0 * state.p0, bool(bias_compensation), int(keep_every), carried, b1, b0, sigma2, c)
         return ReepStep(ReepBlock(b1, b0, sigma2, c), state._from_array(carried))
-    _reep_kernel(
-        p, g, a2, a1, a0, bool(use_input), state.lam, 2.0 * state.p0, bool(bias_compensation), int(keep_every),
-        carried, b1, b0, sigma2,
-    )
+    _reep_kernel(*signals, 2.0 * state.p0, bool(bias_compensation), int(keep_every), carried, b1, b0, sigma2)
     return ReepStep(ReepBlock(b1, b0, sigma2), state._from_array(carried))
 
 
@@ -753,7 +745,7 @@ def reep(
 
 
 @njit(**JIT_OPTIONS)
-def _bcewrls_kernel(phi, y, lam_diag, lam, trace_cap, out_theta_c, out_theta_ls, out_sigma2):
+def _bcewrls_kernel(phi, y, lam_diag, lam, trace_cap, out_theta_c, out_theta_ls, out_sigma2):  # noqa: C901 - numba kernel: one scalar recursion
     """Eq. 3.39 for m parameters; row i of ``phi`` is φᵀ(i+1).
 
     Same guards as ``_reep_kernel``.  P is updated on its upper triangle
@@ -994,7 +986,7 @@ def _noise_pair_covariance(b1: float, b0: float) -> np.ndarray:
 
 
 @njit(**JIT_OPTIONS)
-def _arx_output_kernel(g, a2, a1, a0, b1, b0, out, first, second):  # noqa: PLR0913
+def _arx_output_kernel(g, a2, a1, a0, b1, b0, out, first, second):
     """ARX model output (eq. 3.40 without noise) from ŝ(0) = ``first``, ŝ(1) = ``second``.
 
     ŝ(n) = −b1 ŝ(n−1) − b0 ŝ(n−2) + a2 g(n) + a1 g(n−1) + a0 g(n−2): what
@@ -1008,7 +1000,26 @@ def _arx_output_kernel(g, a2, a1, a0, b1, b0, out, first, second):  # noqa: PLR0
 
 
 def _arx_covariance(p, g, theta, sigma2, m_inv):
-    """Asymptotic covariance of an ARX fit (see :func:`identify_arx`, Notes)."""
+    """Asymptotic covariance of an ARX fit of :func:`identify_arx`.
+
+    θ̂ solves (1/N)Σφ(n)(y(n) − φᵀ(n)θ) + σ²Λθ = 0, so
+    θ̂ − θ ≈ M⁻¹(1/N)Σh(n) with M = R − σ̂²Λ (M = R for ``"ls"``) and
+    h(n) = φ(n)e(n) + σ²Λθ.  Split φ = φ_s + φ_ϑ into the noise-free part
+    (model output ŝ and dither) and the noise ϑ in −p(n−1), −p(n−2):
+
+    * Σφ_s(n)e(n) = Σϑ(n)ψ(n), ψ(n) = φ_s(n) + b1 φ_s(n+1) + b0 φ_s(n+2),
+      with covariance σ²Σψψᵀ;
+    * the AR block of Σφ_ϑ(n)e(n) + Nσ²Λθ is quadratic in ϑ, with
+      covariance Nσ⁴K (white Gaussian ϑ; ``_noise_pair_covariance``);
+    * the two are uncorrelated (odd moments vanish).
+
+    Hence Cov θ̂ ≈ M⁻¹(σ²ΨᵀΨ/N + σ⁴K)M⁻¹/N, with ŝ simulated from the fitted
+    model.  The σ⁴ term matters: near resonance the filtered signal ψ is
+    small (the denominator nearly cancels the oscillation), so the
+    ordinary sandwich estimate with truncated lags is not even positive.
+    The uncertainty of σ̂² is neglected.  Checked against Monte Carlo in
+    ``tests/test_rls.py`` (ratio 0.9–1.1).
+    """
     b1, b0, a2, a1, a0 = (float(v) for v in theta)
     # noise-free model output ŝ(n), started from the measured p(0), p(1)
     s_hat = np.empty_like(p)
@@ -1023,14 +1034,8 @@ def _arx_covariance(p, g, theta, sigma2, m_inv):
     return 0.5 * (cov + cov.T)
 
 
-def identify_arx(
-    deflection,
-    dither,
-    *,
-    method: Literal["bcls", "ls", "bcewrls"] = "bcls",
-    rtol: float = 1e-12,
-    max_iter: int = 100,
-) -> ArxFit:
+def identify_arx(deflection, dither, *, method: Literal["bcls", "ls", "bcewrls"] = "bcls", rtol: float = 1e-12,
+                 max_iter: int = 100) -> ArxFit:
     """Identify the free-air ARX model (b1, b0, a2, a1, a0) without noise bias.
 
     Parameters
@@ -1064,6 +1069,75 @@ def identify_arx(
 
     Notes
     -----
+    ``"bcls"`` iterates the batch form of eq. 3.39 with λ = 1 (eqs. 3.18,
+    3.32, 3.33) to its fixed point (R − σ̂²Λ)θ̂_C = r, the bias-eliminated
+    normal equations, with R = ΦᵀΦ/N and r = Φᵀy/N over the N regression
+    rows; the derivation is in ``_bcls_fixed_point``, R⁻¹ is applied through
+    a QR factorisation of Φ (``_arx_normal_solver``).
+    The covariance of the coefficients is derived in ``_arx_covariance``
+    (checked against Monte Carlo in ``tests/test_rls.py``).
+    """
+    if method not in ("bcls", "ls", "bcewrls"):
+        raise ConfigError(f"method={method!r} must be 'bcls', 'ls' or 'bcewrls'")
+    if not (isinstance(rtol, (int, float)) and rtol > 0):
+        raise ConfigError(f"rtol={rtol!r} must be > 0")
+    if not (isinstance(max_iter, int) and max_iter >= 1):
+        raise ConfigError(f"max_iter={max_iter!r} must be an integer >= 1")
+    phi, y = arx_regressors(deflection, dither)
+    r_inv = _arx_normal_solver(phi, y)
+    lam_diag = _ARX_BIAS_MASK
+    n_rows = y.shape[0]
+    r_vec = phi.T @ y / n_rows
+    # θ̂_LS = R⁻¹ r
+    theta_ls = r_inv(r_vec)
+    resid = y - phi @ theta_ls
+    # J/N, mean squared LS residual                                         (eq. 3.31)
+    j_mean = float(resid @ resid) / n_rows
+    if method == "ls":
+        # σ̂² from eq. 3.32 with the LS estimate in place of θ; M = R
+        theta, sigma2, m_eff, n_iter = theta_ls, j_mean / (1.0 + theta_ls @ (lam_diag * theta_ls)), 0.0, 0
+    elif method == "bcewrls":
+        rec = bcewrls(phi, y, lam_diag, lam=1.0)
+        theta, sigma2, n_iter = rec.theta_c[-1].copy(), float(rec.sigma2[-1]), 0
+        m_eff = sigma2
+    else:
+        theta, sigma2, n_iter = _bcls_fixed_point(r_inv, theta_ls, j_mean, rtol, max_iter)
+        m_eff = sigma2
+    # M⁻¹ = (R − σ̂²Λ)⁻¹ = (I − σ̂²R⁻¹Λ)⁻¹R⁻¹; the first factor is near I
+    r_inv_full = r_inv(np.eye(lam_diag.shape[0]))
+    m_inv = np.linalg.solve(np.eye(lam_diag.shape[0]) - m_eff * (r_inv_full * lam_diag[None, :]), r_inv_full)
+    cov = _arx_covariance(as_signal("deflection", deflection), as_signal("dither", dither), theta, float(sigma2), m_inv)
+    cov.setflags(write=False)
+    b1, b0, a2, a1, a0 = (float(v) for v in theta)
+    return ArxFit(b1, b0, a2, a1, a0, float(sigma2), cov, method, n_rows, n_iter)
+
+
+def _arx_normal_solver(phi: np.ndarray, y: np.ndarray):
+    """v ↦ R⁻¹v for R = ΦᵀΦ/N, through the QR factorisation of Φ (never forming ΦᵀΦ).
+
+    Raises InputError for too few, non-finite or rank-deficient regressors.
+    """
+    n_rows = y.shape[0]
+    if n_rows < 6:
+        raise InputError(f"need at least 8 samples to identify 5 coefficients, got {n_rows + 2}")
+    if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(y))):
+        raise InputError("deflection and dither must be finite for identify_arx")
+    # Φ = Q U (economic QR), so R = ΦᵀΦ/N = UᵀU/N and R⁻¹ v = N·U⁻¹U⁻ᵀ v.
+    upper = np.linalg.qr(phi, mode="r")
+    if np.min(np.abs(np.diag(upper))) <= np.max(np.abs(np.diag(upper))) * 1e-13:
+        raise InputError("the regressors are rank deficient: the dither must hold at least three sines")
+
+    def r_inv(v: np.ndarray) -> np.ndarray:
+        # U is 5 × 5: a general solve costs nothing here, and numpy spares the scipy.linalg import
+        w = np.linalg.solve(upper.T, v)
+        return n_rows * np.linalg.solve(upper, w)
+
+    return r_inv
+
+
+def _bcls_fixed_point(r_inv, theta_ls: np.ndarray, j_mean: float, rtol: float, max_iter: int) -> tuple[np.ndarray, float, int]:
+    """The bias-compensation fixed point of :func:`identify_arx`: (θ̂_C, σ̂², iterations).
+
     Batch form, derived from eqs. 3.18 and 3.32 with λ = 1 (w_n = 1/N).
     With R = ΦᵀΦ/N, r = Φᵀy/N over the N regression rows,
     θ̂_LS = R⁻¹r and, since E[φ(n)e(n)] = −σ²Λθ (eq. 3.15),
@@ -1083,97 +1157,25 @@ def identify_arx(
     record at 0.05 nm noise, so four iterations reach 1e-12).  At the fixed point
     (R − σ̂²Λ)θ̂_C = r, the bias-eliminated normal equations.  J uses N, not
     N − 5, following the derivation; the difference is O(5/N).
-
-    R⁻¹ is applied through a QR factorisation of Φ (never forming ΦᵀΦ).
-
-    Covariance.  θ̂ solves (1/N)Σφ(n)(y(n) − φᵀ(n)θ) + σ²Λθ = 0, so
-    θ̂ − θ ≈ M⁻¹(1/N)Σh(n) with M = R − σ̂²Λ (M = R for ``"ls"``) and
-    h(n) = φ(n)e(n) + σ²Λθ.  Split φ = φ_s + φ_ϑ into the noise-free part
-    (model output ŝ and dither) and the noise ϑ in −p(n−1), −p(n−2):
-
-    * Σφ_s(n)e(n) = Σϑ(n)ψ(n), ψ(n) = φ_s(n) + b1 φ_s(n+1) + b0 φ_s(n+2),
-      with covariance σ²Σψψᵀ;
-    * the AR block of Σφ_ϑ(n)e(n) + Nσ²Λθ is quadratic in ϑ, with
-      covariance Nσ⁴K (white Gaussian ϑ; ``_noise_pair_covariance``);
-    * the two are uncorrelated (odd moments vanish).
-
-    Hence Cov θ̂ ≈ M⁻¹(σ²ΨᵀΨ/N + σ⁴K)M⁻¹/N, with ŝ simulated from the fitted
-    model.  The σ⁴ term matters: near resonance the filtered signal ψ is
-    small (the denominator nearly cancels the oscillation), so the
-    ordinary sandwich estimate with truncated lags is not even positive.
-    The uncertainty of σ̂² is neglected.  Checked against Monte Carlo in
-    ``tests/test_rls.py`` (ratio 0.9–1.1).
     """
-    if method not in ("bcls", "ls", "bcewrls"):
-        raise ConfigError(f"method={method!r} must be 'bcls', 'ls' or 'bcewrls'")
-    if not (isinstance(rtol, (int, float)) and rtol > 0):
-        raise ConfigError(f"rtol={rtol!r} must be > 0")
-    if not (isinstance(max_iter, int) and max_iter >= 1):
-        raise ConfigError(f"max_iter={max_iter!r} must be an integer >= 1")
-    phi, y = arx_regressors(deflection, dither)
-    p_arr = as_signal("deflection", deflection)
-    g_arr = as_signal("dither", dither)
-    n_rows = y.shape[0]
-    if n_rows < 6:
-        raise InputError(f"need at least 8 samples to identify 5 coefficients, got {n_rows + 2}")
-    if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(y))):
-        raise InputError("deflection and dither must be finite for identify_arx")
     lam_diag = _ARX_BIAS_MASK
-
-    # Φ = Q U (economic QR), so R = ΦᵀΦ/N = UᵀU/N and R⁻¹ v = N·U⁻¹U⁻ᵀ v.
-    upper = np.linalg.qr(phi, mode="r")
-    if np.min(np.abs(np.diag(upper))) <= np.max(np.abs(np.diag(upper))) * 1e-13:
-        raise InputError("the regressors are rank deficient: the dither must hold at least three sines")
-
-    def r_inv(v: np.ndarray) -> np.ndarray:
-        # U is 5 × 5: a general solve costs nothing here, and numpy spares the scipy.linalg import
-        w = np.linalg.solve(upper.T, v)
-        return n_rows * np.linalg.solve(upper, w)
-
-    r_vec = phi.T @ y / n_rows
-    # θ̂_LS = R⁻¹ r
-    theta_ls = r_inv(r_vec)
-    resid = y - phi @ theta_ls
-    # J/N, mean squared LS residual                                         (eq. 3.31)
-    j_mean = float(resid @ resid) / n_rows
-    n_iter = 0
-    if method == "ls":
-        theta = theta_ls
-        # σ̂² from eq. 3.32 with the LS estimate in place of θ
-        sigma2 = j_mean / (1.0 + theta_ls @ (lam_diag * theta_ls))
-        m_eff = 0.0
-    elif method == "bcewrls":
-        rec = bcewrls(phi, y, lam_diag, lam=1.0)
-        theta = rec.theta_c[-1].copy()
-        sigma2 = float(rec.sigma2[-1])
-        m_eff = sigma2
-    else:
-        # R⁻¹Λ, applied to θ̂_C at every iteration
-        r_inv_lam = np.column_stack([r_inv(col) for col in np.diag(lam_diag)])
-        theta = theta_ls.copy()
-        sigma2 = float("nan")
-        for n_iter in range(1, max_iter + 1):  # noqa: B007
-            # σ̂²_k = (J/N) / (1 + θ̂_C,kᵀ Λ θ̂_LS)
-            den = 1.0 + theta @ (lam_diag * theta_ls)
-            if not den > MIN_BIAS_DENOMINATOR:
-                raise ConfigError("bias-compensated ARX fit diverged (1 + θ_Cᵀ Λ θ_LS ≤ 1/2)")
-            sigma2 = j_mean / den
-            # θ̂_C,k+1 = θ̂_LS + σ̂²_k R⁻¹ Λ θ̂_C,k
-            new = theta_ls + sigma2 * (r_inv_lam @ theta)
-            step = float(np.max(np.abs(new - theta)))
-            theta = new
-            if step <= rtol * float(np.max(np.abs(theta))):
-                break
-        else:
-            raise ConfigError(
-                f"bias-compensated ARX fit did not converge in max_iter={max_iter} iterations "
-                f"(σ̂² = {sigma2:.3g}): the noise is too large for the excitation"
-            )
-        m_eff = sigma2
-    # M⁻¹ = (R − σ̂²Λ)⁻¹ = (I − σ̂²R⁻¹Λ)⁻¹R⁻¹; the first factor is near I
-    r_inv_full = r_inv(np.eye(lam_diag.shape[0]))
-    m_inv = np.linalg.solve(np.eye(lam_diag.shape[0]) - m_eff * (r_inv_full * lam_diag[None, :]), r_inv_full)
-    cov = _arx_covariance(p_arr, g_arr, theta, float(sigma2), m_inv)
-    cov.setflags(write=False)
-    b1, b0, a2, a1, a0 = (float(v) for v in theta)
-    return ArxFit(b1, b0, a2, a1, a0, float(sigma2), cov, method, n_rows, n_iter)
+    # R⁻¹Λ, applied to θ̂_C at every iteration
+    r_inv_lam = np.column_stack([r_inv(col) for col in np.diag(lam_diag)])
+    theta = theta_ls.copy()
+    sigma2 = float("nan")
+    for n_iter in range(1, max_iter + 1):
+        # σ̂²_k = (J/N) / (1 + θ̂_C,kᵀ Λ θ̂_LS)
+        den = 1.0 + theta @ (lam_diag * theta_ls)
+        if not den > MIN_BIAS_DENOMINATOR:
+            raise ConfigError("bias-compensated ARX fit diverged (1 + θ_Cᵀ Λ θ_LS ≤ 1/2)")
+        sigma2 = j_mean / den
+        # θ̂_C,k+1 = θ̂_LS + σ̂²_k R⁻¹ Λ θ̂_C,k
+        new = theta_ls + sigma2 * (r_inv_lam @ theta)
+        step = float(np.max(np.abs(new - theta)))
+        theta = new
+        if step <= rtol * float(np.max(np.abs(theta))):
+            return theta, sigma2, n_iter
+    raise ConfigError(
+        f"bias-compensated ARX fit did not converge in max_iter={max_iter} iterations "
+        f"(σ̂² = {sigma2:.3g}): the noise is too large for the excitation"
+    )

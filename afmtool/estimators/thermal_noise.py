@@ -114,6 +114,21 @@ class ThermalFit:
     rms_log_residual : float
         RMS of ln S_measured − ln S_model over the band (≈ 1/√M for M
         averages when the model fits).
+
+    Notes
+    -----
+    Spring constant.  k = k_B·T/⟨p²⟩ with ⟨p²⟩ = (π/2)·A·f0·Q, the area of
+    the oscillator part (the floor excluded).  This assumes the spectrum is
+    the **actual displacement of the tip in the first mode**, in metres,
+    i.e. that the detector's deflection sensitivity has been calibrated
+    (e.g. from a force curve on a hard sample) and converted to tip
+    displacement.  For an optical-lever spectrum calibrated by a static force
+    curve, the first mode's slope differs from the static one, and Butt &
+    Jaschke (1995) give k = 0.817·k_B·T/⟨p*²⟩; for an interferometric tip
+    displacement, where mode 1 holds 97.1 % of the energy, k = 0.971·k_B·T/⟨p²⟩.
+    Neither factor is applied here (k is the plain one-mode equipartition of
+    :class:`afmtool.models.cantilever.Cantilever`); ``identify freeair --psd``
+    applies them through :mod:`afmtool.estimators.spring_constant`.
     """
 
     f0_hz: float
@@ -255,6 +270,17 @@ def _auto_band(start: _Start, f_lo: float, f_hi: float) -> tuple[float, float]:
 
     Near f0, A·L(f) ≈ A·Q²/(1 + (2Q(f − f0)/f0)²), which equals r·W at
     δ = (f0/2Q)·√(A·Q²/(r·W) − 1).  δ is kept within [10·f0/(2Q), f0/2].
+
+    The band of :func:`fit_thermal_spectrum`, in full: bins below
+    max(10 bins, f_max/200) are skipped (near-DC
+    artefacts, 1/f rise).  The peak is the most prominent one of the
+    median-filtered log S; W0 is the median of S over [f_peak/2, 3f_peak/2];
+    Q0 = f_peak/Δf_{−3 dB} from the width at half the height above W0.  The
+    band is f0 ± δ where the oscillator part falls to 10 % of the floor,
+    δ = (f0/2Q)·√(A·Q²/(0.1·W) − 1), kept within [10·f0/(2Q), f0/2]: wide
+    enough to pin the floor, narrow enough to keep other modes and the 1/f
+    rise out.  After a first fit the band is recomputed from the fitted
+    parameters and the fit repeated once.
     """
     half_width = start.f0_hz / (2 * start.q)
     ratio = start.dc_psd * start.q**2 / max(start.floor_psd, 1e-300) / _BAND_FLOOR_FRACTION
@@ -296,14 +322,8 @@ def _fit_log_psd(f: np.ndarray, psd: np.ndarray, start: _Start) -> _LogFit:
     return _LogFit(params, cov * np.outer(scale, scale), math.sqrt(float(np.mean(sol.fun**2))), f.size)
 
 
-def fit_thermal_spectrum(
-    frequency_hz,
-    asd_m_per_sqrt_hz,
-    *,
-    band: tuple[float, float] | None = None,
-    temperature_k: float | None = 295.0,
-    n_averages: int | None = None,
-) -> ThermalFit:
+def fit_thermal_spectrum(frequency_hz, asd_m_per_sqrt_hz, *, band: tuple[float, float] | None = None,
+                         temperature_k: float | None = 295.0, n_averages: int | None = None) -> ThermalFit:
     """Fit a simple harmonic oscillator plus a white floor to a thermal-noise spectrum.
 
     Parameters
@@ -330,15 +350,8 @@ def fit_thermal_spectrum(
     (:func:`sho_psd`), i.e. the squared |G(j2πf)| of eq. 3.1 driven by white
     thermal force noise, on a white detector floor.
 
-    *Band.*  Bins below max(10 bins, f_max/200) are skipped (near-DC
-    artefacts, 1/f rise).  The peak is the most prominent one of the
-    median-filtered log S; W0 is the median of S over [f_peak/2, 3f_peak/2];
-    Q0 = f_peak/Δf_{−3 dB} from the width at half the height above W0.  The
-    band is f0 ± δ where the oscillator part falls to 10 % of the floor,
-    δ = (f0/2Q)·√(A·Q²/(0.1·W) − 1), kept within [10·f0/(2Q), f0/2]: wide
-    enough to pin the floor, narrow enough to keep other modes and the 1/f
-    rise out.  After a first fit the band is recomputed from the fitted
-    parameters and the fit repeated once.
+    *Band.*  By default f0 ± δ, where the oscillator part falls to 10 % of the
+    floor, from an initial guess, then from the first fit (``_auto_band``).
 
     *Estimator.*  Least squares on ln S, parameters (ln A, f0, ln Q, ln W),
     by :func:`scipy.optimize.least_squares`.  Why the log: an averaged
@@ -356,18 +369,8 @@ def fit_thermal_spectrum(
     resonance drifting during the averaging) shows as ``rms_log_residual``
     well above 1/√M, and then Q depends on the band.
 
-    *Spring constant.*  k = k_B·T/⟨p²⟩ with ⟨p²⟩ = (π/2)·A·f0·Q, the area of
-    the oscillator part (the floor excluded).  This assumes the spectrum is
-    the **actual displacement of the tip in the first mode**, in metres,
-    i.e. that the detector's deflection sensitivity has been calibrated
-    (e.g. from a force curve on a hard sample) and converted to tip
-    displacement.  For an optical-lever spectrum calibrated by a static force
-    curve, the first mode's slope differs from the static one, and Butt &
-    Jaschke (1995) give k = 0.817·k_B·T/⟨p*²⟩; for an interferometric tip
-    displacement, where mode 1 holds 97.1 % of the energy, k = 0.971·k_B·T/⟨p²⟩.
-    Neither factor is applied here (k is the plain one-mode equipartition of
-    :class:`afmtool.models.cantilever.Cantilever`); ``identify freeair --psd``
-    applies them through :mod:`afmtool.estimators.spring_constant`.
+    *Spring constant.*  k = k_B·T/⟨p²⟩, one-mode equipartition of the tip
+    displacement; see :class:`ThermalFit` for what the spectrum must be.
 
     Raises
     ------
@@ -377,13 +380,7 @@ def fit_thermal_spectrum(
         For a bad spectrum, no peak, or fewer than 8 usable bins in the band.
     """
     f, asd = _spectrum(frequency_hz, asd_m_per_sqrt_hz)
-    valid_temperature = _is_real(temperature_k) and math.isfinite(temperature_k) and temperature_k > 0
-    if temperature_k is not None and not valid_temperature:
-        raise ConfigError(f"temperature_k={temperature_k!r} must be a finite number > 0 or None")
-    if n_averages is not None and not (
-        isinstance(n_averages, numbers.Integral) and not isinstance(n_averages, bool) and n_averages >= 1
-    ):
-        raise ConfigError(f"n_averages={n_averages!r} must be an integer >= 1 or None")
+    _check_thermal_options(temperature_k, n_averages)
     psd = asd * asd
     positive = psd > 0
     if band is None:
@@ -405,6 +402,17 @@ def fit_thermal_spectrum(
         fit_band = (lo_hz, hi_hz)
         result = _fit_in_band(f, psd, positive, fit_band, start)
     return _thermal_fit(result, fit_band, temperature_k, n_averages)
+
+
+def _check_thermal_options(temperature_k, n_averages) -> None:
+    """ConfigError unless T is a finite number > 0 or None, and M an integer >= 1 or None."""
+    valid_temperature = _is_real(temperature_k) and math.isfinite(temperature_k) and temperature_k > 0
+    if temperature_k is not None and not valid_temperature:
+        raise ConfigError(f"temperature_k={temperature_k!r} must be a finite number > 0 or None")
+    if n_averages is not None and not (
+        isinstance(n_averages, numbers.Integral) and not isinstance(n_averages, bool) and n_averages >= 1
+    ):
+        raise ConfigError(f"n_averages={n_averages!r} must be an integer >= 1 or None")
 
 
 def _fit_in_band(f, psd, positive, band: tuple[float, float], start: _Start) -> _LogFit:

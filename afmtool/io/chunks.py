@@ -8,9 +8,8 @@ the next, so memory stays flat however long the capture is.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
-
 import math
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 

@@ -46,7 +46,7 @@ from typing import TextIO
 import numpy as np
 
 from afmtool.errors import InputError
-from afmtool.io.capture import ReaderBase, CaptureInfo, ChannelSpec, Chunk
+from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 from afmtool.io.metadata import parse_metadata_json
 from afmtool.io.unit_names import unit_symbol
 
@@ -130,7 +130,7 @@ class CsvReader(ReaderBase):
             self._stream = _text_stream(sys.stdin.buffer)
         else:
             try:
-                self._stream = _text_stream(open(path, "rb"))  # noqa: SIM115
+                self._stream = _text_stream(open(path, "rb"))  # noqa: SIM115 - the reader owns the file and closes it in close()
             except FileNotFoundError:
                 raise InputError(f"{path}: no such file") from None
             except OSError as exc:

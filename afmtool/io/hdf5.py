@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 
 from afmtool.errors import InputError
-from afmtool.io.capture import ReaderBase, CaptureInfo, ChannelSpec, Chunk
+from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 from afmtool.io.metadata import parse_metadata_json
 
 __all__ = ["Hdf5Reader", "Hdf5Writer", "dataset_name", "max_samples_override"]

@@ -225,7 +225,7 @@ class LaboneHdf5Reader(ReaderBase):
                 nodes = ", ".join(by_node)
                 raise InputError(f"{self._path}: demodulator samples from several nodes ({nodes}); afmtool reads one")
             sources.append(("demods", "demods", next(iter(by_node.values()))))
-        for k, (name, group) in enumerate(groups.get("scopes", [])):
+        for k, (_name, group) in enumerate(groups.get("scopes", [])):
             sources.append((f"scope{k}", "scope", [group]))
         if not sources:
             raise InputError(f"{self._path}: no LabOne demodulator samples or scope shots found")

@@ -6,7 +6,7 @@ from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 
-from afmtool.io.capture import ReaderBase, CaptureInfo, ChannelSpec, Chunk
+from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 
 __all__ = ["ArrayReader"]
 

@@ -185,7 +185,7 @@ def create_writer(
         from afmtool.io.csv import CsvWriter
 
         if isinstance(target, Path):
-            stream = open(target, "w", encoding="utf-8", newline="")  # noqa: SIM115
+            stream = open(target, "w", encoding="utf-8", newline="")  # noqa: SIM115 - _ClosingCsvWriter closes it with the writer
             return _ClosingCsvWriter(CsvWriter(stream, sample_rate_hz, channels, metadata), stream)
         return CsvWriter(target if target is not None else sys.stdout, sample_rate_hz, channels, metadata)
     if not isinstance(target, Path):

@@ -164,7 +164,7 @@ class TdmsReader(ReaderBase):
                     raise InputError(f"{self._path}: cannot read {name} at sample {start} ({exc.strerror})") from None
                 except _TDMS_ERRORS as exc:
                     raise InputError(f"{self._path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
-                except Exception as exc:  # noqa: BLE001 - narrowed at once to npTDMS's bare Exception
+                except Exception as exc:  # narrowed at once to npTDMS's bare Exception
                     if type(exc) is not Exception:
                         raise
                     # npTDMS raises the base class itself for a damaged scaling chain

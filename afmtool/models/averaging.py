@@ -297,6 +297,27 @@ def _equivalent(omega_e2: np.ndarray, damping: np.ndarray) -> EquivalentParamete
 # ---------------------------------------------------------------------------
 
 
+def _piecewise_gauss_nodes(a: np.ndarray, l: np.ndarray, d: float, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss–Legendre nodes θ and weights on [0, 2π], split where the force changes formula.
+
+    The kinks are at cos S1 = (d − l)/a and cos S2 = −l/a, their mirrors
+    2π − S1, 2π − S2, and π; both arrays have shape (..., 6, n_nodes).
+    """
+    # kink angles: cos S1 = (d − l)/a, cos S2 = −l/a (clipped: no kink ⇒ 0 or π)
+    s1 = np.arccos(np.clip((d - l) / a, -1.0, 1.0))
+    s2 = np.arccos(np.clip(-l / a, -1.0, 1.0))
+    two_pi = 2.0 * math.pi
+    breaks = np.stack(
+        [np.zeros_like(a), s1, s2, np.full_like(a, math.pi), two_pi - s2, two_pi - s1, np.full_like(a, two_pi)],
+        axis=-1,
+    )  # (..., 7), non-decreasing because S1 ≤ S2 ≤ π
+    lo, hi = breaks[..., :-1, None], breaks[..., 1:, None]  # (..., 6, 1)
+    nodes, weights = np.polynomial.legendre.leggauss(n_nodes)
+    half = 0.5 * (hi - lo)
+    theta = 0.5 * (hi + lo) + half * nodes  # (..., 6, n)
+    return theta, half * weights
+
+
 def equivalent_parameters_quadrature(
     amplitude_nm,
     separation_nm,
@@ -356,21 +377,7 @@ def equivalent_parameters_quadrature(
     if not (isinstance(n_nodes, (int, np.integer)) and n_nodes >= 2):
         raise ConfigError(f"{n_nodes=} must be an integer >= 2")
     a, l = _amplitude_separation(amplitude_nm, separation_nm)
-    d = float(force.d_nm)
-
-    # kink angles: cos S1 = (d − l)/a, cos S2 = −l/a (clipped: no kink ⇒ 0 or π)
-    s1 = np.arccos(np.clip((d - l) / a, -1.0, 1.0))
-    s2 = np.arccos(np.clip(-l / a, -1.0, 1.0))
-    two_pi = 2.0 * math.pi
-    breaks = np.stack(
-        [np.zeros_like(a), s1, s2, np.full_like(a, math.pi), two_pi - s2, two_pi - s1, np.full_like(a, two_pi)],
-        axis=-1,
-    )  # (..., 7), non-decreasing because S1 ≤ S2 ≤ π
-    lo, hi = breaks[..., :-1, None], breaks[..., 1:, None]  # (..., 6, 1)
-    nodes, weights = np.polynomial.legendre.leggauss(int(n_nodes))
-    half = 0.5 * (hi - lo)
-    theta = 0.5 * (hi + lo) + half * nodes  # (..., 6, n)
-    w = half * weights
+    theta, w = _piecewise_gauss_nodes(a, l, float(force.d_nm), int(n_nodes))
 
     aa = a[..., None, None]
     f = force(aa * np.cos(theta), -aa * omega * np.sin(theta), l[..., None, None])

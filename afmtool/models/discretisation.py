@@ -74,6 +74,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 
 #: How the drive reached the plant between samples (module docstring).
 HOLDS = ("zoh", "continuous")
@@ -226,8 +227,8 @@ def is_underdamped(b1, b0) -> np.ndarray:
     return (b0a > 0) & (b0a < 1) & (b1a * b1a < 4.0 * b0a)
 
 
-@njit(cache=True, nogil=True)
-def _resonance_kernel(b1, b0, period, f0_out, q_out):  # noqa: PLR0913
+@njit(**JIT_OPTIONS)
+def _resonance_kernel(b1, b0, period, f0_out, q_out):
     """Eq. 3.48 sample by sample; NaN where (b1, b0) is not under-damped.  Returns that count."""
     flagged = 0
     for i in range(b1.shape[0]):

@@ -51,6 +51,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 
 __all__ = [
     "ElectrostaticParams",
@@ -129,8 +130,8 @@ class LeverVoltages(NamedTuple):
     alpha_r: float
 
 
-@njit(cache=True)
-def electrostatic_force_scalar(p_m, voltage_v, l0_m, k_esf_f_m, z_m, tip_height_m):  # noqa: PLR0913
+@njit(**JIT_OPTIONS)
+def electrostatic_force_scalar(p_m, voltage_v, l0_m, k_esf_f_m, z_m, tip_height_m):
     """F_esf = −K_esf·V²/max(ℓ0 + p − z, t_h)² (eq. 6.4), N; for numba kernels."""
     separation = l0_m + p_m - z_m
     if separation < tip_height_m:

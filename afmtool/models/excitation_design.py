@@ -186,6 +186,32 @@ def _loop_grid(drive_hz: float, offset_hz: float, dac_rate_hz: float, resolution
     return per_beat, beats
 
 
+def _design_request(f0_hz, q, gain, amplitude_nm, dac_rate_hz, drive_hz, offset_hz, beat_tolerance, max_side_scale,
+                    resolution_hz) -> tuple:
+    """The checked arguments of :func:`design_three_sine`, defaults filled in, and why Δf is what it is."""
+    f0_hz, q, amplitude_nm = (_finite_positive(n, v) for n, v in
+                              (("f0_hz", f0_hz), ("q", q), ("amplitude_nm", amplitude_nm)))
+    if not (isinstance(gain, (int, float)) and math.isfinite(gain) and gain != 0):
+        raise ConfigError(f"the model's gain={gain!r} must be a finite non-zero number")
+    dac_rate_hz = _finite_positive("dac_rate_hz", dac_rate_hz)
+    beat_tolerance = _finite_positive("beat_tolerance", beat_tolerance)
+    max_side_scale = _finite_positive("max_side_scale", max_side_scale)
+    drive_hz = f0_hz if not drive_hz else _finite_positive("drive_hz", drive_hz)
+    if offset_hz:
+        offset_hz, reason = _finite_positive("offset_hz", offset_hz), "given (--offset)"
+    else:
+        offset_hz, reason = default_offset_hz(f0_hz, q)
+    if offset_hz >= drive_hz:
+        raise ConfigError(f"the side-line offset {offset_hz:g} Hz must be below the drive frequency {drive_hz:g} Hz")
+    if 2.0 * (drive_hz + offset_hz) >= dac_rate_hz:
+        raise ConfigError(
+            f"--dac-rate {dac_rate_hz:g} Hz must exceed twice the upper line {drive_hz + offset_hz:g} Hz"
+        )
+    resolution_hz = _finite_positive("resolution_hz", resolution_hz) if resolution_hz else f0_hz / (100.0 * q)
+    return (f0_hz, q, amplitude_nm, dac_rate_hz, beat_tolerance, max_side_scale, drive_hz, offset_hz, reason,
+            resolution_hz)
+
+
 def design_three_sine(
     f0_hz: float,
     q: float,
@@ -227,25 +253,9 @@ def design_three_sine(
     -------
     ExcitationDesign
     """
-    f0_hz, q, amplitude_nm = (_finite_positive(n, v) for n, v in
-                              (("f0_hz", f0_hz), ("q", q), ("amplitude_nm", amplitude_nm)))
-    if not (isinstance(gain, (int, float)) and math.isfinite(gain) and gain != 0):
-        raise ConfigError(f"the model's gain={gain!r} must be a finite non-zero number")
-    dac_rate_hz = _finite_positive("dac_rate_hz", dac_rate_hz)
-    beat_tolerance = _finite_positive("beat_tolerance", beat_tolerance)
-    max_side_scale = _finite_positive("max_side_scale", max_side_scale)
-    drive_hz = f0_hz if not drive_hz else _finite_positive("drive_hz", drive_hz)
-    if offset_hz:
-        offset_hz, reason = _finite_positive("offset_hz", offset_hz), "given (--offset)"
-    else:
-        offset_hz, reason = default_offset_hz(f0_hz, q)
-    if offset_hz >= drive_hz:
-        raise ConfigError(f"the side-line offset {offset_hz:g} Hz must be below the drive frequency {drive_hz:g} Hz")
-    if 2.0 * (drive_hz + offset_hz) >= dac_rate_hz:
-        raise ConfigError(
-            f"--dac-rate {dac_rate_hz:g} Hz must exceed twice the upper line {drive_hz + offset_hz:g} Hz"
-        )
-    resolution_hz = _finite_positive("resolution_hz", resolution_hz) if resolution_hz else f0_hz / (100.0 * q)
+    (f0_hz, q, amplitude_nm, dac_rate_hz, beat_tolerance, max_side_scale, drive_hz, offset_hz, reason,
+     resolution_hz) = _design_request(f0_hz, q, gain, amplitude_nm, dac_rate_hz, drive_hz, offset_hz, beat_tolerance,
+                                      max_side_scale, resolution_hz)
 
     per_beat, beats = _loop_grid(drive_hz, offset_hz, dac_rate_hz, resolution_hz)
     grid_hz = dac_rate_hz / (per_beat * beats)

@@ -57,6 +57,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 
 __all__ = [
     "PiecewiseLinearForce",
@@ -72,8 +73,8 @@ __all__ = [
 ]
 
 
-@njit(cache=True)
-def force_per_mass(p, v, l, d, wa2, wb2, ca, cb):  # noqa: PLR0913 - the model's own parameters
+@njit(**JIT_OPTIONS)
+def force_per_mass(p, v, l, d, wa2, wb2, ca, cb):  # the model's own parameters
     """Piecewise-linear tip-sample force per unit mass (module docstring).
 
     Parameters
@@ -105,7 +106,7 @@ def force_per_mass(p, v, l, d, wa2, wb2, ca, cb):  # noqa: PLR0913 - the model's
     return force
 
 
-def force_per_mass_array(p, v, l, d, wa2, wb2, ca, cb) -> np.ndarray:  # noqa: PLR0913
+def force_per_mass_array(p, v, l, d, wa2, wb2, ca, cb) -> np.ndarray:
     """Vectorised :func:`force_per_mass` over broadcast arrays (nm/s²)."""
     p, v, l = np.broadcast_arrays(
         np.asarray(p, dtype=np.float64), np.asarray(v, dtype=np.float64), np.asarray(l, dtype=np.float64)

@@ -71,7 +71,7 @@ class InteractionQuantities(NamedTuple):
                 "power_w": "W", "virial_j": "J"}
 
 
-def interaction_quantities(  # noqa: PLR0913
+def interaction_quantities(
     f0_hz,
     q,
     amplitude_nm,

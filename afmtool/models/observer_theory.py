@@ -387,6 +387,35 @@ def _poly_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def _fourth_order_eta_terms(omega_e, q_e, omega_k, q_k, err1, err0, numerator, eta_psd: float, shape) -> tuple[np.ndarray, np.ndarray]:
+    """S_η and σ²_ηe of :func:`noise_terms`: white η through the fourth-order paths, by Lyapunov equation.
+
+    S_η passes C(s)M(s)/(P(s)E(s)) with M(s) = K(s) − P(s) the model mismatch,
+    σ²_ηe passes C(s)K(s)/(P(s)E(s)); P, K, E are the plant, model and error
+    polynomials (monic, degree 2) and C(s) = c1 s + c0 the drive numerator.
+    """
+    c1, c0 = numerator
+    # Fourth order: scale s = ω_r s̃ so the Lyapunov equation is well conditioned;
+    # ‖H‖²_H2 = ω_r ‖H̃‖²_H2 with x̃_i = x_i ω_r^(i − n) for monic D of degree n.
+    w_r = np.broadcast_to(omega_k, shape)
+    we, qe = np.broadcast_to(omega_e, shape), np.broadcast_to(q_e, shape)
+    wk, qk = np.broadcast_to(omega_k, shape), np.broadcast_to(q_k, shape)
+    plant = np.stack([we * we, we / qe, np.ones(shape)], axis=-1)
+    model = np.stack([wk * wk, wk / qk, np.ones(shape)], axis=-1)
+    error = np.stack([err0, err1, np.ones(shape)], axis=-1)
+    drive = np.stack([np.full(shape, c0), np.full(shape, c1)], axis=-1)
+    den = _poly_mul(plant, error)  # degree 4, monic
+    mismatch = model - plant  # (ωk² − ωe²) + (ωk/Qk − ωe/Qe) s
+    scale = w_r[..., None] ** (np.arange(4) - 4)
+    den_s = den[..., :4] * scale
+    num_sig = np.zeros((*shape, 4))
+    num_sig[..., :3] = _poly_mul(drive, mismatch[..., :2])
+    num_all = _poly_mul(drive, model)  # degree 3
+    s_eta = 0.5 * eta_psd * w_r * _h2_squared(num_sig * scale, den_s)
+    var_eta = 0.5 * eta_psd * w_r * _h2_squared(num_all * scale, den_s)
+    return s_eta, var_eta
+
+
 def noise_terms(
     omega_e,
     q_e,
@@ -446,24 +475,7 @@ def noise_terms(
     # ‖(c1 s + c0)/E‖² and ‖(L2 s + L1)/E‖², closed form
     n_eta = 0.5 * eta_psd * (c1 * c1 * err0 + c0 * c0) / (2.0 * err0 * err1)
     n_nu = 0.5 * nu_psd * (l2 * l2 * err0 + l1 * l1) / (2.0 * err0 * err1)
-    # Fourth order: scale s = ω_r s̃ so the Lyapunov equation is well conditioned;
-    # ‖H‖²_H2 = ω_r ‖H̃‖²_H2 with x̃_i = x_i ω_r^(i − n) for monic D of degree n.
-    w_r = np.broadcast_to(omega_k, shape)
-    we, qe = np.broadcast_to(omega_e, shape), np.broadcast_to(q_e, shape)
-    wk, qk = np.broadcast_to(omega_k, shape), np.broadcast_to(q_k, shape)
-    plant = np.stack([we * we, we / qe, np.ones(shape)], axis=-1)
-    model = np.stack([wk * wk, wk / qk, np.ones(shape)], axis=-1)
-    error = np.stack([err0, err1, np.ones(shape)], axis=-1)
-    drive = np.stack([np.full(shape, c0), np.full(shape, c1)], axis=-1)
-    den = _poly_mul(plant, error)  # degree 4, monic
-    mismatch = model - plant  # (ωk² − ωe²) + (ωk/Qk − ωe/Qe) s
-    scale = w_r[..., None] ** (np.arange(4) - 4)
-    den_s = den[..., :4] * scale
-    num_sig = np.zeros((*shape, 4))
-    num_sig[..., :3] = _poly_mul(drive, mismatch[..., :2])
-    num_all = _poly_mul(drive, model)  # degree 3
-    s_eta = 0.5 * eta_psd * w_r * _h2_squared(num_sig * scale, den_s)
-    var_eta = 0.5 * eta_psd * w_r * _h2_squared(num_all * scale, den_s)
+    s_eta, var_eta = _fourth_order_eta_terms(omega_e, q_e, omega_k, q_k, err1, err0, (c1, c0), eta_psd, shape)
     s_g = 0.5 * np.broadcast_to(amplitude.ae2, shape)
     with np.errstate(divide="ignore", invalid="ignore"):
         snr_eta = s_g / (n_eta + s_eta)
@@ -499,6 +511,38 @@ class Transient(NamedTuple):
     peak_total: np.ndarray
     settling_cycles: np.ndarray
     horizon_cycles: float
+
+
+def _van_loan_system(we, qe, wk, qk, e1, e0) -> tuple[np.ndarray, np.ndarray]:
+    """G = [[F, A − A_k], [0, A]] of :func:`transient_response` and its start, per model (batch, 4, 4).
+
+    The start holds two 4 × 2 blocks side by side: [X0; X0] (the whole
+    error, e0 = X0) and [0; X0] (the mismatch only, e0 = 0), with
+    X0 = T[cos φ, sin φ]ᵀ.
+    """
+    batch = we.size
+    g = np.zeros((batch, 4, 4))
+    # F = A_k − LC = [[0, −e0], [1, −e1]]
+    g[:, 0, 1] = -e0
+    g[:, 1, 0] = 1.0
+    g[:, 1, 1] = -e1
+    # A − A_k = [[0, −(ωe² − ωk²)], [0, −(ωe/Qe − ωk/Qk)]]
+    g[:, 0, 3] = -(we * we - wk * wk)
+    g[:, 1, 3] = -(we / qe - wk / qk)
+    # A = [[0, −ωe²], [1, −ωe/Qe]]
+    g[:, 2, 3] = -we * we
+    g[:, 3, 2] = 1.0
+    g[:, 3, 3] = -we / qe
+    # X0 = T [cos φ, sin φ]ᵀ, T = [[ωe/Qe, −ωe], [1, 0]]; columns: total (e0 = X0), mismatch (e0 = 0)
+    t_mat = np.zeros((batch, 2, 2))
+    t_mat[:, 0, 0] = we / qe
+    t_mat[:, 0, 1] = -we
+    t_mat[:, 1, 0] = 1.0
+    state = np.zeros((batch, 4, 4))
+    state[:, 0:2, 0:2] = t_mat  # total: e0 = X0
+    state[:, 2:4, 0:2] = t_mat
+    state[:, 2:4, 2:4] = t_mat  # mismatch only: e0 = 0
+    return g, state
 
 
 def transient_response(
@@ -562,28 +606,8 @@ def transient_response(
     n_steps = int(math.ceil(horizon_cycles * points_per_cycle))
     h = 1.0 / (f * points_per_cycle)
     batch = we.size
-    g = np.zeros((batch, 4, 4))
-    # F = A_k − LC = [[0, −e0], [1, −e1]]
-    g[:, 0, 1] = -e0
-    g[:, 1, 0] = 1.0
-    g[:, 1, 1] = -e1
-    # A − A_k = [[0, −(ωe² − ωk²)], [0, −(ωe/Qe − ωk/Qk)]]
-    g[:, 0, 3] = -(we * we - wk * wk)
-    g[:, 1, 3] = -(we / qe - wk / qk)
-    # A = [[0, −ωe²], [1, −ωe/Qe]]
-    g[:, 2, 3] = -we * we
-    g[:, 3, 2] = 1.0
-    g[:, 3, 3] = -we / qe
+    g, state = _van_loan_system(we, qe, wk, qk, e1, e0)
     phi = scipy.linalg.expm(g * h)
-    # X0 = T [cos φ, sin φ]ᵀ, T = [[ωe/Qe, −ωe], [1, 0]]; columns: total (e0 = X0), mismatch (e0 = 0)
-    t_mat = np.zeros((batch, 2, 2))
-    t_mat[:, 0, 0] = we / qe
-    t_mat[:, 0, 1] = -we
-    t_mat[:, 1, 0] = 1.0
-    state = np.zeros((batch, 4, 4))
-    state[:, 0:2, 0:2] = t_mat  # total: e0 = X0
-    state[:, 2:4, 0:2] = t_mat
-    state[:, 2:4, 2:4] = t_mat  # mismatch only: e0 = 0
     peak_total = np.ones(batch)
     peak_mismatch = np.zeros(batch)
     last_above = np.zeros(batch)

@@ -18,7 +18,7 @@ _lock = threading.Lock()
 _seen: dict[str, int] = {}
 
 
-def _record(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ARG001
+def _record(message, category, filename, lineno, file=None, line=None) -> None:
     text = f"{category.__name__}: {message}".strip()
     with _lock:
         _seen[text] = _seen.get(text, 0) + 1

@@ -312,11 +312,11 @@ def start_matplotlib_import() -> None:
         try:
             _figure_class()
             import matplotlib.backends.backend_agg
-            import matplotlib.style
+            import matplotlib.style  # noqa: F401 - loaded here, off the main thread, for the first figure
             from matplotlib.font_manager import fontManager
 
             fontManager.findfont("DejaVu Sans")
-        except Exception:  # noqa: BLE001, S110 - the figure's own import reports it
+        except Exception:  # noqa: BLE001 - the figure's own import reports it
             pass
 
     threading.Thread(target=run, name="afmtool-matplotlib", daemon=True).start()

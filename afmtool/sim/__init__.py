@@ -120,7 +120,7 @@ _SUPPORTED_TYPES = ("float", "int", "bool", "str", "tuple[float, ...]")
 
 def param(
     default: Any,
-    help: str,  # noqa: A002 - the metadata key the CLI reads
+    help: str,  # named help: the metadata key the CLI reads
     units: str = "",
     *,
     choices: tuple[str, ...] | None = None,
@@ -397,14 +397,14 @@ def simulate(name: str, overrides: Mapping[str, Any] | None = None, seed: int = 
 # --------------------------------------------------------------------------- built-in scenarios
 # Imported last: the scenario modules import SimulatedCapture, param and
 # validate_parameters from this package.
-from afmtool.sim import ltv as _ltv  # noqa: E402
-from afmtool.sim import tapping as _tapping  # noqa: E402
+from afmtool.sim import ltv as _ltv  # noqa: E402 - imports SimulatedCapture and param from above
+from afmtool.sim import tapping as _tapping  # noqa: E402 - imports SimulatedCapture and param from above
 
 register_scenario("tapping", _tapping.TappingParams, _tapping.simulate_tapping)
 register_scenario("ltv", _ltv.LtvParams, _ltv.simulate_ltv)
 
 # These modules register themselves on import.
-from afmtool.sim import bits as _bits  # noqa: E402,F401
-from afmtool.sim import raster as _raster  # noqa: E402,F401
-from afmtool.sim import thermal_scenarios as _thermal_scenarios  # noqa: E402,F401
-from afmtool.sim import vphi as _vphi  # noqa: E402,F401
+from afmtool.sim import bits as _bits  # noqa: E402, F401 - registers its scenarios on import
+from afmtool.sim import raster as _raster  # noqa: E402, F401 - registers its scenarios on import
+from afmtool.sim import thermal_scenarios as _thermal_scenarios  # noqa: E402, F401 - registers its scenarios on import
+from afmtool.sim import vphi as _vphi  # noqa: E402, F401 - registers its scenarios on import

@@ -30,6 +30,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.electrostatic import ElectrostaticParams, electrostatic_force_scalar
 
@@ -41,8 +42,8 @@ _DEFAULT_CHUNK_SAMPLES = 1 << 16
 _SETTLE_TIME_CONSTANTS = 12.0
 
 
-@njit(cache=True)
-def _esf_rk4_kernel(  # noqa: PLR0913
+@njit(**JIT_OPTIONS)
+def _esf_rk4_kernel(
     v_half, z_half, accel_noise, nsub, dt, w0q, w0sq, force_gain, l0_m, k_esf, tip_m, p0, v0, out_p
 ):
     """Integrate n sample periods of eq. 7.11 with ``nsub`` RK4 steps each.
@@ -170,7 +171,7 @@ def default_settle_s(cantilever: Cantilever) -> float:
     return _SETTLE_TIME_CONSTANTS * cantilever.time_constant_s
 
 
-def simulate_plant(  # noqa: PLR0913
+def simulate_plant(
     voltage: Callable[[np.ndarray], np.ndarray],
     topography_nm: Callable[[np.ndarray], np.ndarray],
     accel_noise: np.ndarray,

@@ -45,6 +45,7 @@ from numba import njit
 from scipy import signal
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.discretisation import DiscreteNumerator, discrete_denominator, sampled_numerator
@@ -176,7 +177,7 @@ def parameter_profile(t_s: np.ndarray, step_time_s: float, ramp_s: float, step_r
     return np.where(tau < 0, 0.0, s)
 
 
-@njit(cache=True)
+@njit(**JIT_OPTIONS)
 def _ltv_kernel(u, b1, b0, p1, p2, out):
     """p(n) = u(n) − b1(n)p(n−1) − b0(n)p(n−2), from p(−1) = p1, p(−2) = p2."""
     for n in range(u.shape[0]):
@@ -231,6 +232,41 @@ def _initial_history(params: LtvParams, excitation) -> tuple[float, float]:
     return lines.steady_state(response, -period)[0], lines.steady_state(response, -2 * period)[0]
 
 
+def _ltv_metadata(params: LtvParams, center_hz: float, amplitude_v: float, numerator) -> dict:
+    """The capture metadata of :func:`simulate_ltv`: cantilever, drive, numerator and noise."""
+    a2, a1, a0 = numerator
+    cantilever = Cantilever(params.f0_hz, params.q)
+    drive = {
+        "kind": params.drive,
+        "frequency_hz": float(center_hz),
+        "amplitude_v": float(amplitude_v),
+        "free_amplitude_nm": float(params.amplitude_nm),
+        "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
+        "hold": params.drive_hold,
+    }
+    if params.drive == "three-sine":
+        drive["sideband_offset_hz"] = float(params.sideband_offset_hz)
+        drive["sideband_scale"] = float(params.sideband_scale)
+    elif params.drive == "sine":
+        drive["sideband_offset_hz"] = 0.0
+    metadata = {
+        "scenario": "ltv",
+        "cantilever": {"f0_hz": float(cantilever.f0_hz), "q": float(cantilever.q)},
+        "drive": drive,
+        "numerator": {
+            "a2": float(a2),
+            "a1": float(a1),
+            "a0": float(a0),
+            "note": f"free-air {params.drive_hold} numerator x dither gain; input dither (V), output deflection (nm)",
+        },
+        "noise": {
+            "process_noise_nm": float(params.process_noise_nm),
+            "measurement_noise_nm": float(params.measurement_noise_nm),
+        },
+    }
+    return metadata
+
+
 def simulate_ltv(params: LtvParams, seed: int) -> SimulatedCapture:
     """Linear time-varying discrete cantilever with prescribed f0(t), Q(t) and a fixed numerator.
 
@@ -275,35 +311,7 @@ def simulate_ltv(params: LtvParams, seed: int) -> SimulatedCapture:
     clean = ltv_recursion(u, b1, b0, p1, p2)
 
     changes = bool(np.any(s != 0.0))
-    cantilever = Cantilever(params.f0_hz, params.q)
-    drive = {
-        "kind": params.drive,
-        "frequency_hz": float(center_hz),
-        "amplitude_v": float(amplitude_v),
-        "free_amplitude_nm": float(params.amplitude_nm),
-        "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
-        "hold": params.drive_hold,
-    }
-    if params.drive == "three-sine":
-        drive["sideband_offset_hz"] = float(params.sideband_offset_hz)
-        drive["sideband_scale"] = float(params.sideband_scale)
-    elif params.drive == "sine":
-        drive["sideband_offset_hz"] = 0.0
-    metadata = {
-        "scenario": "ltv",
-        "cantilever": {"f0_hz": float(cantilever.f0_hz), "q": float(cantilever.q)},
-        "drive": drive,
-        "numerator": {
-            "a2": float(a2),
-            "a1": float(a1),
-            "a0": float(a0),
-            "note": f"free-air {params.drive_hold} numerator x dither gain; input dither (V), output deflection (nm)",
-        },
-        "noise": {
-            "process_noise_nm": float(params.process_noise_nm),
-            "measurement_noise_nm": float(params.measurement_noise_nm),
-        },
-    }
+    metadata = _ltv_metadata(params, center_hz, amplitude_v, (a2, a1, a0))
     if params.drive == "stepped":
         metadata["segments"] = excitation.segments()
     free_end = params.step_time_s if changes else n / fs

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.models.electrostatic import electrostatic_force_scalar
 from afmtool.models.forces import force_per_mass
 
@@ -39,8 +40,8 @@ _MAX_STEP_M = 0.25e-9
 _MAX_STEPS = 40000
 
 
-@njit(cache=True)
-def _residual(p, voltage, z, k, kesf, l0, th, d, ka, kr):  # noqa: PLR0913
+@njit(**JIT_OPTIONS)
+def _residual(p, voltage, z, k, kesf, l0, th, d, ka, kr):
     """r(p) = k·p − F_esf − F_ts, N."""
     f_esf = electrostatic_force_scalar(p, voltage, l0, kesf, z, th)
     # t_s = p + l with l = ℓ0 − t_h − z (forces module convention); "unit mass": ω² = stiffness
@@ -48,8 +49,8 @@ def _residual(p, voltage, z, k, kesf, l0, th, d, ka, kr):  # noqa: PLR0913
     return k * p - f_esf - f_ts
 
 
-@njit(cache=True)
-def _track_kernel(voltage, z, p_start, k, kesf, l0, th, d, ka, kr, out):  # noqa: PLR0913
+@njit(**JIT_OPTIONS)
+def _track_kernel(voltage, z, p_start, k, kesf, l0, th, d, ka, kr, out):
     p = p_start
     for n in range(voltage.shape[0]):
         v = voltage[n]

@@ -39,6 +39,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
+from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce, force_per_mass
@@ -214,7 +215,7 @@ class TappingParams:
 # --------------------------------------------------------------------------- kernel
 
 
-@njit(cache=True)
+@njit(**JIT_OPTIONS)
 def _rk4_kernel(g_half, g_held, l_half, accel_noise, nsub, dt, w0q, w0sq, d, wa2, wb2, ca, cb, p0, v0, out_p,
                 out_contact):
     """Integrate n sample periods with ``nsub`` RK4 steps each.
@@ -432,9 +433,55 @@ def _drive_metadata(params: TappingParams, excitation, center_hz: float, amplitu
     return drive
 
 
-def simulate_tapping(
-    params: TappingParams, seed: int, *, chunk_samples: int = _DEFAULT_CHUNK_SAMPLES
-) -> SimulatedCapture:
+def _integrate_in_chunks(params: TappingParams, excitation, program, accel_noise: np.ndarray, start_state,
+                         chunk_samples: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """RK4 over the whole capture, ``chunk_samples`` at a time: (deflection, contact, dither, separation).
+
+    The drive and the separation are evaluated on the half-step grid of the
+    sub-steps (a continuous drive, not held, unless ``drive_hold="zoh"``);
+    the state (p, v) is carried from chunk to chunk, so the result does not
+    depend on the chunk size.
+    """
+    fs = params.sample_rate_hz
+    nsub = params.substeps
+    n = accel_noise.shape[0]
+    cantilever = params.cantilever()
+    force = params.force()
+    gain = params.dither_gain_nm_per_v
+    p, v = start_state
+    clean = np.empty(n)
+    contact = np.empty(n, dtype=np.uint8)
+    dither = np.empty(n)
+    separation = np.empty(n)
+    per_sample = 2 * nsub
+    half_step_s = 1.0 / (per_sample * fs)
+    for start in range(0, n, chunk_samples):
+        stop = min(start + chunk_samples, n)
+        t_half = np.arange(per_sample * start, per_sample * stop + 1) * half_step_s
+        dither_half = excitation(t_half)
+        l_half = program(t_half)
+        held = gain * dither_half[:-1:per_sample] if params.drive_hold == "zoh" else None
+        result = integrate_rk4(
+            gain * dither_half,
+            l_half,
+            accel_noise[start:stop],
+            substeps=nsub,
+            sample_rate_hz=fs,
+            cantilever=cantilever,
+            force=force,
+            p0_nm=p,
+            v0_nm_per_s=v,
+            g_held=held,
+        )
+        clean[start:stop] = result.deflection_nm
+        contact[start:stop] = result.contact
+        dither[start:stop] = dither_half[:-1:per_sample]
+        separation[start:stop] = l_half[:-1:per_sample]
+        p, v = result.p_end_nm, result.v_end_nm_per_s
+    return clean, contact, dither, separation
+
+
+def simulate_tapping(params: TappingParams, seed: int, *, chunk_samples: int = _DEFAULT_CHUNK_SAMPLES) -> SimulatedCapture:
     """Tapping-mode cantilever with the piecewise-linear force, RK4 with sub-steps.
 
     Parameters
@@ -477,35 +524,10 @@ def simulate_tapping(
         p, v = _initial_state(excitation, cantilever, gain, fs if params.drive_hold == "zoh" else None)
     else:
         p, v = 0.0, 0.0
-    clean = np.empty(n)
-    contact = np.empty(n, dtype=np.uint8)
-    dither = np.empty(n)
-    separation = np.empty(n)
+    clean, contact, dither, separation = _integrate_in_chunks(params, excitation, program, accel_noise, (p, v),
+                                                              chunk_samples)
     per_sample = 2 * nsub
     half_step_s = 1.0 / (per_sample * fs)
-    for start in range(0, n, chunk_samples):
-        stop = min(start + chunk_samples, n)
-        t_half = np.arange(per_sample * start, per_sample * stop + 1) * half_step_s
-        dither_half = excitation(t_half)
-        l_half = program(t_half)
-        held = gain * dither_half[:-1:per_sample] if params.drive_hold == "zoh" else None
-        result = integrate_rk4(
-            gain * dither_half,
-            l_half,
-            accel_noise[start:stop],
-            substeps=nsub,
-            sample_rate_hz=fs,
-            cantilever=cantilever,
-            force=force,
-            p0_nm=p,
-            v0_nm_per_s=v,
-            g_held=held,
-        )
-        clean[start:stop] = result.deflection_nm
-        contact[start:stop] = result.contact
-        dither[start:stop] = dither_half[:-1:per_sample]
-        separation[start:stop] = l_half[:-1:per_sample]
-        p, v = result.p_end_nm, result.v_end_nm_per_s
 
     t = np.arange(n) * (per_sample * half_step_s)
     channels = [ChannelSpec("dither", "V"), ChannelSpec("deflection", "nm")]

@@ -48,8 +48,8 @@ from afmtool.models.thermal_sensor import (
     operating_point,
 )
 from afmtool.sim import SimulatedCapture, param, validate_parameters
-from afmtool.sim.sweeps import LogSteppedSine, RepeatedChirp, log_stepped_sine
 from afmtool.sim.probe import ProbeParams
+from afmtool.sim.sweeps import LogSteppedSine, RepeatedChirp, log_stepped_sine
 
 __all__ = ["ThermalSweepParams", "ThermalSweepModel", "Zpk", "simulate_thermal_sweep"]
 
