@@ -14,8 +14,8 @@ import pytest
 
 from afmtool import sim
 from afmtool.estimators.electrostatic_fit import fit_electrostatic, select_before_snap_in
-from afmtool.estimators.thermal_sensor import identify_iv, identify_z_curve, separation_from_current
 from afmtool.estimators.identifiability import analyse_identifiability, relative_jacobian
+from afmtool.estimators.thermal_sensor import identify_iv, identify_z_curve, separation_from_current
 from afmtool.models.thermal_sensor import ResistanceFit
 from tests.conftest import run_cli, validate_report
 from tests.test_thermal_identify import write_capture

@@ -17,6 +17,8 @@ import pytest
 from scipy.optimize import brentq
 
 from afmtool import sim
+from afmtool.errors import InputError
+from afmtool.estimators.frequency_response import FrequencyResponse
 from afmtool.estimators.sensing_gamma import (
     auto_nperseg,
     canonical_scale,
@@ -29,8 +31,6 @@ from afmtool.estimators.sensing_gamma import (
     uncorrected_response,
     usable_mask,
 )
-from afmtool.errors import InputError
-from afmtool.estimators.frequency_response import FrequencyResponse
 from afmtool.io.capture import Chunk
 from tests.conftest import SAMPLE_DATA, run_cli, validate_report
 from tests.golden import assert_matches_golden
@@ -266,8 +266,8 @@ def test_stepped_segments_are_detected_when_the_metadata_lacks_them():
 
 
 def test_split_steps_are_merged():
-    from afmtool.estimators.sensing_gamma import merge_split_steps
     from afmtool.estimators.frequency_response import SineSegment
+    from afmtool.estimators.sensing_gamma import merge_split_steps
 
     pieces = [SineSegment(0.0, 0.1, 100.0), SineSegment(0.1, 0.102, 103.0), SineSegment(0.1025, 0.2, 101.0),
               SineSegment(0.2, 0.3, 126.0)]

@@ -180,7 +180,7 @@ def test_peak_memory_does_not_grow_with_the_capture(case, monkeypatch):
     peaks = {}
     for n in (SHORT, LONG):
         reader = _GeneratedReader(n, names, drive)  # its buffers are not the analysis's
-        peaks[n] = _peak_bytes(lambda: run(reader, monkeypatch))
+        peaks[n] = _peak_bytes(lambda reader=reader: run(reader, monkeypatch))
     ratio = peaks[LONG] / peaks[SHORT]
     print(f"{case}: peak {peaks[SHORT] / 1e6:.2f} MB at {SHORT:,} samples, {peaks[LONG] / 1e6:.2f} MB at {LONG:,}: "
           f"ratio {ratio:.3f}")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from afmtool import sim
+from afmtool.errors import InputError
 from afmtool.estimators.sensing_gamma import auto_nperseg, combine_gamma, responses_from_chunks, scale_response
 from afmtool.estimators.thermal_sensor import (
     detect_knee,
@@ -21,7 +22,6 @@ from afmtool.estimators.thermal_sensor import (
     separation_from_current,
     thermal_dynamics,
 )
-from afmtool.errors import InputError
 from afmtool.io.capture import Chunk
 from afmtool.models.thermal_sensor import ResistanceFit, steady_state
 from tests.conftest import run_cli, validate_report

@@ -29,9 +29,9 @@ from afmtool.estimators.sensing_gamma import (
 from afmtool.estimators.stages import ChannelMeans, progress_offset
 from afmtool.io.capture import CaptureReader
 from afmtool.io.chunks import require_channels
-from afmtool.pipeline import run_stream
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
+from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
