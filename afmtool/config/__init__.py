@@ -79,7 +79,7 @@ def _number(value: float) -> str:
 
 
 def describe_bounds(metadata: Mapping) -> str:
-    """The range a declaration allows, in words: ``"in (0, 1)"``, ``"> 0"``, ``">= 16, or 0 = automatic"``.
+    """The range a declaration allows, in words: ``"in (0, 1)"``, ``"> 0"``, ``">= 16, or 0"``.
 
     The one wording used by the error messages, ``--help``, ``defaults.toml`` and the JSON schema.
     """
@@ -94,7 +94,7 @@ def describe_bounds(metadata: Mapping) -> str:
     else:
         return ""
     if metadata.get("automatic") is not None:
-        text += f", or {_number(metadata['automatic'])} = automatic"
+        text += f", or {_number(metadata['automatic'])}"  # what that value means, the help says
     return text
 
 
@@ -121,15 +121,16 @@ def help_for(cls: type, name: str) -> str:
 
 
 def describe_field(f: dataclasses.Field) -> str:
-    """A declaration in one line: ``help [units] (default D; range R; one of ...)``."""
+    """A declaration in one line: ``help (units; default D; range R; one of: ...)``."""
     meta = f.metadata
-    units = f" [{meta['units']}]" if meta.get("units") else ""
-    notes = [f"default {_default_text(f.default)}"]
+    # units in the parentheses, not in [brackets]: rich reads "[s]" in --help as markup
+    notes = [meta["units"]] if meta.get("units") else []
+    notes.append(f"default {_default_text(f.default)}")
     if describe_bounds(meta):
         notes.append(describe_bounds(meta))
     if meta.get("choices"):
         notes.append("one of: " + ", ".join(repr(c) if not c else c for c in meta["choices"]))
-    return f"{meta.get('help', '')}{units} ({'; '.join(notes)})"
+    return f"{meta.get('help', '')} ({'; '.join(notes)})"
 
 
 def _default_text(value: Any) -> str:
