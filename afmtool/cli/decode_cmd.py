@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from afmtool.cli.common import run_capture_analysis
+from afmtool.cli.common import run_streaming_command
 from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
 from afmtool.cli.options import CaptureArg
 from afmtool.cli.param_flags import param_flags
@@ -27,18 +27,7 @@ def decode(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: C
     stdout as it is computed; the bits themselves need the whole record's
     two-class threshold and are written only to decode.h5.
     """
-    from afmtool.report.json_report import PendingInputRecord
-
-    # started before the imports below, so that hashing a large capture overlaps them
-    capture_record = None if output.stream or output.out is None else PendingInputRecord(capture)
-    from afmtool.analyses.decode_outputs import run_decode_command, run_decode_stream
-
-    out, config = output.out, output.config
-    run_capture_analysis(
-        "decode", capture, source.args(), out, output.stream_mode, output.json_output, output.quiet,
-        to_rows=lambda reader: run_decode_stream(reader, config, flags, output.stream_format),
-        to_folder=lambda reader, update: run_decode_command(reader, capture, out, config, flags, update, capture_record),
-    )
+    run_streaming_command("decode", capture, source.args(), output, flags, "afmtool.analyses.decode_outputs")
 
 
 def register(app: typer.Typer) -> None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -22,9 +22,7 @@ app = typer.Typer(help="Design experiments for an identified cantilever: the REE
 @with_options(param_flags(DesignExcitationParams), output_options(Path("excitation")))
 def excitation(
     model: Annotated[Path, typer.Option("--model", help="free_air.json (or its folder) from 'identify freeair'.")],
-    *,
-    flags: dict,
-    output: CommandOutput,
+    *, flags: dict, output: CommandOutput
 ) -> None:
     """The three-sine dither of §3.3.2: main line at the drive, side lines at ±Δf.
 

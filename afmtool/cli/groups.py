@@ -151,7 +151,12 @@ _CAPTURE_OPTIONS = (
 
 
 def capture_options(
-    *, invols: bool = True, z_sensitivity: bool = True, drive: bool = True, segment: bool = True, keyword: str = "source"
+    *,
+    invols: bool = True,
+    z_sensitivity: bool = True,
+    drive: bool = True,
+    segment: bool = True,
+    keyword: str = "source",
 ) -> OptionGroup:
     """The capture options (channel, topic, sample-rate, units, invols, z-sensitivity, drive, segment)."""
     left_out = {name for name, wanted in

@@ -11,7 +11,12 @@ from afmtool.cli.common import finish_command
 from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
 from afmtool.cli.param_flags import param_flags
 from afmtool.cli.progress import progress_bar
-from afmtool.config.params import ElectrostaticFitParams, GammaParams, InvolsParams, ThermalParams
+from afmtool.config.params import (
+    ElectrostaticFitParams,
+    GammaParams,
+    InvolsParams,
+    ThermalParams,
+)
 
 #: The capture options of the ch. 6 commands: no synthesised drive, no segment.
 _CH6_CAPTURE = capture_options(drive=False, segment=False)
@@ -31,10 +36,7 @@ def identify_gamma(
         bool, typer.Option("--stepped", help="Stepped sines (lock-in per segment); default: auto from metadata.")
     ] = False,
     h1: Annotated[bool, typer.Option("--h1", help="Chirp or broadband drive (H1 estimate).")] = False,
-    *,
-    flags: dict,
-    output: CommandOutput,
-    source: CaptureSource,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """Sensing transfer function Gamma_IR,ts with the feed-through removed (thesis eq. 6.15).
 
@@ -58,27 +60,24 @@ def identify_gamma(
     finish_command(report, output.out, output.json_output, output.quiet)
 
 
+#: The inputs of ``identify thermal``, each optional: what each file must hold.
+_THERMAL_INPUTS = {
+    "--iv": "I-V ramp capture: v_r and thermal_current (V_R past breakdown).",
+    "--z-curve": "Thermal z force curve: z_piezo, v_r and thermal_current.",
+    "--vr-sweep": "V_R perturbation sweep: v_r and thermal_current (+ deflection).",
+    "--gamma": "gamma.h5 (or folder) from 'identify gamma', for H(jw).",
+    "--model": "thermal_sensor.json (or folder) supplying g(T) without --iv.",
+}
+
+
 @with_options(param_flags(ThermalParams), output_options(Path("thermal")), _CH6_CAPTURE)
 def identify_thermal(
-    iv: Annotated[
-        Optional[str], typer.Option("--iv", help="I-V ramp capture: v_r and thermal_current (V_R past breakdown).")
-    ] = None,
-    z_curve: Annotated[
-        Optional[str], typer.Option("--z-curve", help="Thermal z force curve: z_piezo, v_r and thermal_current.")
-    ] = None,
-    vr_sweep: Annotated[
-        Optional[str], typer.Option("--vr-sweep", help="V_R perturbation sweep: v_r and thermal_current (+ deflection).")
-    ] = None,
-    gamma: Annotated[
-        Optional[Path], typer.Option("--gamma", help="gamma.h5 (or folder) from 'identify gamma', for H(jw).")
-    ] = None,
-    model: Annotated[
-        Optional[Path], typer.Option("--model", help="thermal_sensor.json (or folder) supplying g(T) without --iv.")
-    ] = None,
-    *,
-    flags: dict,
-    output: CommandOutput,
-    source: CaptureSource,
+    iv: Annotated[Optional[str], typer.Option("--iv", help=_THERMAL_INPUTS["--iv"])] = None,
+    z_curve: Annotated[Optional[str], typer.Option("--z-curve", help=_THERMAL_INPUTS["--z-curve"])] = None,
+    vr_sweep: Annotated[Optional[str], typer.Option("--vr-sweep", help=_THERMAL_INPUTS["--vr-sweep"])] = None,
+    gamma: Annotated[Optional[Path], typer.Option("--gamma", help=_THERMAL_INPUTS["--gamma"])] = None,
+    model: Annotated[Optional[Path], typer.Option("--model", help=_THERMAL_INPUTS["--model"])] = None,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """Thermal sensor from its current alone: g(T), K_TP, K_TP(t_s), C(jw), H(jw) (thesis 6.5.2, 6.6.2).
 
@@ -113,10 +112,7 @@ def identify_electrostatic(
     thermal_model: Annotated[
         Optional[Path], typer.Option("--thermal-model", help="thermal_sensor.json (or folder) from 'identify thermal'.")
     ] = None,
-    *,
-    flags: dict,
-    output: CommandOutput,
-    source: CaptureSource,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """Electrostatic parameters from an approach curve before snap-in (thesis eqs. 6.6, 6.7).
 
@@ -138,10 +134,7 @@ def identify_electrostatic(
 )
 def identify_invols(
     curve: Annotated[str, typer.Argument(help="Force curve on a hard sample: deflection (V) and z_piezo.")],
-    *,
-    flags: dict,
-    output: CommandOutput,
-    source: CaptureSource,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """InvOLS (nm/V) from the contact part of a force curve on a hard sample, with its uncertainty.
 

@@ -6,7 +6,7 @@ from typing import Annotated
 
 import typer
 
-from afmtool.cli.common import run_capture_analysis
+from afmtool.cli.common import run_streaming_command
 from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
 from afmtool.cli.options import CaptureArg
 from afmtool.cli.param_flags import param_flags
@@ -21,10 +21,7 @@ def probeloss(
     kalman: Annotated[
         bool, typer.Option("--kalman", help="Steady-state Kalman gain (DARE) instead of --decay-cycles.")
     ] = False,
-    *,
-    flags: dict,
-    output: CommandOutput,
-    source: CaptureSource,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """Probe loss from the reliability index (thesis ch. 2), beside the amplitude threshold.
 
@@ -36,23 +33,14 @@ def probeloss(
     with /truth/contact precision, recall and latency of both) and config.toml;
     with scan metadata, probe-loss mask and index images (PNG and .gsf).
     """
-    from afmtool.report.json_report import PendingInputRecord
-
-    # started before the imports below, so that hashing a large capture overlaps them
-    capture_record = None if output.stream or output.out is None else PendingInputRecord(capture)
-    from afmtool.analyses.probeloss_outputs import run_probeloss_command, run_probeloss_stream
     from afmtool.errors import ConfigError
 
     if kalman and flags["decay_cycles"] is not None:
         raise ConfigError("--kalman and --decay-cycles choose the gain two ways; give one")
     flags = {**flags, "gain": "kalman" if kalman else None}
-    out, config = output.out, output.config
     calibration = source.calibration(flags["free_air"], accepts_drive=True)
-    run_capture_analysis(
-        "probeloss", capture, source.args(calibration), out, output.stream_mode, output.json_output, output.quiet,
-        to_rows=lambda reader: run_probeloss_stream(reader, config, flags, output.stream_format),
-        to_folder=lambda reader, update: run_probeloss_command(reader, capture, out, config, flags, update, capture_record),
-    )
+    analysis = "afmtool.analyses.probeloss_outputs"
+    run_streaming_command("probeloss", capture, source.args(calibration), output, flags, analysis)
 
 
 def register(app: typer.Typer) -> None:

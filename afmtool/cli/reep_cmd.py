@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.common import finish_command, run_capture_analysis
+from afmtool.cli.common import finish_command, run_streaming_command
 from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
 from afmtool.cli.options import CaptureArg
 from afmtool.cli.param_flags import param_flags
@@ -32,19 +32,8 @@ def reep(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: Cap
     drifting within the window) are flagged: NaN in the summary, force curves
     and images, counted in the report (reep.h5 keeps them with 'flag').
     """
-    from afmtool.report.json_report import PendingInputRecord
-
-    # started before the imports below, so that hashing a large capture overlaps them
-    capture_record = None if output.stream or output.out is None else PendingInputRecord(capture)
-    from afmtool.analyses.reep_outputs import run_reep_command, run_reep_stream
-
-    out, config = output.out, output.config
     calibration = source.calibration(flags["free_air"], accepts_drive=True)
-    run_capture_analysis(
-        "reep", capture, source.args(calibration), out, output.stream_mode, output.json_output, output.quiet,
-        to_rows=lambda reader: run_reep_stream(reader, config, flags, output.stream_format),
-        to_folder=lambda reader, update: run_reep_command(reader, capture, out, config, flags, update, capture_record),
-    )
+    run_streaming_command("reep", capture, source.args(calibration), output, flags, "afmtool.analyses.reep_outputs")
 
 
 @with_options(
@@ -62,11 +51,7 @@ def identify_freeair(
     psd: Annotated[
         Optional[Path], typer.Option("--psd", help="Thermal route: CSV with frequency_hz, asd_m_per_sqrt_hz.")
     ] = None,
-    *,
-    flags: dict,
-    spring: dict,
-    output: CommandOutput,
-    source: CaptureSource,
+    *, flags: dict, spring: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """Identify the free-air model: f0, Q, gain and their uncertainties.
 

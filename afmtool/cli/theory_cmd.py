@@ -44,9 +44,7 @@ def averaging(
     q: Annotated[
         Optional[str], typer.Option("--q", help="Free-air Q (dimensionless); several (50,100,200,400) add an overlay figure.")
     ] = None,
-    *,
-    flags: dict,
-    output: CommandOutput,
+    *, flags: dict, output: CommandOutput
 ) -> None:
     """Equivalent f0e, Qe and the averaged steady state along a force curve (eqs. 4.6-4.8).
 
@@ -64,9 +62,7 @@ def averaging(
 @with_options(param_flags(TheoryCompareParams), output_options(Path("theory_compare")))
 def compare(
     reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a force curve.")],
-    *,
-    flags: dict,
-    output: CommandOutput,
+    *, flags: dict, output: CommandOutput
 ) -> None:
     """Put REEP's f0' and Q' beside averaging theory along a force curve (§3.4.3).
 
@@ -85,9 +81,7 @@ def compare(
 @with_options(param_flags(TheoryFitParams), output_options(Path("theory_fit")))
 def fit(
     reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a force curve (needs z).")],
-    *,
-    flags: dict,
-    output: CommandOutput,
+    *, flags: dict, output: CommandOutput
 ) -> None:
     """Fit d, ωa², ωb², ca, cb and the contact point so averaging theory reproduces the approach.
 
@@ -105,9 +99,7 @@ def fit(
 @app.command("observer")
 @with_options(param_flags(ObserverTheoryParams), output_options(Path("theory_observer")))
 def observer(
-    *,
-    flags: dict,
-    output: CommandOutput,
+    *, flags: dict, output: CommandOutput
 ) -> None:
     """Observer-design trade-offs (ch. 5): A_e², its sensitivities, SNR and transients.
 
@@ -125,9 +117,7 @@ def observer(
 @app.command("controllers")
 @with_options(param_flags(TheoryControllersParams), output_options(Path("theory_controllers")))
 def controllers(
-    *,
-    flags: dict,
-    output: CommandOutput,
+    *, flags: dict, output: CommandOutput
 ) -> None:
     """Low, high and switching z-controller gains on the calibration grating (thesis ch. 2, §2.5).
 
