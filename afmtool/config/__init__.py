@@ -9,6 +9,7 @@ user's file, and supplies ``--help`` texts, so the three cannot drift.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import stat
@@ -269,7 +270,15 @@ def resolve(cls: type[P], *layers: Mapping | None, where: str = "") -> P:
 
 
 def packaged_defaults() -> dict:
-    """The ``defaults.toml`` shipped with afmtool (generated from the parameter models)."""
+    """The ``defaults.toml`` shipped with afmtool (generated from the parameter models); a fresh copy."""
+    import copy
+
+    return copy.deepcopy(_parsed_packaged_defaults())
+
+
+@functools.cache
+def _parsed_packaged_defaults() -> dict:
+    # parsed once per process: batch and the tests resolve many sections
     from importlib import resources
 
     text = resources.files("afmtool.config").joinpath("defaults.toml").read_text(encoding="utf-8")
