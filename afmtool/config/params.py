@@ -59,14 +59,14 @@ def parse_interval(text: str, option: str) -> tuple[float, float] | None:
 _DRIVE_HOLD_CHOICES = ("auto", "zoh", "continuous")
 
 
-def _free_air_segment_field(help: str):  # noqa: A002
+def _free_air_segment_field(help_text: str):
     """``free_air``: the off-sample segment START:END (s) of a capture."""
-    return field("", help, "s", flag="--free-air")
+    return field("", help_text, "s", flag="--free-air")
 
 
-def _free_air_model_file_field(help: str):  # noqa: A002
+def _free_air_model_file_field(help_text: str):
     """``model``: a free_air.json from ``identify freeair``."""
-    return field("", help, flag="--model")
+    return field("", help_text, flag="--model")
 
 
 def _free_air_f0_field():
@@ -107,9 +107,9 @@ def _decimation_field(flag: str | None = "--decimate"):
     return field(0, "Keep one output sample in N; 0 = one per drive period", minimum=1, automatic=0, flag=flag)
 
 
-def _lockin_frequency_field(help: str):  # noqa: A002
+def _lockin_frequency_field(help_text: str):
     """``drive_frequency_hz``: the lock-in's reference frequency."""
-    return field(0.0, help, "Hz", minimum=0.0)
+    return field(0.0, help_text, "Hz", minimum=0.0)
 
 
 def _lockin_lowpass_field():
