@@ -1,9 +1,15 @@
 """Parameters: packaged defaults, then the user's TOML file, then flags.
 
-Each command's parameters are one frozen dataclass whose fields carry
-``metadata={"help": ..., "units": ...}``.  That one typed model generates
-the packaged ``defaults.toml`` (``afmtool config init``), validates the
-user's file, and supplies ``--help`` texts, so the three cannot drift.
+Each command's parameters are one frozen dataclass (:mod:`afmtool.config.params`)
+whose fields are declared once with :func:`field`: default, help, units,
+choices, bounds (open or closed ends, and a value meaning "automatic") and
+the command-line flag.  That one declaration generates the packaged
+``defaults.toml`` (:mod:`afmtool.config.defaults`, ``afmtool config init``),
+the JSON schema of each section (:mod:`afmtool.config.schema`), the flags
+and their ``--help`` (:mod:`afmtool.cli.param_flags`), and the check every
+value goes through, from a flag or a file (:func:`check_value`), so none of
+them can drift.  A class's ``validate()`` keeps only what no single bound
+says: checks across fields and of formatted strings.
 """
 
 from __future__ import annotations
