@@ -28,7 +28,7 @@ from typing import Any, TypeVar
 
 from afmtool.errors import ConfigError
 
-__all__ = ["field", "check_value", "describe_bounds", "describe_field", "within_bounds", "load_toml", "packaged_defaults", "resolve", "resolve_from", "section_to_toml", "parameters_dict", "help_for"]
+__all__ = ["field", "check_value", "describe_bounds", "describe_field", "parse_bounds", "within_bounds", "load_toml", "packaged_defaults", "resolve", "resolve_from", "section_to_toml", "parameters_dict", "help_for"]
 
 P = TypeVar("P")
 
@@ -45,6 +45,7 @@ def field(
     exclusive_maximum: bool = False,
     automatic: float | None = None,
     flag: str | None = None,
+    bounds: str | None = None,
 ):
     """The one declaration of a parameter: default, help, units, bounds and CLI flag.
 
@@ -59,6 +60,9 @@ def field(
     minimum, maximum : float, optional
         Bounds of a number, closed unless ``exclusive_minimum`` /
         ``exclusive_maximum``.  Every float must also be finite.
+    bounds : str, optional
+        The same bounds in interval notation, as the help and errors write them:
+        ``"(0, 1)"``, ``"[0, 1)"``, ``"> 0"``, ``">= 16"``, ``"<= 6"``.
     automatic : float, optional
         A value outside the bounds that means "automatic" (``0 = ...`` in the help).
     flag : str, optional
@@ -67,6 +71,8 @@ def field(
         help, and the flag -> field mapping, are generated from this declaration
         (:mod:`afmtool.cli.param_flags`).
     """
+    if bounds is not None:
+        minimum, maximum, exclusive_minimum, exclusive_maximum = parse_bounds(bounds)
     metadata = {
         "help": help,
         "units": units,
@@ -79,6 +85,24 @@ def field(
         "flag": flag,
     }
     return dataclasses.field(default=default, metadata=types.MappingProxyType(metadata))
+
+
+def parse_bounds(text: str) -> tuple[float | None, float | None, bool, bool]:
+    """``"(0, 1]"`` -> (0, 1, True, False); ``"> 0"`` -> (0, None, True, False): minimum, maximum, exclusive ends."""
+    text = text.strip()
+    for op, exclusive in ((">=", False), ("<=", False), (">", True), ("<", True)):
+        if text.startswith(op):
+            value = _bound_value(text[len(op):])
+            return (value, None, exclusive, False) if op[0] == ">" else (None, value, False, exclusive)
+    if len(text) < 5 or text[0] not in "([" or text[-1] not in ")]" or "," not in text:
+        raise ValueError(f"bounds {text!r} must look like (a, b), [a, b), > a, >= a, < b or <= b")
+    low, high = text[1:-1].split(",")
+    return _bound_value(low), _bound_value(high), text[0] == "(", text[-1] == ")"
+
+
+def _bound_value(text: str) -> int | float:
+    text = text.strip()
+    return int(text) if text.lstrip("-").isdigit() else float(text)
 
 
 def _number(value: float) -> str:

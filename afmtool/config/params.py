@@ -75,21 +75,14 @@ def _free_air_f0_field():
         0.0,
         "Free-air f0 for the f0/Q route (with q; gain and phase fitted at the drive); 0 = off",
         "Hz",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--f0",
     )
 
 
 def _free_air_q_field():
     """``q`` of the f0/Q route (with ``f0_hz``)."""
-    return field(
-        0.0,
-        "Free-air Q for the f0/Q route (with f0_hz); 0 = off",
-        minimum=0.5,
-        exclusive_minimum=True,
-        automatic=0.0,
-        flag="--q",
-    )
+    return field(0.0, "Free-air Q for the f0/Q route (with f0_hz); 0 = off", bounds="> 0.5", automatic=0.0, flag="--q")
 
 
 def _drive_hold_field():
@@ -104,22 +97,22 @@ def _drive_hold_field():
 
 def _decimation_field(flag: str | None = "--decimate"):
     """``decimate``: one output sample kept in N."""
-    return field(0, "Keep one output sample in N; 0 = one per drive period", minimum=1, automatic=0, flag=flag)
+    return field(0, "Keep one output sample in N; 0 = one per drive period", bounds=">= 1", automatic=0, flag=flag)
 
 
 def _lockin_frequency_field(help_text: str):
     """``drive_frequency_hz``: the lock-in's reference frequency."""
-    return field(0.0, help_text, "Hz", minimum=0.0)
+    return field(0.0, help_text, "Hz", bounds=">= 0")
 
 
 def _lockin_lowpass_field():
     """``lockin_lowpass_hz``: the lock-in's low-pass corner."""
-    return field(0.0, "Lock-in low-pass corner; 0 = min(f/10, Δf/2)", "Hz", minimum=0.0)
+    return field(0.0, "Lock-in low-pass corner; 0 = min(f/10, Δf/2)", "Hz", bounds=">= 0")
 
 
 def _chunk_samples_field(default: int):
     """``chunk_samples``: samples per streamed chunk."""
-    return field(default, "Samples per streamed chunk (memory against per-chunk overhead)", minimum=16)
+    return field(default, "Samples per streamed chunk (memory against per-chunk overhead)", bounds=">= 16")
 
 
 @dataclass(frozen=True)
@@ -144,8 +137,7 @@ class FreeAirParams:
         295.0,
         "Thermal route: temperature for the equipartition spring constant",
         "K",
-        minimum=0.0,
-        exclusive_minimum=True,
+        bounds="> 0",
         flag="--temperature",
     )
 
@@ -165,15 +157,9 @@ class ReepParams:
     """``afmtool reep``: recursive estimation of equivalent parameters (ch. 3)."""
 
     lam: float = field(
-        0.995,
-        "Forgetting factor λ of the BCEWRLS (eq. 3.39); window 1/(1-λ) samples",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
-        exclusive_maximum=True,
-        flag="--lambda",
+        0.995, "Forgetting factor λ of the BCEWRLS (eq. 3.39); window 1/(1-λ) samples", bounds="(0, 1)", flag="--lambda"
     )
-    p0: float = field(1.0e6, "Initial covariance P(0) = P0·I (eq. 3.39)", minimum=0.0, exclusive_minimum=True)
+    p0: float = field(1.0e6, "Initial covariance P(0) = P0·I (eq. 3.39)", bounds="> 0")
     bias_compensation: bool = field(
         True, "Bias-compensated EWRLS (false: plain EWRLS, for comparison)", flag="--no-bias-compensation"
     )
@@ -194,31 +180,26 @@ class ReepParams:
     drive_frequency_hz: float = _lockin_frequency_field("Lock-in frequency; 0 = metadata drive, else the free-air f0")
     lockin_lowpass_hz: float = _lockin_lowpass_field()
     bandpass_half_width_hz: float = field(
-        5000.0,
-        "Output-only mode: band-pass ±this around the spectral peak before AR(2); 0 = off",
-        "Hz",
-        minimum=0.0,
+        5000.0, "Output-only mode: band-pass ±this around the spectral peak before AR(2); 0 = off", "Hz", bounds=">= 0"
     )
     vs: str = field("auto", "Force-curve binning against z_piezo", choices=("auto", "time", "z"), flag="--vs")
-    z_bin: float = field(
-        0.5, "Force-curve bin width, in the units of z_piezo", minimum=0.0, exclusive_minimum=True, flag="--z-bin"
-    )
-    warmup_windows: float = field(5.0, "Windows 1/(1-λ) left out of summary statistics at the start", minimum=0.0)
+    z_bin: float = field(0.5, "Force-curve bin width, in the units of z_piezo", bounds="> 0", flag="--z-bin")
+    warmup_windows: float = field(5.0, "Windows 1/(1-λ) left out of summary statistics at the start", bounds=">= 0")
     min_amplitude_fraction: float = field(
         0.01,
         "Validity: f0', Q' flagged where the amplitude is below this share of the free amplitude; 0 = off",
-        minimum=0.0,
+        bounds=">= 0",
     )
     max_sigma2_ratio: float = field(
         4.0,
         "Validity: f0', Q' flagged where sigma^2 exceeds this multiple of its free-air level; 0 = off",
-        minimum=0.0,
+        bounds=">= 0",
     )
     max_offset_drift: float = field(
         0.1,
         "Validity: f0', Q' flagged where the static offset's variance over the window exceeds this share "
         "of A^2/2; 0 = off",
-        minimum=0.0,
+        bounds=">= 0",
     )
     # 1 Mi samples: each chunk costs ~2 ms of hand-offs between the reading, computing and
     # writing threads, 0.6 s per 1e8 samples at 256 Ki; the buffers cost ~100 MB.
@@ -247,83 +228,60 @@ class ProbeLossParams:
         "decay", "Observer gain: error decay in decay_cycles, or steady-state Kalman", choices=("decay", "kalman")
     )
     decay_cycles: float = field(
-        1.0,
-        "Decay design: time constant of the observer error",
-        "drive periods",
-        minimum=0.0,
-        exclusive_minimum=True,
-        flag="--decay-cycles",
+        1.0, "Decay design: time constant of the observer error", "drive periods", bounds="> 0", flag="--decay-cycles"
     )
     process_noise: float = field(
         0.0,
         "Kalman design: force noise as the static deflection it causes, rms",
         "deflection units",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--process-noise",
     )
     measurement_noise: float = field(
-        0.0, "Kalman design: measurement noise rms (> 0)", "deflection units", minimum=0.0, flag="--measurement-noise"
+        0.0, "Kalman design: measurement noise rms (> 0)", "deflection units", bounds=">= 0", flag="--measurement-noise"
     )
     window_periods: float = field(
-        1.0,
-        "Reliability-index window (RMS of the innovation)",
-        "drive periods",
-        minimum=0.0,
-        exclusive_minimum=True,
-        flag="--window-periods",
+        1.0, "Reliability-index window (RMS of the innovation)", "drive periods", bounds="> 0", flag="--window-periods"
     )
     index_level: float = field(
         0.0,
         "Free-air innovation RMS the index is divided by; 0 = from the free-air segment",
         "deflection units",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--index-level",
     )
     on: float = field(
         0.0,
         "Loss declared when the index falls below this; 0 = automatic (free-air statistics)",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--on",
     )
-    off: float = field(0.0, "Loss ends when the index rises above this; 0 = automatic", minimum=0.0, flag="--off")
-    quantile: float = field(
-        0.999,
-        "Automatic on: this quantile of the free-air index",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
-        exclusive_maximum=True,
-    )
-    off_ratio: float = field(2.0, "Automatic off: off_ratio times on", minimum=1.0, exclusive_minimum=True)
+    off: float = field(0.0, "Loss ends when the index rises above this; 0 = automatic", bounds=">= 0", flag="--off")
+    quantile: float = field(0.999, "Automatic on: this quantile of the free-air index", bounds="(0, 1)")
+    off_ratio: float = field(2.0, "Automatic off: off_ratio times on", bounds="> 1")
     amplitude_upper: float = field(
         0.0,
         "Amplitude baseline: loss while the amplitude exceeds A_upper; 0 = automatic",
         "deflection units",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--amplitude-upper",
     )
     setpoint: float = field(
         0.0,
         "Amplitude set point A_sp for the automatic A_upper; 0 = metadata controller",
         "deflection units",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--setpoint",
     )
-    upper_fraction: float = field(0.25, "Automatic A_upper = A_sp + upper_fraction·(A0 − A_sp)", minimum=0.0)
+    upper_fraction: float = field(0.25, "Automatic A_upper = A_sp + upper_fraction·(A0 − A_sp)", bounds=">= 0")
     drive_frequency_hz: float = _lockin_frequency_field("Drive frequency; 0 = metadata drive, else the free-air f0")
     lockin_lowpass_hz: float = _lockin_lowpass_field()
     decimate: int = _decimation_field()
-    min_event_periods: float = field(
-        5.0, "Truth scores count events at least this long", "drive periods", minimum=0.0, exclusive_minimum=True
-    )
+    min_event_periods: float = field(5.0, "Truth scores count events at least this long", "drive periods", bounds="> 0")
     truth_gap_periods: float = field(
-        1.5,
-        "Truth: no contact for longer than this is probe loss",
-        "drive periods",
-        minimum=0.0,
-        exclusive_minimum=True,
+        1.5, "Truth: no contact for longer than this is probe loss", "drive periods", bounds="> 0"
     )
-    max_events: int = field(1000, "Events listed in report.json (all are counted)", minimum=0)
+    max_events: int = field(1000, "Events listed in report.json (all are counted)", bounds=">= 0")
     # 1 Mi samples, as reep: per-chunk hand-offs cost 0.7 s per 1e8 samples at 256 Ki
     chunk_samples: int = _chunk_samples_field(1 << 20)
 
@@ -344,8 +302,8 @@ _FORCE_SETS = ("attractive", "attractive-repulsive", "repulsive", "repulsive-q38
 class AveragingParams:
     """``afmtool theory averaging``: ωe, Qe and the steady state along a force curve (ch. 4)."""
 
-    f0_hz: float = field(80318.0, "Free-air resonant frequency", "Hz", minimum=0.0, exclusive_minimum=True, flag="--f0")
-    q: float = field(168.0, "Free-air quality factor", minimum=0.0, exclusive_minimum=True)
+    f0_hz: float = field(80318.0, "Free-air resonant frequency", "Hz", bounds="> 0", flag="--f0")
+    q: float = field(168.0, "Free-air quality factor", bounds="> 0")
     force_set: str = field(
         "attractive", "Piecewise-linear force parameters (thesis sets)", choices=_FORCE_SETS, flag="--force-set"
     )
@@ -354,17 +312,12 @@ class AveragingParams:
     )
     q_values: str = field("", "Several free-air Q overlaid in one figure, e.g. 50,100,200,400 (Figs. 4.2-4.5)")
     free_amplitude_nm: float = field(
-        20.0,
-        "Free-air oscillation amplitude at the drive",
-        "nm",
-        minimum=0.0,
-        exclusive_minimum=True,
-        flag="--free-amplitude",
+        20.0, "Free-air oscillation amplitude at the drive", "nm", bounds="> 0", flag="--free-amplitude"
     )
     drive_offset_hz: float = field(0.0, "Drive frequency minus f0", "Hz")
     separation_from_nm: float = field(30.0, "Force curve start (largest separation)", "nm")
     separation_to_nm: float = field(0.0, "Force curve turn (smallest separation)", "nm")
-    points: int = field(601, "Separations along each leg", minimum=2)
+    points: int = field(601, "Separations along each leg", bounds=">= 2")
 
     def validate(self) -> None:
         """Cross-field checks; the bounds are checked from the declarations."""
@@ -383,18 +336,10 @@ class TheoryCompareParams:
         "", "Custom force d=...,wa2=...,wb2=...,ca=...,cb=... (nm, 1/s^2, 1/s); overrides force_set", flag="--force"
     )
     amplitude_fraction: float = field(
-        0.6,
-        "Compare where the amplitude is above this share of the free amplitude",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
-        exclusive_maximum=True,
+        0.6, "Compare where the amplitude is above this share of the free amplitude", bounds="(0, 1)"
     )
     tolerance: float = field(
-        0.25,
-        "Pass when the worst error is within this share of the theory's change",
-        minimum=0.0,
-        exclusive_minimum=True,
+        0.25, "Pass when the worst error is within this share of the theory's change", bounds="> 0"
     )
     separation: str = field(
         "auto",
@@ -425,18 +370,16 @@ class TheoryControllersParams:
     """``afmtool theory controllers``: low, high and switching z-controller gains on the grating (ch. 2)."""
 
     line_rates_hz: str = field("4,8,12,30", "Line rates of the table, comma-separated", "Hz", flag="--line-rates")
-    lines: int = field(2, "Raster lines per table run (a trace and a retrace each)", minimum=1, flag="--lines")
+    lines: int = field(2, "Raster lines per table run (a trace and a retrace each)", bounds=">= 1", flag="--lines")
     seed: int = field(
-        1, "Simulation seed (the same surface, noise and seed for the three controllers)", minimum=0, flag="--seed"
+        1, "Simulation seed (the same surface, noise and seed for the three controllers)", bounds=">= 0", flag="--seed"
     )
     tolerance: float = field(
-        1.2, "Pass: switching loss area <= this x the high gain's, peak force <= this x the low's", minimum=1.0
+        1.2, "Pass: switching loss area <= this x the high gain's, peak force <= this x the low's", bounds=">= 1"
     )
-    figure_line_rate_hz: float = field(
-        12.0, "Line rate of the height images", "Hz", minimum=0.0, exclusive_minimum=True
-    )
-    figure_lines: int = field(16, "Raster lines of the height images", minimum=1, flag="--figure-lines")
-    figure_pixels: int = field(48, "Pixels per line of the height images", minimum=1)
+    figure_line_rate_hz: float = field(12.0, "Line rate of the height images", "Hz", bounds="> 0")
+    figure_lines: int = field(16, "Raster lines of the height images", bounds=">= 1", flag="--figure-lines")
+    figure_pixels: int = field(48, "Pixels per line of the height images", bounds=">= 1")
 
     def rates(self) -> tuple[float, ...]:
         """The line rates as numbers, Hz."""
@@ -457,7 +400,7 @@ class KalmanBankParams:
     """``afmtool kalman-bank``: validate REEP by a bank of Kalman filters and an adaptive observer (§3.4.2)."""
 
     n_filters: int = field(
-        5, "Filters spread over the approach when neither at_z nor models is given", minimum=1, flag="--n-filters"
+        5, "Filters spread over the approach when neither at_z nor models is given", bounds=">= 1", flag="--n-filters"
     )
     at_z: str = field(
         "", "Design points z1,z2,... (z_piezo units); models from REEP there; empty = automatic", flag="--at-z"
@@ -472,64 +415,47 @@ class KalmanBankParams:
     f0_hz: float = _free_air_f0_field()
     q: float = _free_air_q_field()
     drive_hold: str = _drive_hold_field()
-    lam: float = field(
-        0.995,
-        "Internal REEP: forgetting factor λ (eq. 3.39)",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
-        exclusive_maximum=True,
-    )
+    lam: float = field(0.995, "Internal REEP: forgetting factor λ (eq. 3.39)", bounds="(0, 1)")
     noise_ratio: float = field(
         0.03,
         "Kalman gains: process-noise rms (as static deflection) over measurement-noise rms, σ_w/σ_v",
-        minimum=0.0,
-        exclusive_minimum=True,
+        bounds="> 0",
         flag="--noise-ratio",
     )
     rms_window_periods: float = field(
-        10.0, "Innovation RMS window, in drive periods", minimum=0.0, exclusive_minimum=True, flag="--window-periods"
+        10.0, "Innovation RMS window, in drive periods", bounds="> 0", flag="--window-periods"
     )
-    z_bin: float = field(
-        0.5, "Bin width of RMS against z, in the units of z_piezo", minimum=0.0, exclusive_minimum=True, flag="--z-bin"
-    )
+    z_bin: float = field(0.5, "Bin width of RMS against z, in the units of z_piezo", bounds="> 0", flag="--z-bin")
     min_amplitude_fraction: float = field(
         0.25,
         "Automatic design points: only where REEP's amplitude is above this share of the free amplitude",
-        minimum=0.0,
-        maximum=1.0,
+        bounds="[0, 1]",
     )
     onset_fraction: float = field(
         0.1,
         "Automatic design points: start where the model has moved this share of its change along the leg",
-        minimum=0.0,
-        maximum=1.0,
+        bounds="[0, 1]",
     )
     z_tolerance_bins: int = field(
-        0, "Verdict: a filter's RMS minimum may lie this many z bins from its design bin", minimum=0
+        0, "Verdict: a filter's RMS minimum may lie this many z bins from its design bin", bounds=">= 0"
     )
     rms_tolerance: float = field(
         0.01,
         "Verdict: or its RMS at the design bin may exceed its minimum by at most this share (flat minima)",
-        minimum=0.0,
+        bounds=">= 0",
     )
     adaptive_fraction: float = field(
-        0.9,
-        "Verdict: share of the time the adaptive observer must have the least RMS",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
+        0.9, "Verdict: share of the time the adaptive observer must have the least RMS", bounds="(0, 1]"
     )
     f0_scale: float = field(
         1.0,
         "Multiply every bank model's f0 by this: a negative control that must fail",
-        minimum=0.0,
-        exclusive_minimum=True,
+        bounds="> 0",
         flag="--f0-scale",
     )
     drive_frequency_hz: float = _lockin_frequency_field("Drive frequency; 0 = metadata drive, else the free-air f0")
     decimate: int = _decimation_field(flag=None)
-    warmup_windows: float = field(5.0, "REEP windows 1/(1-λ) left out of the statistics at the start", minimum=0.0)
+    warmup_windows: float = field(5.0, "REEP windows 1/(1-λ) left out of the statistics at the start", bounds=">= 0")
     chunk_samples: int = _chunk_samples_field(1 << 18)
 
     def validate(self) -> None:
@@ -544,26 +470,21 @@ class KalmanBankParams:
 class ObserverTheoryParams:
     """``afmtool theory observer``: A_e², sensitivities, SNR and transients of an observer design (ch. 5)."""
 
-    f0_hz: float = field(
-        80318.0, "Nominal (free-air) plant resonance f0", "Hz", minimum=0.0, exclusive_minimum=True, flag="--f0"
-    )
-    q: float = field(168.0, "Nominal plant quality factor", minimum=0.5, exclusive_minimum=True, flag="--q")
+    f0_hz: float = field(80318.0, "Nominal (free-air) plant resonance f0", "Hz", bounds="> 0", flag="--f0")
+    q: float = field(168.0, "Nominal plant quality factor", bounds="> 0.5", flag="--q")
     gain: float = field(
-        1.0,
-        "Numerator DC gain: c0 = gain·ω0², c1 = 0 (eq. 5.13), deflection per dither unit",
-        minimum=0.0,
-        exclusive_minimum=True,
+        1.0, "Numerator DC gain: c0 = gain·ω0², c1 = 0 (eq. 5.13), deflection per dither unit", bounds="> 0"
     )
     model: str = field("", "Free-air model file (free_air.json); overrides f0_hz, q and gain", flag="--model")
     f0_low_hz: float = field(
         0.0,
         "End of the force-curve direction (on-sample f0'); 0 = from reep or averaging theory",
         "Hz",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--f0-low",
     )
     q_low: float = field(
-        0.0, "End of the force-curve direction (on-sample Q'); 0 = as f0_low_hz", minimum=0.0, flag="--q-low"
+        0.0, "End of the force-curve direction (on-sample Q'); 0 = as f0_low_hz", bounds=">= 0", flag="--q-low"
     )
     reep: str = field(
         "", "REEP output folder or reep.h5: the direction ends at its lowest usable amplitude", flag="--reep"
@@ -571,33 +492,22 @@ class ObserverTheoryParams:
     force_set: str = field(
         "attractive", "Averaging theory direction: thesis force set", choices=_FORCE_SETS, flag="--force-set"
     )
-    setpoint_fraction: float = field(
-        0.3,
-        "Direction end: amplitude as a share of the free amplitude",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
-        exclusive_maximum=True,
-    )
-    free_amplitude_nm: float = field(
-        20.0, "Free-air deflection amplitude at the drive", "nm", minimum=0.0, exclusive_minimum=True
-    )
-    drive_frequency_hz: float = field(0.0, "Drive frequency ω/2π; 0 = f0_hz", "Hz", minimum=0.0)
+    setpoint_fraction: float = field(0.3, "Direction end: amplitude as a share of the free amplitude", bounds="(0, 1)")
+    free_amplitude_nm: float = field(20.0, "Free-air deflection amplitude at the drive", "nm", bounds="> 0")
+    drive_frequency_hz: float = field(0.0, "Drive frequency ω/2π; 0 = f0_hz", "Hz", bounds=">= 0")
     cycles: str = field(
         "4,50", "Observer gains: error time constants in drive periods (aggressive, sluggish)", flag="--cycles"
     )
     observers: str = field(
         "", "Directional plots: observer models f0_hz:q,...; empty = free-air and direction end", flag="--observers"
     )
-    grid_points: int = field(41, "Points per axis of the 2-D observer-model maps", minimum=3)
-    grid_margin: float = field(0.5, "Maps extend this share of the direction's span beyond its ends", minimum=0.0)
-    line_points: int = field(101, "Points along the force-curve direction", minimum=3)
-    spring_constant_n_per_m: float = field(
-        2.0, "Spring constant k, for the thermal noise η", "N/m", minimum=0.0, exclusive_minimum=True
-    )
-    temperature_k: float = field(300.0, "Temperature of the thermal noise η", "K", minimum=0.0)
+    grid_points: int = field(41, "Points per axis of the 2-D observer-model maps", bounds=">= 3")
+    grid_margin: float = field(0.5, "Maps extend this share of the direction's span beyond its ends", bounds=">= 0")
+    line_points: int = field(101, "Points along the force-curve direction", bounds=">= 3")
+    spring_constant_n_per_m: float = field(2.0, "Spring constant k, for the thermal noise η", "N/m", bounds="> 0")
+    temperature_k: float = field(300.0, "Temperature of the thermal noise η", "K", bounds=">= 0")
     measurement_asd: float = field(
-        1.0e-4, "Measurement noise ν, one-sided amplitude spectral density", "nm/sqrt(Hz)", minimum=0.0
+        1.0e-4, "Measurement noise ν, one-sided amplitude spectral density", "nm/sqrt(Hz)", bounds=">= 0"
     )
     recommend: bool = field(
         False,
@@ -607,24 +517,14 @@ class ObserverTheoryParams:
     max_cycles: float = field(
         10.0,
         "Recommend: the error must settle (below residual) within this many drive periods",
-        minimum=0.0,
-        exclusive_minimum=True,
+        bounds="> 0",
         flag="--max-cycles",
     )
     residual: float = field(
-        0.36787944117144233,
-        "Settled: the step response stays below this share of the step (1/e)",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
-        exclusive_maximum=True,
+        0.36787944117144233, "Settled: the step response stays below this share of the step (1/e)", bounds="(0, 1)"
     )
     sample_rate_hz: float = field(
-        500e3,
-        "Recommend: also give the discrete observer (eq. 3.40) at this rate",
-        "Hz",
-        minimum=0.0,
-        exclusive_minimum=True,
+        500e3, "Recommend: also give the discrete observer (eq. 3.40) at this rate", "Hz", bounds="> 0"
     )
     drive_hold: str = field(
         "continuous",
@@ -643,29 +543,22 @@ class GammaParams:
         "carry segments metadata)",
         choices=("auto", "h1", "stepped"),
     )
-    nperseg: int = field(0, "H1 segment length in samples; 0 = largest power of two <= n/16", minimum=16, automatic=0)
+    nperseg: int = field(
+        0, "H1 segment length in samples; 0 = largest power of two <= n/16", bounds=">= 16", automatic=0
+    )
     min_coherence: float = field(
         0.9,
         "Usable band: coherence of Gamma_IR,V and Gamma_ts,V at least this",
-        minimum=0.0,
-        maximum=1.0,
+        bounds="[0, 1]",
         flag="--min-coherence",
     )
-    settle_fraction: float = field(
-        0.5,
-        "Stepped sines: share of each step skipped before the lock-in",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_maximum=True,
+    settle_fraction: float = field(0.5, "Stepped sines: share of each step skipped before the lock-in", bounds="[0, 1)")
+    min_periods: int = field(4, "Stepped sines: fewest drive periods per step after settling", bounds=">= 1")
+    roll_off_start_factor: float = field(2.0, "Roll-off fitted from this multiple of the bandwidth ...", bounds="> 0")
+    roll_off_stop_factor: float = field(10.0, "... to this multiple (or the top of the usable band)", bounds="> 0")
+    chunk_samples: int = field(
+        1 << 18, "Samples per streamed chunk (H1 streams; stepped sines are held)", bounds=">= 16"
     )
-    min_periods: int = field(4, "Stepped sines: fewest drive periods per step after settling", minimum=1)
-    roll_off_start_factor: float = field(
-        2.0, "Roll-off fitted from this multiple of the bandwidth ...", minimum=0.0, exclusive_minimum=True
-    )
-    roll_off_stop_factor: float = field(
-        10.0, "... to this multiple (or the top of the usable band)", minimum=0.0, exclusive_minimum=True
-    )
-    chunk_samples: int = field(1 << 18, "Samples per streamed chunk (H1 streams; stepped sines are held)", minimum=16)
 
     def validate(self) -> None:
         """Cross-field checks; the bounds are checked from the declarations."""
@@ -688,78 +581,69 @@ class DecodeParams:
     nominal: str = field(
         "", "Nominal (bit-free) segment START:END for l0 and noise; empty = metadata nominal", "s", flag="--nominal"
     )
-    f0_hz: float = field(0.0, "Resonant frequency f0; 0 = metadata cantilever.f0_hz", "Hz", minimum=0.0)
-    q: float = field(
-        0.0, "Quality factor Q; 0 = metadata cantilever.q", minimum=0.5, exclusive_minimum=True, automatic=0.0
-    )
+    f0_hz: float = field(0.0, "Resonant frequency f0; 0 = metadata cantilever.f0_hz", "Hz", bounds=">= 0")
+    q: float = field(0.0, "Quality factor Q; 0 = metadata cantilever.q", bounds="> 0.5", automatic=0.0)
     spring_constant_n_per_m: float = field(
-        0.0, "Spring constant k; 0 = metadata, else eq. 7.10's 0.1404", "N/m", minimum=0.0
+        0.0, "Spring constant k; 0 = metadata, else eq. 7.10's 0.1404", "N/m", bounds=">= 0"
     )
     k_esf_f_m: float = field(
-        0.0, "K_esf (no-1/2 convention); 0 = metadata electrostatic, else 1.66e-21", "F*m", minimum=0.0
+        0.0, "K_esf (no-1/2 convention); 0 = metadata electrostatic, else 1.66e-21", "F*m", bounds=">= 0"
     )
     alpha_r: float = field(
-        0.0, "alpha_R of V = alpha_R*V_R - V_sub; 0 = metadata electrostatic, else 0.2549", minimum=0.0
+        0.0, "alpha_R of V = alpha_R*V_R - V_sub; 0 = metadata electrostatic, else 0.2549", bounds=">= 0"
     )
-    tip_height_nm: float = field(0.0, "Tip height t_h; 0 = metadata electrostatic, else 768.3", "nm", minimum=0.0)
+    tip_height_nm: float = field(0.0, "Tip height t_h; 0 = metadata electrostatic, else 768.3", "nm", bounds=">= 0")
     l0_nm: float = field(
-        0.0, "Lever-sample separation l0; 0 = estimate on the nominal segment (§7.4)", "nm", minimum=0.0, flag="--l0"
+        0.0, "Lever-sample separation l0; 0 = estimate on the nominal segment (§7.4)", "nm", bounds=">= 0", flag="--l0"
     )
     l0_bracket_nm: str = field(
         "", "l0 search bracket LOW:HIGH; empty = 0.75-1.33 x the guess (metadata or 1081.8)", "nm"
     )
-    l0_grid_points: int = field(41, "Coarse grid points of the l0 search before golden-section refinement", minimum=5)
+    l0_grid_points: int = field(
+        41, "Coarse grid points of the l0 search before golden-section refinement", bounds=">= 5"
+    )
     process_noise_n_per_rthz: float = field(
         0.0,
         "Force-noise ASD of the EKF; 0 = estimate on the nominal segment (mean NIS = 1)",
         "N/sqrt(Hz)",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--process-noise",
     )
     measurement_noise_nm: float = field(
         0.0,
         "Rms measurement noise; 0 = estimate from the PSD floor of the nominal segment",
         "nm",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--measurement-noise",
     )
     temperature_k: float = field(
-        300.0, "Thermal force noise used for the l0 search when the process noise is estimated", "K", minimum=0.0
+        300.0, "Thermal force noise used for the l0 search when the process noise is estimated", "K", bounds=">= 0"
     )
     warmup_s: float = field(
-        2e-4, "Start of the nominal segment left out of the innovation statistics", "s", minimum=0.0
+        2e-4, "Start of the nominal segment left out of the innovation statistics", "s", bounds=">= 0"
     )
     actuation_hz: float = field(
         0.0,
         "Actuation frequency; 0 = metadata drive, else the strongest line of V^2",
         "Hz",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--actuation-hz",
     )
-    mean_window: int = field(0, "Running mean of the innovation, samples; 0 = one actuation period", minimum=0)
+    mean_window: int = field(0, "Running mean of the innovation, samples; 0 = one actuation period", bounds=">= 0")
     bit_rate_hz: float = field(
-        0.0, "Bit rate; 0 = recover the clock from the transitions", "Hz", minimum=0.0, flag="--bit-rate"
+        0.0, "Bit rate; 0 = recover the clock from the transitions", "Hz", bounds=">= 0", flag="--bit-rate"
     )
-    bit_rate_min_hz: float = field(
-        1000.0, "Clock recovery: lowest bit rate searched", "Hz", minimum=0.0, exclusive_minimum=True
-    )
+    bit_rate_min_hz: float = field(1000.0, "Clock recovery: lowest bit rate searched", "Hz", bounds="> 0")
     bit_rate_max_hz: float = field(
-        0.0, "Clock recovery: highest bit rate searched; 0 = the actuation frequency", "Hz", minimum=0.0
+        0.0, "Clock recovery: highest bit rate searched; 0 = the actuation frequency", "Hz", bounds=">= 0"
     )
     bits_from_s: float = field(
         -1.0, "Start of the bit stream; < 0 = the end of the nominal segment (or 0)", "s", flag="--bits-from"
     )
     clock_window_s: float = field(
-        0.005,
-        "Clock acquisition window at the start of the bit stream",
-        "s",
-        minimum=0.0,
-        exclusive_minimum=True,
-        flag="--clock-window",
+        0.005, "Clock acquisition window at the start of the bit stream", "s", bounds="> 0", flag="--clock-window"
     )
-    integrate_fraction: float = field(
-        0.7, "Share of each bit cell integrated (centred)", minimum=0.0, maximum=1.0, exclusive_minimum=True
-    )
+    integrate_fraction: float = field(0.7, "Share of each bit cell integrated (centred)", bounds="(0, 1]")
     polarity: str = field(
         "negative",
         "Innovation sign of a 1 bit (a raised sample attracts more: negative)",
@@ -767,26 +651,16 @@ class DecodeParams:
         flag="--polarity",
     )
     pll_phase_gain: float = field(
-        0.05,
-        "Clock tracking: share of each transition's phase error corrected",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_maximum=True,
+        0.05, "Clock tracking: share of each transition's phase error corrected", bounds="[0, 1)"
     )
     pll_rate_gain: float = field(
-        0.001,
-        "Clock tracking: rate correction per transition (recovered rates only)",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_maximum=True,
+        0.001, "Clock tracking: rate correction per transition (recovered rates only)", bounds="[0, 1)"
     )
     baseline_lowpass_hz: float = field(
-        0.0, "Lock-in baseline low-pass; 0 = min(bit rate/2, actuation/4)", "Hz", minimum=0.0
+        0.0, "Lock-in baseline low-pass; 0 = min(bit rate/2, actuation/4)", "Hz", bounds=">= 0"
     )
-    psd_window_s: float = field(
-        0.02, "Stretch of the bit stream used for the PSD comparison plot", "s", minimum=0.0, exclusive_minimum=True
-    )
-    eye_traces: int = field(200, "Bit cells drawn in the eye diagram", minimum=1)
+    psd_window_s: float = field(0.02, "Stretch of the bit stream used for the PSD comparison plot", "s", bounds="> 0")
+    eye_traces: int = field(200, "Bit cells drawn in the eye diagram", bounds=">= 1")
     # 1 Mi samples: each chunk costs ~2 ms of hand-offs between the reading, computing and
     # writing threads, 0.6 s per 1e8 samples at 256 Ki; the buffers cost ~100 MB.
     chunk_samples: int = _chunk_samples_field(1 << 20)
@@ -822,41 +696,30 @@ class ThermalParams:
         550.0,
         "Breakdown temperature T_k of the sensor (the I-V knee)",
         "degC",
-        minimum=-273.15,
+        bounds=">= -273.15",
         flag="--breakdown-temperature",
     )
     room_temperature_c: float = field(
-        25.0, "Room temperature T_r (the sensor at zero power)", "degC", minimum=-273.15, flag="--room-temperature"
+        25.0, "Room temperature T_r (the sensor at zero power)", "degC", bounds=">= -273.15", flag="--room-temperature"
     )
-    g_order: int = field(2, "Degree of the polynomial fit of g(T)", minimum=1, maximum=6)
-    g_table_bins: int = field(40, "Temperature bins of the g(T) table", minimum=2)
-    knee_fit_fraction: float = field(
-        0.5,
-        "The knee is fitted on V_R >= this share of the largest V_R",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
-        exclusive_maximum=True,
-    )
-    z_bin_nm: float = field(10.0, "Bin width of the K_TP(t_s) table", "nm", minimum=0.0, exclusive_minimum=True)
+    g_order: int = field(2, "Degree of the polynomial fit of g(T)", bounds="[1, 6]")
+    g_table_bins: int = field(40, "Temperature bins of the g(T) table", bounds=">= 2")
+    knee_fit_fraction: float = field(0.5, "The knee is fitted on V_R >= this share of the largest V_R", bounds="(0, 1)")
+    z_bin_nm: float = field(10.0, "Bin width of the K_TP(t_s) table", "nm", bounds="> 0")
     method: str = field(
         "auto",
         "V_R sweep: H1, stepped sines, or auto (stepped if the capture has segments)",
         choices=("auto", "h1", "stepped"),
     )
-    nperseg: int = field(0, "V_R sweep, H1 segment length; 0 = largest power of two <= n/16", minimum=16, automatic=0)
+    nperseg: int = field(
+        0, "V_R sweep, H1 segment length; 0 = largest power of two <= n/16", bounds=">= 16", automatic=0
+    )
     min_coherence: float = field(
-        0.9, "V_R sweep: bins with a lower coherence are left out of the summaries", minimum=0.0, maximum=1.0
+        0.9, "V_R sweep: bins with a lower coherence are left out of the summaries", bounds="[0, 1]"
     )
-    settle_fraction: float = field(
-        0.5,
-        "Stepped sines: share of each step skipped before the lock-in",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_maximum=True,
-    )
-    min_periods: int = field(4, "Stepped sines: fewest drive periods per step after settling", minimum=1)
-    chunk_samples: int = field(1 << 18, "Samples per streamed chunk", minimum=16)
+    settle_fraction: float = field(0.5, "Stepped sines: share of each step skipped before the lock-in", bounds="[0, 1)")
+    min_periods: int = field(4, "Stepped sines: fewest drive periods per step after settling", bounds=">= 1")
+    chunk_samples: int = field(1 << 18, "Samples per streamed chunk", bounds=">= 16")
 
     def validate(self) -> None:
         """Cross-field checks; the bounds are checked from the declarations."""
@@ -883,22 +746,15 @@ class ElectrostaticFitParams:
         0.0,
         "Spring constant k if known (then K_esf is reported); 0 = unknown: only K_esf/k is identifiable",
         "N/m",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--spring-constant",
     )
-    snap_margin: float = field(
-        0.05, "Drop this share of the V_sub range just before snap-in", minimum=0.0, maximum=1.0, exclusive_maximum=True
-    )
+    snap_margin: float = field(0.05, "Drop this share of the V_sub range just before snap-in", bounds="[0, 1)")
     rank_tolerance: float = field(
-        1e-7,
-        "Relative singular value below which a combination is not identifiable",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_minimum=True,
-        exclusive_maximum=True,
+        1e-7, "Relative singular value below which a combination is not identifiable", bounds="(0, 1)"
     )
     max_relative_std: float = field(
-        0.1, "Parameters with a larger relative standard deviation are flagged", minimum=0.0, exclusive_minimum=True
+        0.1, "Parameters with a larger relative standard deviation are flagged", bounds="> 0"
     )
 
 
@@ -908,11 +764,7 @@ class InvolsParams:
 
     leg: str = field("approach", "Which part of the curve to fit", choices=("approach", "retract", "all"), flag="--leg")
     skip_fraction: float = field(
-        0.1,
-        "Share of the contact z range next to the contact point left out of the fit",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_maximum=True,
+        0.1, "Share of the contact z range next to the contact point left out of the fit", bounds="[0, 1)"
     )
     z_channel: str = field(
         "z_piezo", "Channel holding the z-piezo position (a length, or V with --z-sensitivity)", flag="--z-channel"
@@ -937,16 +789,16 @@ class SpringConstantParams:
         0.0,
         "Sader: plan-view length L of the rectangular cantilever; 0 = no Sader value",
         "um",
-        minimum=0.0,
+        bounds=">= 0",
         flag="--length",
     )
-    width_um: float = field(0.0, "Sader: plan-view width b; 0 = no Sader value", "um", minimum=0.0, flag="--width")
+    width_um: float = field(0.0, "Sader: plan-view width b; 0 = no Sader value", "um", bounds=">= 0", flag="--width")
     fluid: str = field("air", "Sader: the fluid around the cantilever", choices=("air", "water"), flag="--fluid")
     fluid_density_kg_per_m3: float = field(
-        0.0, "Sader: fluid density; 0 = that of the fluid at 25 degC", "kg/m^3", minimum=0.0
+        0.0, "Sader: fluid density; 0 = that of the fluid at 25 degC", "kg/m^3", bounds=">= 0"
     )
     fluid_viscosity_pa_s: float = field(
-        0.0, "Sader: fluid viscosity; 0 = that of the fluid at 25 degC", "Pa s", minimum=0.0
+        0.0, "Sader: fluid viscosity; 0 = that of the fluid at 25 degC", "Pa s", bounds=">= 0"
     )
 
     def validate(self) -> None:
@@ -963,35 +815,27 @@ class DesignExcitationParams:
         20.0,
         "Free-air response amplitude at the main line (model deflection units)",
         "nm",
-        minimum=0.0,
-        exclusive_minimum=True,
+        bounds="> 0",
         flag="--amplitude",
     )
     dac_rate_hz: float = field(
-        2.0e6,
-        "Sample rate of the exported loop (a whole number of Hz)",
-        "Hz",
-        minimum=0.0,
-        exclusive_minimum=True,
-        flag="--dac-rate",
+        2.0e6, "Sample rate of the exported loop (a whole number of Hz)", "Hz", bounds="> 0", flag="--dac-rate"
     )
-    drive_frequency_hz: float = field(0.0, "Main line; 0 = the model's f0", "Hz", minimum=0.0, flag="--drive-frequency")
-    offset_hz: float = field(0.0, "Side-line offset; 0 = min(20 f0/Q, f0/10)", "Hz", minimum=0.0, flag="--offset")
+    drive_frequency_hz: float = field(
+        0.0, "Main line; 0 = the model's f0", "Hz", bounds=">= 0", flag="--drive-frequency"
+    )
+    offset_hz: float = field(0.0, "Side-line offset; 0 = min(20 f0/Q, f0/10)", "Hz", bounds=">= 0", flag="--offset")
     beat_tolerance: float = field(
         0.05,
         "Largest relative excursion of the response envelope (side lines / main)",
-        minimum=0.0,
-        exclusive_minimum=True,
+        bounds="> 0",
         flag="--beat-tolerance",
     )
     max_side_scale: float = field(
-        0.5,
-        "Largest side-line amplitude as a share of the main line's (thesis: 1/2)",
-        minimum=0.0,
-        exclusive_minimum=True,
+        0.5, "Largest side-line amplitude as a share of the main line's (thesis: 1/2)", bounds="> 0"
     )
     resolution_hz: float = field(
-        0.0, "Frequency grid of the loop; 0 = f0/(100 Q)", "Hz", minimum=0.0, flag="--resolution"
+        0.0, "Frequency grid of the loop; 0 = f0/(100 Q)", "Hz", bounds=">= 0", flag="--resolution"
     )
 
     def validate(self) -> None:
@@ -1007,23 +851,16 @@ class TheoryFitParams:
     """``afmtool theory fit``: force parameters fitted to REEP's approach (ch. 4)."""
 
     amplitude_fraction: float = field(
-        0.3,
-        "Fit where the amplitude is above this share of the free amplitude",
-        minimum=0.0,
-        maximum=1.0,
-        exclusive_maximum=True,
+        0.3, "Fit where the amplitude is above this share of the free amplitude", bounds="[0, 1)"
     )
     max_relative_std: float = field(
-        0.1,
-        "A parameter with a larger relative standard deviation is not identified",
-        minimum=0.0,
-        exclusive_minimum=True,
+        0.1, "A parameter with a larger relative standard deviation is not identified", bounds="> 0"
     )
     z_sensitivity: float = field(
         0.0, "z_piezo sensitivity; 0 = from the channel's length units", "nm/unit", flag="--z-sensitivity"
     )
-    skip_s: float = field(5e-3, "Leave out REEP's start-up", "s", minimum=0.0)
-    max_samples: int = field(3000, "Fit at most this many (evenly thinned) approach samples", minimum=20)
+    skip_s: float = field(5e-3, "Leave out REEP's start-up", "s", bounds=">= 0")
+    max_samples: int = field(3000, "Fit at most this many (evenly thinned) approach samples", bounds=">= 20")
 
 
 #: Config-file section -> parameter model.
