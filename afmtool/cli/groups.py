@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import typing
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -39,6 +40,7 @@ from afmtool.cli.options import (
 
 __all__ = [
     "OptionGroup",
+    "option",
     "with_options",
     "CaptureSource",
     "capture_options",
@@ -65,14 +67,9 @@ def option(name: str, annotation: Any, default: Any = None) -> inspect.Parameter
 
 
 def _resolved(fn: Callable) -> list[inspect.Parameter]:
-    """The function's parameters with string annotations (``from __future__ import annotations``) evaluated."""
-    out = []
-    for p in inspect.signature(fn).parameters.values():
-        annotation = p.annotation
-        if isinstance(annotation, str):
-            annotation = eval(annotation, fn.__globals__)  # noqa: S307 - the module's own annotation text
-        out.append(p.replace(annotation=annotation))
-    return out
+    """The function's parameters with their annotations evaluated (``from __future__ import annotations``)."""
+    hints = typing.get_type_hints(fn, include_extras=True)
+    return [p.replace(annotation=hints.get(p.name, p.annotation)) for p in inspect.signature(fn).parameters.values()]
 
 
 def with_options(*groups: OptionGroup) -> Callable[[Callable], Callable]:
