@@ -9,34 +9,26 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.calibration_options import CaptureCalibration, UnitsOpt
-from afmtool.cli.common import open_input, output_target, stdout_pipe
-from afmtool.cli.options import (
-    CaptureArg,
-    ChannelOpt,
-    ChunkOpt,
-    JsonOpt,
-    QuietOpt,
-    SampleRateOpt,
-    SegmentOpt,
-    TopicOpt,
-)
+from afmtool.cli.common import output_target, stdout_pipe
+from afmtool.cli.groups import CaptureSource, capture_options, with_options
+from afmtool.cli.options import CaptureArg, ChunkOpt, JsonOpt, QuietOpt
 from afmtool.cli.progress import progress_bar
 from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES
 
 __all__ = ["register"]
 
+#: info and convert read a capture as its file has it: --units, but no calibration or drive.
+_AS_RECORDED = capture_options(invols=False, z_sensitivity=False, drive=False)
 
+
+@with_options(_AS_RECORDED)
 def info(
     capture: CaptureArg,
     json_output: JsonOpt = False,
-    channel: ChannelOpt = None,
-    topic: TopicOpt = None,
-    sample_rate: SampleRateOpt = None,
     chunk_samples: ChunkOpt = DEFAULT_CHUNK_SAMPLES,
     quiet: QuietOpt = False,
-    segment: SegmentOpt = None,
-    units: UnitsOpt = None,
+    *,
+    source: CaptureSource,
 ) -> None:
     """Channels, units, sample rate, length, segments, metadata and min/max/mean/rms per channel.
 
@@ -47,8 +39,7 @@ def info(
     from afmtool.analyses.info import summarize
     from afmtool.report.json_report import dumps, to_jsonable
 
-    calibration = CaptureCalibration(units)
-    with open_input(capture, channel, topic, sample_rate, calibration, convert_units=False, segment=segment) as reader:
+    with source.open(capture, convert_units=False) as reader:
         with progress_bar("info", reader.info.n_samples, quiet) as update:
             summary = summarize(reader, chunk_samples, update)
     with stdout_pipe():
@@ -98,6 +89,7 @@ def _print_summary(summary) -> None:
         console.print("ground truth: " + ", ".join(summary.truth_names))
 
 
+@with_options(capture_options(invols=False, z_sensitivity=False, drive=False, keyword="reading"))
 def convert(
     source: CaptureArg,
     output: Annotated[str, typer.Argument(help="Output file (.h5, .csv, .bag, .mcap folder...) or - for CSV on stdout.")],
@@ -108,13 +100,10 @@ def convert(
     compression: Annotated[
         Optional[str], typer.Option("--compression", help="HDF5 only: 'gzip' (with shuffle); default none.")
     ] = None,
-    channel: ChannelOpt = None,
-    topic: TopicOpt = None,
-    sample_rate: SampleRateOpt = None,
     chunk_samples: ChunkOpt = DEFAULT_CHUNK_SAMPLES,
     quiet: QuietOpt = False,
-    segment: SegmentOpt = None,
-    units: UnitsOpt = None,
+    *,
+    reading: CaptureSource,
 ) -> None:
     """Convert any readable capture (HDF5, CSV, bags, .ibw, JPK, .tdms, LabOne, .wav, Chiaro) to HDF5, CSV or a bag.
 
@@ -134,8 +123,7 @@ def convert(
         raise ConfigError(f"--format {fmt!r} must be one of {', '.join(FORMATS)}")
     if compression not in (None, "gzip"):
         raise ConfigError(f"--compression {compression!r} must be gzip")
-    calibration = CaptureCalibration(units)
-    with open_input(source, channel, topic, sample_rate, calibration, convert_units=False, segment=segment) as reader:
+    with reading.open(source, convert_units=False) as reader:
         with progress_bar("convert", reader.info.n_samples, quiet) as update, output_target(output, fmt) as target:
             convert_capture(
                 reader, target, fmt, compression=compression, chunk_samples=chunk_samples, progress=update

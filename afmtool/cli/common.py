@@ -11,7 +11,10 @@ from typing import Iterator
 from afmtool.cli.options import check_stream_format, parse_mapping
 from afmtool.cli.progress import progress_bar, stderr_console
 
-__all__ = ["open_input", "open_calibrated", "output_target", "stdout_pipe", "finish_command", "run_capture_analysis"]
+__all__ = [
+    "open_input", "open_calibrated", "output_target", "stdout_pipe", "finish_command", "run_capture_analysis",
+    "run_streaming_command",
+]
 
 
 @contextmanager
@@ -152,3 +155,28 @@ def run_capture_analysis(
         with progress_bar(name, reader.info.n_samples, quiet) as update:
             report = to_folder(reader, update)
     finish_command(report, out, json_output, quiet)
+
+
+def run_streaming_command(name: str, capture: str, source_args: tuple, output, flags: dict, analysis: str) -> None:
+    """reep, probeloss and decode: hash the input, then run ``analysis`` into ``--stream`` rows or ``--out``.
+
+    ``analysis`` is the module holding ``run_<name>_stream(reader, config, flags, fmt)`` and
+    ``run_<name>_command(reader, capture, out, config, flags, progress, capture_record)``;
+    it is imported only after the input's hash has started, so that hashing a large
+    capture overlaps the import.  ``output`` is the command's
+    :class:`~afmtool.cli.groups.CommandOutput`.
+    """
+    import importlib
+
+    from afmtool.report.json_report import PendingInputRecord
+
+    capture_record = None if output.stream or output.out is None else PendingInputRecord(capture)
+    module = importlib.import_module(analysis)
+    stem = name.replace("-", "_")
+    to_rows, to_folder = getattr(module, f"run_{stem}_stream"), getattr(module, f"run_{stem}_command")
+    run_capture_analysis(
+        name, capture, source_args, output.out, output.stream_mode, output.json_output, output.quiet,
+        to_rows=lambda reader: to_rows(reader, output.config, flags, output.stream_format),
+        to_folder=lambda reader, update: to_folder(reader, capture, output.out, output.config, flags, update,
+                                                   capture_record),
+    )

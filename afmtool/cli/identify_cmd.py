@@ -7,23 +7,24 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.calibration_options import CaptureCalibration, InvolsOpt, UnitsOpt, ZSensitivityOpt
-from afmtool.cli.common import finish_command, open_input
-from afmtool.cli.options import (
-    ChannelOpt,
-    ConfigOpt,
-    JsonOpt,
-    OutOpt,
-    QuietOpt,
-    SampleRateOpt,
-    SegmentOpt,
-    TopicOpt,
-)
+from afmtool.cli.common import finish_command
+from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
+from afmtool.cli.param_flags import param_flags
 from afmtool.cli.progress import progress_bar
+from afmtool.config.params import (
+    ElectrostaticFitParams,
+    GammaParams,
+    InvolsParams,
+    ThermalParams,
+)
+
+#: The capture options of the ch. 6 commands: no synthesised drive, no segment.
+_CH6_CAPTURE = capture_options(drive=False, segment=False)
 
 __all__ = ["register"]
 
 
+@with_options(param_flags(GammaParams), output_options(Path("gamma")), _CH6_CAPTURE)
 def identify_gamma(
     sweep: Annotated[
         str, typer.Argument(help="Sweep near the sample: v_sub, thermal_current and deflection (optical).")
@@ -31,23 +32,11 @@ def identify_gamma(
     contact: Annotated[
         str, typer.Option("--contact", help="The same sweep with the tip in contact: v_sub and thermal_current.")
     ],
-    out: OutOpt = Path("gamma"),
     stepped: Annotated[
         bool, typer.Option("--stepped", help="Stepped sines (lock-in per segment); default: auto from metadata.")
     ] = False,
     h1: Annotated[bool, typer.Option("--h1", help="Chirp or broadband drive (H1 estimate).")] = False,
-    min_coherence: Annotated[
-        Optional[float], typer.Option("--min-coherence", help="Usable band: coherence at least this (dimensionless, 0-1; default 0.9).")
-    ] = None,
-    json_output: JsonOpt = False,
-    config: ConfigOpt = None,
-    quiet: QuietOpt = False,
-    channel: ChannelOpt = None,
-    topic: TopicOpt = None,
-    sample_rate: SampleRateOpt = None,
-    units: UnitsOpt = None,
-    invols: InvolsOpt = None,
-    z_sensitivity: ZSensitivityOpt = None,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """Sensing transfer function Gamma_IR,ts with the feed-through removed (thesis eq. 6.15).
 
@@ -62,52 +51,33 @@ def identify_gamma(
 
     if stepped and h1:
         raise ConfigError("give at most one of --stepped and --h1")
-    flags = {
-        "method": "stepped" if stepped else ("h1" if h1 else None),
-        "min_coherence": min_coherence,
-    }
-    calibration = CaptureCalibration(units, invols, z_sensitivity)
-    with open_input(sweep, channel, topic, sample_rate, calibration) as near, open_input(
-        contact, channel, topic, sample_rate, calibration
-    ) as far:
+    flags = {**flags, "method": "stepped" if stepped else ("h1" if h1 else None)}
+    calibration = source.calibration()
+    with source.open(sweep, calibration) as near, source.open(contact, calibration) as far:
         total = (near.info.n_samples or 0) + (far.info.n_samples or 0)
-        with progress_bar("identify gamma", total or None, quiet) as update:
-            report = run_gamma_command(near, far, (sweep, contact), out, config, flags, update)
-    finish_command(report, out, json_output, quiet)
+        with progress_bar("identify gamma", total or None, output.quiet) as update:
+            report = run_gamma_command(near, far, (sweep, contact), output.out, output.config, flags, update)
+    finish_command(report, output.out, output.json_output, output.quiet)
 
 
+#: The inputs of ``identify thermal``, each optional: what each file must hold.
+_THERMAL_INPUTS = {
+    "--iv": "I-V ramp capture: v_r and thermal_current (V_R past breakdown).",
+    "--z-curve": "Thermal z force curve: z_piezo, v_r and thermal_current.",
+    "--vr-sweep": "V_R perturbation sweep: v_r and thermal_current (+ deflection).",
+    "--gamma": "gamma.h5 (or folder) from 'identify gamma', for H(jw).",
+    "--model": "thermal_sensor.json (or folder) supplying g(T) without --iv.",
+}
+
+
+@with_options(param_flags(ThermalParams), output_options(Path("thermal")), _CH6_CAPTURE)
 def identify_thermal(
-    iv: Annotated[
-        Optional[str], typer.Option("--iv", help="I-V ramp capture: v_r and thermal_current (V_R past breakdown).")
-    ] = None,
-    z_curve: Annotated[
-        Optional[str], typer.Option("--z-curve", help="Thermal z force curve: z_piezo, v_r and thermal_current.")
-    ] = None,
-    vr_sweep: Annotated[
-        Optional[str], typer.Option("--vr-sweep", help="V_R perturbation sweep: v_r and thermal_current (+ deflection).")
-    ] = None,
-    gamma: Annotated[
-        Optional[Path], typer.Option("--gamma", help="gamma.h5 (or folder) from 'identify gamma', for H(jw).")
-    ] = None,
-    model: Annotated[
-        Optional[Path], typer.Option("--model", help="thermal_sensor.json (or folder) supplying g(T) without --iv.")
-    ] = None,
-    breakdown_temperature: Annotated[
-        Optional[float], typer.Option("--breakdown-temperature", help="T_k in degC (default 550).")
-    ] = None,
-    room_temperature: Annotated[
-        Optional[float], typer.Option("--room-temperature", help="T_r in degC (default 25).")
-    ] = None,
-    out: OutOpt = Path("thermal"),
-    json_output: JsonOpt = False,
-    config: ConfigOpt = None,
-    quiet: QuietOpt = False,
-    channel: ChannelOpt = None,
-    topic: TopicOpt = None,
-    sample_rate: SampleRateOpt = None,
-    units: UnitsOpt = None,
-    invols: InvolsOpt = None,
-    z_sensitivity: ZSensitivityOpt = None,
+    iv: Annotated[Optional[str], typer.Option("--iv", help=_THERMAL_INPUTS["--iv"])] = None,
+    z_curve: Annotated[Optional[str], typer.Option("--z-curve", help=_THERMAL_INPUTS["--z-curve"])] = None,
+    vr_sweep: Annotated[Optional[str], typer.Option("--vr-sweep", help=_THERMAL_INPUTS["--vr-sweep"])] = None,
+    gamma: Annotated[Optional[Path], typer.Option("--gamma", help=_THERMAL_INPUTS["--gamma"])] = None,
+    model: Annotated[Optional[Path], typer.Option("--model", help=_THERMAL_INPUTS["--model"])] = None,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """Thermal sensor from its current alone: g(T), K_TP, K_TP(t_s), C(jw), H(jw) (thesis 6.5.2, 6.6.2).
 
@@ -121,44 +91,28 @@ def identify_thermal(
 
     from afmtool.analyses.thermal_outputs import run_thermal_command
 
-    flags = {"breakdown_temperature_c": breakdown_temperature, "room_temperature_c": room_temperature}
     sources = {"iv": iv, "z": z_curve, "vr": vr_sweep, "gamma": gamma, "model": model}
-    calibration = CaptureCalibration(units, invols, z_sensitivity)
+    calibration = source.calibration()
     with ExitStack() as stack:
         readers = {
-            key: stack.enter_context(open_input(path, channel, topic, sample_rate, calibration)) if path else None
+            key: stack.enter_context(source.open(path, calibration)) if path else None
             for key, path in (("iv", iv), ("z", z_curve), ("vr", vr_sweep))
         }
         total = sum((r.info.n_samples or 0) for r in readers.values() if r is not None)
-        with progress_bar("identify thermal", total or None, quiet) as update:
-            report = run_thermal_command(readers, sources, out, config, flags, update)
-    finish_command(report, out, json_output, quiet)
+        with progress_bar("identify thermal", total or None, output.quiet) as update:
+            report = run_thermal_command(readers, sources, output.out, output.config, flags, update)
+    finish_command(report, output.out, output.json_output, output.quiet)
 
 
+@with_options(param_flags(ElectrostaticFitParams), output_options(Path("electrostatic")), _CH6_CAPTURE)
 def identify_electrostatic(
     capture: Annotated[
         str, typer.Argument(help="Quasi-static V_sub ramp up and down: v_sub and deflection, or v_r and thermal_current.")
     ],
-    out: OutOpt = Path("electrostatic"),
-    sensor: Annotated[
-        Optional[str], typer.Option("--sensor", help="optical (eq. 6.6), thermal (eq. 6.7) or auto.")
-    ] = None,
     thermal_model: Annotated[
         Optional[Path], typer.Option("--thermal-model", help="thermal_sensor.json (or folder) from 'identify thermal'.")
     ] = None,
-    spring_constant: Annotated[
-        Optional[float], typer.Option("--spring-constant", help="k in N/m if known; then K_esf is reported.")
-    ] = None,
-    v_r: Annotated[Optional[float], typer.Option("--v-r", help="V_R in V (default: mean of the v_r channel).")] = None,
-    json_output: JsonOpt = False,
-    config: ConfigOpt = None,
-    quiet: QuietOpt = False,
-    channel: ChannelOpt = None,
-    topic: TopicOpt = None,
-    sample_rate: SampleRateOpt = None,
-    units: UnitsOpt = None,
-    invols: InvolsOpt = None,
-    z_sensitivity: ZSensitivityOpt = None,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """Electrostatic parameters from an approach curve before snap-in (thesis eqs. 6.6, 6.7).
 
@@ -170,30 +124,17 @@ def identify_electrostatic(
     """
     from afmtool.analyses.electrostatic_outputs import run_electrostatic_command
 
-    flags = {"sensor": sensor, "spring_constant_n_per_m": spring_constant, "v_r_v": v_r}
-    calibration = CaptureCalibration(units, invols, z_sensitivity)
-    with open_input(capture, channel, topic, sample_rate, calibration) as reader:
-        report = run_electrostatic_command(reader, capture, out, config, flags, thermal_model)
-    finish_command(report, out, json_output, quiet)
+    with source.open(capture, source.calibration()) as reader:
+        report = run_electrostatic_command(reader, capture, output.out, output.config, flags, thermal_model)
+    finish_command(report, output.out, output.json_output, output.quiet)
 
 
+@with_options(
+    param_flags(InvolsParams), output_options(Path("invols")), capture_options(invols=False, drive=False)
+)
 def identify_invols(
     curve: Annotated[str, typer.Argument(help="Force curve on a hard sample: deflection (V) and z_piezo.")],
-    out: OutOpt = Path("invols"),
-    leg: Annotated[Optional[str], typer.Option("--leg", help="approach (default), retract or all.")] = None,
-    z_channel: Annotated[Optional[str], typer.Option("--z-channel", help="z channel (default z_piezo).")] = None,
-    deflection_channel: Annotated[
-        Optional[str], typer.Option("--deflection-channel", help="Deflection channel (default deflection).")
-    ] = None,
-    json_output: JsonOpt = False,
-    config: ConfigOpt = None,
-    quiet: QuietOpt = False,
-    channel: ChannelOpt = None,
-    topic: TopicOpt = None,
-    sample_rate: SampleRateOpt = None,
-    units: UnitsOpt = None,
-    z_sensitivity: ZSensitivityOpt = None,
-    segment: SegmentOpt = None,
+    *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """InvOLS (nm/V) from the contact part of a force curve on a hard sample, with its uncertainty.
 
@@ -205,11 +146,9 @@ def identify_invols(
     """
     from afmtool.analyses.invols import run_invols_command
 
-    flags = {"leg": leg, "z_channel": z_channel, "deflection_channel": deflection_channel}
-    calibration = CaptureCalibration(units, None, z_sensitivity, raw_deflection=True)
-    with open_input(curve, channel, topic, sample_rate, calibration, segment=segment) as reader:
-        report = run_invols_command(reader, curve, out, config, flags)
-    finish_command(report, out, json_output, quiet)
+    with source.open(curve, source.calibration(raw_deflection=True)) as reader:
+        report = run_invols_command(reader, curve, output.out, output.config, flags)
+    finish_command(report, output.out, output.json_output, output.quiet)
 
 
 def register(identify: typer.Typer) -> None:

@@ -86,18 +86,3 @@ def parse_mapping(items: list[str] | None, option: str) -> dict[str, str]:
             raise ConfigError(f"{option} {item!r} must look like NAME=VALUE")
         mapping[name.strip()] = target.strip()
     return mapping
-
-# The free-air f0/Q route and the drive's hold (probeloss, kalman-bank, reep; issue 14).
-F0Opt = Annotated[
-    Optional[float],
-    typer.Option("--f0", help="Free-air f0 (Hz) with --q: gain and phase fitted at the drive on the free-air segment."),
-]
-QOpt = Annotated[Optional[float], typer.Option("--q", help="Free-air quality factor, with --f0.")]
-DriveHoldOpt = Annotated[
-    Optional[str],
-    typer.Option(
-        "--drive-hold",
-        help="How the drive reached the cantilever: zoh (a DAC at the ADC rate), continuous (a generator), "
-        "or auto (told from the free-air phase; default).",
-    ),
-]

@@ -1,14 +1,21 @@
 """Parameters: packaged defaults, then the user's TOML file, then flags.
 
-Each command's parameters are one frozen dataclass whose fields carry
-``metadata={"help": ..., "units": ...}``.  That one typed model generates
-the packaged ``defaults.toml`` (``afmtool config init``), validates the
-user's file, and supplies ``--help`` texts, so the three cannot drift.
+Each command's parameters are one frozen dataclass (:mod:`afmtool.config.params`)
+whose fields are declared once with :func:`field`: default, help, units,
+choices, bounds (open or closed ends, and a value meaning "automatic") and
+the command-line flag.  That one declaration generates the packaged
+``defaults.toml`` (:mod:`afmtool.config.defaults`, ``afmtool config init``),
+the JSON schema of each section (:mod:`afmtool.config.schema`), the flags
+and their ``--help`` (:mod:`afmtool.cli.param_flags`), and the check every
+value goes through, from a flag or a file (:func:`check_value`), so none of
+them can drift.  A class's ``validate()`` keeps only what no single bound
+says: checks across fields and of formatted strings.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import stat
@@ -21,21 +28,148 @@ from typing import Any, TypeVar
 
 from afmtool.errors import ConfigError
 
-__all__ = ["field", "load_toml", "packaged_defaults", "resolve", "resolve_from", "section_to_toml", "parameters_dict", "help_for"]
+__all__ = ["field", "check_value", "describe_bounds", "describe_field", "parse_bounds", "within_bounds", "load_toml", "packaged_defaults", "resolve", "resolve_from", "section_to_toml", "parameters_dict", "help_for"]
 
 P = TypeVar("P")
 
 
-def field(default: Any, help: str, units: str = "", choices: tuple[str, ...] | None = None):
-    """A dataclass field with the help text and units the CLI and TOML show."""
-    return dataclasses.field(default=default, metadata={"help": help, "units": units, "choices": choices})
+def field(
+    default: Any,
+    help: str,  # noqa: A002 - the metadata key the CLI, TOML and schema read
+    units: str = "",
+    choices: tuple[str, ...] | None = None,
+    *,
+    minimum: float | None = None,
+    maximum: float | None = None,
+    exclusive_minimum: bool = False,
+    exclusive_maximum: bool = False,
+    automatic: float | None = None,
+    flag: str | None = None,
+    bounds: str | None = None,
+):
+    """The one declaration of a parameter: default, help, units, bounds and CLI flag.
+
+    Parameters
+    ----------
+    default
+        The packaged default (``defaults.toml`` is generated from it).
+    help, units : str
+        Shown in ``--help``, in ``defaults.toml`` comments and in the JSON schema.
+    choices : tuple of str, optional
+        The values a string parameter may take.
+    minimum, maximum : float, optional
+        Bounds of a number, closed unless ``exclusive_minimum`` /
+        ``exclusive_maximum``.  Every float must also be finite.
+    bounds : str, optional
+        The same bounds in interval notation, as the help and errors write them:
+        ``"(0, 1)"``, ``"[0, 1)"``, ``"> 0"``, ``">= 16"``, ``"<= 6"``.
+    automatic : float, optional
+        A value outside the bounds that means "automatic" (``0 = ...`` in the help).
+    flag : str, optional
+        The command-line flag that sets it (``"--z-bin"``); a boolean whose
+        default is true gets a ``--no-...`` flag that sets it false.  The flag's
+        help, and the flag -> field mapping, are generated from this declaration
+        (:mod:`afmtool.cli.param_flags`).
+    """
+    if bounds is not None:
+        minimum, maximum, exclusive_minimum, exclusive_maximum = parse_bounds(bounds)
+    metadata = {
+        "help": help,
+        "units": units,
+        "choices": choices,
+        "minimum": minimum,
+        "maximum": maximum,
+        "exclusive_minimum": exclusive_minimum,
+        "exclusive_maximum": exclusive_maximum,
+        "automatic": automatic,
+        "flag": flag,
+    }
+    return dataclasses.field(default=default, metadata=types.MappingProxyType(metadata))
+
+
+def parse_bounds(text: str) -> tuple[float | None, float | None, bool, bool]:
+    """``"(0, 1]"`` -> (0, 1, True, False); ``"> 0"`` -> (0, None, True, False): minimum, maximum, exclusive ends."""
+    text = text.strip()
+    for op, exclusive in ((">=", False), ("<=", False), (">", True), ("<", True)):
+        if text.startswith(op):
+            value = _bound_value(text[len(op):])
+            return (value, None, exclusive, False) if op[0] == ">" else (None, value, False, exclusive)
+    if len(text) < 5 or text[0] not in "([" or text[-1] not in ")]" or "," not in text:
+        raise ValueError(f"bounds {text!r} must look like (a, b), [a, b), > a, >= a, < b or <= b")
+    low, high = text[1:-1].split(",")
+    return _bound_value(low), _bound_value(high), text[0] == "(", text[-1] == ")"
+
+
+def _bound_value(text: str) -> int | float:
+    text = text.strip()
+    return int(text) if text.lstrip("-").isdigit() else float(text)
+
+
+def _number(value: float) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def describe_bounds(metadata: Mapping) -> str:
+    """The range a declaration allows, in words: ``"in (0, 1)"``, ``"> 0"``, ``">= 16, or 0"``.
+
+    The one wording used by the error messages, ``--help``, ``defaults.toml`` and the JSON schema.
+    """
+    low, high = metadata.get("minimum"), metadata.get("maximum")
+    if low is not None and high is not None:
+        text = (f"in {'(' if metadata.get('exclusive_minimum') else '['}{_number(low)}, {_number(high)}"
+                f"{')' if metadata.get('exclusive_maximum') else ']'}")
+    elif low is not None:
+        text = f"{'>' if metadata.get('exclusive_minimum') else '>='} {_number(low)}"
+    elif high is not None:
+        text = f"{'<' if metadata.get('exclusive_maximum') else '<='} {_number(high)}"
+    else:
+        return ""
+    if metadata.get("automatic") is not None:
+        text += f", or {_number(metadata['automatic'])}"  # what that value means, the help says
+    return text
+
+
+def within_bounds(value: Any, metadata: Mapping) -> bool:
+    """Whether a number (or every element of a tuple of numbers) satisfies the declared bounds."""
+    if isinstance(value, (tuple, list)):
+        return all(within_bounds(v, metadata) for v in value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return True
+    if metadata.get("automatic") is not None and value == metadata["automatic"]:
+        return True
+    low, high = metadata.get("minimum"), metadata.get("maximum")
+    if low is not None and not (value > low if metadata.get("exclusive_minimum") else value >= low):
+        return False
+    if high is not None and not (value < high if metadata.get("exclusive_maximum") else value <= high):
+        return False
+    return True
 
 
 def help_for(cls: type, name: str) -> str:
-    """``--help`` text for parameter ``name`` of ``cls``, with units and default."""
+    """``--help`` text for parameter ``name`` of ``cls``: help, units, range and default."""
     f = {f.name: f for f in dataclasses.fields(cls)}[name]
-    units = f" [{f.metadata['units']}]" if f.metadata.get("units") else ""
-    return f"{f.metadata.get('help', '')}{units}"
+    return describe_field(f)
+
+
+def describe_field(f: dataclasses.Field) -> str:
+    """A declaration in one line: ``help (units; default D; range R; one of: ...)``."""
+    meta = f.metadata
+    # units in the parentheses, not in [brackets]: rich reads "[s]" in --help as markup
+    notes = [meta["units"]] if meta.get("units") else []
+    notes.append(f"default {_default_text(f.default)}")
+    if describe_bounds(meta):
+        notes.append(describe_bounds(meta))
+    if meta.get("choices"):
+        notes.append("one of: " + ", ".join(repr(c) if not c else c for c in meta["choices"]))
+    return f"{meta.get('help', '')} ({'; '.join(notes)})"
+
+
+def _default_text(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return repr(value) if not value else value
+    return _number(value)
 
 
 #: Largest config file read, bytes, and its deepest nesting of tables and arrays.
@@ -130,6 +264,20 @@ def _coerce(cls: type, name: str, kind: Any, value: Any, where: str) -> Any:
     raise ConfigError(f"{where}{name}={value!r} must be of type {getattr(kind, '__name__', kind)}")
 
 
+def check_value(cls: type, name: str, value: Any, where: str = "", hints: Mapping | None = None) -> Any:
+    """``value`` for parameter ``name`` of ``cls``, type-checked, finite and within its declared bounds.
+
+    The one check every layer goes through (TOML file, flags, :func:`resolve`);
+    its :class:`ConfigError` names the parameter and the value.
+    """
+    hints = typing.get_type_hints(cls) if hints is None else hints
+    coerced = _coerce(cls, name, hints[name], value, where)
+    metadata = {f.name: f for f in dataclasses.fields(cls)}[name].metadata
+    if not within_bounds(coerced, metadata):
+        raise ConfigError(f"{where}{name}={value!r} must be {describe_bounds(metadata)}")
+    return coerced
+
+
 def resolve(cls: type[P], *layers: Mapping | None, where: str = "") -> P:
     """Merge layers (lowest priority first) over ``cls``'s defaults, with validation.
 
@@ -143,7 +291,7 @@ def resolve(cls: type[P], *layers: Mapping | None, where: str = "") -> P:
             if key not in names:
                 raise ConfigError(f"{where}unknown parameter {key!r} (known: {', '.join(sorted(names))})")
             if value is not None:
-                values[key] = _coerce(cls, key, hints[key], value, where)
+                values[key] = check_value(cls, key, value, where, hints)
     instance = cls(**values)
     check = getattr(instance, "validate", None)
     if callable(check):
@@ -152,7 +300,15 @@ def resolve(cls: type[P], *layers: Mapping | None, where: str = "") -> P:
 
 
 def packaged_defaults() -> dict:
-    """The ``defaults.toml`` shipped with afmtool (generated from the parameter models)."""
+    """The ``defaults.toml`` shipped with afmtool (generated from the parameter models); a fresh copy."""
+    import copy
+
+    return copy.deepcopy(_parsed_packaged_defaults())
+
+
+@functools.cache
+def _parsed_packaged_defaults() -> dict:
+    # parsed once per process: batch and the tests resolve many sections
     from importlib import resources
 
     text = resources.files("afmtool.config").joinpath("defaults.toml").read_text(encoding="utf-8")
@@ -190,6 +346,7 @@ def section_to_toml(section: str, instance: Any, *, comments: bool = True) -> st
         if comments and f.metadata.get("help"):
             units = f" [{f.metadata['units']}]" if f.metadata.get("units") else ""
             choices = f" (one of: {', '.join(f.metadata['choices'])})" if f.metadata.get("choices") else ""
-            lines.append(f"# {f.metadata['help']}{units}{choices}")
+            bounds = f" ({describe_bounds(f.metadata)})" if describe_bounds(f.metadata) else ""
+            lines.append(f"# {f.metadata['help']}{units}{choices}{bounds}")
         lines.append(f"# {f.name} = (unset)" if value is None else f"{f.name} = {_toml_value(value)}")
     return "\n".join(lines) + "\n"

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from afmtool.config import describe_bounds, within_bounds
+from afmtool.config import field as declare_parameter
 from afmtool.errors import ConfigError
 from afmtool.io.capture import CaptureInfo, ChannelSpec
 
@@ -132,17 +134,14 @@ def param(
 
     Use as ``duration_s: float = param(0.05, "capture length", "s", minimum=0,
     exclusive_minimum=True)``.  ``minimum``/``maximum`` apply to numbers and
-    to every element of a tuple; ``choices`` to strings.
+    to every element of a tuple; ``choices`` to strings.  The declaration is
+    :func:`afmtool.config.field`'s, the one the commands' parameters use, so
+    ``defaults.toml``, the JSON schemas and the bounds check read both alike.
     """
-    meta: dict[str, Any] = {"help": help, "units": units}
-    if choices is not None:
-        meta["choices"] = tuple(choices)
-    if minimum is not None:
-        meta["minimum"] = minimum
-        meta["exclusive_minimum"] = exclusive_minimum
-    if maximum is not None:
-        meta["maximum"] = maximum
-    return dataclasses.field(default=default, metadata=MappingProxyType(meta))
+    return declare_parameter(
+        default, help, units, tuple(choices) if choices is not None else None,
+        minimum=minimum, maximum=maximum, exclusive_minimum=exclusive_minimum,
+    )
 
 
 @dataclass(frozen=True)
@@ -205,17 +204,10 @@ def _coerce(name: str, kind: str, value: Any) -> Any:
 
 
 def _check_bounds(name: str, value: Any, meta: Mapping) -> None:
-    values = value if isinstance(value, tuple) else (value,)
-    if "choices" in meta and value not in meta["choices"]:
+    if meta.get("choices") and value not in meta["choices"]:
         raise ConfigError(f"parameter {name}={value!r} must be one of {', '.join(map(repr, meta['choices']))}")
-    low = meta.get("minimum")
-    high = meta.get("maximum")
-    for v in values:
-        if low is not None and (v <= low if meta.get("exclusive_minimum") else v < low):
-            bound = ">" if meta.get("exclusive_minimum") else ">="
-            raise ConfigError(f"parameter {name}={value!r} must be {bound} {low:g}")
-        if high is not None and v > high:
-            raise ConfigError(f"parameter {name}={value!r} must be <= {high:g}")
+    if not within_bounds(value, meta):
+        raise ConfigError(f"parameter {name}={value!r} must be {describe_bounds(meta)}")
 
 
 def validate_parameters(params: Any) -> None:

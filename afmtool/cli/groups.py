@@ -1,0 +1,192 @@
+"""Option groups declared once and added to each command's signature.
+
+A command lists the groups it takes::
+
+    @with_options(param_flags(ReepParams), output_options(stream=True), capture_options())
+    def reep(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: CaptureSource) -> None:
+
+:func:`with_options` replaces the keyword parameters ``flags``, ``output`` and
+``source`` in the signature typer reads (``__signature__``) by the options of
+each group, and hands the command one value per group: the flag -> field
+mapping of a parameter model (:mod:`afmtool.cli.param_flags`), the output
+options as a :class:`CommandOutput`, the capture options as a
+:class:`CaptureSource`.  Flag names, short options, defaults and help stay
+those of :mod:`afmtool.cli.options` and :mod:`afmtool.cli.calibration_options`.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from afmtool.cli.calibration_options import CaptureCalibration, DriveOpt, InvolsOpt, UnitsOpt, ZSensitivityOpt
+from afmtool.cli.options import (
+    ChannelOpt,
+    ConfigOpt,
+    JsonOpt,
+    OutOpt,
+    QuietOpt,
+    SampleRateOpt,
+    SegmentOpt,
+    StreamFormatOpt,
+    StreamOpt,
+    StreamOutOpt,
+    TopicOpt,
+)
+
+__all__ = [
+    "OptionGroup",
+    "option",
+    "with_options",
+    "CaptureSource",
+    "capture_options",
+    "CommandOutput",
+    "output_options",
+]
+
+
+class OptionGroup(NamedTuple):
+    """Options added to a command, and how their values become the one value it receives.
+
+    ``keyword`` is the command's keyword parameter that receives
+    ``collect({option name: value})``.
+    """
+
+    keyword: str
+    parameters: tuple[inspect.Parameter, ...]
+    collect: Callable[[dict], Any]
+
+
+def option(name: str, annotation: Any, default: Any = None) -> inspect.Parameter:
+    """A keyword-only parameter of a generated signature (typer reads its ``Annotated`` option)."""
+    return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
+
+
+def _resolved(fn: Callable) -> list[inspect.Parameter]:
+    """The function's parameters with their annotations evaluated (``from __future__ import annotations``)."""
+    hints = typing.get_type_hints(fn, include_extras=True)
+    return [p.replace(annotation=hints.get(p.name, p.annotation)) for p in inspect.signature(fn).parameters.values()]
+
+
+def with_options(*groups: OptionGroup) -> Callable[[Callable], Callable]:
+    """Decorate a command: each group's options join its signature, collected into the group's keyword."""
+
+    def decorate(fn: Callable) -> Callable:
+        keywords = {g.keyword for g in groups}
+        own = [p for p in _resolved(fn) if p.name not in keywords]
+        missing = keywords - {p.name for p in inspect.signature(fn).parameters.values()}
+        if missing:
+            raise TypeError(f"{fn.__name__} takes no parameter {', '.join(sorted(missing))} for its option groups")
+        added = [p for g in groups for p in g.parameters]
+        names = [p.name for p in own + added]
+        if len(names) != len(set(names)):
+            raise TypeError(f"{fn.__name__}: option names repeat: {sorted({n for n in names if names.count(n) > 1})}")
+        positional = [p for p in own if p.kind is not inspect.Parameter.KEYWORD_ONLY]
+        keyword_only = [p for p in own if p.kind is inspect.Parameter.KEYWORD_ONLY]
+
+        @functools.wraps(fn)
+        def command(*args, **kwargs):
+            for group in groups:
+                kwargs[group.keyword] = group.collect({p.name: kwargs.pop(p.name, p.default) for p in group.parameters})
+            return fn(*args, **kwargs)
+
+        parameters = positional + keyword_only + added
+        command.__signature__ = inspect.Signature(parameters, return_annotation=None)
+        command.__annotations__ = {p.name: p.annotation for p in parameters}
+        return command
+
+    return decorate
+
+
+class CaptureSource(NamedTuple):
+    """How to open a capture: ``--channel``, ``--topic``, ``--sample-rate``, ``--segment`` and calibration."""
+
+    channel: list[str] | None = None
+    topic: list[str] | None = None
+    sample_rate: float | None = None
+    units: list[str] | None = None
+    invols: float | None = None
+    z_sensitivity: float | None = None
+    drive: str | None = None
+    segment: str | None = None
+
+    def calibration(
+        self, free_air: str | None = None, *, accepts_drive: bool = False, raw_deflection: bool = False
+    ) -> CaptureCalibration:
+        """The :class:`CaptureCalibration` of these options (``free_air`` places a synthesised drive's phases)."""
+        return CaptureCalibration(
+            self.units, self.invols, self.z_sensitivity, self.drive, free_air,
+            accepts_drive=accepts_drive, raw_deflection=raw_deflection,
+        )
+
+    def args(self, calibration: CaptureCalibration | None = None) -> tuple:
+        """``(channel, topic, sample_rate, calibration, segment)``, as open_input and run_capture_analysis take them."""
+        return self.channel, self.topic, self.sample_rate, calibration or self.calibration(), self.segment
+
+    def open(self, path: str, calibration: CaptureCalibration | None = None, **kwargs):
+        """:func:`afmtool.cli.common.open_input` on ``path`` with these options (a context manager)."""
+        from afmtool.cli.common import open_input
+
+        channel, topic, sample_rate, calibration, segment = self.args(calibration)
+        return open_input(path, channel, topic, sample_rate, calibration, segment, **kwargs)
+
+
+_CAPTURE_OPTIONS = (
+    ("channel", ChannelOpt),
+    ("topic", TopicOpt),
+    ("sample_rate", SampleRateOpt),
+    ("units", UnitsOpt),
+    ("invols", InvolsOpt),
+    ("z_sensitivity", ZSensitivityOpt),
+    ("drive", DriveOpt),
+    ("segment", SegmentOpt),
+)
+
+
+def capture_options(
+    *,
+    invols: bool = True,
+    z_sensitivity: bool = True,
+    drive: bool = True,
+    segment: bool = True,
+    keyword: str = "source",
+) -> OptionGroup:
+    """The capture options (channel, topic, sample-rate, units, invols, z-sensitivity, drive, segment)."""
+    left_out = {name for name, wanted in
+                (("invols", invols), ("z_sensitivity", z_sensitivity), ("drive", drive), ("segment", segment))
+                if not wanted}
+    parameters = tuple(option(name, annotation) for name, annotation in _CAPTURE_OPTIONS if name not in left_out)
+    return OptionGroup(keyword, parameters, lambda values: CaptureSource(**values))
+
+
+class CommandOutput(NamedTuple):
+    """``--out``, ``--json``, ``--config``, ``--quiet`` (and ``--stream``, ``--stream-format``)."""
+
+    out: Path | None
+    json_output: bool = False
+    config: Path | None = None
+    quiet: bool = False
+    stream: bool = False
+    stream_format: str = "csv"
+
+    @property
+    def stream_mode(self) -> tuple[bool, str]:
+        """``(--stream, --stream-format)``, as run_capture_analysis takes them."""
+        return self.stream, self.stream_format
+
+
+def output_options(
+    default_out: Path | None = None, *, stream: bool = False, json: bool = True, keyword: str = "output"
+) -> OptionGroup:
+    """The output options; with ``stream``, ``--out`` is optional and ``--stream``/``--stream-format`` join."""
+    parameters = [option("out", StreamOutOpt, None) if stream else option("out", OutOpt, default_out)]
+    if stream:
+        parameters += [option("stream", StreamOpt, False), option("stream_format", StreamFormatOpt, "csv")]
+    if json:
+        parameters.append(option("json_output", JsonOpt, False))
+    parameters += [option("config", ConfigOpt, None), option("quiet", QuietOpt, False)]
+    return OptionGroup(keyword, tuple(parameters), lambda values: CommandOutput(**values))

@@ -1,0 +1,131 @@
+"""JSON schemas of the config sections, generated from the parameter declarations.
+
+One schema per ``[section]`` of ``defaults.toml`` (every command's parameter
+model and every ``simulate.SCENARIO``), written to ``schemas/params/`` at the
+repository root.  Regenerate with::
+
+    python -m afmtool.config.schema            # writes schemas/params/*.schema.json
+    python -m afmtool.config.schema --check    # exit 1 if any file is stale
+
+A test (``tests/test_params_model.py``) checks that the committed files are current.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+from afmtool.config import describe_bounds
+
+__all__ = ["section_schema", "all_schemas", "schema_filename", "write_schemas", "SCHEMA_DIR"]
+
+#: Where the generated schemas live (beside ``capture-metadata.schema.json``).
+SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas" / "params"
+
+_JSON_TYPES = {float: "number", int: "integer", bool: "boolean", str: "string"}
+
+
+def _json_type(kind: Any) -> dict:
+    if kind in _JSON_TYPES:
+        return {"type": _JSON_TYPES[kind]}
+    origin = typing.get_origin(kind)
+    if origin is tuple:
+        (item, *_rest) = typing.get_args(kind)
+        return {"type": "array", "items": _json_type(item)}
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        return {"anyOf": [_json_type(a) for a in args] + [{"type": "null"}]}
+    raise TypeError(f"no JSON type for {kind!r}")
+
+
+def _bounds(metadata: typing.Mapping) -> dict:
+    bounds: dict[str, Any] = {}
+    if metadata.get("minimum") is not None:
+        bounds["exclusiveMinimum" if metadata.get("exclusive_minimum") else "minimum"] = metadata["minimum"]
+    if metadata.get("maximum") is not None:
+        bounds["exclusiveMaximum" if metadata.get("exclusive_maximum") else "maximum"] = metadata["maximum"]
+    return bounds
+
+
+def _property(f: dataclasses.Field, kind: Any) -> dict:
+    meta = f.metadata
+    prop: dict[str, Any] = {"description": meta.get("help", ""), **_json_type(kind)}
+    default = f.default
+    prop["default"] = list(default) if isinstance(default, tuple) else default
+    if meta.get("units"):
+        prop["x-units"] = meta["units"]
+    if meta.get("choices"):
+        prop["enum"] = list(meta["choices"])
+    bounds = _bounds(meta)
+    if bounds:
+        target = prop["items"] if prop.get("type") == "array" else prop
+        if meta.get("automatic") is not None:
+            target["anyOf"] = [{"const": meta["automatic"]}, bounds]
+        else:
+            target.update(bounds)
+        prop["x-range"] = describe_bounds(meta)
+    if meta.get("flag"):
+        prop["x-flag"] = meta["flag"]
+    return prop
+
+
+def section_schema(section: str, cls: type) -> dict:
+    """The JSON schema (draft 2020-12) of one config section's table."""
+    hints = typing.get_type_hints(cls)
+    doc = (cls.__doc__ or "").strip().splitlines()
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": f"[{section}]",
+        "description": doc[0] if doc else "",
+        "type": "object",
+        "additionalProperties": False,
+        "properties": {f.name: _property(f, hints[f.name]) for f in dataclasses.fields(cls)},
+    }
+
+
+def schema_filename(section: str) -> str:
+    return f"{section}.schema.json"
+
+
+def all_schemas() -> dict[str, dict]:
+    """File name -> schema, for every section of the packaged defaults."""
+    from afmtool.config.defaults import parameter_sections
+
+    return {schema_filename(name): section_schema(name, type(value)) for name, value in parameter_sections().items()}
+
+
+def _text(schema: dict) -> str:
+    return json.dumps(schema, indent=2, ensure_ascii=False) + "\n"
+
+
+def write_schemas(directory: Path = SCHEMA_DIR, *, check: bool = False) -> list[str]:
+    """Write (or with ``check``, compare) every schema; returns the names that were stale."""
+    schemas = all_schemas()
+    stale = []
+    for name, schema in schemas.items():
+        path = directory / name
+        text = _text(schema)
+        if not path.is_file() or path.read_text(encoding="utf-8") != text:
+            stale.append(name)
+            if not check:
+                directory.mkdir(parents=True, exist_ok=True)
+                path.write_text(text, encoding="utf-8")
+    extra = sorted(p.name for p in directory.glob("*.schema.json") if p.name not in schemas) if directory.is_dir() else []
+    stale += extra
+    if not check:
+        for name in extra:
+            (directory / name).unlink()
+    return stale
+
+
+if __name__ == "__main__":
+    stale = write_schemas(check="--check" in sys.argv[1:])
+    if "--check" in sys.argv[1:]:
+        print("\n".join(f"stale: schemas/params/{name}" for name in stale) or "schemas/params is current")
+        sys.exit(1 if stale else 0)
+    print(f"wrote {len(stale)} schema(s) to {SCHEMA_DIR}")
