@@ -248,7 +248,7 @@ def _click_options() -> dict[tuple[str, ...], dict[str, object]]:
 
     root = typer.main.get_command(app)
     options = {}
-    for section, (words, _) in COMMANDS.items():
+    for _section, (words, _) in COMMANDS.items():
         command = root
         for word in words:
             command = command.commands[word]

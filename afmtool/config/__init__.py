@@ -28,14 +28,28 @@ from typing import Any, TypeVar
 
 from afmtool.errors import ConfigError
 
-__all__ = ["field", "check_value", "describe_bounds", "describe_field", "parse_bounds", "within_bounds", "load_toml", "packaged_defaults", "resolve", "resolve_from", "section_to_toml", "parameters_dict", "help_for"]
+__all__ = [
+    "field",
+    "check_value",
+    "describe_bounds",
+    "describe_field",
+    "parse_bounds",
+    "within_bounds",
+    "load_toml",
+    "packaged_defaults",
+    "resolve",
+    "resolve_from",
+    "section_to_toml",
+    "parameters_dict",
+    "help_for",
+]
 
 P = TypeVar("P")
 
 
 def field(
     default: Any,
-    help: str,  # noqa: A002 - the metadata key the CLI, TOML and schema read
+    help: str,
     units: str = "",
     choices: tuple[str, ...] | None = None,
     *,
