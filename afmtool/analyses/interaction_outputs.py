@@ -18,8 +18,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
-import h5py
 import numpy as np
+
+from afmtool.io.result_files import ResultFile, open_result_file
 
 __all__ = ["add_interaction_series"]
 
@@ -27,7 +28,7 @@ _NM_PER_UNIT = {"pm": 1e-3, "nm": 1.0, "um": 1e3, "µm": 1e3, "μm": 1e3, "mm": 
 _BLOCK = 1 << 20
 
 
-def _free_reference(f: h5py.File, results: Mapping) -> tuple[float, float, str]:
+def _free_reference(f: ResultFile, results: Mapping) -> tuple[float, float, str]:
     segment = results.get("free_air_segment_s")
     model = results.get("free_air_model") or {}
     if segment:
@@ -56,17 +57,14 @@ def add_interaction_series(path: Path, results: Mapping, metadata: Mapping, ampl
     scale = _NM_PER_UNIT.get(str(amplitude_units).strip())
     if scale is None:
         return {"written": False, "reason": f"the amplitude is in {amplitude_units!r}, not a length (no InvOLS applied)"}
-    with h5py.File(path, "r+") as f:
+    with open_result_file(path, mode="r+", required=("t", "f0_hz", "q", "amplitude"), what="reep output") as f:
         try:
             free_f0, free_q, source = _free_reference(f, results)
         except ValueError:
             return {"written": False, "reason": "no free-air reference f0, Q"}
         n = f["t"].shape[0]
-        group = f.create_group("interaction")
         units = InteractionQuantities.units()
-        datasets = {name: group.create_dataset(name, shape=(n,), dtype="f8") for name in units}
-        for name, ds in datasets.items():
-            ds.attrs["units"] = units[name]
+        datasets = f.create_columns("interaction", units, n)
         for start in range(0, n, _BLOCK):
             stop = min(n, start + _BLOCK)
             out = interaction_quantities(

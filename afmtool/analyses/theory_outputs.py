@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from afmtool.analyses.theory import compare_with_theory
@@ -14,6 +12,7 @@ from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import AveragingParams, TheoryCompareParams
 from afmtool.errors import InputError
+from afmtool.io.reep_results import ReepResults, open_reep_results
 from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.force_spec import format_force_spec, parse_force_spec
@@ -109,32 +108,27 @@ def _force_from(metadata: Mapping, force_set: str, spec: str = "") -> tuple[Piec
 def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: Mapping) -> dict:
     """Put a REEP run beside averaging theory along its (simulated) force curve."""
     params = resolve_from(TheoryCompareParams, "theory.compare", load_toml(config) if config else None, flags)
-    report_path, series_path = reep_dir / "report.json", reep_dir / "reep.h5"
-    if not report_path.is_file() or not series_path.is_file():
-        raise InputError(f"{reep_dir}: not a reep output folder (needs report.json and reep.h5)")
-    reep_report = json.loads(report_path.read_text())
-    capture = Path(reep_report["inputs"][0]["path"])
-    with h5py.File(series_path, "r") as f:
-        series = {name: f[name][()] for name in ("t", "f0_hz", "q", "amplitude")}
-        if "flag" in f:  # samples REEP flagged as untrustworthy are left out, as in its own summaries
-            trusted = f["flag"][()] == 0
-            series["f0_hz"] = np.where(trusted, series["f0_hz"], np.nan)
-            series["q"] = np.where(trusted, series["q"], np.nan)
-        z_series = (f["z"][()], _z_units(f)) if "z" in f else None
-    metadata, fs, truth_separation = _capture_side(capture, reep_report)
+    with open_reep_run(reep_dir) as reep:
+        series = reep_series(reep, ("t", "f0_hz", "q", "amplitude"))
+        # samples REEP flagged as untrustworthy are left out, as in its own summaries
+        series["f0_hz"], series["q"] = reep.file.trusted("f0_hz", slice(None)), reep.file.trusted("q", slice(None))
+        z_series = (reep.series["z"][()], reep.z_units) if "z" in reep.series else None
+        reep_results, report_path, series_path = reep.report, reep_dir / "report.json", reep.path
+        capture = reep_capture_path(reep)
+    metadata, fs, truth_separation = capture_side(capture, reep_results)
     force, force_name = _force_from(metadata, params.force_set, params.force)
-    cantilever_meta = metadata.get("cantilever") or reep_report["results"]["free_air_model"]
+    cantilever_meta = metadata.get("cantilever") or reep_results["free_air_model"]
     cantilever = Cantilever(cantilever_meta["f0_hz"], cantilever_meta["q"])
     free_amplitude = metadata.get("drive", {}).get("free_amplitude_nm") or float(
         np.nanmedian(series["amplitude"][: max(1, len(series["t"]) // 20)])
     )
-    separation, separation_record = _separation(params, truth_separation, z_series, series, fs, reep_report,
+    separation, separation_record = _separation(params, truth_separation, z_series, series, fs, reep_results,
                                                 cantilever, force, free_amplitude)
-    decimate = reep_report["results"]["decimate"]
+    decimate = reep_results["decimate"]
     comparison = compare_with_theory(
         series["t"], series["f0_hz"], series["q"], series["amplitude"], separation,
-        drive_frequency_hz=reep_report["results"]["drive_frequency_hz"], cantilever=cantilever, force=force,
-        forgetting_factor=reep_report["results"]["forgetting_factor"] ** decimate,
+        drive_frequency_hz=reep_results["drive_frequency_hz"], cantilever=cantilever, force=force,
+        forgetting_factor=reep_results["forgetting_factor"] ** decimate,
         free_amplitude_nm=free_amplitude, amplitude_fraction=params.amplitude_fraction,
     )
     summary = comparison.summary()
@@ -147,45 +141,56 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
     with OutputDir(out) as staged:
         _plot_comparison(staged.path("compare.png"), series, separation, comparison)
         inputs = [input_record(report_path, "reep report"), input_record(series_path, "reep series")]
-        inputs += [input_record(capture)] if capture.is_file() else []
+        inputs += [input_record(capture)] if capture is not None and capture.is_file() else []
         return finish_run(staged, "theory compare", inputs, "theory.compare", params, results, warnings)
 
 
-def _z_units(series: h5py.File) -> str:
-    """Units of reep.h5's z; the force-curve tables carry them where the series does not."""
-    units = str(series["z"].attrs.get("units", ""))
-    for leg in ("approach", "retract"):
-        if not units and f"force_curve/{leg}/z" in series:
-            units = str(series[f"force_curve/{leg}/z"].attrs.get("units", ""))
-    return units
+def open_reep_run(reep_dir: Path) -> ReepResults:
+    """A finished ``reep`` output folder: reep.h5 with the report.json beside it."""
+    reep_dir = Path(reep_dir)
+    if not (reep_dir / "report.json").is_file() or not (reep_dir / "reep.h5").is_file():
+        raise InputError(f"{reep_dir}: not a reep output folder (needs report.json and reep.h5)")
+    reep = open_reep_results(reep_dir, where="reep output")
+    if not isinstance(reep.report.get("drive_frequency_hz"), (int, float)):
+        reep.close()
+        raise InputError(f"{reep_dir / 'report.json'}: not the report of a reep run (no results.drive_frequency_hz)")
+    return reep
 
 
-def _capture_side(capture: Path, reep_report: Mapping) -> tuple[Mapping, float, np.ndarray | None]:
-    """(metadata, sample rate, /truth/separation_nm or None) of REEP's input capture."""
-    truth = None
-    if capture.suffix.lower() in (".h5", ".hdf5"):
-        try:
-            with h5py.File(capture, "r") as f:
-                metadata = json.loads(f.attrs.get("metadata", "{}"))
-                fs = float(f.attrs["sample_rate_hz"])
-                if "truth/separation_nm" in f:
-                    truth = f["truth/separation_nm"][()]
-            return metadata, fs, truth
-        except (OSError, KeyError, ValueError):
-            pass
-    if capture.is_file():
+def reep_series(reep: ReepResults, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The series ``names`` of an open REEP output, read whole."""
+    missing = [name for name in names if name not in reep.series]
+    if missing:
+        raise InputError(f"{reep.path}: no {', '.join(missing)} series")
+    return {name: reep.series[name][()] for name in names}
+
+
+def reep_capture_path(reep: ReepResults) -> Path | None:
+    """The capture the REEP run read (its report's first input), or None if the report names none."""
+    path = reep.inputs[0].get("path") if reep.inputs else None
+    return Path(path) if isinstance(path, str) and path != "-" else None
+
+
+def capture_side(capture: Path | None, reep_results: Mapping) -> tuple[Mapping, float, np.ndarray | None]:
+    """(metadata, sample rate, /truth/separation_nm or None) of REEP's input capture.
+
+    The capture is opened through the reader registry, so any format REEP
+    read will do; only its metadata and ground truth are read, not its samples.
+    """
+    if capture is not None and capture.exists():
         from afmtool.io.registry import open_capture
 
         reader = open_capture(capture)
         try:
-            return dict(reader.info.metadata), float(reader.info.sample_rate_hz), None
+            truth = reader.truth().get("separation_nm") if "separation_nm" in reader.info.truth_names else None
+            return dict(reader.info.metadata), float(reader.info.sample_rate_hz), truth
         finally:
             reader.close()
     # the capture moved: what the REEP report recorded is enough for z-piezo separations
-    return {}, float(reep_report["results"].get("sample_rate_hz") or 0.0), None
+    return {}, float(reep_results.get("sample_rate_hz") or 0.0), None
 
 
-def _separation(params, truth, z_series, series, fs, reep_report, cantilever, force, free_amplitude):
+def _separation(params, truth, z_series, series, fs, reep_results, cantilever, force, free_amplitude):
     """The separation per REEP sample and a record of where it came from."""
     from afmtool.analyses.theory_separation import separation_from_z, z_sensitivity_nm
 
@@ -200,7 +205,7 @@ def _separation(params, truth, z_series, series, fs, reep_report, cantilever, fo
     z, units = z_series
     estimate = separation_from_z(
         z, series["amplitude"], nm_per_unit=z_sensitivity_nm(units, params.z_sensitivity),
-        drive_frequency_hz=reep_report["results"]["drive_frequency_hz"], cantilever=cantilever, force=force,
+        drive_frequency_hz=reep_results["drive_frequency_hz"], cantilever=cantilever, force=force,
         free_amplitude_nm=free_amplitude, contact_z=float(params.contact_z) if params.contact_z else None,
     )
     return estimate.separation_nm, {

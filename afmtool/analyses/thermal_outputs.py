@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
@@ -34,6 +33,7 @@ from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.frequency_response import FrequencyResponse, frf_table
 from afmtool.io.capture import CaptureReader
 from afmtool.io.chunks import iter_chunks, require_channels
+from afmtool.io.gamma_results import GammaFile, read_gamma_ir_ts
 from afmtool.io.results import ResultWriter
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
@@ -63,41 +63,6 @@ def load_thermal_model(path: Path) -> ThermalModel:
     except (OSError, json.JSONDecodeError) as exc:
         raise InputError(f"{path}: cannot read the thermal sensor model ({exc})") from None
     return ThermalModel.from_dict(data.get("thermal_sensor", data))
-
-
-class GammaFile(NamedTuple):
-    """Γ_IR,ts (µA/nm) from ``gamma.h5`` and the mean thermal current of its sweep (µA; NaN if not stored)."""
-
-    ir_ts: FrequencyResponse
-    thermal_current_mean_ua: float
-
-
-def read_gamma_ir_ts(path: Path) -> GammaFile:
-    """Γ_IR,ts from the ``gamma.h5`` of ``identify gamma`` (or its folder)."""
-    import h5py
-
-    path = Path(path)
-    if path.is_dir():
-        path = path / "gamma.h5"
-    try:
-        with h5py.File(path, "r") as h5:
-            frf = h5["frf"]
-            h = np.asarray(frf["ir_ts"][()], dtype=np.complex128)
-            std = np.asarray(frf["magnitude_std_ir_ts"][()], dtype=np.float64)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                fr = FrequencyResponse(
-                    frequency_hz=np.asarray(frf["frequency_hz"][()], dtype=np.float64),
-                    response=h,
-                    coherence=np.asarray(frf["coherence_ir_ts"][()], dtype=np.float64),
-                    magnitude_std=std,
-                    phase_std_rad=std / np.abs(h),
-                    method="h1",
-                )
-            return GammaFile(fr, float(h5.attrs.get("thermal_current_mean_ua", np.nan)))
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such gamma.h5") from None
-    except (OSError, KeyError) as exc:
-        raise InputError(f"{path}: not a gamma.h5 from 'identify gamma' ({exc})") from None
 
 
 def _scale(reader: CaptureReader, name: str, kind: str, warnings: list) -> float:
