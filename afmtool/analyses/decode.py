@@ -229,12 +229,9 @@ class DecodeResult:
 
 def _nominal_interval(info: CaptureInfo, params: DecodeParams) -> tuple[float, float] | None:
     interval = parse_interval(params.nominal, "--nominal")
-    if interval is None and "nominal" in info.metadata:
-        meta = info.metadata["nominal"]
-        try:
-            interval = (float(meta["start_s"]), float(meta["end_s"]))
-        except (KeyError, TypeError, ValueError):
-            raise InputError("metadata nominal must hold start_s and end_s (s)") from None
+    nominal = info.capture_metadata.nominal  # validated when the capture was opened
+    if interval is None and nominal is not None:
+        interval = (nominal.start_s, nominal.end_s)
     return interval
 
 
@@ -254,9 +251,9 @@ def _lever_voltages(data: Mapping[str, np.ndarray], params: DecodeParams, alpha_
 def _actuation_hz(info: CaptureInfo, params: DecodeParams, voltage: np.ndarray) -> tuple[float, str]:
     if params.actuation_hz:
         return params.actuation_hz, "parameter"
-    drive = info.metadata.get("drive", {})
-    if isinstance(drive, Mapping) and "frequency_hz" in drive:
-        return float(drive["frequency_hz"]), "metadata"
+    metadata_hz = info.capture_metadata.drive.frequency_hz
+    if metadata_hz is not None:
+        return metadata_hz, "metadata"
     from afmtool.estimators.filters import welch_psd
 
     v2 = voltage * voltage

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afmtool.io.metadata import CaptureMetadata
 from afmtool.io.result_files import ResultFile, open_result_file
 
 __all__ = ["add_interaction_series"]
@@ -45,12 +46,11 @@ def _free_reference(f: ResultFile, results: Mapping) -> tuple[float, float, str]
     raise ValueError("no free-air reference")
 
 
-def add_interaction_series(path: Path, results: Mapping, metadata: Mapping, amplitude_units: str) -> dict:
+def add_interaction_series(path: Path, results: Mapping, metadata: CaptureMetadata, amplitude_units: str) -> dict:
     """Write ``/interaction/...`` into the reep.h5 at ``path``; return the report section."""
     from afmtool.models.interaction import InteractionQuantities, interaction_quantities
 
-    cantilever = metadata.get("cantilever") if isinstance(metadata.get("cantilever"), Mapping) else {}
-    k = cantilever.get("spring_constant_n_per_m")
+    k = metadata.cantilever.spring_constant_n_per_m
     if not k:
         return {"written": False, "reason": "no spring constant (metadata cantilever.spring_constant_n_per_m): "
                                               "k_e, the force gradient, damping, Phi_c, Phi_d, energy and virial need it"}

@@ -185,7 +185,7 @@ def _free_amplitude(segment: FreeAirSegment | None, drive_hz: float, fs: float, 
 def _amplitude_upper(params: ProbeLossParams, reader: CaptureReader, free_amplitude: float | None):
     if params.amplitude_upper:
         return params.amplitude_upper, None
-    setpoint = params.setpoint or reader.info.metadata.get("controller", {}).get("setpoint_nm")
+    setpoint = params.setpoint or reader.info.capture_metadata.controller.setpoint_nm
     if setpoint is None or free_amplitude is None:
         # the baseline is only a comparison: without A_upper the index still runs
         return None, None
@@ -212,8 +212,8 @@ def prepare_probeloss(
     design = _design(params, model, fs, period)
     window = index_window(fs, drive_hz, params.window_periods)
     calibration = _calibrate(params, design, window, segment)
-    drive = reader.info.metadata.get("drive", {})
-    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, drive.get("sideband_offset_hz"))
+    sideband_offset_hz = reader.info.capture_metadata.drive.sideband_offset_hz
+    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, sideband_offset_hz)
     free_amplitude = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
     upper, setpoint = _amplitude_upper(params, reader, free_amplitude)
     warnings = list(route.warnings)
@@ -495,7 +495,7 @@ def run_probeloss(
     fs = info.sample_rate_hz
     chunks: Iterator[Chunk] = iter_chunks(reader, ("deflection", "dither"), params.chunk_samples)
     setup, chunks = prepare_probeloss(reader, params, chunks, model)
-    geometry = ScanGeometry.from_metadata(info.metadata)
+    geometry = ScanGeometry.from_scan(info.capture_metadata.scan)
     state = _Pass(setup, fs, geometry)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="afmtool-lockin") as pool:
         # the reader runs ahead in its own thread (h5py and the numba kernels overlap)

@@ -198,8 +198,7 @@ def _segment_levels(segment, params: ReepParams, numerator, lockin, bandpass_fac
 
 def _metadata_levels(reader: CaptureReader) -> FreeAirLevels:
     """Without a free-air segment: the free amplitude from metadata (when the deflection is in nm)."""
-    drive = reader.info.metadata.get("drive", {})
-    amplitude = drive.get("free_amplitude_nm")
+    amplitude = reader.info.capture_metadata.drive.free_amplitude_nm
     if amplitude and reader.info.units("deflection") == "nm":
         return FreeAirLevels(float(amplitude), None, "metadata")
     return FreeAirLevels(None, None, "none")
@@ -250,18 +249,18 @@ def run_reep(
     chunks = replay_held([first], chunks)
     del first  # the stream hands it on once; keep no reference for the whole run
 
-    drive = info.metadata.get("drive", {})
+    metadata_drive_hz = info.capture_metadata.drive.frequency_hz
     if params.drive_frequency_hz:
         drive_hz = params.drive_frequency_hz
-    elif "frequency_hz" in drive:
-        drive_hz = float(drive["frequency_hz"])
+    elif metadata_drive_hz is not None:
+        drive_hz = metadata_drive_hz
     elif model is not None:
         drive_hz = model.f0_hz
     else:
         drive_hz = _spectral_peak_hz(first_deflection, fs)
     if not 0 < drive_hz < fs / 2:
         raise InputError(f"drive frequency {drive_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
-    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, drive.get("sideband_offset_hz"))
+    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, info.capture_metadata.drive.sideband_offset_hz)
     decimate = params.decimate or max(1, round(fs / drive_hz))
 
     numerator = model.numerator_at(fs) if (model is not None and params.use_input) else None
@@ -306,7 +305,7 @@ def run_reep(
     summaries = {name: _Summary() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
     flag_counter = FlagCounter()
     n_total = 0
-    geometry = ScanGeometry.from_metadata(info.metadata)
+    geometry = ScanGeometry.from_scan(info.capture_metadata.scan)
     image_acc = ImageAccumulator(geometry, _IMAGE_QUANTITIES) if geometry else None
     curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if z_mode else None
 

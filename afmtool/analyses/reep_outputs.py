@@ -56,7 +56,7 @@ def run_reep_command(
         results.update(_time_series(staged, reader, result, deflection_units))
         from afmtool.analyses.interaction_outputs import add_interaction_series
 
-        results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.metadata,
+        results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.capture_metadata,
                                                         deflection_units)
         if results["interaction"].get("written"):
             _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz)

@@ -86,8 +86,8 @@ class SyntheticDriveReader(ReaderBase):
         info = reader.info
         if "deflection" not in info.channel_names:
             raise InputError(f"{info.source}: --drive needs a deflection channel to fit the drive phases against")
-        if free_air_s is None and "free_air" in info.metadata:
-            free_air_s = (float(info.metadata["free_air"]["start_s"]), float(info.metadata["free_air"]["end_s"]))
+        if free_air_s is None and info.capture_metadata.free_air is not None:
+            free_air_s = (info.capture_metadata.free_air.start_s, info.capture_metadata.free_air.end_s)
         self._interval = free_air_s
         self.replaced_recorded = "dither" in info.channel_names
         channels = tuple(c for c in info.channels if c.name != "dither") + (ChannelSpec("dither", "V"),)
@@ -159,10 +159,10 @@ class SyntheticDriveReader(ReaderBase):
                 f"{self.info.source}: the free-air segment {self._interval[0]:g}:{self._interval[1]:g} s "
                 "for the drive phases runs past the end of the capture"
             )
-        cantilever = self.info.metadata.get("cantilever", {})
+        cantilever = self.info.capture_metadata.cantilever
         self.fit = fit_drive_phases(
-            segment, self.info.sample_rate_hz, start, self._lines, f0_hz=cantilever.get("f0_hz"),
-            q=cantilever.get("q"), hold=drive_hold(self.info.metadata),
+            segment, self.info.sample_rate_hz, start, self._lines, f0_hz=cantilever.f0_hz,
+            q=cantilever.q, hold=drive_hold(self.info.metadata),
         )
         self._fitted_on = (start / self.info.sample_rate_hz, end / self.info.sample_rate_hz)
 

@@ -237,6 +237,7 @@ def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: 
 def _load(reep_dir: Path, params) -> ForceFitData:
     from afmtool.analyses.theory import jump_neighbourhood
     from afmtool.analyses.theory_outputs import (
+        capture_cantilever,
         capture_side,
         open_reep_run,
         reep_capture_path,
@@ -254,15 +255,14 @@ def _load(reep_dir: Path, params) -> ForceFitData:
         units, reep_results, capture = reep.z_units, reep.report, reep_capture_path(reep)
     metadata, _, _ = capture_side(capture, reep_results)
     nm_per_unit = z_sensitivity_nm(units, params.z_sensitivity)
-    cantilever_meta = metadata.get("cantilever") or reep_results["free_air_model"]
-    cantilever = Cantilever(cantilever_meta["f0_hz"], cantilever_meta["q"])
+    cantilever = capture_cantilever(metadata, reep_results)
     t = series["t"]
     turn = int(np.argmin(series["z"] * np.sign(nm_per_unit)))
     approach = slice(0, turn + 1)
     s = {k: v[approach] for k, v in series.items()}
     start = max(2, len(s["t"]) // 20)
     early = slice(max(1, start // 4), start)  # free air, after REEP has converged
-    free_amplitude = metadata.get("drive", {}).get("free_amplitude_nm") or float(np.nanmedian(s["amplitude"][early]))
+    free_amplitude = metadata.drive.free_amplitude_nm or float(np.nanmedian(s["amplitude"][early]))
     # each series' scatter in free air, but not below what the model itself is good for: REEP's
     # off-sample accuracy (2 Hz, 2 % of Q) and 1 % of the free amplitude for the averaged amplitude
     # (the three-sine beat and the lock-in are outside averaging theory)

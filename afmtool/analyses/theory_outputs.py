@@ -12,6 +12,7 @@ from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import AveragingParams, TheoryCompareParams
 from afmtool.errors import InputError
+from afmtool.io.metadata import CaptureMetadata
 from afmtool.io.reep_results import ReepResults, open_reep_results
 from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
@@ -93,16 +94,14 @@ def chosen_force(spec: str, force_set: str) -> tuple[PiecewiseLinearForce, str]:
     return THESIS_FORCE_SETS[force_set], force_set
 
 
-def _force_from(metadata: Mapping, force_set: str, spec: str = "") -> tuple[PiecewiseLinearForce, str]:
+def _force_from(metadata: CaptureMetadata, force_set: str, spec: str = "") -> tuple[PiecewiseLinearForce, str]:
     if spec or force_set:
         return chosen_force(spec, force_set)
-    meta = metadata.get("force")
-    if not meta:
+    meta = metadata.force
+    if meta is None:
         raise InputError("the capture has no force metadata; give --force-set")
-    force = PiecewiseLinearForce(
-        meta["d_nm"], meta["omega_a2_per_s2"], meta["omega_b2_per_s2"], meta["c_a_per_s"], meta["c_b_per_s"]
-    )
-    return force, meta.get("set", "metadata")
+    force = PiecewiseLinearForce(meta.d_nm, meta.omega_a2_per_s2, meta.omega_b2_per_s2, meta.c_a_per_s, meta.c_b_per_s)
+    return force, meta.set or "metadata"
 
 
 def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: Mapping) -> dict:
@@ -117,9 +116,8 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
         capture = reep_capture_path(reep)
     metadata, fs, truth_separation = capture_side(capture, reep_results)
     force, force_name = _force_from(metadata, params.force_set, params.force)
-    cantilever_meta = metadata.get("cantilever") or reep_results["free_air_model"]
-    cantilever = Cantilever(cantilever_meta["f0_hz"], cantilever_meta["q"])
-    free_amplitude = metadata.get("drive", {}).get("free_amplitude_nm") or float(
+    cantilever = capture_cantilever(metadata, reep_results)
+    free_amplitude = metadata.drive.free_amplitude_nm or float(
         np.nanmedian(series["amplitude"][: max(1, len(series["t"]) // 20)])
     )
     separation, separation_record = _separation(params, truth_separation, z_series, series, fs, reep_results,
@@ -171,7 +169,7 @@ def reep_capture_path(reep: ReepResults) -> Path | None:
     return Path(path) if isinstance(path, str) and path != "-" else None
 
 
-def capture_side(capture: Path | None, reep_results: Mapping) -> tuple[Mapping, float, np.ndarray | None]:
+def capture_side(capture: Path | None, reep_results: Mapping) -> tuple[CaptureMetadata, float, np.ndarray | None]:
     """(metadata, sample rate, /truth/separation_nm or None) of REEP's input capture.
 
     The capture is opened through the reader registry, so any format REEP
@@ -183,11 +181,21 @@ def capture_side(capture: Path | None, reep_results: Mapping) -> tuple[Mapping, 
         reader = open_capture(capture)
         try:
             truth = reader.truth().get("separation_nm") if "separation_nm" in reader.info.truth_names else None
-            return dict(reader.info.metadata), float(reader.info.sample_rate_hz), truth
+            return reader.info.capture_metadata, float(reader.info.sample_rate_hz), truth
         finally:
             reader.close()
     # the capture moved: what the REEP report recorded is enough for z-piezo separations
-    return {}, float(reep_results.get("sample_rate_hz") or 0.0), None
+    return CaptureMetadata(), float(reep_results.get("sample_rate_hz") or 0.0), None
+
+
+def capture_cantilever(metadata: CaptureMetadata, reep_results: Mapping) -> Cantilever:
+    """The capture's cantilever f0, Q; without them in its metadata, the free-air model REEP used."""
+    if metadata.cantilever.f0_hz is not None and metadata.cantilever.q is not None:
+        return Cantilever(metadata.cantilever.f0_hz, metadata.cantilever.q)
+    model = reep_results.get("free_air_model")
+    if not isinstance(model, Mapping) or not all(isinstance(model.get(k), (int, float)) for k in ("f0_hz", "q")):
+        raise InputError("neither the capture's metadata nor the REEP report give the cantilever's f0 and Q")
+    return Cantilever(float(model["f0_hz"]), float(model["q"]))
 
 
 def _separation(params, truth, z_series, series, fs, reep_results, cantilever, force, free_amplitude):

@@ -215,7 +215,10 @@ def parse_metadata_json(text: str, where: str) -> dict:
         value = json.loads(text)
     except (json.JSONDecodeError, TypeError, RecursionError) as exc:
         raise InputError(f"{where}: metadata is not valid JSON ({exc})") from None
-    return validate_metadata(value)
+    try:
+        return validate_metadata(value)
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
 
 
 #: Deepest nesting of arrays and objects accepted in metadata JSON (the schema needs 3).
@@ -409,17 +412,18 @@ class SweepSegmentMetadata:
 class CaptureMetadata:
     """A capture's metadata, parsed and validated once where the capture is opened.
 
-    Every key the analyses read has a typed field: an absent object is a
-    record of Nones (``cantilever``, ``drive``, ``electrostatic``) or None
-    (the others).  ``raw`` is the metadata mapping itself, read-only, for
+    Every key the analyses read has a typed field.  An absent object whose
+    keys are all optional is a record of Nones (``cantilever``, ``drive``,
+    ``controller``, ``electrostatic``, ``ramp``); one with required keys is
+    None (``force``, ``free_air``, ``nominal``, ``scan``).  ``raw`` is the metadata mapping itself, read-only, for
     free-form keys (``instrument``, ``parameters``, ...).
     """
 
     cantilever: CantileverMetadata = CantileverMetadata()
     drive: DriveMetadata = DriveMetadata()
-    controller: ControllerMetadata | None = None
+    controller: ControllerMetadata = ControllerMetadata()
     electrostatic: ElectrostaticMetadata = ElectrostaticMetadata()
-    ramp: RampMetadata | None = None
+    ramp: RampMetadata = RampMetadata()
     force: ForceMetadata | None = None
     free_air: IntervalMetadata | None = None
     nominal: IntervalMetadata | None = None
@@ -449,9 +453,9 @@ class CaptureMetadata:
         return cls(
             cantilever=typed("cantilever", CantileverMetadata) or CantileverMetadata(),
             drive=typed("drive", DriveMetadata) or DriveMetadata(),
-            controller=typed("controller", ControllerMetadata),
+            controller=typed("controller", ControllerMetadata) or ControllerMetadata(),
             electrostatic=typed("electrostatic", ElectrostaticMetadata) or ElectrostaticMetadata(),
-            ramp=typed("ramp", RampMetadata),
+            ramp=typed("ramp", RampMetadata) or RampMetadata(),
             force=typed("force", ForceMetadata),
             free_air=typed("free_air", IntervalMetadata),
             nominal=typed("nominal", IntervalMetadata),
