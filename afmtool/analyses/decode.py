@@ -35,6 +35,7 @@ from afmtool.io.chunks import iter_chunks
 from afmtool.io.prefetch import prefetch
 from afmtool.io.results import ResultWriter
 from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, LeverVoltages, actuation_voltage
+from afmtool.report.results import JsonResults
 
 if TYPE_CHECKING:  # numba and scipy load when a decode runs, not on import
     from afmtool.estimators.lockin import LockIn
@@ -214,7 +215,7 @@ def ber_upper_bound(errors: int, compared: int, confidence: float = 0.95) -> flo
 
 
 @dataclass(frozen=True)
-class DecodeResult:
+class DecodeResult(JsonResults):
     """What :func:`run_decode` found; the command turns it into files and a report."""
 
     results: dict

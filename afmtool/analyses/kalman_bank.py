@@ -92,6 +92,7 @@ from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks, require_channels
 from afmtool.models.free_air import FreeAirModel
+from afmtool.report.results import JsonResults
 
 __all__ = ["SERIES_UNITS", "KalmanBankResult", "BankSetup", "build_bank", "run_kalman_bank"]
 
@@ -108,7 +109,7 @@ _CHANNELS = ("deflection", "dither", "z_piezo")
 
 
 @dataclass(frozen=True)
-class KalmanBankResult:
+class KalmanBankResult(JsonResults):
     """What :func:`run_kalman_bank` found; the command turns it into files and a report.
 
     Attributes

@@ -44,6 +44,7 @@ from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
 from afmtool.io.prefetch import prefetch
 from afmtool.models.free_air import FreeAirModel
+from afmtool.report.results import JsonResults
 
 if TYPE_CHECKING:  # numba-backed modules load when the command runs
     from afmtool.estimators.observer import ObserverDesign
@@ -116,7 +117,7 @@ class ProbeLossSetup:
 
 
 @dataclass(frozen=True)
-class ProbeLossResult:
+class ProbeLossResult(JsonResults):
     """What :func:`run_probeloss` found; the command turns it into files and a report."""
 
     results: dict

@@ -35,6 +35,7 @@ from afmtool.io.chunks import iter_chunks
 from afmtool.io.prefetch import prefetch
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import FreeAirModel
+from afmtool.report.results import JsonResults
 
 __all__ = ["ReepResult", "run_reep", "excitation_lines", "SERIES_UNITS"]
 
@@ -85,7 +86,7 @@ class _Summary:
 
 
 @dataclass(frozen=True)
-class ReepResult:
+class ReepResult(JsonResults):
     """What ``run_reep`` found; the command turns it into files and a report."""
 
     results: dict

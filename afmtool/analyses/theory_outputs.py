@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
-from afmtool.analyses.theory import compare_with_theory
+from afmtool.analyses.theory import TheoryComparison, compare_with_theory
 from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import AveragingParams, TheoryCompareParams
@@ -18,11 +20,42 @@ from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
-from afmtool.report.json_report import input_record
+from afmtool.report.json_report import input_record, to_jsonable
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
-__all__ = ["chosen_force", "run_averaging_command", "run_compare_command"]
+__all__ = ["TheoryCompareResult", "chosen_force", "run_averaging_command", "run_compare_command"]
+
+
+@dataclass(frozen=True)
+class TheoryCompareResult:
+    """What ``theory compare`` found.
+
+    Attributes
+    ----------
+    force_set : str
+        The force law compared with: a thesis set's name, "custom" or "metadata".
+    free_amplitude_nm : float
+        The free-air amplitude A0 the theory is evaluated for, nm.
+    separation : Mapping
+        Where the separation axis came from (``source``: "truth" or
+        "z-piezo", and for z-piezo its units, scale and contact point).
+    comparison : TheoryComparison
+        REEP against averaging theory (eqs. 4.9-4.10) along the curve.
+    passed : bool
+        Both error fractions within ``--tolerance``.
+    """
+
+    force_set: str
+    free_amplitude_nm: float
+    separation: Mapping
+    comparison: TheoryComparison
+    passed: bool
+
+    def to_json(self) -> dict:
+        """The ``results`` section of report.json."""
+        return to_jsonable({"force_set": self.force_set, "free_amplitude_nm": self.free_amplitude_nm,
+                            "separation": dict(self.separation), **self.comparison.summary(), "pass": self.passed})
 
 
 def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dict:
@@ -129,10 +162,9 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
         forgetting_factor=reep_results["forgetting_factor"] ** decimate,
         free_amplitude_nm=free_amplitude, amplitude_fraction=params.amplitude_fraction,
     )
-    summary = comparison.summary()
     passed = comparison.f0_error_fraction <= params.tolerance and comparison.q_error_fraction <= params.tolerance
-    results = {"force_set": force_name, "free_amplitude_nm": free_amplitude, "separation": separation_record,
-               **summary, "pass": passed}
+    result = TheoryCompareResult(force_name, float(free_amplitude), MappingProxyType(separation_record), comparison,
+                                 passed)
     warnings = [] if passed else [
         f"REEP and averaging theory differ by more than {params.tolerance:.0%} of the theory's change"
     ]
@@ -140,7 +172,7 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
         _plot_comparison(staged.path("compare.png"), series, separation, comparison)
         inputs = [input_record(report_path, "reep report"), input_record(series_path, "reep series")]
         inputs += [input_record(capture)] if capture is not None and capture.is_file() else []
-        return finish_run(staged, "theory compare", inputs, "theory.compare", params, results, warnings)
+        return finish_run(staged, "theory compare", inputs, "theory.compare", params, result.to_json(), warnings)
 
 
 def open_reep_run(reep_dir: Path) -> ReepResults:
