@@ -69,6 +69,7 @@ _FORCE = {"d_nm": 4.0, "omega_a2_per_s2": 9.6e10, "omega_b2_per_s2": 9.2e12, "c_
 #: (key family, bad metadata, the key the message must name)
 BAD_BY_FAMILY = [
     ("cantilever", {"cantilever": {"q": -3.0}}, "cantilever.q"),
+    ("cantilever huge", {"cantilever": {"f0_hz": 10**400}}, "cantilever.f0_hz"),  # was an OverflowError
     ("drive", {"drive": {"free_amplitude_nm": NAN}}, "drive.free_amplitude_nm"),
     ("drive lines", {"drive": {"lines": [{"frequency_hz": 7e4, "amplitude_v": "1"}]}}, "drive.lines[0].amplitude_v"),
     ("drive hold", {"drive": {"hold": 1}}, "drive.hold"),
@@ -356,3 +357,16 @@ def test_theory_compare_result_is_the_report_section():
                        "q_error_max": 3.0, "q_error_fraction_of_change": 0.05, "pass": True}
     with pytest.raises(dataclasses.FrozenInstanceError):
         result.passed = False  # type: ignore[misc]
+
+
+def test_theory_compare_refuses_a_folder_that_is_not_a_reep_run(tmp_path):
+    from afmtool.analyses.theory_outputs import open_reep_run
+    from afmtool.io.results import ResultWriter
+
+    with pytest.raises(InputError, match="not a reep output folder"):
+        open_reep_run(tmp_path)
+    with ResultWriter(tmp_path / "reep.h5", {}) as writer:
+        writer.append({name: np.zeros(4) for name in ("t", "b1", "b0")})
+    (tmp_path / "report.json").write_text(json.dumps({"results": {"drive_frequency_hz": 7e4, "decimate": 7}}))
+    with pytest.raises(InputError, match="no results.forgetting_factor"):
+        open_reep_run(tmp_path)

@@ -181,9 +181,11 @@ def open_reep_run(reep_dir: Path) -> ReepResults:
     if not (reep_dir / "report.json").is_file() or not (reep_dir / "reep.h5").is_file():
         raise InputError(f"{reep_dir}: not a reep output folder (needs report.json and reep.h5)")
     reep = open_reep_results(reep_dir, where="reep output")
-    if not isinstance(reep.report.get("drive_frequency_hz"), (int, float)):
+    missing = [key for key in ("drive_frequency_hz", "decimate", "forgetting_factor")
+               if not isinstance(reep.report.get(key), (int, float))]
+    if missing:
         reep.close()
-        raise InputError(f"{reep_dir / 'report.json'}: not the report of a reep run (no results.drive_frequency_hz)")
+        raise InputError(f"{reep_dir / 'report.json'}: not the report of a reep run (no results.{missing[0]})")
     return reep
 
 

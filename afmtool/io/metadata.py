@@ -44,7 +44,13 @@ MAX_SCAN_PIXELS = 1 << 26
 
 
 def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    """A finite int or float (not a bool), and one a float can hold: JSON's 1 followed by 400 zeros is not."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int beyond float range
+        return False
 
 
 def _check_number(where: str, value: Any, *, minimum: float = 0.0, exclusive: bool = True) -> None:
