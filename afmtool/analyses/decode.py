@@ -79,14 +79,11 @@ class ModelSetup(NamedTuple):
     sources: dict  #: parameter name -> "parameter", "metadata" or "thesis (eq. 7.10)"
 
 
-def _pick(name: str, given: float, meta: Mapping, key: str, default: float | None, scale: float = 1.0):
+def _pick(name: str, given: float, meta, key: str, default: float | None, scale: float = 1.0):
     if given:
         return given * scale, "parameter"
-    if key in meta:
-        try:
-            value = float(meta[key])
-        except (TypeError, ValueError):
-            raise InputError(f"metadata {key}={meta[key]!r} is not a number") from None
+    value = getattr(meta, key)  # a typed metadata record, validated when the capture was opened
+    if value is not None:
         return value, "metadata"
     if default is None:
         raise ConfigError(f"give {name} in the [decode] section of --config (the capture metadata has no {key})")
@@ -95,10 +92,8 @@ def _pick(name: str, given: float, meta: Mapping, key: str, default: float | Non
 
 def resolve_model(info: CaptureInfo, params: DecodeParams) -> ModelSetup:
     """f0, Q, k, K_esf, α_R, t_h and an ℓ0 guess from parameters, metadata or the thesis."""
-    cantilever = info.metadata.get("cantilever", {})
-    es_meta = info.metadata.get("electrostatic", {})
-    if not isinstance(cantilever, Mapping) or not isinstance(es_meta, Mapping):
-        raise InputError("metadata cantilever and electrostatic must be objects")
+    cantilever = info.capture_metadata.cantilever
+    es_meta = info.capture_metadata.electrostatic
     th = THESIS_CH7_PARAMS
     sources = {}
     f0, sources["f0_hz"] = _pick("f0_hz", params.f0_hz, cantilever, "f0_hz", None)
