@@ -80,53 +80,85 @@ def validate_metadata(metadata: Any) -> dict:
         Naming the first offending key and its value.
     """
     meta = dict(_check_object("root", metadata))
-    if "cantilever" in meta:
-        cantilever = _check_object("cantilever", meta["cantilever"])
-        for key in ("f0_hz", "q", "spring_constant_n_per_m", "deflection_sensitivity_nm_per_v"):
-            if key in cantilever:
-                _check_number(f"cantilever.{key}", cantilever[key])
-    if "free_air" in meta:
-        _check_interval("free_air", meta["free_air"])
-    if "scan" in meta:
-        scan = _check_object("scan", meta["scan"])
-        for key in ("lines", "pixels_per_line", "scan_size_m", "line_rate_hz"):
-            if key not in scan:
-                raise InputError(f"metadata scan needs {key}")
-        _check_int("scan.lines", scan["lines"])
-        _check_int("scan.pixels_per_line", scan["pixels_per_line"])
-        if scan["lines"] * scan["pixels_per_line"] > MAX_SCAN_PIXELS:
-            raise InputError(
-                f"metadata scan of {scan['lines']} x {scan['pixels_per_line']} pixels exceeds {MAX_SCAN_PIXELS:,} "
-                "(an image afmtool would have to hold in memory)"
-            )
-        _check_number("scan.scan_size_m", scan["scan_size_m"])
-        _check_number("scan.line_rate_hz", scan["line_rate_hz"])
-        if "trace_retrace" in scan and not isinstance(scan["trace_retrace"], bool):
-            raise InputError(f"metadata scan.trace_retrace={scan['trace_retrace']!r} must be true or false")
-        if "start_s" in scan:
-            _check_number("scan.start_s", scan["start_s"], exclusive=False)
-    if "drive" in meta:
-        drive = _check_object("drive", meta["drive"])
-        if "frequency_hz" in drive:
-            _check_number("drive.frequency_hz", drive["frequency_hz"])
-        if "sideband_offset_hz" in drive:
-            _check_number("drive.sideband_offset_hz", drive["sideband_offset_hz"], exclusive=False)
-    if "segments" in meta:
-        if not isinstance(meta["segments"], list):
-            raise InputError("metadata segments must be a list")
-        for i, segment in enumerate(meta["segments"]):
-            segment = _check_object(f"segments[{i}]", segment)
-            for key in ("start_s", "end_s", "frequency_hz"):
-                if key not in segment:
-                    raise InputError(f"metadata segments[{i}] needs {key}")
-            _check_number(f"segments[{i}].start_s", segment["start_s"], exclusive=False)
-            _check_number(f"segments[{i}].end_s", segment["end_s"])
-            _check_number(f"segments[{i}].frequency_hz", segment["frequency_hz"])
-    if "scenario" in meta and not isinstance(meta["scenario"], str):
-        raise InputError("metadata scenario must be a string")
-    _validate_drive_extras(meta)
-    _validate_setup(meta)
+    for name, check in _FAMILIES.items():
+        if name in meta:
+            check(meta[name])
     return meta
+
+
+def _validate_cantilever(value: Any) -> None:
+    cantilever = _check_object("cantilever", value)
+    for key in ("f0_hz", "q", "spring_constant_n_per_m", "deflection_sensitivity_nm_per_v"):
+        if key in cantilever:
+            _check_number(f"cantilever.{key}", cantilever[key])
+
+
+def _validate_scan(value: Any) -> None:
+    scan = _check_object("scan", value)
+    for key in ("lines", "pixels_per_line", "scan_size_m", "line_rate_hz"):
+        if key not in scan:
+            raise InputError(f"metadata scan needs {key}")
+    _check_int("scan.lines", scan["lines"])
+    _check_int("scan.pixels_per_line", scan["pixels_per_line"])
+    if scan["lines"] * scan["pixels_per_line"] > MAX_SCAN_PIXELS:
+        raise InputError(
+            f"metadata scan of {scan['lines']} x {scan['pixels_per_line']} pixels exceeds {MAX_SCAN_PIXELS:,} "
+            "(an image afmtool would have to hold in memory)"
+        )
+    _check_number("scan.scan_size_m", scan["scan_size_m"])
+    _check_number("scan.line_rate_hz", scan["line_rate_hz"])
+    if "trace_retrace" in scan and not isinstance(scan["trace_retrace"], bool):
+        raise InputError(f"metadata scan.trace_retrace={scan['trace_retrace']!r} must be true or false")
+    if "start_s" in scan:
+        _check_number("scan.start_s", scan["start_s"], exclusive=False)
+
+
+def _validate_drive(value: Any) -> None:
+    drive = _check_object("drive", value)
+    if "frequency_hz" in drive:
+        _check_number("drive.frequency_hz", drive["frequency_hz"])
+    if "sideband_offset_hz" in drive:
+        _check_number("drive.sideband_offset_hz", drive["sideband_offset_hz"], exclusive=False)
+    for key in ("free_amplitude_nm", "amplitude_v"):
+        if key in drive:  # 0 is kept as "not known" (the analyses fall back on a measured value)
+            _check_number(f"drive.{key}", drive[key], exclusive=False)
+    for key in ("hold", "kind"):
+        if key in drive:
+            _check_string(f"drive.{key}", drive[key])
+    if "lines" in drive:
+        _validate_drive_lines(drive["lines"])
+
+
+def _validate_drive_lines(lines: Any) -> None:
+    """``drive.lines``: the synthesised dither's lines, for a capture without a dither channel."""
+    if not isinstance(lines, list):
+        raise InputError("metadata drive.lines must be a list of {frequency_hz, amplitude_v[, phase_deg]}")
+    for i, line in enumerate(lines):
+        line = _check_object(f"drive.lines[{i}]", line)
+        for key in ("frequency_hz", "amplitude_v"):
+            if key not in line:
+                raise InputError(f"metadata drive.lines[{i}] needs {key}")
+            _check_number(f"drive.lines[{i}].{key}", line[key])
+        if "phase_deg" in line:
+            _check_finite(f"drive.lines[{i}].phase_deg", line["phase_deg"])
+
+
+def _validate_segments(value: Any) -> None:
+    if not isinstance(value, list):
+        raise InputError("metadata segments must be a list")
+    for i, segment in enumerate(value):
+        segment = _check_object(f"segments[{i}]", segment)
+        for key in ("start_s", "end_s", "frequency_hz"):
+            if key not in segment:
+                raise InputError(f"metadata segments[{i}] needs {key}")
+        _check_number(f"segments[{i}].start_s", segment["start_s"], exclusive=False)
+        _check_number(f"segments[{i}].end_s", segment["end_s"])
+        _check_number(f"segments[{i}].frequency_hz", segment["frequency_hz"])
+
+
+def _validate_scenario(value: Any) -> None:
+    if not isinstance(value, str):
+        raise InputError("metadata scenario must be a string")
 
 
 def _check_finite(where: str, value: Any) -> None:
@@ -150,30 +182,6 @@ def _check_interval(name: str, value: Any) -> None:
         raise InputError(f"metadata {name}.end_s must be after {name}.start_s")
 
 
-def _validate_drive_extras(meta: Mapping) -> None:
-    """``drive`` keys beyond the frequencies: amplitudes, hold, kind and the synthesised lines."""
-    if "drive" not in meta:
-        return
-    drive = meta["drive"]
-    for key in ("free_amplitude_nm", "amplitude_v"):
-        if key in drive:  # 0 is kept as "not known" (the analyses fall back on a measured value)
-            _check_number(f"drive.{key}", drive[key], exclusive=False)
-    for key in ("hold", "kind"):
-        if key in drive:
-            _check_string(f"drive.{key}", drive[key])
-    if "lines" in drive:
-        if not isinstance(drive["lines"], list):
-            raise InputError("metadata drive.lines must be a list of {frequency_hz, amplitude_v[, phase_deg]}")
-        for i, line in enumerate(drive["lines"]):
-            line = _check_object(f"drive.lines[{i}]", line)
-            for key in ("frequency_hz", "amplitude_v"):
-                if key not in line:
-                    raise InputError(f"metadata drive.lines[{i}] needs {key}")
-                _check_number(f"drive.lines[{i}].{key}", line[key])
-            if "phase_deg" in line:
-                _check_finite(f"drive.lines[{i}].phase_deg", line["phase_deg"])
-
-
 #: Typed keys of the set-up objects: (key, rule) with rule "positive" (> 0), "non-negative" (>= 0),
 #: "finite" (any sign) or "string".  Any other key in them is kept as free-form.
 _SETUP_KEYS = {
@@ -188,13 +196,12 @@ _SETUP_KEYS = {
 FORCE_KEYS = ("d_nm", "omega_a2_per_s2", "omega_b2_per_s2", "c_a_per_s", "c_b_per_s")
 
 
-def _validate_setup(meta: Mapping) -> None:
-    """``controller``, ``electrostatic``, ``ramp``, ``force`` and ``nominal``."""
-    for name, keys in _SETUP_KEYS.items():
-        if name not in meta:
-            continue
-        value = _check_object(name, meta[name])
-        for key, rule in keys:
+def _setup_validator(name: str):
+    """The check of set-up object ``name``: its typed keys by their rules; the force needs all of eq. 4.1's."""
+
+    def check(value: Any) -> None:
+        value = _check_object(name, value)
+        for key, rule in _SETUP_KEYS[name]:
             if key not in value:
                 continue
             where = f"{name}.{key}"
@@ -204,12 +211,24 @@ def _validate_setup(meta: Mapping) -> None:
                 _check_finite(where, value[key])
             else:
                 _check_number(where, value[key], exclusive=rule == "positive")
-    if "force" in meta:
-        missing = [key for key in FORCE_KEYS if key not in meta["force"]]
+        missing = [key for key in FORCE_KEYS if key not in value] if name == "force" else []
         if missing:
             raise InputError(f"metadata force needs {', '.join(missing)}")
-    if "nominal" in meta:
-        _check_interval("nominal", meta["nominal"])
+
+    return check
+
+
+#: The validator of each typed top-level key, in the order they are checked.
+_FAMILIES = {
+    "cantilever": _validate_cantilever,
+    "free_air": lambda value: _check_interval("free_air", value),
+    "scan": _validate_scan,
+    "drive": _validate_drive,
+    "segments": _validate_segments,
+    "scenario": _validate_scenario,
+    **{name: _setup_validator(name) for name in _SETUP_KEYS},
+    "nominal": lambda value: _check_interval("nominal", value),
+}
 
 
 def parse_metadata_json(text: str, where: str) -> dict:
