@@ -32,6 +32,7 @@ from afmtool.config.params import DecodeParams, parse_bracket_nm, parse_interval
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
+from afmtool.io.metadata import CantileverMetadata, ElectrostaticMetadata
 from afmtool.io.prefetch import prefetch
 from afmtool.io.results import ResultWriter
 from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, LeverVoltages, actuation_voltage
@@ -79,7 +80,8 @@ class ModelSetup(NamedTuple):
     sources: dict  #: parameter name -> "parameter", "metadata" or "thesis (eq. 7.10)"
 
 
-def _pick(name: str, given: float, meta, key: str, default: float | None, scale: float = 1.0):
+def _pick(name: str, given: float, meta: CantileverMetadata | ElectrostaticMetadata, key: str, default: float | None,
+          scale: float = 1.0):
     if given:
         return given * scale, "parameter"
     value = getattr(meta, key)  # a typed metadata record, validated when the capture was opened
