@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afmtool.io.metadata import ScanMetadata
+
 __all__ = ["ScanGeometry", "ImageAccumulator", "ForceCurveAccumulator", "ForceCurveTable"]
 
 
@@ -27,18 +29,12 @@ class ScanGeometry:
     start_s: float = 0.0
 
     @classmethod
-    def from_metadata(cls, metadata: Mapping) -> ScanGeometry | None:
-        scan = metadata.get("scan")
-        if not scan:
+    def from_scan(cls, scan: ScanMetadata | None) -> ScanGeometry | None:
+        """The geometry of a capture's (validated) metadata ``scan``; None without one."""
+        if scan is None:
             return None
-        return cls(
-            int(scan["lines"]),
-            int(scan["pixels_per_line"]),
-            float(scan["scan_size_m"]),
-            float(scan["line_rate_hz"]),
-            bool(scan.get("trace_retrace", True)),
-            float(scan.get("start_s", 0.0)),
-        )
+        return cls(scan.lines, scan.pixels_per_line, scan.scan_size_m, scan.line_rate_hz, scan.trace_retrace,
+                   scan.start_s)
 
     def pixel_index(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(direction 0=trace 1=retrace, line, pixel) for each time; line −1 outside the scan.

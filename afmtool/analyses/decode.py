@@ -30,9 +30,11 @@ from afmtool.analyses.freeair import read_segment
 from afmtool.config.params import DecodeParams, parse_bracket_nm, parse_interval
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
+from afmtool.io.metadata import CantileverMetadata, ElectrostaticMetadata
 from afmtool.io.results import ResultWriter
 from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, LeverVoltages, actuation_voltage
 from afmtool.pipeline import Decimation, Head, run_stream
+from afmtool.report.results import JsonResults
 
 if TYPE_CHECKING:  # numba and scipy load when a decode runs, not on import
     from afmtool.estimators.lockin import LockIn
@@ -76,14 +78,12 @@ class ModelSetup(NamedTuple):
     sources: dict  #: parameter name -> "parameter", "metadata" or "thesis (eq. 7.10)"
 
 
-def _pick(name: str, given: float, meta: Mapping, key: str, default: float | None, scale: float = 1.0):
+def _pick(name: str, given: float, meta: CantileverMetadata | ElectrostaticMetadata, key: str, default: float | None,
+          scale: float = 1.0):
     if given:
         return given * scale, "parameter"
-    if key in meta:
-        try:
-            value = float(meta[key])
-        except (TypeError, ValueError):
-            raise InputError(f"metadata {key}={meta[key]!r} is not a number") from None
+    value = getattr(meta, key)  # a typed metadata record, validated when the capture was opened
+    if value is not None:
         return value, "metadata"
     if default is None:
         raise ConfigError(f"give {name} in the [decode] section of --config (the capture metadata has no {key})")
@@ -92,10 +92,8 @@ def _pick(name: str, given: float, meta: Mapping, key: str, default: float | Non
 
 def resolve_model(info: CaptureInfo, params: DecodeParams) -> ModelSetup:
     """f0, Q, k, K_esf, α_R, t_h and an ℓ0 guess from parameters, metadata or the thesis."""
-    cantilever = info.metadata.get("cantilever", {})
-    es_meta = info.metadata.get("electrostatic", {})
-    if not isinstance(cantilever, Mapping) or not isinstance(es_meta, Mapping):
-        raise InputError("metadata cantilever and electrostatic must be objects")
+    cantilever = info.capture_metadata.cantilever
+    es_meta = info.capture_metadata.electrostatic
     th = THESIS_CH7_PARAMS
     sources = {}
     f0, sources["f0_hz"] = _pick("f0_hz", params.f0_hz, cantilever, "f0_hz", None)
@@ -212,7 +210,7 @@ def ber_upper_bound(errors: int, compared: int, confidence: float = 0.95) -> flo
 
 
 @dataclass(frozen=True)
-class DecodeResult:
+class DecodeResult(JsonResults):
     """What :func:`run_decode` found; the command turns it into files and a report."""
 
     results: dict
@@ -227,12 +225,9 @@ class DecodeResult:
 
 def _nominal_interval(info: CaptureInfo, params: DecodeParams) -> tuple[float, float] | None:
     interval = parse_interval(params.nominal, "--nominal")
-    if interval is None and "nominal" in info.metadata:
-        meta = info.metadata["nominal"]
-        try:
-            interval = (float(meta["start_s"]), float(meta["end_s"]))
-        except (KeyError, TypeError, ValueError):
-            raise InputError("metadata nominal must hold start_s and end_s (s)") from None
+    nominal = info.capture_metadata.nominal  # validated when the capture was opened
+    if interval is None and nominal is not None:
+        interval = (nominal.start_s, nominal.end_s)
     return interval
 
 
@@ -252,9 +247,9 @@ def _lever_voltages(data: Mapping[str, np.ndarray], params: DecodeParams, alpha_
 def _actuation_hz(info: CaptureInfo, params: DecodeParams, voltage: np.ndarray) -> tuple[float, str]:
     if params.actuation_hz:
         return params.actuation_hz, "parameter"
-    drive = info.metadata.get("drive", {})
-    if isinstance(drive, Mapping) and "frequency_hz" in drive:
-        return float(drive["frequency_hz"]), "metadata"
+    metadata_hz = info.capture_metadata.drive.frequency_hz
+    if metadata_hz is not None:
+        return metadata_hz, "metadata"
     from afmtool.estimators.filters import welch_psd
 
     v2 = voltage * voltage

@@ -50,21 +50,22 @@ def write_decode_time_series_png(
     bool
         Whether a figure was written (not without decoded bits).
     """
+    from afmtool.io.result_files import open_decode_results
     from afmtool.report.images import write_multi_panel_png
-    from afmtool.report.timeseries import read_rows
 
     bits_info = results.get("bits") or {}
     clock = results.get("clock") or {}
     rate = clock.get("rate_hz")
     if not isinstance(rate, (int, float)) or rate <= 0:
         return False
-    bit_rows = read_rows(decode_h5, ("bits", "soft"), time="bit_times_s", max_points=10**9)
-    if len(bit_rows["bit_times_s"]) == 0 or "bits" not in bit_rows:
-        return False
-    start = float(bit_rows["bit_times_s"][0]) - 0.5 / rate
-    window = (start, start + WINDOW_BITS / rate)
-    cells = (bit_rows["bit_times_s"] >= window[0]) & (bit_rows["bit_times_s"] < window[1])
-    means = read_rows(decode_h5, ("innovation_mean",), time="t_mean", t_range=window)
+    with open_decode_results(decode_h5) as decoded:
+        bit_rows = decoded.read_rows(("bits", "soft"), time="bit_times_s", max_points=10**9)
+        if len(bit_rows["bit_times_s"]) == 0 or "bits" not in bit_rows:
+            return False
+        start = float(bit_rows["bit_times_s"][0]) - 0.5 / rate
+        window = (start, start + WINDOW_BITS / rate)
+        cells = (bit_rows["bit_times_s"] >= window[0]) & (bit_rows["bit_times_s"] < window[1])
+        means = decoded.read_rows(("innovation_mean",), time="t_mean", t_range=window)
     t_bits = bit_rows["bit_times_s"][cells]
     mean_series = [(means["t_mean"], means["innovation_mean"], "innovation running mean", {"color": "C0", "linewidth": 1.0})]
     if "soft" in bit_rows:

@@ -59,9 +59,9 @@ def _v_r(params: ElectrostaticFitParams, reader: CaptureReader, data: Mapping[st
         return params.v_r_v
     if "v_r" in data:
         return float(np.mean(data["v_r"]))
-    ramp = reader.info.metadata.get("ramp", {})
-    if isinstance(ramp, Mapping) and "v_r_v" in ramp:
-        return float(ramp["v_r_v"])
+    ramp_v_r_v = reader.info.capture_metadata.ramp.v_r_v
+    if ramp_v_r_v is not None:
+        return ramp_v_r_v
     raise ConfigError("V_R is unknown: the capture has no v_r channel; give --v-r VOLTS")
 
 

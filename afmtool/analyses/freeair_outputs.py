@@ -29,9 +29,9 @@ _CHUNK_SAMPLES = 1 << 20
 
 def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tuple[FreeAirModel, dict]:
     interval = parse_interval(params.free_air, "--free-air")
-    if interval is None and "free_air" in reader.info.metadata:
-        meta = reader.info.metadata["free_air"]
-        interval = (float(meta["start_s"]), float(meta["end_s"]))
+    free_air = reader.info.capture_metadata.free_air
+    if interval is None and free_air is not None:
+        interval = (free_air.start_s, free_air.end_s)
     if interval is None:
         raise ConfigError("give --free-air START:END (s) or a capture with metadata free_air")
     fs = reader.info.sample_rate_hz

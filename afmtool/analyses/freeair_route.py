@@ -46,6 +46,7 @@ from afmtool.analyses.freeair_source import (
 )
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
+from afmtool.io.metadata import CaptureMetadata
 from afmtool.models.free_air import FreeAirModel
 
 __all__ = ["DRIVE_HOLD_CHOICES", "FreeAirRoute", "line_response", "resolve_free_air"]
@@ -112,32 +113,27 @@ def line_response(deflection: np.ndarray, dither: np.ndarray, sample_rate_hz: fl
     return y / u
 
 
-def _drive_lines(metadata, drive_hz: float) -> list[float]:
-    drive = metadata.get("drive", {}) if isinstance(metadata.get("drive", {}), dict) else {}
-    offset = drive.get("sideband_offset_hz") or 0.0
+def _drive_lines(metadata: CaptureMetadata, drive_hz: float) -> list[float]:
+    offset = metadata.drive.sideband_offset_hz or 0.0
     lines = [drive_hz]
-    if isinstance(offset, (int, float)) and offset > 0:
+    if offset > 0:
         lines += [drive_hz - float(offset), drive_hz + float(offset)]
     return lines
 
 
-def _metadata_f0_q(metadata) -> tuple[float, float] | None:
-    cantilever = metadata.get("cantilever", {})
-    if not isinstance(cantilever, dict):
-        return None
-    f0, q = cantilever.get("f0_hz"), cantilever.get("q")
-    if isinstance(f0, (int, float)) and isinstance(q, (int, float)) and f0 > 0 and q > 0.5:
-        return float(f0), float(q)
+def _metadata_f0_q(metadata: CaptureMetadata) -> tuple[float, float] | None:
+    f0, q = metadata.cantilever.f0_hz, metadata.cantilever.q
+    if f0 is not None and q is not None and f0 > 0 and q > 0.5:
+        return f0, q
     return None
 
 
-def _single_tone(metadata, segment: FreeAirSegment | None, fs: float, f0_hz: float) -> bool:
-    drive = metadata.get("drive", {})
-    if isinstance(drive, dict):
-        if drive.get("kind") == "sine" or drive.get("sideband_offset_hz") == 0:
-            return True
-        if drive.get("kind") in ("three-sine", "multi-sine") or (drive.get("sideband_offset_hz") or 0) > 0:
-            return False
+def _single_tone(metadata: CaptureMetadata, segment: FreeAirSegment | None, fs: float, f0_hz: float) -> bool:
+    drive = metadata.drive
+    if drive.kind == "sine" or drive.sideband_offset_hz == 0:
+        return True
+    if drive.kind in ("three-sine", "multi-sine") or (drive.sideband_offset_hz or 0) > 0:
+        return False
     if segment is None:
         return False
     from afmtool.analyses.reep import excitation_lines
@@ -288,7 +284,7 @@ def resolve_free_air(
 def _f0_q_source(reader: CaptureReader, given: FreeAirModel | None, segment, f0_hz: float, q: float):
     """((f0, Q), origin) when the f0/Q route applies: flags, a model without this rate's numerator, or metadata."""
     fs = reader.info.sample_rate_hz
-    metadata = reader.info.metadata
+    metadata = reader.info.capture_metadata
     if f0_hz:
         return (float(f0_hz), float(q)), "flags"
     if given is not None:
@@ -310,7 +306,7 @@ def _f0_q_route(reader: CaptureReader, source, segment, drive_hold: str, drive_f
             "give --free-air START:END or capture metadata free_air"
         )
     fs = reader.info.sample_rate_hz
-    metadata = reader.info.metadata
+    metadata = reader.info.capture_metadata
     drive_hz = drive_frequency(reader, drive_frequency_hz, FreeAirModel(f0_use, q_use))
     model, report = _fit_f0_q(f0_use, q_use, segment, fs, drive_hz, _drive_lines(metadata, drive_hz),
                               drive_hold, origin)
@@ -322,7 +318,7 @@ def _model_route(
 ) -> FreeAirRoute:
     """The given model, or the ARX fit on the segment (the metadata f0/Q route if that fit fails)."""
     fs = reader.info.sample_rate_hz
-    metadata = reader.info.metadata
+    metadata = reader.info.capture_metadata
     warnings: list[str] = []
     if given is not None:
         model, route = given, "model"

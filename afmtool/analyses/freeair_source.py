@@ -45,9 +45,9 @@ class FreeAirSegment(NamedTuple):
 def free_air_interval(reader: CaptureReader, text: str, option: str = "--free-air") -> tuple[float, float] | None:
     """The free-air segment (s): ``text`` (START:END) if given, else metadata ``free_air``, else None."""
     interval = parse_interval(text, option)
-    if interval is None and "free_air" in reader.info.metadata:
-        meta = reader.info.metadata["free_air"]
-        interval = (float(meta["start_s"]), float(meta["end_s"]))
+    free_air = reader.info.capture_metadata.free_air
+    if interval is None and free_air is not None:
+        interval = (free_air.start_s, free_air.end_s)
     return interval
 
 
@@ -82,11 +82,11 @@ def drive_frequency(reader: CaptureReader, given_hz: float, model: FreeAirModel)
         If it is not below the Nyquist frequency.
     """
     fs = reader.info.sample_rate_hz
-    drive = reader.info.metadata.get("drive", {})
+    metadata_hz = reader.info.capture_metadata.drive.frequency_hz
     if given_hz:
         hz = given_hz
-    elif "frequency_hz" in drive:
-        hz = float(drive["frequency_hz"])
+    elif metadata_hz is not None:
+        hz = metadata_hz
     else:
         hz = model.f0_hz
     if not 0 < hz < fs / 2:

@@ -19,7 +19,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import NamedTuple
 
-import h5py
 import numpy as np
 
 from afmtool.analyses.accumulators import (
@@ -28,6 +27,7 @@ from afmtool.analyses.accumulators import (
     ImageAccumulator,
     ScanGeometry,
 )
+from afmtool.io.result_files import open_result_file
 
 __all__ = ["BinnedInteraction", "bin_interaction_series"]
 
@@ -66,12 +66,11 @@ def bin_interaction_series(
     geometry : ScanGeometry or None
         Raster geometry; None: no images.
     """
-    with h5py.File(path, "r") as f:
-        if "interaction" not in f:
+    with open_result_file(path, required=("t",), what="reep output") as f:
+        names = f.names("interaction")
+        if not names:
             return None
-        group = f["interaction"]
-        names = tuple(group)
-        units = {name: str(group[name].attrs.get("units", "")) for name in names}
+        units = {name: f.units(f"interaction/{name}") for name in names}
         curves = ForceCurveAccumulator(z_bin, names) if (z_bin and "z" in f) else None
         images = ImageAccumulator(geometry, names) if geometry is not None else None
         if curves is None and images is None:
@@ -81,7 +80,7 @@ def bin_interaction_series(
             stop = min(n, start + _BLOCK)
             t = f["t"][start:stop]
             trusted = f["flag"][start:stop] == 0
-            values = {name: np.where(trusted, group[name][start:stop], np.nan) for name in names}
+            values = {name: np.where(trusted, f[f"interaction/{name}"][start:stop], np.nan) for name in names}
             if images is not None:
                 images.add(t, values)
             if curves is not None:

@@ -18,8 +18,10 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
-import h5py
 import numpy as np
+
+from afmtool.io.metadata import CaptureMetadata
+from afmtool.io.result_files import ResultFile, open_result_file
 
 __all__ = ["add_interaction_series"]
 
@@ -27,7 +29,7 @@ _NM_PER_UNIT = {"pm": 1e-3, "nm": 1.0, "um": 1e3, "µm": 1e3, "μm": 1e3, "mm": 
 _BLOCK = 1 << 20
 
 
-def _free_reference(f: h5py.File, results: Mapping) -> tuple[float, float, str]:
+def _free_reference(f: ResultFile, results: Mapping) -> tuple[float, float, str]:
     segment = results.get("free_air_segment_s")
     model = results.get("free_air_model") or {}
     if segment:
@@ -44,29 +46,25 @@ def _free_reference(f: h5py.File, results: Mapping) -> tuple[float, float, str]:
     raise ValueError("no free-air reference")
 
 
-def add_interaction_series(path: Path, results: Mapping, metadata: Mapping, amplitude_units: str) -> dict:
+def add_interaction_series(path: Path, results: Mapping, metadata: CaptureMetadata, amplitude_units: str) -> dict:
     """Write ``/interaction/...`` into the reep.h5 at ``path``; return the report section."""
     from afmtool.models.interaction import InteractionQuantities, interaction_quantities
 
-    cantilever = metadata.get("cantilever") if isinstance(metadata.get("cantilever"), Mapping) else {}
-    k = cantilever.get("spring_constant_n_per_m")
+    k = metadata.cantilever.spring_constant_n_per_m
     if not k:
         return {"written": False, "reason": "no spring constant (metadata cantilever.spring_constant_n_per_m): "
                                               "k_e, the force gradient, damping, Phi_c, Phi_d, energy and virial need it"}
     scale = _NM_PER_UNIT.get(str(amplitude_units).strip())
     if scale is None:
         return {"written": False, "reason": f"the amplitude is in {amplitude_units!r}, not a length (no InvOLS applied)"}
-    with h5py.File(path, "r+") as f:
+    with open_result_file(path, mode="r+", required=("t", "f0_hz", "q", "amplitude"), what="reep output") as f:
         try:
             free_f0, free_q, source = _free_reference(f, results)
         except ValueError:
             return {"written": False, "reason": "no free-air reference f0, Q"}
         n = f["t"].shape[0]
-        group = f.create_group("interaction")
         units = InteractionQuantities.units()
-        datasets = {name: group.create_dataset(name, shape=(n,), dtype="f8") for name in units}
-        for name, ds in datasets.items():
-            ds.attrs["units"] = units[name]
+        datasets = f.create_columns("interaction", units, n)
         for start in range(0, n, _BLOCK):
             stop = min(n, start + _BLOCK)
             out = interaction_quantities(

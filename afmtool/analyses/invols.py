@@ -70,7 +70,7 @@ def identify_invols(reader: CaptureReader, params: InvolsParams, warnings: list[
     part = _leg(z, params.leg)
     fit = fit_contact_slope(z[part], d[part], skip_fraction=params.skip_fraction)
     d_kind = parse_unit(d_units).kind if d_units else "none"
-    note = info.metadata.get("cantilever", {}).get("deflection_sensitivity_nm_per_v")
+    note = info.capture_metadata.cantilever.deflection_sensitivity_nm_per_v
     results: dict = {
         "leg": params.leg,
         "points": int(z[part].size),

@@ -93,6 +93,7 @@ from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import require_channels
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Warmup, run_stream
+from afmtool.report.results import JsonResults
 
 __all__ = ["SERIES_UNITS", "KalmanBankResult", "BankSetup", "build_bank", "run_kalman_bank"]
 
@@ -112,7 +113,7 @@ _PASS_TWO_READ_AHEAD = 0
 
 
 @dataclass(frozen=True)
-class KalmanBankResult:
+class KalmanBankResult(JsonResults):
     """What :func:`run_kalman_bank` found; the command turns it into files and a report.
 
     Attributes

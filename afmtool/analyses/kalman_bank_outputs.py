@@ -131,22 +131,13 @@ def _plot_rms_vs_time(path: Path, bank_h5: Path, result: KalmanBankResult, defle
     Read back from the finished bank.h5 with an HDF5 stride (at most
     :data:`afmtool.report.timeseries.MAX_PLOT_POINTS` columns).
     """
-    import math
-
-    import h5py
-
+    from afmtool.io.bank_results import read_bank_rms
     from afmtool.report.images import write_multi_panel_png
-    from afmtool.report.timeseries import MAX_PLOT_POINTS
 
-    with h5py.File(bank_h5, "r") as h5:
-        n = len(h5["t"])
-        if n < 2:
-            return
-        step = max(1, math.ceil(n / MAX_PLOT_POINTS))
-        t = h5["t"][::step]
-        rms = h5["rms"][:, ::step]
-        adaptive = h5["adaptive_rms"][::step]
-        z = h5["z"][::step] if "z" in h5 else None
+    bank = read_bank_rms(bank_h5)
+    if len(bank.t) < 2:
+        return
+    t, rms, adaptive, z = bank
     units = deflection_units or "input units"
     series = []
     for k, row in enumerate(rms):

@@ -42,6 +42,7 @@ from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, run_stream
+from afmtool.report.results import JsonResults
 
 if TYPE_CHECKING:  # numba-backed modules load when the command runs
     from afmtool.estimators.observer import ObserverDesign
@@ -112,7 +113,7 @@ class ProbeLossSetup:
 
 
 @dataclass(frozen=True)
-class ProbeLossResult:
+class ProbeLossResult(JsonResults):
     """What :func:`run_probeloss` found; the command turns it into files and a report."""
 
     results: dict
@@ -181,7 +182,7 @@ def _free_amplitude(segment: FreeAirSegment | None, drive_hz: float, fs: float, 
 def _amplitude_upper(params: ProbeLossParams, reader: CaptureReader, free_amplitude: float | None):
     if params.amplitude_upper:
         return params.amplitude_upper, None
-    setpoint = params.setpoint or reader.info.metadata.get("controller", {}).get("setpoint_nm")
+    setpoint = params.setpoint or reader.info.capture_metadata.controller.setpoint_nm
     if setpoint is None or free_amplitude is None:
         # the baseline is only a comparison: without A_upper the index still runs
         return None, None
@@ -208,8 +209,8 @@ def prepare_probeloss(
     design = _design(params, model, fs, period)
     window = index_window(fs, drive_hz, params.window_periods)
     calibration = _calibrate(params, design, window, segment)
-    drive = reader.info.metadata.get("drive", {})
-    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, drive.get("sideband_offset_hz"))
+    sideband_offset_hz = reader.info.capture_metadata.drive.sideband_offset_hz
+    lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, sideband_offset_hz)
     free_amplitude = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
     upper, setpoint = _amplitude_upper(params, reader, free_amplitude)
     warnings = list(route.warnings)
@@ -244,7 +245,7 @@ class ProbeLossStage:
         self.params = params
         self.model = model
         self.fs = reader.info.sample_rate_hz
-        self.geometry = ScanGeometry.from_metadata(reader.info.metadata)
+        self.geometry = ScanGeometry.from_scan(reader.info.capture_metadata.scan)
         self.setup: ProbeLossSetup | None = None
 
     def free_air_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:

@@ -86,14 +86,16 @@ def write_probeloss_time_series(
     list of str
         The names written.
     """
+    from afmtool.io.result_files import open_probeloss_results
     from afmtool.report.images import write_multi_panel_png
-    from afmtool.report.timeseries import read_rows, truth_per_row, zoom_windows
+    from afmtool.report.timeseries import truth_per_row, zoom_windows
 
     names = ("index", "switch", "amplitude", "amplitude_switch")
     written = []
 
     def draw(name: str, t_range, title: str) -> None:
-        rows = read_rows(probeloss_h5, names, t_range=t_range)
+        with open_probeloss_results(probeloss_h5) as probeloss:
+            rows = probeloss.read_rows(names, t_range=t_range)
         if len(rows["t"]) < 2:
             return
         contact = truth_per_row(truth_contact, rows["t"], sample_rate_hz, reduce="max") if truth_contact is not None else None

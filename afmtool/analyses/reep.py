@@ -29,9 +29,11 @@ from afmtool.analyses.reep_validity import (
 from afmtool.config.params import ReepParams
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, Chunk
+from afmtool.io.metadata import DriveMetadata
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Warmup, run_stream
+from afmtool.report.results import JsonResults
 
 __all__ = ["SERIES_UNITS", "ReepResult", "ReepStage", "excitation_lines", "run_reep"]
 
@@ -80,7 +82,7 @@ class _Summary:
 
 
 @dataclass(frozen=True)
-class ReepResult:
+class ReepResult(JsonResults):
     """What ``run_reep`` found; the command turns it into files and a report."""
 
     results: dict
@@ -193,8 +195,7 @@ def _segment_levels(segment, params: ReepParams, numerator, lockin, bandpass_fac
 
 def _metadata_levels(reader: CaptureReader) -> FreeAirLevels:
     """Without a free-air segment: the free amplitude from metadata (when the deflection is in nm)."""
-    drive = reader.info.metadata.get("drive", {})
-    amplitude = drive.get("free_amplitude_nm")
+    amplitude = reader.info.capture_metadata.drive.free_amplitude_nm
     if amplitude and reader.info.units("deflection") == "nm":
         return FreeAirLevels(float(amplitude), None, "metadata")
     return FreeAirLevels(None, None, "none")
@@ -256,9 +257,9 @@ class ReepStage:
         if not self._resolved:
             raise RuntimeError("ReepStage runs with prologue=stage.free_air_prologue (the free-air route)")
         params, fs = self.params, self.fs
-        drive = head.info.metadata.get("drive", {})
+        drive = head.info.capture_metadata.drive
         self.drive_hz = _drive_frequency(params, drive, self.model, head.first.data["deflection"], fs)
-        self.lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(self.drive_hz, drive.get("sideband_offset_hz"))
+        self.lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(self.drive_hz, drive.sideband_offset_hz)
         self.decimation = Decimation(params.decimate or max(1, round(fs / self.drive_hz)))
         self.numerator = self.model.numerator_at(fs) if (self.model is not None and params.use_input) else None
         self.lines = self._input_checks(head.first.data.get("dither"))
@@ -272,7 +273,7 @@ class ReepStage:
         self.levels = self._free_air_levels()
         self.summaries = {name: _Summary() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
         self.flag_counter = FlagCounter()
-        self.geometry = ScanGeometry.from_metadata(head.info.metadata)
+        self.geometry = ScanGeometry.from_scan(head.info.capture_metadata.scan)
         self.image_acc = ImageAccumulator(self.geometry, _IMAGE_QUANTITIES) if self.geometry else None
         self.curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if self.z_mode else None
         self._side = head.side
@@ -428,12 +429,12 @@ class ReepStage:
         }
 
 
-def _drive_frequency(params: ReepParams, drive: dict, model: FreeAirModel | None, first_deflection, fs: float) -> float:
+def _drive_frequency(params: ReepParams, drive: DriveMetadata, model: FreeAirModel | None, first_deflection, fs: float) -> float:
     """The lock-in's reference: the flag, the metadata, f0, else the first chunk's spectral peak (Hz)."""
     if params.drive_frequency_hz:
         drive_hz = params.drive_frequency_hz
-    elif "frequency_hz" in drive:
-        drive_hz = float(drive["frequency_hz"])
+    elif drive.frequency_hz is not None:
+        drive_hz = drive.frequency_hz
     elif model is not None:
         drive_hz = model.f0_hz
     else:

@@ -53,7 +53,7 @@ def run_reep_command(
         results.update(_time_series(staged, reader, result, deflection_units))
         from afmtool.analyses.interaction_outputs import add_interaction_series
 
-        results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.metadata,
+        results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.capture_metadata,
                                                         deflection_units)
         if results["interaction"].get("written"):
             _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz)
@@ -198,9 +198,8 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
     The report's ``interaction`` section is left as it was (the golden reports pin it); the
     binned quantities are in reep.h5 beside f0', Q', with their units.
     """
-    import h5py
-
     from afmtool.analyses.interaction_maps import bin_interaction_series
+    from afmtool.io.result_files import open_result_file
 
     path = staged.path("reep.h5")
     binned = bin_interaction_series(
@@ -209,15 +208,12 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
     )
     if binned is None:
         return
-    with h5py.File(path, "r+") as f:
+    with open_result_file(path, mode="r+", what="reep output") as f:
         for leg, table in binned.force_curves.items():
             for name, values in table.means.items():
-                ds = f.create_dataset(f"force_curve/{leg}/{name}", data=values)
-                ds.attrs["units"] = binned.units[name]
+                f.put(f"force_curve/{leg}/{name}", values, binned.units[name])
         for key, image in sorted(binned.images.items()):
-            ds = f.create_dataset(f"images/{key}", data=image)
-            ds.attrs["units"] = binned.units[key.split("/")[0]]
-            ds.attrs["row0"] = "first line scanned"
+            f.put(f"images/{key}", image, binned.units[key.split("/")[0]], {"row0": "first line scanned"})
     if binned.images:
         from afmtool.report.images import write_gsf, write_image_png
 

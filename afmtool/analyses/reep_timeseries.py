@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from afmtool.report.timeseries import MAX_PLOT_POINTS
+from afmtool.io.result_files import FLAG_COLUMN, MAX_PLOT_POINTS, open_result_file
 
 __all__ = [
     "MAX_PLOT_POINTS",
@@ -34,24 +34,13 @@ __all__ = [
 
 #: Most rows over which the tracking-error percentiles are taken.
 MAX_PERCENTILE_POINTS = 1_000_000
-#: The per-row validity column reep.h5 may carry: bit flags, 0 = valid (a row whose f0' is NaN is flagged too).
-FLAG_COLUMN = "flag"
 #: Most flagged rows marked on the figure.
 _MAX_FLAG_MARKS = 5000
-_BLOCK_ROWS = 1 << 20
 
 
-def _blocks(dataset, n: int):
-    for start in range(0, n, _BLOCK_ROWS):
-        yield start, dataset[start : min(n, start + _BLOCK_ROWS)]
-
-
-def _trusted(h5, name: str, rows) -> np.ndarray:
-    """Column ``name`` at ``rows`` (a slice or index array), NaN where the row is flagged."""
-    values = np.asarray(h5[name][rows], dtype=np.float64)
-    if FLAG_COLUMN in h5:
-        values = np.where(np.asarray(h5[FLAG_COLUMN][rows]) == 0, values, np.nan)
-    return values
+def _open(reep_h5: Path):
+    """The decimated series of a finished reep.h5 (b1, b0 are not needed here)."""
+    return open_result_file(reep_h5, required=("t", "f0_hz", "q"), what="reep output")
 
 
 class _Moments:
@@ -106,8 +95,6 @@ def segment_statistics(
         spread, not the error of the mean).  Rows flagged in reep.h5's
         ``flag`` column (0 = valid) are left out, as the summary leaves them.
     """
-    import h5py
-
     if free_air_segment_s:
         start, end = (float(v) for v in free_air_segment_s)
         # after the segment, REEP needs the same settling as at the start to forget the change
@@ -116,11 +103,10 @@ def segment_statistics(
         bounds = {"settled": (warmup_s, math.inf)}
     moments = {seg: {"f0_hz": _Moments(), "q": _Moments()} for seg in bounds}
     last_t = None
-    with h5py.File(reep_h5, "r") as h5:
-        n = len(h5["t"])
-        for start_row, t in _blocks(h5["t"], n):
+    with _open(reep_h5) as reep:
+        for start_row, t in reep.blocks("t"):
             stop_row = start_row + len(t)
-            columns = {name: _trusted(h5, name, slice(start_row, stop_row)) for name in ("f0_hz", "q")}
+            columns = {name: reep.trusted(name, slice(start_row, stop_row)) for name in ("f0_hz", "q")}
             for seg, (t0, t1) in bounds.items():
                 inside = (t >= t0) & (t < t1)
                 for name, values in columns.items():
@@ -166,18 +152,16 @@ def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_h
         and rows with a non-zero ``flag`` are left out.  Percentiles over more than
         :data:`MAX_PERCENTILE_POINTS` rows use that many evenly spaced ones.
     """
-    import h5py
-
     if "f0_hz" not in truth or "q" not in truth:
         return None
     truth_f0 = np.asarray(truth["f0_hz"], dtype=np.float64)
     truth_q = np.asarray(truth["q"], dtype=np.float64)
-    with h5py.File(reep_h5, "r") as h5:
-        n_rows = len(h5["t"])
+    with _open(reep_h5) as reep:
+        n_rows = len(reep["t"])
         step = max(1, math.ceil(n_rows / MAX_PERCENTILE_POINTS))
-        t = h5["t"][::step]
-        f0 = _trusted(h5, "f0_hz", slice(None, None, step))
-        q = _trusted(h5, "q", slice(None, None, step))
+        t = reep["t"][::step]
+        f0 = reep.trusted("f0_hz", slice(None, None, step))
+        q = reep.trusted("q", slice(None, None, step))
     index = np.rint(t * sample_rate_hz).astype(np.int64)
     keep = (t >= warmup_s) & (index >= 0) & (index < min(len(truth_f0), len(truth_q)))
     if not np.any(keep):
@@ -201,9 +185,7 @@ class _Thinned(NamedTuple):
 
 
 def _read_thinned(reep_h5: Path, names: tuple[str, ...]) -> _Thinned:
-    import h5py
-
-    with h5py.File(reep_h5, "r") as h5:
+    with _open(reep_h5) as h5:
         n = len(h5["t"])
         step = max(1, math.ceil(n / MAX_PLOT_POINTS))
         t = h5["t"][::step]
@@ -211,7 +193,7 @@ def _read_thinned(reep_h5: Path, names: tuple[str, ...]) -> _Thinned:
         flag_name = FLAG_COLUMN if FLAG_COLUMN in h5 else None
         flagged_rows: list[np.ndarray] = []
         count = 0
-        for start, f0 in _blocks(h5["f0_hz"], n):
+        for start, f0 in h5.blocks("f0_hz", n):
             bad = ~np.isfinite(f0)
             if flag_name is not None:
                 bad |= h5[flag_name][start : start + len(f0)] != 0

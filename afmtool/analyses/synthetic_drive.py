@@ -28,6 +28,7 @@ import numpy as np
 from afmtool.errors import InputError
 from afmtool.estimators.drive_lines import DriveLine, DrivePhaseFit, fit_drive_phases, synthesize_drive
 from afmtool.io.capture import CaptureReader, ChannelSpec, Chunk, ReaderBase
+from afmtool.io.metadata import DriveMetadata
 
 __all__ = ["DEFAULT_FIT_SAMPLES", "SyntheticDriveReader", "drive_hold", "drive_lines_from_metadata"]
 
@@ -35,15 +36,13 @@ __all__ = ["DEFAULT_FIT_SAMPLES", "SyntheticDriveReader", "drive_hold", "drive_l
 DEFAULT_FIT_SAMPLES = 1 << 16
 
 
-def drive_hold(metadata: Mapping) -> str:
+def drive_hold(drive: DriveMetadata) -> str:
     """``"zero-order"`` when metadata ``drive.hold`` says a DAC held the drive between samples, else ``"none"``.
 
-    ``"zero-order..."`` (afmtool's simulators) and ``"zoh"`` (tests/reference_sim.py) mean held.
+    ``"zero-order..."`` (afmtool's simulators) and ``"zoh"`` (tests/reference_sim.py) mean held
+    (:attr:`afmtool.io.metadata.DriveMetadata.held`).
     """
-    drive = metadata.get("drive")
-    hold = drive.get("hold", "") if isinstance(drive, Mapping) else ""
-    held = isinstance(hold, str) and (hold.startswith("zero-order") or hold == "zoh")
-    return "zero-order" if held else "none"
+    return "zero-order" if drive.held else "none"
 
 
 def drive_lines_from_metadata(metadata: Mapping) -> tuple[DriveLine, ...]:
@@ -86,8 +85,8 @@ class SyntheticDriveReader(ReaderBase):
         info = reader.info
         if "deflection" not in info.channel_names:
             raise InputError(f"{info.source}: --drive needs a deflection channel to fit the drive phases against")
-        if free_air_s is None and "free_air" in info.metadata:
-            free_air_s = (float(info.metadata["free_air"]["start_s"]), float(info.metadata["free_air"]["end_s"]))
+        if free_air_s is None and info.capture_metadata.free_air is not None:
+            free_air_s = (info.capture_metadata.free_air.start_s, info.capture_metadata.free_air.end_s)
         self._interval = free_air_s
         self.replaced_recorded = "dither" in info.channel_names
         channels = tuple(c for c in info.channels if c.name != "dither") + (ChannelSpec("dither", "V"),)
@@ -115,7 +114,7 @@ class SyntheticDriveReader(ReaderBase):
             record["fitted_on_s"] = list(self._fitted_on)
             record["response"] = {
                 "f0_hz": self.fit.f0_hz, "q": self.fit.q, "from": self.fit.response_source,
-                "hold": drive_hold(self.info.metadata),
+                "hold": drive_hold(self.info.capture_metadata.drive),
             }
         record["replaced_recorded_dither"] = self.replaced_recorded
         return record
@@ -159,10 +158,10 @@ class SyntheticDriveReader(ReaderBase):
                 f"{self.info.source}: the free-air segment {self._interval[0]:g}:{self._interval[1]:g} s "
                 "for the drive phases runs past the end of the capture"
             )
-        cantilever = self.info.metadata.get("cantilever", {})
+        cantilever = self.info.capture_metadata.cantilever
         self.fit = fit_drive_phases(
-            segment, self.info.sample_rate_hz, start, self._lines, f0_hz=cantilever.get("f0_hz"),
-            q=cantilever.get("q"), hold=drive_hold(self.info.metadata),
+            segment, self.info.sample_rate_hz, start, self._lines, f0_hz=cantilever.f0_hz,
+            q=cantilever.q, hold=drive_hold(self.info.capture_metadata.drive),
         )
         self._fitted_on = (start / self.info.sample_rate_hz, end / self.info.sample_rate_hz)
 

@@ -41,7 +41,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from afmtool.errors import InputError
@@ -237,37 +236,39 @@ def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: 
 
 def _load(reep_dir: Path, params) -> ForceFitData:
     from afmtool.analyses.theory import jump_neighbourhood
-    from afmtool.analyses.theory_outputs import _capture_side, _z_units
+    from afmtool.analyses.theory_outputs import (
+        capture_cantilever,
+        capture_side,
+        open_reep_run,
+        reep_capture_path,
+        reep_series,
+    )
     from afmtool.analyses.theory_separation import z_sensitivity_nm
 
-    report_path, series_path = reep_dir / "report.json", reep_dir / "reep.h5"
-    if not report_path.is_file() or not series_path.is_file():
-        raise InputError(f"{reep_dir}: not a reep output folder (needs report.json and reep.h5)")
-    reep_report = json.loads(report_path.read_text())
-    with h5py.File(series_path, "r") as f:
-        if "z" not in f:
-            raise InputError(f"{series_path}: no z series (the capture had no z_piezo): not a force curve")
-        series = {name: f[name][()] for name in ("t", "f0_hz", "q", "amplitude", "z")}
+    with open_reep_run(reep_dir) as reep:
+        if "z" not in reep.series:
+            raise InputError(f"{reep.path}: no z series (the capture had no z_piezo): not a force curve")
+        series = reep_series(reep, ("t", "f0_hz", "q", "amplitude", "z"))
         # samples REEP flagged as untrustworthy (reep.h5 'flag' != 0) are not fitted
-        series["trusted"] = f["flag"][()] == 0 if "flag" in f else np.ones(len(series["t"]), dtype=bool)
-        units = _z_units(f)
-    metadata, _, _ = _capture_side(Path(reep_report["inputs"][0]["path"]), reep_report)
+        flag = reep.series.get("flag")
+        series["trusted"] = flag[()] == 0 if flag is not None else np.ones(len(series["t"]), dtype=bool)
+        units, reep_results, capture = reep.z_units, reep.report, reep_capture_path(reep)
+    metadata, _, _ = capture_side(capture, reep_results)
     nm_per_unit = z_sensitivity_nm(units, params.z_sensitivity)
-    cantilever_meta = metadata.get("cantilever") or reep_report["results"]["free_air_model"]
-    cantilever = Cantilever(cantilever_meta["f0_hz"], cantilever_meta["q"])
+    cantilever = capture_cantilever(metadata, reep_results)
     t = series["t"]
     turn = int(np.argmin(series["z"] * np.sign(nm_per_unit)))
     approach = slice(0, turn + 1)
     s = {k: v[approach] for k, v in series.items()}
     start = max(2, len(s["t"]) // 20)
     early = slice(max(1, start // 4), start)  # free air, after REEP has converged
-    free_amplitude = metadata.get("drive", {}).get("free_amplitude_nm") or float(np.nanmedian(s["amplitude"][early]))
+    free_amplitude = metadata.drive.free_amplitude_nm or float(np.nanmedian(s["amplitude"][early]))
     # each series' scatter in free air, but not below what the model itself is good for: REEP's
     # off-sample accuracy (2 Hz, 2 % of Q) and 1 % of the free amplitude for the averaged amplitude
     # (the three-sine beat and the lock-in are outside averaging theory)
     floors = {"f0_hz": 2.0, "q": 0.02 * cantilever.q, "amplitude": 0.01 * free_amplitude}
     sigma = tuple(max(float(np.nanstd(s[k][early])), floors[k]) for k in ("f0_hz", "q", "amplitude"))
-    decimate = reep_report["results"]["decimate"]
+    decimate = reep_results["decimate"]
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
     finite = np.isfinite(s["f0_hz"]) & np.isfinite(s["q"]) & np.isfinite(s["amplitude"])
     mask = finite & s["trusted"] & (s["t"] > params.skip_s) & (s["amplitude"] > params.amplitude_fraction * free_amplitude)
@@ -278,8 +279,8 @@ def _load(reep_dir: Path, params) -> ForceFitData:
     for k in ("f0_hz", "q", "amplitude"):
         s[k] = np.nan_to_num(s[k], nan=float(np.nanmedian(s[k])))
     return ForceFitData(s["z"], s["f0_hz"], s["q"], s["amplitude"], thinned, nm_per_unit,
-                        reep_report["results"]["drive_frequency_hz"], cantilever, free_amplitude,
-                        reep_report["results"]["forgetting_factor"] ** decimate, sigma)
+                        reep_results["drive_frequency_hz"], cantilever, free_amplitude,
+                        reep_results["forgetting_factor"] ** decimate, sigma)
 
 
 def _record(fit: ForceFit, data: ForceFitData) -> dict:

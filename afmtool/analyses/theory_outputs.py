@@ -2,27 +2,60 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 
-import h5py
 import numpy as np
 
-from afmtool.analyses.theory import compare_with_theory
+from afmtool.analyses.theory import TheoryComparison, compare_with_theory
 from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import AveragingParams, TheoryCompareParams
 from afmtool.errors import InputError
+from afmtool.io.metadata import CaptureMetadata
+from afmtool.io.reep_results import ReepResults, open_reep_results
 from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
-from afmtool.report.json_report import input_record
+from afmtool.report.json_report import input_record, to_jsonable
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
-__all__ = ["chosen_force", "run_averaging_command", "run_compare_command"]
+__all__ = ["TheoryCompareResult", "chosen_force", "run_averaging_command", "run_compare_command"]
+
+
+@dataclass(frozen=True)
+class TheoryCompareResult:
+    """What ``theory compare`` found.
+
+    Attributes
+    ----------
+    force_set : str
+        The force law compared with: a thesis set's name, "custom" or "metadata".
+    free_amplitude_nm : float
+        The free-air amplitude A0 the theory is evaluated for, nm.
+    separation : Mapping
+        Where the separation axis came from (``source``: "truth" or
+        "z-piezo", and for z-piezo its units, scale and contact point).
+    comparison : TheoryComparison
+        REEP against averaging theory (eqs. 4.9-4.10) along the curve.
+    passed : bool
+        Both error fractions within ``--tolerance``.
+    """
+
+    force_set: str
+    free_amplitude_nm: float
+    separation: Mapping
+    comparison: TheoryComparison
+    passed: bool
+
+    def to_json(self) -> dict:
+        """The ``results`` section of report.json."""
+        return to_jsonable({"force_set": self.force_set, "free_amplitude_nm": self.free_amplitude_nm,
+                            "separation": dict(self.separation), **self.comparison.summary(), "pass": self.passed})
 
 
 def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dict:
@@ -94,98 +127,112 @@ def chosen_force(spec: str, force_set: str) -> tuple[PiecewiseLinearForce, str]:
     return THESIS_FORCE_SETS[force_set], force_set
 
 
-def _force_from(metadata: Mapping, force_set: str, spec: str = "") -> tuple[PiecewiseLinearForce, str]:
+def _force_from(metadata: CaptureMetadata, force_set: str, spec: str = "") -> tuple[PiecewiseLinearForce, str]:
     if spec or force_set:
         return chosen_force(spec, force_set)
-    meta = metadata.get("force")
-    if not meta:
+    meta = metadata.force
+    if meta is None:
         raise InputError("the capture has no force metadata; give --force-set")
-    force = PiecewiseLinearForce(
-        meta["d_nm"], meta["omega_a2_per_s2"], meta["omega_b2_per_s2"], meta["c_a_per_s"], meta["c_b_per_s"]
-    )
-    return force, meta.get("set", "metadata")
+    force = PiecewiseLinearForce(meta.d_nm, meta.omega_a2_per_s2, meta.omega_b2_per_s2, meta.c_a_per_s, meta.c_b_per_s)
+    return force, meta.set or "metadata"
 
 
 def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: Mapping) -> dict:
     """Put a REEP run beside averaging theory along its (simulated) force curve."""
     params = resolve_from(TheoryCompareParams, "theory.compare", load_toml(config) if config else None, flags)
-    report_path, series_path = reep_dir / "report.json", reep_dir / "reep.h5"
-    if not report_path.is_file() or not series_path.is_file():
-        raise InputError(f"{reep_dir}: not a reep output folder (needs report.json and reep.h5)")
-    reep_report = json.loads(report_path.read_text())
-    capture = Path(reep_report["inputs"][0]["path"])
-    with h5py.File(series_path, "r") as f:
-        series = {name: f[name][()] for name in ("t", "f0_hz", "q", "amplitude")}
-        if "flag" in f:  # samples REEP flagged as untrustworthy are left out, as in its own summaries
-            trusted = f["flag"][()] == 0
-            series["f0_hz"] = np.where(trusted, series["f0_hz"], np.nan)
-            series["q"] = np.where(trusted, series["q"], np.nan)
-        z_series = (f["z"][()], _z_units(f)) if "z" in f else None
-    metadata, fs, truth_separation = _capture_side(capture, reep_report)
+    with open_reep_run(reep_dir) as reep:
+        series = reep_series(reep, ("t", "f0_hz", "q", "amplitude"))
+        # samples REEP flagged as untrustworthy are left out, as in its own summaries
+        series["f0_hz"], series["q"] = reep.file.trusted("f0_hz", slice(None)), reep.file.trusted("q", slice(None))
+        z_series = (reep.series["z"][()], reep.z_units) if "z" in reep.series else None
+        reep_results, report_path, series_path = reep.report, reep_dir / "report.json", reep.path
+        capture = reep_capture_path(reep)
+    metadata, fs, truth_separation = capture_side(capture, reep_results)
     force, force_name = _force_from(metadata, params.force_set, params.force)
-    cantilever_meta = metadata.get("cantilever") or reep_report["results"]["free_air_model"]
-    cantilever = Cantilever(cantilever_meta["f0_hz"], cantilever_meta["q"])
-    free_amplitude = metadata.get("drive", {}).get("free_amplitude_nm") or float(
+    cantilever = capture_cantilever(metadata, reep_results)
+    free_amplitude = metadata.drive.free_amplitude_nm or float(
         np.nanmedian(series["amplitude"][: max(1, len(series["t"]) // 20)])
     )
-    separation, separation_record = _separation(params, truth_separation, z_series, series, fs, reep_report,
+    separation, separation_record = _separation(params, truth_separation, z_series, series, fs, reep_results,
                                                 cantilever, force, free_amplitude)
-    decimate = reep_report["results"]["decimate"]
+    decimate = reep_results["decimate"]
     comparison = compare_with_theory(
         series["t"], series["f0_hz"], series["q"], series["amplitude"], separation,
-        drive_frequency_hz=reep_report["results"]["drive_frequency_hz"], cantilever=cantilever, force=force,
-        forgetting_factor=reep_report["results"]["forgetting_factor"] ** decimate,
+        drive_frequency_hz=reep_results["drive_frequency_hz"], cantilever=cantilever, force=force,
+        forgetting_factor=reep_results["forgetting_factor"] ** decimate,
         free_amplitude_nm=free_amplitude, amplitude_fraction=params.amplitude_fraction,
     )
-    summary = comparison.summary()
     passed = comparison.f0_error_fraction <= params.tolerance and comparison.q_error_fraction <= params.tolerance
-    results = {"force_set": force_name, "free_amplitude_nm": free_amplitude, "separation": separation_record,
-               **summary, "pass": passed}
+    result = TheoryCompareResult(force_name, float(free_amplitude), MappingProxyType(separation_record), comparison,
+                                 passed)
     warnings = [] if passed else [
         f"REEP and averaging theory differ by more than {params.tolerance:.0%} of the theory's change"
     ]
     with OutputDir(out) as staged:
         _plot_comparison(staged.path("compare.png"), series, separation, comparison)
         inputs = [input_record(report_path, "reep report"), input_record(series_path, "reep series")]
-        inputs += [input_record(capture)] if capture.is_file() else []
-        return finish_run(staged, "theory compare", inputs, "theory.compare", params, results, warnings)
+        inputs += [input_record(capture)] if capture is not None and capture.is_file() else []
+        return finish_run(staged, "theory compare", inputs, "theory.compare", params, result.to_json(), warnings)
 
 
-def _z_units(series: h5py.File) -> str:
-    """Units of reep.h5's z; the force-curve tables carry them where the series does not."""
-    units = str(series["z"].attrs.get("units", ""))
-    for leg in ("approach", "retract"):
-        if not units and f"force_curve/{leg}/z" in series:
-            units = str(series[f"force_curve/{leg}/z"].attrs.get("units", ""))
-    return units
+def open_reep_run(reep_dir: Path) -> ReepResults:
+    """A finished ``reep`` output folder: reep.h5 with the report.json beside it."""
+    reep_dir = Path(reep_dir)
+    if not (reep_dir / "report.json").is_file() or not (reep_dir / "reep.h5").is_file():
+        raise InputError(f"{reep_dir}: not a reep output folder (needs report.json and reep.h5)")
+    reep = open_reep_results(reep_dir, where="reep output")
+    missing = [key for key in ("drive_frequency_hz", "decimate", "forgetting_factor")
+               if not isinstance(reep.report.get(key), (int, float))]
+    if missing:
+        reep.close()
+        raise InputError(f"{reep_dir / 'report.json'}: not the report of a reep run (no results.{missing[0]})")
+    return reep
 
 
-def _capture_side(capture: Path, reep_report: Mapping) -> tuple[Mapping, float, np.ndarray | None]:
-    """(metadata, sample rate, /truth/separation_nm or None) of REEP's input capture."""
-    truth = None
-    if capture.suffix.lower() in (".h5", ".hdf5"):
-        try:
-            with h5py.File(capture, "r") as f:
-                metadata = json.loads(f.attrs.get("metadata", "{}"))
-                fs = float(f.attrs["sample_rate_hz"])
-                if "truth/separation_nm" in f:
-                    truth = f["truth/separation_nm"][()]
-            return metadata, fs, truth
-        except (OSError, KeyError, ValueError):
-            pass
-    if capture.is_file():
+def reep_series(reep: ReepResults, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The series ``names`` of an open REEP output, read whole."""
+    missing = [name for name in names if name not in reep.series]
+    if missing:
+        raise InputError(f"{reep.path}: no {', '.join(missing)} series")
+    return {name: reep.series[name][()] for name in names}
+
+
+def reep_capture_path(reep: ReepResults) -> Path | None:
+    """The capture the REEP run read (its report's first input), or None if the report names none."""
+    path = reep.inputs[0].get("path") if reep.inputs else None
+    return Path(path) if isinstance(path, str) and path != "-" else None
+
+
+def capture_side(capture: Path | None, reep_results: Mapping) -> tuple[CaptureMetadata, float, np.ndarray | None]:
+    """(metadata, sample rate, /truth/separation_nm or None) of REEP's input capture.
+
+    The capture is opened through the reader registry, so any format REEP
+    read will do; only its metadata and ground truth are read, not its samples.
+    """
+    if capture is not None and capture.exists():
         from afmtool.io.registry import open_capture
 
         reader = open_capture(capture)
         try:
-            return dict(reader.info.metadata), float(reader.info.sample_rate_hz), None
+            truth = reader.truth().get("separation_nm") if "separation_nm" in reader.info.truth_names else None
+            return reader.info.capture_metadata, float(reader.info.sample_rate_hz), truth
         finally:
             reader.close()
     # the capture moved: what the REEP report recorded is enough for z-piezo separations
-    return {}, float(reep_report["results"].get("sample_rate_hz") or 0.0), None
+    return CaptureMetadata(), float(reep_results.get("sample_rate_hz") or 0.0), None
 
 
-def _separation(params, truth, z_series, series, fs, reep_report, cantilever, force, free_amplitude):
+def capture_cantilever(metadata: CaptureMetadata, reep_results: Mapping) -> Cantilever:
+    """The capture's cantilever f0, Q; without them in its metadata, the free-air model REEP used."""
+    if metadata.cantilever.f0_hz is not None and metadata.cantilever.q is not None:
+        return Cantilever(metadata.cantilever.f0_hz, metadata.cantilever.q)
+    model = reep_results.get("free_air_model")
+    if not isinstance(model, Mapping) or not all(isinstance(model.get(k), (int, float)) for k in ("f0_hz", "q")):
+        raise InputError("neither the capture's metadata nor the REEP report give the cantilever's f0 and Q")
+    return Cantilever(float(model["f0_hz"]), float(model["q"]))
+
+
+def _separation(params, truth, z_series, series, fs, reep_results, cantilever, force, free_amplitude):
     """The separation per REEP sample and a record of where it came from."""
     from afmtool.analyses.theory_separation import separation_from_z, z_sensitivity_nm
 
@@ -200,7 +247,7 @@ def _separation(params, truth, z_series, series, fs, reep_report, cantilever, fo
     z, units = z_series
     estimate = separation_from_z(
         z, series["amplitude"], nm_per_unit=z_sensitivity_nm(units, params.z_sensitivity),
-        drive_frequency_hz=reep_report["results"]["drive_frequency_hz"], cantilever=cantilever, force=force,
+        drive_frequency_hz=reep_results["drive_frequency_hz"], cantilever=cantilever, force=force,
         free_amplitude_nm=free_amplitude, contact_z=float(params.contact_z) if params.contact_z else None,
     )
     return estimate.separation_nm, {

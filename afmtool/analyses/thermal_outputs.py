@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
@@ -33,6 +32,7 @@ from afmtool.estimators.thermal_sensor import (
 )
 from afmtool.io.capture import CaptureReader
 from afmtool.io.chunks import require_channels
+from afmtool.io.gamma_results import GammaFile, read_gamma_ir_ts
 from afmtool.io.results import ResultWriter
 from afmtool.models.thermal_model import THERMAL_MODEL_FILE, ThermalModel, load_thermal_model
 from afmtool.pipeline import run_stream
@@ -51,39 +51,6 @@ _SAME_POINT = 0.01
 # --------------------------------------------------------------------------- files in
 
 
-class GammaFile(NamedTuple):
-    """Γ_IR,ts (µA/nm) from ``gamma.h5`` and the mean thermal current of its sweep (µA; NaN if not stored)."""
-
-    ir_ts: FrequencyResponse
-    thermal_current_mean_ua: float
-
-
-def read_gamma_ir_ts(path: Path) -> GammaFile:
-    """Γ_IR,ts from the ``gamma.h5`` of ``identify gamma`` (or its folder)."""
-    import h5py
-
-    path = Path(path)
-    if path.is_dir():
-        path = path / "gamma.h5"
-    try:
-        with h5py.File(path, "r") as h5:
-            frf = h5["frf"]
-            h = np.asarray(frf["ir_ts"][()], dtype=np.complex128)
-            std = np.asarray(frf["magnitude_std_ir_ts"][()], dtype=np.float64)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                fr = FrequencyResponse(
-                    frequency_hz=np.asarray(frf["frequency_hz"][()], dtype=np.float64),
-                    response=h,
-                    coherence=np.asarray(frf["coherence_ir_ts"][()], dtype=np.float64),
-                    magnitude_std=std,
-                    phase_std_rad=std / np.abs(h),
-                    method="h1",
-                )
-            return GammaFile(fr, float(h5.attrs.get("thermal_current_mean_ua", np.nan)))
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such gamma.h5") from None
-    except (OSError, KeyError) as exc:
-        raise InputError(f"{path}: not a gamma.h5 from 'identify gamma' ({exc})") from None
 
 
 def _scale(reader: CaptureReader, name: str, kind: str, warnings: list) -> float:

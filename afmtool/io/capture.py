@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Protocol
 
+from afmtool.io.metadata import CaptureMetadata
+
 if TYPE_CHECKING:  # numpy stays out of CLI start-up (afmtool --help)
     import numpy as np
 
@@ -63,7 +65,11 @@ class CaptureInfo:
     """What is known about a capture before its samples are read.
 
     ``n_samples`` is ``None`` for streams (CSV on stdin) whose length is
-    only known once they have been read to the end.
+    only known once they have been read to the end.  ``capture_metadata``
+    is ``metadata`` validated and typed, once, when the info is made (so
+    by every reader): a bad value is an InputError naming the key and
+    ``source``.  Analyses read the typed fields; ``metadata`` stays for
+    free-form keys and for writing the metadata on unchanged.
     """
 
     source: str
@@ -76,9 +82,11 @@ class CaptureInfo:
     truth_names: tuple[str, ...] = ()
     #: The file's segments (empty for an unsegmented capture); see ``--segment``.
     segments: tuple[SegmentSpec, ...] = ()
+    capture_metadata: CaptureMetadata = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "metadata", MappingProxyType(dict(self.metadata)))
+        object.__setattr__(self, "capture_metadata", CaptureMetadata.from_mapping(self.metadata, self.source))
 
     @property
     def channel_names(self) -> tuple[str, ...]:

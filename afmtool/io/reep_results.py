@@ -2,7 +2,9 @@
 
 Series are returned as open h5py datasets (sliced on demand), so a REEP
 run of any length can be followed in flat memory.  Nothing is estimated
-here.
+here.  The same reader, opened with ``mode="r+"``, lets ``reep`` add what it
+derives from its own finished series (``/interaction``, the binned tables
+and images) to the staged reep.h5.
 """
 
 from __future__ import annotations
@@ -15,12 +17,13 @@ from pathlib import Path
 import h5py
 
 from afmtool.errors import InputError
+from afmtool.io.result_files import FLAG_COLUMN, ResultFile, open_result_file
 from afmtool.models.free_air import FreeAirModel, load_free_air_model
 
 __all__ = ["ReepResults", "open_reep_results"]
 
 _SERIES = ("t", "b1", "b0")
-_OPTIONAL_SERIES = ("z", "f0_hz", "q", "amplitude")
+_OPTIONAL_SERIES = ("z", "f0_hz", "q", "amplitude", "phase_deg", FLAG_COLUMN)
 
 
 @dataclass
@@ -33,12 +36,20 @@ class ReepResults:
         The ``reep.h5`` file.
     series : Mapping[str, h5py.Dataset]
         ``t`` (s), ``b1``, ``b0``, and where present ``z``, ``f0_hz``, ``q``,
-        ``amplitude``: the decimated per-sample series.
+        ``amplitude``, ``phase_deg``, ``flag`` (0 = valid): the decimated
+        per-sample series.
     report : Mapping
         ``results`` of its ``report.json`` (empty if there is none beside it).
     free_air_model : FreeAirModel or None
         ``free_air.json`` beside it, if any.
     z_units : str
+        Units of ``z``; where the series has none, those of the force-curve
+        tables' ``z``.
+    file : ResultFile or None
+        The open file itself: blocks, thinned rows, ``/interaction``, and
+        (opened with ``mode="r+"``) adding arrays.
+    inputs : tuple of Mapping
+        ``inputs`` of its ``report.json``: the capture REEP read first.
     """
 
     path: Path
@@ -46,12 +57,13 @@ class ReepResults:
     report: Mapping
     free_air_model: FreeAirModel | None
     z_units: str = ""
-    _file: h5py.File | None = field(default=None, repr=False)
+    file: ResultFile | None = field(default=None, repr=False)
+    inputs: tuple[Mapping, ...] = ()
 
     def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+        if self.file is not None:
+            self.file.close()
+            self.file = None
 
     def __enter__(self) -> ReepResults:
         return self
@@ -60,8 +72,17 @@ class ReepResults:
         self.close()
 
 
-def open_reep_results(path: Path | str) -> ReepResults:
+def open_reep_results(path: Path | str, *, mode: str = "r", where: str = "--reep") -> ReepResults:
     """Open a REEP output folder or its ``reep.h5``.
+
+    Parameters
+    ----------
+    path : Path or str
+        The folder or the file.
+    mode : {"r", "r+"}
+        ``"r+"`` to add arrays to it (a staged output of this run).
+    where : str
+        What the path was given as, to begin error messages with.
 
     Raises
     ------
@@ -71,30 +92,48 @@ def open_reep_results(path: Path | str) -> ReepResults:
     path = Path(path)
     h5_path = path / "reep.h5" if path.is_dir() else path
     folder = h5_path.parent
+    if not h5_path.exists():
+        raise InputError(f"{where} {path}: no reep.h5 there")
     try:
-        handle = h5py.File(h5_path, "r")
-    except FileNotFoundError:
-        raise InputError(f"--reep {path}: no reep.h5 there") from None
-    except OSError as exc:
-        raise InputError(f"--reep {h5_path}: not an HDF5 file ({str(exc).splitlines()[0]})") from None
+        handle = open_result_file(h5_path, mode=mode, what="reep output")
+    except InputError as exc:
+        raise InputError(f"{where} {exc}") from None
     try:
-        missing = [name for name in _SERIES if not isinstance(handle.get(name), h5py.Dataset)]
+        missing = [name for name in _SERIES if name not in handle.names()]
         if missing:
-            raise InputError(f"--reep {h5_path}: not a reep output (no {', '.join(missing)})")
-        series = {name: handle[name] for name in _SERIES}
-        series.update({name: handle[name] for name in _OPTIONAL_SERIES if isinstance(handle.get(name), h5py.Dataset)})
+            raise InputError(f"{where} {h5_path}: not a reep output (no {', '.join(missing)})")
+        series = {name: handle[name] for name in _SERIES + _OPTIONAL_SERIES if name in handle.names()}
         lengths = {len(ds) for ds in series.values()}
         if len(lengths) != 1 or any(ds.ndim != 1 for ds in series.values()):
-            raise InputError(f"--reep {h5_path}: its series are not 1-D of one length")
-        z_units = str(series["z"].attrs.get("units", "")) if "z" in series else ""
-        report = {}
-        if (folder / "report.json").is_file():
-            try:
-                report = json.loads((folder / "report.json").read_text()).get("results", {})
-            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-                raise InputError(f"--reep {folder / 'report.json'}: not JSON ({exc})") from None
+            raise InputError(f"{where} {h5_path}: its series are not 1-D of one length")
+        report, inputs = _report(folder / "report.json", where)
         free_air = load_free_air_model(folder / "free_air.json") if (folder / "free_air.json").is_file() else None
     except BaseException:
         handle.close()
         raise
-    return ReepResults(h5_path, series, report, free_air, z_units, handle)
+    return ReepResults(h5_path, series, report, free_air, _z_units(handle), handle, inputs)
+
+
+def _report(path: Path, where: str) -> tuple[Mapping, tuple[Mapping, ...]]:
+    """``results`` and ``inputs`` of the report.json at ``path`` (empty when there is none)."""
+    if not path.is_file():
+        return {}, ()
+    try:
+        report = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{where} {path}: not JSON ({exc})") from None
+    if not isinstance(report, Mapping):
+        raise InputError(f"{where} {path}: not an afmtool report (not a JSON object)")
+    results, inputs = report.get("results", {}), report.get("inputs", [])
+    if not isinstance(results, Mapping) or not isinstance(inputs, list):
+        raise InputError(f"{where} {path}: not an afmtool report (results or inputs of the wrong type)")
+    return results, tuple(item for item in inputs if isinstance(item, Mapping))
+
+
+def _z_units(handle: ResultFile) -> str:
+    """Units of reep.h5's z; the force-curve tables carry them where the series does not."""
+    units = handle.units("z") if "z" in handle.names() else ""
+    for leg in ("approach", "retract"):
+        if not units and "z" in handle.names(f"force_curve/{leg}"):
+            units = handle.units(f"force_curve/{leg}/z")
+    return units

@@ -156,9 +156,9 @@ def _sensitivity(name: str, info: CaptureInfo, calibration: Calibration) -> tupl
     if name == "deflection":
         if calibration.invols_nm_per_v is not None:
             return calibration.invols_nm_per_v, "invols (--invols)", ""
-        cantilever = info.metadata.get("cantilever", {})
-        if "deflection_sensitivity_nm_per_v" in cantilever:
-            return float(cantilever["deflection_sensitivity_nm_per_v"]), "invols (metadata)", ""
+        invols = info.capture_metadata.cantilever.deflection_sensitivity_nm_per_v
+        if invols is not None:
+            return invols, "invols (metadata)", ""
         return math.nan, "", "give --invols NM_PER_V or metadata cantilever.deflection_sensitivity_nm_per_v"
     if calibration.z_sensitivity_nm_per_v is not None:
         return calibration.z_sensitivity_nm_per_v, "z_sensitivity (--z-sensitivity)", ""
