@@ -436,7 +436,7 @@ def _rotor_at(n, cycles_per_sample):
 
 
 @njit(**JIT_OPTIONS)
-def _derivatives(p, v, z, w, g_acc, eta, u, h, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb):  # noqa: PLR0913
+def _derivatives(p, v, z, w, g_acc, eta, u, h, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb):
     """(ṗ, v̇, ż, ẇ) of the cantilever and the piezo at one RK4 stage; also F/m."""
     force = force_per_mass(p, v, z - h, d, wa2, wb2, ca, cb)
     # p̈ = ω0²g + η − ω0²p − (ω0/Q)ṗ + F/m
@@ -447,7 +447,7 @@ def _derivatives(p, v, z, w, g_acc, eta, u, h, w0q, w0sq, wpq, wpsq, d, wa2, wb2
 
 
 @njit(**JIT_OPTIONS)
-def _plant_period(plant, g_row, eta, u, h_half, base, nsub, dt, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb):  # noqa: PLR0913
+def _plant_period(plant, g_row, eta, u, h_half, base, nsub, dt, w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb):
     """Integrate one sample period with ``nsub`` RK4 steps; η and u held.
 
     ``g_row[j]`` is the dither forcing ω0²·gain·g at t_n + j·dt/2
@@ -507,7 +507,7 @@ def _demodulate(y, rotor, sos, zi):
 
 
 @njit(**JIT_OPTIONS)
-def _raster_kernel(  # noqa: PLR0913, PLR0915
+def _raster_kernel(  # noqa: PLR0915
     start, dither, g_rows, eta, noise, h_half, gain, nsub, dt, period,
     w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb,
     obs, xhat, ring, sums, counters,
