@@ -507,7 +507,7 @@ def _demodulate(y, rotor, sos, zi):
 
 
 @njit(**JIT_OPTIONS)
-def _raster_kernel(  # noqa: PLR0915
+def _raster_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     start, dither, g_rows, eta, noise, h_half, gain, nsub, dt, period,
     w0q, w0sq, wpq, wpsq, d, wa2, wb2, ca, cb,
     obs, xhat, ring, sums, counters,
