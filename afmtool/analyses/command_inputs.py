@@ -1,18 +1,75 @@
-"""What the command runners (``*_outputs.py``) read before they run: the given model, units, records.
+"""What the command runners (``*_outputs.py``) receive and read before they run.
 
-The runners of reep, probeloss and kalman-bank each began with the same
-lines: load ``--model`` if given, record it as an input, and take the units
-of a channel the capture may lack.  They live here once.
+The runners of reep, probeloss, decode and kalman-bank each began with the
+same lines: the same seven arguments, the parameters resolved from the
+packaged defaults, ``--config`` and the flags, the capture's hash, the
+``--model`` file loaded and recorded as an input, the units of a channel
+the capture may lack.  They live here once: :class:`CommandRun` is the
+request, the functions below the shared first steps.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
+from afmtool.config import load_toml, resolve_from
 from afmtool.io.capture import CaptureReader
 from afmtool.models.free_air import FreeAirModel, load_free_air_model
 
-__all__ = ["channel_units", "given_free_air_model", "model_input_records"]
+if TYPE_CHECKING:
+    from afmtool.report.json_report import PendingInputRecord
+
+__all__ = ["CommandRun", "channel_units", "given_free_air_model", "model_input_records"]
+
+P = TypeVar("P")
+
+
+@dataclass(frozen=True)
+class CommandRun:
+    """One run of a capture command into ``--out``, as the CLI hands it to the command's runner.
+
+    Attributes
+    ----------
+    reader : CaptureReader
+        The open capture (units converted, metadata validated).
+    capture : str
+        Its path as given (``-`` for stdin), for the input record.
+    out : Path
+        The output folder, written atomically.
+    config : Path or None
+        ``--config`` TOML.
+    flags : mapping
+        ``{field: value or None}`` from the command's generated flags.
+    progress : callable
+        Called with the samples done so far.
+    capture_record : PendingInputRecord, optional
+        The capture's hash already under way (started by the CLI before its
+        imports, so that hashing overlaps them); by default it starts here.
+    reopen : callable, optional
+        Opens the capture again, for a command that reads it twice.
+    """
+
+    reader: CaptureReader
+    capture: str
+    out: Path
+    config: Path | None
+    flags: Mapping
+    progress: Callable[[int], None]
+    capture_record: PendingInputRecord | None = None
+    reopen: Callable[[], CaptureReader] | None = None
+
+    def params(self, cls: type[P], section: str) -> P:
+        """The effective parameters: packaged defaults, then ``[section]`` of ``--config``, then flags."""
+        return resolve_from(cls, section, load_toml(self.config) if self.config else None, self.flags)
+
+    def input_record(self) -> PendingInputRecord:
+        """The capture's input record (path, role, hash), under way."""
+        from afmtool.report.json_report import PendingInputRecord
+
+        return self.capture_record or PendingInputRecord(self.capture)
 
 
 def given_free_air_model(model: str) -> FreeAirModel | None:

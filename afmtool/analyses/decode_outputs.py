@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from afmtool.analyses.command_inputs import CommandRun
 from afmtool.analyses.decode import SERIES_UNITS, DecodeResult, run_decode
 from afmtool.analyses.stream import run_stream
-from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import DecodeParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.report.json_report import PendingInputRecord
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -24,29 +23,18 @@ __all__ = ["run_decode_command", "run_decode_stream", "write_eye_png", "write_ps
 _EYE_STYLE = {"color": "C0", "linewidth": 0.6, "alpha": 0.25}
 
 
-def run_decode_command(
-    reader: CaptureReader,
-    capture: str,
-    out: Path,
-    config: Path | None,
-    flags: Mapping,
-    progress: Callable[[int], None],
-    capture_record: PendingInputRecord | None = None,
-) -> dict:
-    """Resolve parameters, decode, write every output atomically; return the report.
-
-    ``capture_record`` is the capture's hash already under way (started by
-    the CLI before its imports); by default it starts here.
-    """
+def run_decode_command(run: CommandRun) -> dict:
+    """Resolve parameters, decode, write every output atomically; return the report."""
     from afmtool.report.images import start_matplotlib_import
 
-    params = resolve_from(DecodeParams, "decode", load_toml(config) if config else None, flags)
-    record = capture_record or PendingInputRecord(capture)
-    with OutputDir(out) as staged:
+    reader = run.reader
+    params = run.params(DecodeParams, "decode")
+    record = run.input_record()
+    with OutputDir(run.out) as staged:
         attrs = {"afmtool_command": "decode", "sample_rate_hz": reader.info.sample_rate_hz}
         with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs, write_behind=True) as writer:
             # matplotlib, for the eye, PSD and ℓ0 figures at the end, loads while the EKF streams
-            result = run_decode(reader, params, writer, progress=progress, on_stream_start=start_matplotlib_import)
+            result = run_decode(reader, params, writer, progress=run.progress, on_stream_start=start_matplotlib_import)
             if result.psd:
                 for name in ("frequency_hz", "deflection", "innovation"):
                     units = "Hz" if name == "frequency_hz" else "nm^2/Hz"

@@ -8,17 +8,14 @@ Writes ``bank.h5`` (decimated series ``t``, ``z``, ``rms`` (N × T),
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
 
-from afmtool.analyses.command_inputs import channel_units, given_free_air_model, model_input_records
+from afmtool.analyses.command_inputs import CommandRun, channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.kalman_bank import SERIES_UNITS, KalmanBankResult, run_kalman_bank
-from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import KalmanBankParams
 from afmtool.errors import ConfigError
-from afmtool.io.capture import CaptureReader
 from afmtool.io.matrix_results import MatrixResultWriter
 from afmtool.io.units import calibration_record
 from afmtool.report.json_report import input_record
@@ -31,20 +28,13 @@ __all__ = ["run_kalman_bank_command"]
 _FILTER_COLOURS = ("C0", "C1", "C2", "C4", "C5", "C6", "C7", "C8", "C9")
 
 
-def run_kalman_bank_command(
-    reader: CaptureReader,
-    capture: str,
-    out: Path,
-    config: Path | None,
-    flags: Mapping,
-    progress: Callable[[int], None],
-    reopen: Callable[[], CaptureReader] | None = None,
-) -> dict:
+def run_kalman_bank_command(run: CommandRun) -> dict:
     """Resolve parameters, run the bank, write every output atomically; return the report."""
     from afmtool.io.reep_results import open_reep_results
 
-    params = resolve_from(KalmanBankParams, "kalman-bank", load_toml(config) if config else None, flags)
-    if capture == "-" and not (params.reep or params.models):
+    reader = run.reader
+    params = run.params(KalmanBankParams, "kalman-bank")
+    if run.capture == "-" and not (params.reep or params.models):
         raise ConfigError(
             "kalman-bank reads a capture twice (REEP first, then the bank); stdin cannot be re-read: "
             "give --reep REEP_DIR (a finished 'afmtool reep' run) or --models"
@@ -53,16 +43,16 @@ def run_kalman_bank_command(
     deflection_units = channel_units(reader, "deflection")
     z_units = channel_units(reader, "z_piezo")
     units = {**SERIES_UNITS, "z": z_units, "rms": deflection_units, "adaptive_rms": deflection_units}
-    inputs = [input_record(capture), *model_input_records(params.model)]
+    inputs = [input_record(run.capture), *model_input_records(params.model)]
     reep_results = open_reep_results(params.reep) if params.reep else None
     try:
         if reep_results is not None:
             inputs.append(input_record(reep_results.path, "reep series"))
-        with OutputDir(out) as staged:
+        with OutputDir(run.out) as staged:
             with MatrixResultWriter(staged.path("bank.h5"), units, {"afmtool_command": "kalman-bank"}) as writer:
                 result = run_kalman_bank(
-                    reader, params, writer, model=model, reep_results=reep_results, reopen=reopen,
-                    progress=progress,
+                    reader, params, writer, model=model, reep_results=reep_results, reopen=run.reopen,
+                    progress=run.progress,
                 )
                 _write_tables(writer, result, deflection_units)
             _plot_rms_vs_z(staged.path("bank_rms_vs_z.png"), result, deflection_units)

@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
-import numpy as np
-
-from afmtool.analyses.command_inputs import channel_units, given_free_air_model, model_input_records
+from afmtool.analyses.command_inputs import CommandRun, channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.probeloss import SERIES_UNITS, ProbeLossResult, run_probeloss
 from afmtool.analyses.stream import run_stream
-from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.report.json_report import PendingInputRecord
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -29,26 +25,15 @@ def _units(reader: CaptureReader) -> dict[str, str]:
     return dict(SERIES_UNITS, amplitude=channel_units(reader, "deflection"))
 
 
-def run_probeloss_command(
-    reader: CaptureReader,
-    capture: str,
-    out: Path,
-    config: Path | None,
-    flags: Mapping,
-    progress: Callable[[int], None],
-    capture_record: PendingInputRecord | None = None,
-) -> dict:
-    """Resolve parameters, run the probe-loss analysis, write every output atomically; return the report.
-
-    ``capture_record`` is the capture's hash already under way (started by
-    the CLI before its imports); by default it starts here.
-    """
-    params = resolve_from(ProbeLossParams, "probeloss", load_toml(config) if config else None, flags)
+def run_probeloss_command(run: CommandRun) -> dict:
+    """Resolve parameters, run the probe-loss analysis, write every output atomically; return the report."""
+    reader = run.reader
+    params = run.params(ProbeLossParams, "probeloss")
     model = given_free_air_model(params.model)
-    capture_record = capture_record or PendingInputRecord(capture)
-    with OutputDir(out) as staged:
+    capture_record = run.input_record()
+    with OutputDir(run.out) as staged:
         with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"}) as writer:
-            result = run_probeloss(reader, params, writer, model=model, progress=progress)
+            result = run_probeloss(reader, params, writer, model=model, progress=run.progress)
             _write_images(staged, writer, result)
         results = dict(result.results)
         _write_time_series(staged, reader, results)
@@ -83,23 +68,14 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResu
     """Probe-loss mask (fraction of each pixel's samples in loss) and index images, PNG and .gsf."""
     if result.geometry is None:
         return
-    from afmtool.report.images import write_gsf, write_image_png
+    from afmtool.report.images import write_scan_image_files
 
-    size = result.geometry.scan_size_m
-    y_size = size * result.geometry.lines / result.geometry.pixels_per_line
+    geometry = result.geometry
     for key, image in sorted(result.images.items()):
         quantity, direction = key.split("/")
         title, units = _IMAGE_TITLES[quantity]
-        top_first = image[::-1]  # last line scanned at the top, as AFM viewers show it
         writer.put(f"images/{key}", image, units, {"row0": "first line scanned"})
-        stem = f"{_IMAGE_STEMS[quantity]}_{direction}"
-        z_range = (0.0, 1.0) if quantity == "loss" else None
-        cmap = "gray_r" if quantity == "loss" else "afmhot"
-        write_image_png(
-            staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})",
-            cmap=cmap, z_range=z_range, z_label=title,
-        )
-        write_gsf(
-            staged.path(f"{stem}.gsf"), np.asarray(top_first), size, y_size, xy_units="m", z_units=units,
-            title=f"{title} {direction}",
-        )
+        loss = quantity == "loss"
+        write_scan_image_files(staged.path, f"{_IMAGE_STEMS[quantity]}_{direction}", image, geometry.scan_size_m,
+                               geometry.lines / geometry.pixels_per_line, title=title, direction=direction, units=units,
+                               cmap="gray_r" if loss else "afmhot", z_range=(0.0, 1.0) if loss else None)

@@ -2,20 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
-from afmtool.analyses.command_inputs import channel_units, given_free_air_model, model_input_records
+from afmtool.analyses.command_inputs import CommandRun, channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.reep import SERIES_UNITS, ReepResult, run_reep
 from afmtool.analyses.stream import run_stream
-from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.report.json_report import PendingInputRecord
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -24,29 +22,18 @@ __all__ = ["run_reep_command", "run_reep_stream"]
 _IMAGE_TITLES = {"f0_hz": ("f0'", "Hz"), "q": ("Q'", ""), "amplitude": ("amplitude", None), "phase_deg": ("phase", "deg")}
 
 
-def run_reep_command(
-    reader: CaptureReader,
-    capture: str,
-    out: Path,
-    config: Path | None,
-    flags: Mapping,
-    progress: Callable[[int], None],
-    capture_record: PendingInputRecord | None = None,
-) -> dict:
-    """Resolve parameters, run REEP, write every output atomically; return the report.
-
-    ``capture_record`` is the capture's hash already under way (started by
-    the CLI before its imports); by default it starts here.
-    """
-    params = resolve_from(ReepParams, "reep", load_toml(config) if config else None, flags)
+def run_reep_command(run: CommandRun) -> dict:
+    """Resolve parameters, run REEP, write every output atomically; return the report."""
+    reader = run.reader
+    params = run.params(ReepParams, "reep")
     model = given_free_air_model(params.model)
     deflection_units = channel_units(reader, "deflection")
     units = dict(SERIES_UNITS, amplitude=deflection_units, sigma2=f"{deflection_units}^2" if deflection_units else "")
-    capture_record = capture_record or PendingInputRecord(capture)
+    capture_record = run.input_record()
     model_records = model_input_records(params.model)
-    with OutputDir(out) as staged:
+    with OutputDir(run.out) as staged:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
-            result = run_reep(reader, params, writer, model=model, progress=progress)
+            result = run_reep(reader, params, writer, model=model, progress=run.progress)
             _write_force_curves(staged, writer, result, deflection_units)
             _write_images(staged, writer, result, deflection_units)
         results = dict(result.results)
@@ -168,20 +155,16 @@ def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepRes
 def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str) -> None:
     if result.geometry is None:
         return
-    from afmtool.report.images import write_gsf, write_image_png
+    from afmtool.report.images import write_scan_image_files
 
-    size = result.geometry.scan_size_m
-    y_size = size * result.geometry.lines / result.geometry.pixels_per_line
+    geometry = result.geometry
     for key, image in sorted(result.images.items()):
         quantity, direction = key.split("/")
         title, units = _IMAGE_TITLES[quantity]
         units = deflection_units if units is None else units
-        top_first = image[::-1]  # last line scanned at the top, as AFM viewers show it
         writer.put(f"images/{key}", image, units, {"row0": "first line scanned"})
-        stem = f"{quantity}_{direction}"
-        write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units, title=f"{title} ({direction})",
-                        z_label=title)
-        write_gsf(staged.path(f"{stem}.gsf"), top_first, size, y_size, xy_units="m", z_units=units, title=f"{title} {direction}")
+        write_scan_image_files(staged.path, f"{quantity}_{direction}", image, geometry.scan_size_m,
+                               geometry.lines / geometry.pixels_per_line, title=title, direction=direction, units=units)
 
 
 #: Image titles of the /interaction quantities (afmtool.models.interaction).
@@ -215,16 +198,12 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
         for key, image in sorted(binned.images.items()):
             f.put(f"images/{key}", image, binned.units[key.split("/")[0]], {"row0": "first line scanned"})
     if binned.images:
-        from afmtool.report.images import write_gsf, write_image_png
+        from afmtool.report.images import write_scan_image_files
 
-        size = result.geometry.scan_size_m
-        y_size = size * result.geometry.lines / result.geometry.pixels_per_line
+        geometry = result.geometry
         for key, image in sorted(binned.images.items()):
             quantity, direction = key.split("/")
-            title, units = _INTERACTION_TITLES.get(quantity, quantity), binned.units[quantity]
-            top_first = image[::-1]  # last line scanned at the top, as _write_images
-            stem = f"{quantity}_{direction}"
-            write_image_png(staged.path(f"{stem}.png"), top_first, size, y_size, z_units=units,
-                            title=f"{title} ({direction})", z_label=title)
-            write_gsf(staged.path(f"{stem}.gsf"), top_first, size, y_size, xy_units="m", z_units=units,
-                      title=f"{title} {direction}")
+            write_scan_image_files(staged.path, f"{quantity}_{direction}", image, geometry.scan_size_m,
+                                   geometry.lines / geometry.pixels_per_line,
+                                   title=_INTERACTION_TITLES.get(quantity, quantity), direction=direction,
+                                   units=binned.units[quantity])

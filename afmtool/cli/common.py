@@ -161,13 +161,14 @@ def run_streaming_command(name: str, capture: str, source_args: tuple, output, f
     """reep, probeloss and decode: hash the input, then run ``analysis`` into ``--stream`` rows or ``--out``.
 
     ``analysis`` is the module holding ``run_<name>_stream(reader, config, flags, fmt)`` and
-    ``run_<name>_command(reader, capture, out, config, flags, progress, capture_record)``;
+    ``run_<name>_command(run)`` (an :class:`~afmtool.analyses.command_inputs.CommandRun`);
     it is imported only after the input's hash has started, so that hashing a large
     capture overlaps the import.  ``output`` is the command's
     :class:`~afmtool.cli.groups.CommandOutput`.
     """
     import importlib
 
+    from afmtool.analyses.command_inputs import CommandRun
     from afmtool.report.json_report import PendingInputRecord
 
     capture_record = None if output.stream or output.out is None else PendingInputRecord(capture)
@@ -177,6 +178,7 @@ def run_streaming_command(name: str, capture: str, source_args: tuple, output, f
     run_capture_analysis(
         name, capture, source_args, output.out, output.stream_mode, output.json_output, output.quiet,
         to_rows=lambda reader: to_rows(reader, output.config, flags, output.stream_format),
-        to_folder=lambda reader, update: to_folder(reader, capture, output.out, output.config, flags, update,
-                                                   capture_record),
+        to_folder=lambda reader, update: to_folder(
+            CommandRun(reader, capture, output.out, output.config, flags, update, capture_record)
+        ),
     )

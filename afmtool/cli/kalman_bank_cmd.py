@@ -28,6 +28,7 @@ def kalman_bank(capture: CaptureArg, *, flags: dict, output: CommandOutput, sour
     report.json).  Writes bank.h5, bank_rms_vs_z.png, report.json and
     config.toml.  Needs dither, deflection and z_piezo.
     """
+    from afmtool.analyses.command_inputs import CommandRun
     from afmtool.analyses.kalman_bank_outputs import run_kalman_bank_command
 
     calibration = source.calibration(flags["free_air"], accepts_drive=True)
@@ -38,7 +39,7 @@ def kalman_bank(capture: CaptureArg, *, flags: dict, output: CommandOutput, sour
 
     with source.open(capture, calibration) as reader:
         with progress_bar("kalman-bank", reader.info.n_samples, output.quiet) as update:
-            report = run_kalman_bank_command(reader, capture, output.out, output.config, flags, update, reopen)
+            report = run_kalman_bank_command(CommandRun(reader, capture, output.out, output.config, flags, update, reopen=reopen))
     finish_command(report, output.out, output.json_output, output.quiet)
 
 

@@ -116,15 +116,15 @@ def observer(
 
 @app.command("controllers")
 @with_options(param_flags(TheoryControllersParams), output_options(Path("theory_controllers")))
-def controllers(
-    *, flags: dict, output: CommandOutput
-) -> None:
+def controllers(*, flags: dict, output: CommandOutput) -> None:
     """Low, high and switching z-controller gains on the calibration grating (thesis ch. 2, §2.5).
 
     Simulates the closed-loop raster scan once per controller and line rate
-    (same surface, noise and seed) and tabulates the probe-loss area and the
-    peak on-sample force; report.json says at each rate whether the high gain
-    loses less than the low, the switching gain's loss is within 1.2x the high
+    (same surface, noise and seed) and tabulates the probe-loss area (loss of
+    contact where the surface falls away, §2.2), the lift-off area (loss the
+    controller caused on a level surface) and the peak on-sample force;
+    report.json says at each rate whether the high gain loses less than the
+    low and least of all, the switching gain's loss is within 1.2x the high
     gain's and its peak force within 1.2x the low gain's.  Writes report.json,
     ch2_table.json, ch2_controllers.png (height images side by side) and
     ch2_loss_force.png.  docs/ch2_table.json and docs/ch2_controllers.png are

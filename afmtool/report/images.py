@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +43,7 @@ __all__ = [
     "write_gsf",
     "write_image_png",
     "write_line_plot_png",
+    "write_scan_image_files",
     "write_multi_panel_png",
     "write_side_by_side_png",
 ]
@@ -425,6 +426,47 @@ def _image_figure_size(x_real_m: float, y_real_m: float, n: int) -> tuple[float,
     panel = 4.8 if n == 1 else 3.6
     height = min(max(panel * aspect, 2.4), 9.0) + 1.0
     return panel * n + 1.6, height
+
+
+def write_scan_image_files(
+    path_of: Callable[[str], Path],
+    stem: str,
+    image: ArrayLike,
+    scan_size_m: float,
+    aspect: float,
+    *,
+    title: str,
+    direction: str,
+    units: str,
+    cmap: str = "afmhot",
+    z_range: tuple[float, float] | None = None,
+) -> None:
+    """``{stem}.png`` and ``{stem}.gsf`` of one per-pixel scan image.
+
+    Parameters
+    ----------
+    path_of : callable
+        Output file name -> path (e.g. ``OutputDir.path``).
+    stem : str
+        File name without suffix.
+    image : array_like, shape (lines, pixels)
+        Row 0 is the first line scanned; the files show the last line at
+        the top, as AFM viewers do.
+    scan_size_m : float
+        Fast-axis scan size, m.
+    aspect : float
+        lines / pixels_per_line: the slow-axis size is ``scan_size_m * aspect``.
+    title, direction, units : str
+        The quantity's title, the scan direction (trace, retrace) and its units.
+    cmap, z_range
+        As for :func:`write_image_png`.
+    """
+    top_first = np.asarray(image)[::-1]
+    y_size = scan_size_m * aspect
+    write_image_png(path_of(f"{stem}.png"), top_first, scan_size_m, y_size, z_units=units,
+                    title=f"{title} ({direction})", cmap=cmap, z_range=z_range, z_label=title)
+    write_gsf(path_of(f"{stem}.gsf"), top_first, scan_size_m, y_size, xy_units="m", z_units=units,
+              title=f"{title} {direction}")
 
 
 def write_image_png(
