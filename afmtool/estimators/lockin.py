@@ -16,8 +16,8 @@ import numpy as np
 from numba import njit
 
 from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.estimators.decimation import Decimation
 from afmtool.estimators.filters import butterworth_lowpass_sos
-from afmtool.pipeline import Decimation
 
 __all__ = ["LockIn", "LockInState", "LockInBlock", "default_lowpass_hz"]
 

@@ -77,6 +77,7 @@ from numba import njit
 
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators._common import JIT_OPTIONS, as_signal
+from afmtool.estimators.decimation import Decimation
 from afmtool.estimators.observer import (
     ObserverDesign,
     ObserverState,
@@ -88,7 +89,6 @@ from afmtool.estimators.observer import (
     _window_resync,
     _window_rms,
 )
-from afmtool.pipeline import Decimation
 
 __all__ = [
     "LOSS_WHEN",

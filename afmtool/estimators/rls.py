@@ -76,7 +76,7 @@ from numba import njit
 
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators._common import JIT_OPTIONS, as_signal, check_numerator
-from afmtool.pipeline import Decimation
+from afmtool.estimators.decimation import Decimation
 
 __all__ = [
     "DEFAULT_FORGETTING_FACTOR",
