@@ -36,7 +36,7 @@ from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
 from afmtool.io.prefetch import prefetch
 
-__all__ = ["Decimation", "Head", "SideThread", "Stage", "Warmup", "run_stream"]
+__all__ = ["Decimation", "Head", "SideThread", "Stage", "Warmup", "read_segment", "replay_held", "run_stream"]
 
 
 @dataclass(frozen=True)
@@ -139,11 +139,33 @@ class Stage(Protocol):
         """The stage's result, after the last chunk."""
 
 
-def _replay(first: list[Chunk], rest: Iterator[Chunk]) -> Iterator[Chunk]:
-    # pops the held chunk as it is handed on, so the runner keeps no reference to it
-    while first:
-        yield first.pop()
+def replay_held(held: list[Chunk], rest: Iterator[Chunk]) -> Iterator[Chunk]:
+    """Yield ``held`` chunks then ``rest``, dropping each held chunk once it is handed on (no reference is kept)."""
+    while held:
+        yield held.pop(0)
     yield from rest
+
+
+def read_segment(
+    chunks: Iterator[Chunk], names: tuple[str, ...], start_sample: int, end_sample: int
+) -> tuple[dict[str, np.ndarray], Iterator[Chunk]]:
+    """Samples [start_sample, end_sample) of ``names``, read ahead from a single-pass stream.
+
+    Returns the segment and an iterator over every chunk of the capture, the
+    read-ahead ones first, so the stream (stdin included) is read once.
+    """
+    held: list[Chunk] = []
+    for chunk in chunks:
+        held.append(chunk)
+        if chunk.start + len(chunk) >= end_sample:
+            break
+    available = held[-1].start + len(held[-1]) if held else 0
+    if available < end_sample:
+        raise InputError(f"segment ends at sample {end_sample} but the capture has only {available} samples")
+    segment = {
+        name: np.concatenate([c.data[name] for c in held])[start_sample:end_sample] for name in names
+    }
+    return segment, replay_held(held, chunks)
 
 
 def _merge(stages: Sequence[Stage], chunk: Chunk) -> dict[str, np.ndarray]:
@@ -224,7 +246,7 @@ def run_stream(
         head = Head(reader, reader.info, first, side)
         for stage in stages:
             stage.prepare(head)
-        stream = _replay([first], chunks)
+        stream = replay_held([first], chunks)
         if read_ahead:
             stream = prefetch(stream, read_ahead)
         del head, first  # the stream hands the first chunk on once; keep no reference for the whole run

@@ -15,7 +15,11 @@ import numpy as np
 import pytest
 
 from afmtool.analyses.probeloss import run_probeloss
-from afmtool.analyses.probeloss_events import (
+from afmtool.config import resolve
+from afmtool.config.params import ProbeLossParams
+from afmtool.errors import ConfigError, InputError
+from afmtool.estimators.observer import ObserverDesign, ObserverState, observer_update
+from afmtool.estimators.probeloss_events import (
     Events,
     RunState,
     overlapping_lead,
@@ -24,10 +28,6 @@ from afmtool.analyses.probeloss_events import (
     score_events,
     truth_loss_events,
 )
-from afmtool.config import resolve
-from afmtool.config.params import ProbeLossParams
-from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.observer import ObserverDesign, ObserverState, observer_update
 from afmtool.estimators.reliability import (
     ReliabilityState,
     Thresholds,

@@ -71,7 +71,7 @@ def test_chunk_size_does_not_change_the_run(short_run):
 
 def test_free_air_hold_is_free_and_identifies_the_model(short_run):
     """No contact during the free-air hold; the ARX fit of it finds the true cantilever."""
-    from afmtool.analyses.freeair import free_air_from_segment
+    from afmtool.estimators.free_air_fit import free_air_from_segment
 
     params = short_run.params
     n_free = round(params.free_air_s * params.sample_rate_hz)

@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 import pytest
 
-from afmtool.analyses.reep_validity import (
+from afmtool.estimators.reep_validity import (
     FLAG_HIGH_SIGMA2,
     FLAG_LOW_AMPLITUDE,
     FLAG_NOT_UNDERDAMPED,

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from afmtool.analyses.freeair import free_air_from_segment
+from afmtool.estimators.free_air_fit import free_air_from_segment
 from afmtool.estimators.sweep_record import identify_sweep
 from afmtool.estimators.thermal_noise import fit_thermal_spectrum
 from tests import reference_sim as ref

@@ -8,7 +8,7 @@ controller with the same seed, and the table compares, over the scan
   as §2.2 defines it, *parachuting*: "the tip encounters a valley-like
   feature ... on encountering the valley, the tip loses contact with the
   sample".  A truth loss stretch (no contact for more than ``gap_periods``
-  drive periods, :func:`~afmtool.analyses.probeloss_events.truth_loss_events`)
+  drive periods, :func:`~afmtool.estimators.probeloss_events.truth_loss_events`)
   is probe loss when the surface under the tip falls away during it, by
   more than the range of the tip-sample force d from one drive period before
   its start (:func:`classify_loss`).  At a constant tip speed the share of
@@ -56,8 +56,8 @@ from typing import NamedTuple
 import numpy as np
 
 from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
-from afmtool.analyses.probeloss_events import Events, truth_loss_events
 from afmtool.errors import ConfigError
+from afmtool.estimators.probeloss_events import Events, truth_loss_events
 from afmtool.sim.raster import CONTROLLERS, RasterParams, RasterRun, run_raster
 
 __all__ = [

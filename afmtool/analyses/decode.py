@@ -26,14 +26,13 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from afmtool.analyses.freeair import read_segment
 from afmtool.config.params import DecodeParams, parse_bracket_nm, parse_interval
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.metadata import CantileverMetadata, ElectrostaticMetadata
 from afmtool.io.results import ResultWriter
 from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, LeverVoltages, actuation_voltage
-from afmtool.pipeline import Decimation, Head, run_stream
+from afmtool.pipeline import Decimation, Head, read_segment, run_stream
 from afmtool.report.results import JsonResults
 
 if TYPE_CHECKING:  # numba and scipy load when a decode runs, not on import

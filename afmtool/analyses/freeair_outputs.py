@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from afmtool.analyses.freeair import free_air_from_segment
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import FreeAirParams, SpringConstantParams, parse_interval
 from afmtool.errors import ConfigError
+from afmtool.estimators.free_air_fit import free_air_from_segment
 from afmtool.estimators.stages import ChannelMeans, RecordStage, ResponseStage, SegmentStage
 from afmtool.io.capture import CaptureReader
 from afmtool.io.units import calibration_record

@@ -136,7 +136,7 @@ def _single_tone(metadata: CaptureMetadata, segment: FreeAirSegment | None, fs: 
         return False
     if segment is None:
         return False
-    from afmtool.analyses.reep import excitation_lines
+    from afmtool.estimators.drive_lines import excitation_lines
 
     return len(excitation_lines(segment.data["dither"], fs, f0_hz)) < 3
 

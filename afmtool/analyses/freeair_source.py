@@ -2,9 +2,9 @@
 
 The off-sample segment is ``--free-air START:END`` or the capture metadata
 ``free_air``; it is read ahead from the single-pass chunk stream
-(:func:`~afmtool.analyses.freeair.read_segment`), so stdin works too, and
+(:func:`~afmtool.pipeline.read_segment`), so stdin works too, and
 the free-air model is identified from it by the bias-compensated ARX fit
-(:func:`~afmtool.analyses.freeair.free_air_from_segment`) unless the user
+(:func:`~afmtool.estimators.free_air_fit.free_air_from_segment`) unless the user
 gave one (``--model free_air.json``).
 """
 
@@ -15,11 +15,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from afmtool.analyses.freeair import free_air_from_segment, read_segment
 from afmtool.config.params import parse_interval
 from afmtool.errors import InputError
+from afmtool.estimators.free_air_fit import free_air_from_segment
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
+from afmtool.pipeline import read_segment
 
 __all__ = ["FreeAirSegment", "free_air_interval", "read_free_air", "identify_from_segment", "drive_frequency"]
 

@@ -13,7 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from afmtool.analyses.observer_design import (
+from afmtool.config import load_toml, resolve_from
+from afmtool.config.params import ObserverTheoryParams
+from afmtool.errors import ConfigError
+from afmtool.estimators.observer_design import (
     METRIC_UNITS,
     DesignSettings,
     Direction,
@@ -25,9 +28,6 @@ from afmtool.analyses.observer_design import (
     observer_map,
     recommend,
 )
-from afmtool.config import load_toml, resolve_from
-from afmtool.config.params import ObserverTheoryParams
-from afmtool.errors import ConfigError
 from afmtool.io.results import ResultWriter
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir

@@ -28,7 +28,9 @@ import numpy as np
 from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
 from afmtool.analyses.freeair_route import resolve_free_air
 from afmtool.analyses.freeair_source import FreeAirSegment
-from afmtool.analyses.probeloss_events import (
+from afmtool.config.params import ProbeLossParams
+from afmtool.errors import ConfigError, InputError
+from afmtool.estimators.probeloss_events import (
     Events,
     RunState,
     overlapping_lead,
@@ -37,8 +39,6 @@ from afmtool.analyses.probeloss_events import (
     score_events,
     truth_loss_events,
 )
-from afmtool.config.params import ProbeLossParams
-from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, run_stream

@@ -5,7 +5,7 @@ its free-air value, §3.3.3) → f0′, Q′ by eq. 3.48 → decimated series in
 ``reep.h5``, force-curve tables and scan images, and a summary for
 ``report.json``.  Every filter carries its state across chunks, so the
 output does not depend on the chunk size.  Samples whose fit cannot be
-trusted are flagged (:mod:`afmtool.analyses.reep_validity`) and left out of
+trusted are flagged (:mod:`afmtool.estimators.reep_validity`) and left out of
 everything but ``reep.h5``.
 """
 
@@ -18,7 +18,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
-from afmtool.analyses.reep_validity import (
+from afmtool.config.params import ReepParams
+from afmtool.errors import InputError
+from afmtool.estimators.drive_lines import excitation_lines
+from afmtool.estimators.reep_validity import (
     FlagCounter,
     FreeAirLevels,
     OffsetDrift,
@@ -26,8 +29,6 @@ from afmtool.analyses.reep_validity import (
     free_air_levels,
     validity_flags,
 )
-from afmtool.config.params import ReepParams
-from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.metadata import DriveMetadata
 from afmtool.io.results import ResultWriter
@@ -35,7 +36,7 @@ from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Warmup, run_stream
 from afmtool.report.results import JsonResults
 
-__all__ = ["SERIES_UNITS", "ReepResult", "ReepStage", "excitation_lines", "run_reep"]
+__all__ = ["SERIES_UNITS", "ReepResult", "ReepStage", "run_reep"]
 
 #: Quantities kept per decimated sample, with their units ("" = dimensionless).
 SERIES_UNITS = {
@@ -91,39 +92,6 @@ class ReepResult(JsonResults):
     geometry: ScanGeometry | None = None
     force_curves: dict = field(default_factory=dict)
     z_units: str = ""
-
-
-def excitation_lines(dither: np.ndarray, sample_rate_hz: float, f0_hz: float) -> list[float]:
-    """Frequencies (Hz) of the distinct spectral lines of the dither near resonance.
-
-    A line is a local maximum of the Hann-windowed periodogram within ±25 %
-    of f0 and within 30 dB of the strongest one; of two maxima closer than
-    500 Hz only the higher counts.  REEP's five-parameter free-air
-    identification needs three (§3.3.2).
-
-    numpy only (``scipy.signal.periodogram``/``find_peaks`` would import
-    scipy.signal, the largest part of REEP's start-up).
-    """
-    n = min(len(dither), 1 << 16)
-    if n < 64:
-        return []
-    x = np.asarray(dither[:n], dtype=np.float64)
-    window = np.hanning(n + 1)[:-1]  # periodic Hann, as scipy's periodogram uses
-    power = np.abs(np.fft.rfft((x - x.mean()) * window)) ** 2
-    freqs = np.fft.rfftfreq(n, 1.0 / sample_rate_hz)
-    band = (freqs > 0.75 * f0_hz) & (freqs < 1.25 * f0_hz)
-    if not band.any() or power[band].max() <= 0:
-        return []
-    power = np.where(band, power, 0.0)
-    threshold = power.max() * 1e-3
-    inner = power[1:-1]
-    maxima = np.flatnonzero((inner > power[:-2]) & (inner >= power[2:]) & (inner >= threshold)) + 1
-    min_bins = max(1, int(500 * n / sample_rate_hz))
-    kept: list[int] = []
-    for index in sorted(maxima, key=lambda i: -power[i]):  # highest first, as find_peaks(distance=...)
-        if all(abs(index - other) >= min_bins for other in kept):
-            kept.append(index)
-    return [float(freqs[i]) for i in sorted(kept)]
 
 
 def _spectral_peak_hz(x: np.ndarray, sample_rate_hz: float) -> float:

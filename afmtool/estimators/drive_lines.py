@@ -29,6 +29,7 @@ __all__ = [
     "zoh_response",
     "fit_drive_phases",
     "synthesize_drive",
+    "excitation_lines",
 ]
 
 
@@ -317,3 +318,36 @@ def synthesize_drive(lines: tuple[DriveLine, ...], sample_rate_hz: float, start_
         cycles = np.mod(index * (line.frequency_hz / sample_rate_hz), 1.0)
         out += line.amplitude_v * np.cos(2.0 * np.pi * cycles + line.phase_rad)
     return out
+
+
+def excitation_lines(dither: np.ndarray, sample_rate_hz: float, f0_hz: float) -> list[float]:
+    """Frequencies (Hz) of the distinct spectral lines of the dither near resonance.
+
+    A line is a local maximum of the Hann-windowed periodogram within ±25 %
+    of f0 and within 30 dB of the strongest one; of two maxima closer than
+    500 Hz only the higher counts.  REEP's five-parameter free-air
+    identification needs three (§3.3.2).
+
+    numpy only (``scipy.signal.periodogram``/``find_peaks`` would import
+    scipy.signal, the largest part of REEP's start-up).
+    """
+    n = min(len(dither), 1 << 16)
+    if n < 64:
+        return []
+    x = np.asarray(dither[:n], dtype=np.float64)
+    window = np.hanning(n + 1)[:-1]  # periodic Hann, as scipy's periodogram uses
+    power = np.abs(np.fft.rfft((x - x.mean()) * window)) ** 2
+    freqs = np.fft.rfftfreq(n, 1.0 / sample_rate_hz)
+    band = (freqs > 0.75 * f0_hz) & (freqs < 1.25 * f0_hz)
+    if not band.any() or power[band].max() <= 0:
+        return []
+    power = np.where(band, power, 0.0)
+    threshold = power.max() * 1e-3
+    inner = power[1:-1]
+    maxima = np.flatnonzero((inner > power[:-2]) & (inner >= power[2:]) & (inner >= threshold)) + 1
+    min_bins = max(1, int(500 * n / sample_rate_hz))
+    kept: list[int] = []
+    for index in sorted(maxima, key=lambda i: -power[i]):  # highest first, as find_peaks(distance=...)
+        if all(abs(index - other) >= min_bins for other in kept):
+            kept.append(index)
+    return [float(freqs[i]) for i in sorted(kept)]

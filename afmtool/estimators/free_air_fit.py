@@ -1,25 +1,19 @@
-"""Free-air model identification (``afmtool identify freeair``), three routes.
+"""The free-air model from an off-sample segment: the ARX fit of eq. 3.40 and its f0, Q, gain.
 
-* ``segment``: an off-sample stretch of a capture with dither and
-  deflection, fitted as the ARX model of eq. 3.40 by bias-compensated least
-  squares (plain least squares would bias the numerator; see NOTES.md).
-* ``sweep``: a chirp/broadband or stepped-sine capture: H1 estimate, then a
-  second-order fit with a pure delay.
-* ``thermal``: a thermal-noise amplitude spectral density: a simple harmonic
-  oscillator plus a white floor.
+Bias-compensated least squares (plain least squares would bias the
+numerator; see NOTES.md), by :func:`afmtool.estimators.rls.identify_arx`.
+The ``identify freeair`` command (``analyses/freeair_outputs.py``) and the
+free-air route of reep, probeloss and kalman-bank call it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 
 from afmtool.errors import InputError
-from afmtool.io.capture import Chunk
 from afmtool.models.free_air import FreeAirModel
 
-__all__ = ["free_air_from_segment", "read_segment", "replay_held"]
+__all__ = ["MIN_SEGMENT_SAMPLES", "free_air_from_segment"]
 
 #: Fewer samples than this cannot pin five ARX coefficients with any precision.
 MIN_SEGMENT_SAMPLES = 500
@@ -71,32 +65,3 @@ def free_air_from_segment(deflection: np.ndarray, dither: np.ndarray, sample_rat
         numerator=fit.numerator,
         denominator=fit.denominator,
     )
-
-
-def replay_held(held: list[Chunk], rest: Iterator[Chunk]) -> Iterator[Chunk]:
-    """Yield ``held`` chunks then ``rest``, dropping each held chunk once it is handed on."""
-    while held:
-        yield held.pop(0)
-    yield from rest
-
-
-def read_segment(
-    chunks: Iterator[Chunk], names: tuple[str, ...], start_sample: int, end_sample: int
-) -> tuple[dict[str, np.ndarray], Iterator[Chunk]]:
-    """Samples [start_sample, end_sample) of ``names``, read ahead from a single-pass stream.
-
-    Returns the segment and an iterator over every chunk of the capture, the
-    read-ahead ones first, so the stream (stdin included) is read once.
-    """
-    held: list[Chunk] = []
-    for chunk in chunks:
-        held.append(chunk)
-        if chunk.start + len(chunk) >= end_sample:
-            break
-    available = held[-1].start + len(held[-1]) if held else 0
-    if available < end_sample:
-        raise InputError(f"segment ends at sample {end_sample} but the capture has only {available} samples")
-    segment = {
-        name: np.concatenate([c.data[name] for c in held])[start_sample:end_sample] for name in names
-    }
-    return segment, replay_held(held, chunks)
