@@ -337,6 +337,11 @@ def h1_estimate(
     xa, ya = _signal_pair(x, y)
     if xa.size < nperseg:
         raise InputError(f"the records have {xa.size} samples, fewer than {nperseg=}")
+    return _h1_from_spectra(_welch_cross_spectra(xa, ya, fs, win, nperseg, noverlap, detrend))
+
+
+def _welch_cross_spectra(xa, ya, fs, win, nperseg, noverlap, detrend) -> CrossSpectra:
+    """P_xx, P_yy, P_xy by Welch averaging (scipy.signal.csd/welch), with K and the overlap-corrected n_d."""
     kwargs = dict(fs=fs, window=win, nperseg=nperseg, noverlap=noverlap, detrend=detrend)
     f, pxy = scipy.signal.csd(xa, ya, **kwargs)
     _, pxx = scipy.signal.welch(xa, **kwargs)
@@ -344,7 +349,7 @@ def h1_estimate(
     hop = nperseg - noverlap
     n_segments = (xa.size - noverlap) // hop
     n_d = _welch_independent_averages(win, hop, n_segments)
-    return _h1_from_spectra(CrossSpectra(f, pxx, pyy, pxy, n_segments, n_d))
+    return CrossSpectra(f, pxx, pyy, pxy, n_segments, n_d)
 
 
 # --------------------------------------------------------------------------- H1, streaming
