@@ -810,11 +810,29 @@ def detect_segments(
     block = max(8, int(min_segment_s * fs / 8))
     if xa.size < 8 * block:
         raise InputError(f"the record has {xa.size} samples, shorter than {min_segment_s=} s at {fs:g} Hz")
+    analytic, phase = _analytic_drive(xa)
+    f_block, driven = _block_frequencies(phase, analytic, block, fs)
+    stat = _step_statistic(f_block)
+    if tolerance_hz is None:
+        tolerance_hz = max(10.0 * 1.4826 * float(np.median(np.abs(stat[1:f_block.size]))), 1e-6 * fs)
+    cuts = _step_cuts(stat, f_block.size, tolerance_hz)
+    steps = _fitted_steps(cuts, driven, phase, f_block, block, fs, tolerance_hz)
+    if not steps:
+        return ()
+    return _step_boundaries(steps, phase, np.abs(analytic), driven, block, fs)
+
+
+def _analytic_drive(xa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The analytic signal of the mean-removed drive and its unwrapped phase φ[n], rad."""
     # mirror the record at both ends so the FFT's wrap-around jump, whose
     # Hilbert ringing decays only as 1/distance, lies a record away
     pad = xa.size - 1
     analytic = scipy.signal.hilbert(np.pad(xa - xa.mean(), pad, mode="reflect"))[pad : pad + xa.size]
-    phase = np.unwrap(np.angle(analytic))
+    return analytic, np.unwrap(np.angle(analytic))
+
+
+def _block_frequencies(phase: np.ndarray, analytic: np.ndarray, block: int, fs: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per block: the frequency f_b (Hz) and whether the drive is on (envelope > 0.2× its median)."""
     inst = np.diff(phase) * fs / (2 * np.pi)
     n_blocks = inst.size // block
     # block frequency: least-squares slope of the phase over the block (noise
@@ -823,21 +841,33 @@ def detect_segments(
     blocks = phase[: n_blocks * block].reshape(n_blocks, block)
     f_block = (blocks @ centred_t) / float(centred_t @ centred_t) * fs / (2 * np.pi)
     e_block = np.median(np.abs(analytic)[: n_blocks * block].reshape(n_blocks, block), axis=1)
-    driven = e_block > 0.2 * np.median(e_block)
-    m = _STEP_WINDOW_BLOCKS
+    return f_block, e_block > 0.2 * np.median(e_block)
+
+
+def _step_statistic(f_block: np.ndarray) -> np.ndarray:
+    """d_k = median(f_b[k…k+3]) − median(f_b[k−4…k−1]) at each block edge k (0 at the record's ends), Hz."""
+    n_blocks, m = f_block.size, _STEP_WINDOW_BLOCKS
     stat = np.zeros(n_blocks + 1)  # stat[k]: step between blocks k−1 and k
     for k in range(1, n_blocks):
         stat[k] = np.median(f_block[k : k + m]) - np.median(f_block[max(0, k - m) : k])
-    if tolerance_hz is None:
-        tolerance_hz = max(10.0 * 1.4826 * float(np.median(np.abs(stat[1:n_blocks]))), 1e-6 * fs)
+    return stat
+
+
+def _step_cuts(stat: np.ndarray, n_blocks: int, tolerance_hz: float) -> list[int]:
+    """Block edges where |d_k| exceeds the tolerance and is the largest within ±3 blocks, with 0 and n_blocks."""
+    m = _STEP_WINDOW_BLOCKS
     size = np.abs(stat)
     cuts = {0, n_blocks}
     for k in range(1, n_blocks):
         near = size[max(1, k - m + 1) : min(n_blocks, k + m)]
         if size[k] > tolerance_hz and size[k] == near.max() and not any(c in cuts for c in range(k - m + 1, k)):
             cuts.add(k)
-    cuts = sorted(cuts)
-    steps = []  # [first block, end block, (frequency Hz, phase at t = 0 rad)]
+    return sorted(cuts)
+
+
+def _fitted_steps(cuts, driven, phase, f_block, block, fs, tolerance_hz) -> list:
+    """[first block, end block, (frequency Hz, phase at t = 0 rad)] of each accepted step, touching equal ones merged."""
+    steps = []
     for a0, b0 in zip(cuts[:-1], cuts[1:]):
         for a, b in _driven_runs(driven, a0, b0):
             line = _step_line(phase, f_block, a, b, block, fs, tolerance_hz)
@@ -848,9 +878,7 @@ def detect_segments(
                 a = steps.pop()[0]
                 line = _step_line(phase, f_block, a, b, block, fs, tolerance_hz)
             steps.append([a, b, line])
-    if not steps:
-        return ()
-    return _step_boundaries(steps, phase, np.abs(analytic), driven, block, fs)
+    return steps
 
 
 def _driven_runs(driven: np.ndarray, a0: int, b0: int) -> list[tuple[int, int]]:
