@@ -1029,7 +1029,8 @@ def _sanathanan_koerner(
     iterations = 0
     num = np.zeros(n_num + 1)
     den = np.zeros(n_den + 1)
-    for iterations in range(1, max_iter + 1):
+    for _ in range(max_iter):
+        iterations += 1  # counted in the body: the count is returned after the loop
         row = sqrt_w / np.abs(d_prev)
         a = matrix * row[:, None]
         b = rhs * row
