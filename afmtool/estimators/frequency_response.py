@@ -1204,6 +1204,22 @@ def fit_transfer_function(
     InputError
         For bad data, or fewer real equations (2 per frequency) than unknowns.
     """
+    n_num, n_den, fixed_delay, max_iter, tol = _checked_fit_settings(n_num, n_den, delay, max_iter, tol)
+    data = _scaled_frequency_data(frequency_hz, response, weights, n_num + 1 + n_den + (fixed_delay is None))
+
+    def fit_at(tau: float) -> _SkResult:
+        return _sanathanan_koerner(data.s_scaled, data.h * np.exp(1j * data.omega * tau), data.w, n_num, n_den, max_iter, tol)
+
+    if fixed_delay is None:
+        lo, hi = _delay_bounds(delay_bounds_s, data.f_max)
+        tau = _search_delay(lambda t: fit_at(t).cost, lo, hi, data.f_max)
+    else:
+        tau = fixed_delay
+    return _descaled_fit(fit_at(tau), data.scale, n_num, n_den, tau, data.w)
+
+
+def _checked_fit_settings(n_num, n_den, delay, max_iter, tol) -> tuple[int, int, float | None, int, float]:
+    """The checked (n_num, n_den, fixed delay or None to estimate, max_iter, tol) of :func:`fit_transfer_function`."""
     n_num = _check_int("n_num", n_num, 0)
     n_den = _check_int("n_den", n_den, 1)
     if n_num > n_den:
@@ -1211,8 +1227,22 @@ def fit_transfer_function(
     fixed_delay = _delay_mode(delay)
     max_iter = _check_int("max_iter", max_iter, 1)
     tol = _check_positive("tol", tol)
+    return n_num, n_den, fixed_delay, max_iter, tol
+
+
+class _ScaledFrequencyData(NamedTuple):
+    f: np.ndarray  # Hz
+    h: np.ndarray  # complex response
+    w: np.ndarray  # weights
+    f_max: float  # Hz
+    omega: np.ndarray  # 2πf, rad/s
+    scale: float  # ω_max = 2π·f_max, rad/s
+    s_scaled: np.ndarray  # jω/ω_max
+
+
+def _scaled_frequency_data(frequency_hz, response, weights, n_unknown: int) -> _ScaledFrequencyData:
+    """The checked data of :func:`fit_transfer_function`, with s scaled by ω_max for conditioning."""
     f, h, w = _frequency_data(frequency_hz, response, weights)
-    n_unknown = n_num + 1 + n_den + (fixed_delay is None)
     if 2 * int(np.count_nonzero(w)) < n_unknown:
         raise InputError(f"{f.size} frequencies (2 real equations each) cannot fit {n_unknown} unknowns")
     f_max = float(f.max())
@@ -1220,17 +1250,11 @@ def fit_transfer_function(
         raise InputError("frequency_hz needs at least one frequency > 0")
     omega = 2 * np.pi * f
     scale = 2 * np.pi * f_max
-    s_scaled = 1j * omega / scale
+    return _ScaledFrequencyData(f, h, w, f_max, omega, scale, 1j * omega / scale)
 
-    def fit_at(tau: float) -> _SkResult:
-        return _sanathanan_koerner(s_scaled, h * np.exp(1j * omega * tau), w, n_num, n_den, max_iter, tol)
 
-    if fixed_delay is None:
-        lo, hi = _delay_bounds(delay_bounds_s, f_max)
-        tau = _search_delay(lambda t: fit_at(t).cost, lo, hi, f_max)
-    else:
-        tau = fixed_delay
-    sk = fit_at(tau)
+def _descaled_fit(sk: _SkResult, scale: float, n_num: int, n_den: int, tau: float, w: np.ndarray) -> TransferFunctionFit:
+    """The fit in descending powers of s (rad/s) from the one in s_scaled = s/ω_max."""
     # back to s = s_scaled·scale: coefficient of s^i is c_i/scale^i; multiply by scale^n_den (monic D)
     num = sk.num * scale ** (n_den - np.arange(n_num + 1))
     den = sk.den * scale ** (n_den - np.arange(n_den + 1))
