@@ -1381,16 +1381,7 @@ def fit_second_order(
     f, h, w = _frequency_data(frequency_hz, response, weights)
     if f.size < 3:
         raise InputError(f"a second-order fit needs at least 3 frequencies, got {f.size}")
-    rational = fit_transfer_function(f, h, 0, 2, weights=w, delay=delay, delay_bounds_s=delay_bounds_s)
-    _, a1, a0 = rational.denominator
-    if a0 > 0 and a1 > 0:
-        w0 = math.sqrt(a0)
-        f0, q, gain = w0 / (2 * np.pi), w0 / a1, rational.numerator[-1] / a0
-    else:
-        f0, q, gain = _peak_start(f, h)
-    tau = rational.delay_s
-    if gain == 0:
-        gain = float(np.max(np.abs(h))) / q
+    f0, q, gain, tau = _second_order_start(f, h, w, delay, delay_bounds_s)
     w0s = 2 * np.pi * f0
     scales = np.array([f0, q, gain, 1.0 / w0s])
     sqrt_w = np.sqrt(w)
@@ -1404,16 +1395,46 @@ def fit_second_order(
         err = sqrt_w * (h - _second_order(f, *unpack(p)))
         return np.concatenate((err.real, err.imag))
 
+    p0, lower, upper = _normalised_start_and_bounds(tau, scales, estimate_delay, delay_bounds_s, float(f.max()))
+    sol = scipy.optimize.least_squares(residual, p0, bounds=(lower, upper), xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    return _second_order_record(sol, unpack(sol.x), scales, estimate_delay, w)
+
+
+def _second_order_start(f, h, w, delay, delay_bounds_s) -> tuple[float, float, float, float]:
+    """Start (f0, Q, gain, τ) of :func:`fit_second_order` from the (0, 2) rational fit.
+
+    D = s² + a1·s + a0, N = b0 give ω0 = √a0, Q = ω0/a1, gain = b0/a0; if
+    that is not a resonance, the |H| peak and its half-power width.
+    """
+    rational = fit_transfer_function(f, h, 0, 2, weights=w, delay=delay, delay_bounds_s=delay_bounds_s)
+    _, a1, a0 = rational.denominator
+    if a0 > 0 and a1 > 0:
+        w0 = math.sqrt(a0)
+        f0, q, gain = w0 / (2 * np.pi), w0 / a1, rational.numerator[-1] / a0
+    else:
+        f0, q, gain = _peak_start(f, h)
+    tau = rational.delay_s
+    if gain == 0:
+        gain = float(np.max(np.abs(h))) / q
+    return f0, q, gain, tau
+
+
+def _normalised_start_and_bounds(tau, scales, estimate_delay, delay_bounds_s, f_max):
+    """Start p0 = (1, 1, 1[, τ/scale]) of the normalised parameters and their bounds (f0, Q > 0; τ in its interval)."""
     p0 = np.array([1.0, 1.0, 1.0, tau / scales[3]])[: 4 if estimate_delay else 3]
     lower = [1e-6, 1e-6, -np.inf]
     upper = [np.inf, np.inf, np.inf]
     if estimate_delay:
-        lo, hi = _delay_bounds(delay_bounds_s, float(f.max()))
+        lo, hi = _delay_bounds(delay_bounds_s, f_max)
         lower.append(lo / scales[3])
         upper.append(hi / scales[3])
         p0[3] = np.clip(p0[3], lower[3], upper[3])
-    sol = scipy.optimize.least_squares(residual, p0, bounds=(lower, upper), xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    f0, q, gain, tau = unpack(sol.x)
+    return p0, lower, upper
+
+
+def _second_order_record(sol, values, scales: np.ndarray, estimate_delay: bool, w: np.ndarray) -> SecondOrderFit:
+    """The fit with its errors: cov = s²·(JᵀJ)⁻¹, s² = Σ r²/(2K − p), in the normalised parameters."""
+    f0, q, gain, tau = values
     dof = max(sol.fun.size - sol.x.size, 1)
     s2 = float(np.dot(sol.fun, sol.fun)) / dof
     cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
