@@ -161,6 +161,28 @@ def _valid_bins(table: ModelTable) -> np.ndarray:
     return (table.count > 0) & np.isfinite(table.f0_hz) & np.isfinite(table.q)
 
 
+def _walk_from_free_air(amplitude: np.ndarray, distance: np.ndarray, min_amplitude_fraction: float) -> np.ndarray:
+    """Indices of the usable bins from the free-air end until the amplitude first falls below the threshold.
+
+    The free-air end is the end with the larger amplitude (with no amplitude,
+    the end whose model distance from free air is smaller); the free amplitude
+    is the median of the first three bins walked.
+    """
+    ends = (0, amplitude.size - 1)
+    if np.all(np.isfinite(amplitude[list(ends)])):
+        start = ends[int(amplitude[ends[1]] > amplitude[ends[0]])]
+    else:
+        start = ends[int(distance[ends[1]] < distance[ends[0]])]
+    order = np.arange(amplitude.size) if start == 0 else np.arange(amplitude.size)[::-1]
+    free_amplitude = float(np.nanmedian(amplitude[order[:3]])) if np.any(np.isfinite(amplitude)) else math.nan
+    walked = []
+    for j in order:
+        if math.isfinite(free_amplitude) and not amplitude[j] >= min_amplitude_fraction * free_amplitude:
+            break
+        walked.append(j)
+    return np.asarray(walked, dtype=np.int64)
+
+
 def auto_design_points(
     table: ModelTable,
     n_points: int,
@@ -213,20 +235,7 @@ def auto_design_points(
     if index.size == 0:
         raise InputError("REEP gives no usable model along the force curve (no finite f0', Q' against z)")
     distance = model_distance(table.f0_hz[index], table.q[index], f0_ref, q_ref, f0_ref=f0_ref, q_ref=q_ref)
-    amplitude = table.amplitude[index]
-    ends = (0, index.size - 1)
-    if np.all(np.isfinite(amplitude[list(ends)])):
-        start = ends[int(amplitude[ends[1]] > amplitude[ends[0]])]
-    else:
-        start = ends[int(distance[ends[1]] < distance[ends[0]])]
-    order = np.arange(index.size) if start == 0 else np.arange(index.size)[::-1]
-    free_amplitude = float(np.nanmedian(amplitude[order[:3]])) if np.any(np.isfinite(amplitude)) else math.nan
-    walked = []
-    for j in order:
-        if math.isfinite(free_amplitude) and not amplitude[j] >= min_amplitude_fraction * free_amplitude:
-            break
-        walked.append(j)
-    walked = np.asarray(walked, dtype=np.int64)
+    walked = _walk_from_free_air(table.amplitude[index], distance, min_amplitude_fraction)
     if walked.size == 0:
         raise InputError("no force-curve bin has REEP's amplitude above min_amplitude_fraction of the free amplitude")
     largest = float(np.max(distance[walked]))

@@ -158,14 +158,15 @@ def _onset_z(data: ForceFitData, drop: float) -> float:
     return float(data.z[below[0]])
 
 
-def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: float = 0.02,
-              rank_tolerance: float = 1e-7, n_starts: int = len(_TRIAL_D_NM)) -> ForceFit:
-    """Fit θ = (d, ω_a², ω_b², c_a, c_b, z_c) (module docstring)."""
+def _best_of_starts(data: ForceFitData, z_on: float, n_starts: int):
+    """(least-squares solution, parameter scale) of the lowest cost over the ``n_starts`` best trial starts.
+
+    Each trial d (``_TRIAL_D_NM``) places z_c so that the onset z_on is
+    where the tip reaches d; (ω_a², ω_b², c_a, c_b) start at their NNLS
+    values for that (d, z_c) (:func:`_linear_start`).
+    """
     from scipy.optimize import least_squares
 
-    from afmtool.estimators.identifiability import analyse_identifiability
-
-    z_on = _onset_z(data, onset_drop)
     starts = []
     for d in _TRIAL_D_NM:
         z_c = z_on - (data.free_amplitude_nm + d) / data.nm_per_unit
@@ -182,7 +183,15 @@ def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: 
                                  x_scale=scale, method="trf", max_nfev=400)
         if best is None or solution.cost < best[0].cost:
             best = (solution, scale)
-    solution, scale = best
+    return best
+
+
+def fit_force(data: ForceFitData, *, max_relative_std: float = 0.1, onset_drop: float = 0.02,
+              rank_tolerance: float = 1e-7, n_starts: int = len(_TRIAL_D_NM)) -> ForceFit:
+    """Fit θ = (d, ω_a², ω_b², c_a, c_b, z_c) (module docstring)."""
+    from afmtool.estimators.identifiability import analyse_identifiability
+
+    solution, scale = _best_of_starts(data, _onset_z(data, onset_drop), n_starts)
     theta, residual = solution.x, solution.fun
     jac = solution.jac * scale  # ∂r per unit of each parameter's scale
     n, p = jac.shape

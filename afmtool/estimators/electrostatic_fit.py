@@ -356,11 +356,8 @@ def fit_electrostatic(
     starts = _initial_guess(v, y, v_r_v, sensor, k_value)
 
     # (1) structural null space at the first start, all parameters free
-    theta0 = np.array([starts[0][n] for n in names])
-    jac0 = relative_jacobian(lambda th: (predict(_unpack(th, names), v, v_r_v, sensor) - y) * 1e9, theta0, log_mask)
-    null0 = analyse_identifiability(jac0, names, rank_tolerance=rank_tolerance).null_directions
-    fixed, unresolved = _structural_fixes(null0, spring_constant_n_per_m)
-    free = np.array([n not in fixed for n in names])
+    fixed, unresolved, free = _structural_step(v, y, v_r_v, sensor, starts[0], log_mask, rank_tolerance,
+                                               spring_constant_n_per_m)
 
     # (2) least squares from each start
     sol, full, costs = _best_start(v, y, v_r_v, sensor, names, free, starts, log_mask)
@@ -368,6 +365,38 @@ def fit_electrostatic(
 
     # (3) identifiability and covariance at the solution
     r_nm = sol.fun
+    ident, cov = _identifiability_at_solution(v, y, v_r_v, sensor, theta, r_nm, free, log_mask, rank_tolerance)
+    estimates, correlation = _estimates(names, theta, free, unresolved, cov, log_mask, spring_constant_n_per_m,
+                                        max_relative_std)
+    return ElectrostaticFit(
+        sensor=sensor, estimates=estimates, identifiability=ident, fixed=tuple(n for n in names if n in fixed),
+        correlation=correlation, rms_residual_m=math.sqrt(float(np.mean(r_nm**2))) * 1e-9, n_points=int(r_nm.size),
+        theta=_unpack(theta, names), cost_starts=tuple(costs),
+        residual_autocorrelation=_lag1(r_nm[np.argsort(v, kind="stable")]),
+    )
+
+
+def _structural_step(v, y, v_r_v, sensor, start, log_mask, rank_tolerance, spring_constant_n_per_m):
+    """Step (1) of :func:`fit_electrostatic`: (fixed, unresolved, free mask) from the structural null directions.
+
+    The null directions are those of the relative Jacobian at the first
+    start point with all parameters free.
+    """
+    names = PARAMETERS[sensor]
+    theta0 = np.array([start[n] for n in names])
+    jac0 = relative_jacobian(lambda th: (predict(_unpack(th, names), v, v_r_v, sensor) - y) * 1e9, theta0, log_mask)
+    null0 = analyse_identifiability(jac0, names, rank_tolerance=rank_tolerance).null_directions
+    fixed, unresolved = _structural_fixes(null0, spring_constant_n_per_m)
+    return fixed, unresolved, np.array([n not in fixed for n in names])
+
+
+def _identifiability_at_solution(v, y, v_r_v, sensor, theta, r_nm, free, log_mask, rank_tolerance):
+    """Step (3) of :func:`fit_electrostatic`: the SVD report and σ̂²(JᵀJ)⁻¹ of the free parameters at θ̂.
+
+    Residuals are scaled by σ̂ = sqrt(rᵀr / (n - p)) so that the singular
+    values are in noise units.
+    """
+    names = PARAMETERS[sensor]
     n, p = r_nm.size, int(np.count_nonzero(free))
     sigma_nm = math.sqrt(float(r_nm @ r_nm) / max(n - p, 1)) or 1.0
 
@@ -378,20 +407,7 @@ def fit_electrostatic(
     ident = analyse_identifiability(jac, names, rank_tolerance=rank_tolerance)
     # residuals in noise units: σ̂²(JᵀJ)⁻¹ of the scaled problem is the covariance of δln θ
     cov = relative_covariance(jac[:, free], r_nm / sigma_nm)
-    estimates, correlation = _estimates(names, theta, free, unresolved, cov, log_mask, spring_constant_n_per_m,
-                                        max_relative_std)
-    return ElectrostaticFit(
-        sensor=sensor,
-        estimates=estimates,
-        identifiability=ident,
-        fixed=tuple(n for n in names if n in fixed),
-        correlation=correlation,
-        rms_residual_m=math.sqrt(float(np.mean(r_nm**2))) * 1e-9,
-        n_points=int(n),
-        theta=_unpack(theta, names),
-        cost_starts=tuple(costs),
-        residual_autocorrelation=_lag1(r_nm[np.argsort(v, kind="stable")]),
-    )
+    return ident, cov
 
 
 def _checked_inputs(v_sub, y_m, v_r_v, sensor, spring_constant_n_per_m, max_relative_std):

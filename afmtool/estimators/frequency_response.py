@@ -337,6 +337,11 @@ def h1_estimate(
     xa, ya = _signal_pair(x, y)
     if xa.size < nperseg:
         raise InputError(f"the records have {xa.size} samples, fewer than {nperseg=}")
+    return _h1_from_spectra(_welch_cross_spectra(xa, ya, fs, win, nperseg, noverlap, detrend))
+
+
+def _welch_cross_spectra(xa, ya, fs, win, nperseg, noverlap, detrend) -> CrossSpectra:
+    """P_xx, P_yy, P_xy by Welch averaging (scipy.signal.csd/welch), with K and the overlap-corrected n_d."""
     kwargs = dict(fs=fs, window=win, nperseg=nperseg, noverlap=noverlap, detrend=detrend)
     f, pxy = scipy.signal.csd(xa, ya, **kwargs)
     _, pxx = scipy.signal.welch(xa, **kwargs)
@@ -344,7 +349,7 @@ def h1_estimate(
     hop = nperseg - noverlap
     n_segments = (xa.size - noverlap) // hop
     n_d = _welch_independent_averages(win, hop, n_segments)
-    return _h1_from_spectra(CrossSpectra(f, pxx, pyy, pxy, n_segments, n_d))
+    return CrossSpectra(f, pxx, pyy, pxy, n_segments, n_d)
 
 
 # --------------------------------------------------------------------------- H1, streaming
@@ -805,11 +810,29 @@ def detect_segments(
     block = max(8, int(min_segment_s * fs / 8))
     if xa.size < 8 * block:
         raise InputError(f"the record has {xa.size} samples, shorter than {min_segment_s=} s at {fs:g} Hz")
+    analytic, phase = _analytic_drive(xa)
+    f_block, driven = _block_frequencies(phase, analytic, block, fs)
+    stat = _step_statistic(f_block)
+    if tolerance_hz is None:
+        tolerance_hz = max(10.0 * 1.4826 * float(np.median(np.abs(stat[1:f_block.size]))), 1e-6 * fs)
+    cuts = _step_cuts(stat, f_block.size, tolerance_hz)
+    steps = _fitted_steps(cuts, driven, phase, f_block, block, fs, tolerance_hz)
+    if not steps:
+        return ()
+    return _step_boundaries(steps, phase, np.abs(analytic), driven, block, fs)
+
+
+def _analytic_drive(xa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The analytic signal of the mean-removed drive and its unwrapped phase φ[n], rad."""
     # mirror the record at both ends so the FFT's wrap-around jump, whose
     # Hilbert ringing decays only as 1/distance, lies a record away
     pad = xa.size - 1
     analytic = scipy.signal.hilbert(np.pad(xa - xa.mean(), pad, mode="reflect"))[pad : pad + xa.size]
-    phase = np.unwrap(np.angle(analytic))
+    return analytic, np.unwrap(np.angle(analytic))
+
+
+def _block_frequencies(phase: np.ndarray, analytic: np.ndarray, block: int, fs: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per block: the frequency f_b (Hz) and whether the drive is on (envelope > 0.2× its median)."""
     inst = np.diff(phase) * fs / (2 * np.pi)
     n_blocks = inst.size // block
     # block frequency: least-squares slope of the phase over the block (noise
@@ -818,21 +841,33 @@ def detect_segments(
     blocks = phase[: n_blocks * block].reshape(n_blocks, block)
     f_block = (blocks @ centred_t) / float(centred_t @ centred_t) * fs / (2 * np.pi)
     e_block = np.median(np.abs(analytic)[: n_blocks * block].reshape(n_blocks, block), axis=1)
-    driven = e_block > 0.2 * np.median(e_block)
-    m = _STEP_WINDOW_BLOCKS
+    return f_block, e_block > 0.2 * np.median(e_block)
+
+
+def _step_statistic(f_block: np.ndarray) -> np.ndarray:
+    """d_k = median(f_b[k…k+3]) − median(f_b[k−4…k−1]) at each block edge k (0 at the record's ends), Hz."""
+    n_blocks, m = f_block.size, _STEP_WINDOW_BLOCKS
     stat = np.zeros(n_blocks + 1)  # stat[k]: step between blocks k−1 and k
     for k in range(1, n_blocks):
         stat[k] = np.median(f_block[k : k + m]) - np.median(f_block[max(0, k - m) : k])
-    if tolerance_hz is None:
-        tolerance_hz = max(10.0 * 1.4826 * float(np.median(np.abs(stat[1:n_blocks]))), 1e-6 * fs)
+    return stat
+
+
+def _step_cuts(stat: np.ndarray, n_blocks: int, tolerance_hz: float) -> list[int]:
+    """Block edges where |d_k| exceeds the tolerance and is the largest within ±3 blocks, with 0 and n_blocks."""
+    m = _STEP_WINDOW_BLOCKS
     size = np.abs(stat)
     cuts = {0, n_blocks}
     for k in range(1, n_blocks):
         near = size[max(1, k - m + 1) : min(n_blocks, k + m)]
         if size[k] > tolerance_hz and size[k] == near.max() and not any(c in cuts for c in range(k - m + 1, k)):
             cuts.add(k)
-    cuts = sorted(cuts)
-    steps = []  # [first block, end block, (frequency Hz, phase at t = 0 rad)]
+    return sorted(cuts)
+
+
+def _fitted_steps(cuts, driven, phase, f_block, block, fs, tolerance_hz) -> list:
+    """[first block, end block, (frequency Hz, phase at t = 0 rad)] of each accepted step, touching equal ones merged."""
+    steps = []
     for a0, b0 in zip(cuts[:-1], cuts[1:]):
         for a, b in _driven_runs(driven, a0, b0):
             line = _step_line(phase, f_block, a, b, block, fs, tolerance_hz)
@@ -843,9 +878,7 @@ def detect_segments(
                 a = steps.pop()[0]
                 line = _step_line(phase, f_block, a, b, block, fs, tolerance_hz)
             steps.append([a, b, line])
-    if not steps:
-        return ()
-    return _step_boundaries(steps, phase, np.abs(analytic), driven, block, fs)
+    return steps
 
 
 def _driven_runs(driven: np.ndarray, a0: int, b0: int) -> list[tuple[int, int]]:
@@ -996,7 +1029,8 @@ def _sanathanan_koerner(
     iterations = 0
     num = np.zeros(n_num + 1)
     den = np.zeros(n_den + 1)
-    for iterations in range(1, max_iter + 1):
+    for _ in range(max_iter):
+        iterations += 1  # counted in the body: the count is returned after the loop
         row = sqrt_w / np.abs(d_prev)
         a = matrix * row[:, None]
         b = rhs * row
@@ -1170,6 +1204,22 @@ def fit_transfer_function(
     InputError
         For bad data, or fewer real equations (2 per frequency) than unknowns.
     """
+    n_num, n_den, fixed_delay, max_iter, tol = _checked_fit_settings(n_num, n_den, delay, max_iter, tol)
+    data = _scaled_frequency_data(frequency_hz, response, weights, n_num + 1 + n_den + (fixed_delay is None))
+
+    def fit_at(tau: float) -> _SkResult:
+        return _sanathanan_koerner(data.s_scaled, data.h * np.exp(1j * data.omega * tau), data.w, n_num, n_den, max_iter, tol)
+
+    if fixed_delay is None:
+        lo, hi = _delay_bounds(delay_bounds_s, data.f_max)
+        tau = _search_delay(lambda t: fit_at(t).cost, lo, hi, data.f_max)
+    else:
+        tau = fixed_delay
+    return _descaled_fit(fit_at(tau), data.scale, n_num, n_den, tau, data.w)
+
+
+def _checked_fit_settings(n_num, n_den, delay, max_iter, tol) -> tuple[int, int, float | None, int, float]:
+    """The checked (n_num, n_den, fixed delay or None to estimate, max_iter, tol) of :func:`fit_transfer_function`."""
     n_num = _check_int("n_num", n_num, 0)
     n_den = _check_int("n_den", n_den, 1)
     if n_num > n_den:
@@ -1177,8 +1227,22 @@ def fit_transfer_function(
     fixed_delay = _delay_mode(delay)
     max_iter = _check_int("max_iter", max_iter, 1)
     tol = _check_positive("tol", tol)
+    return n_num, n_den, fixed_delay, max_iter, tol
+
+
+class _ScaledFrequencyData(NamedTuple):
+    f: np.ndarray  # Hz
+    h: np.ndarray  # complex response
+    w: np.ndarray  # weights
+    f_max: float  # Hz
+    omega: np.ndarray  # 2πf, rad/s
+    scale: float  # ω_max = 2π·f_max, rad/s
+    s_scaled: np.ndarray  # jω/ω_max
+
+
+def _scaled_frequency_data(frequency_hz, response, weights, n_unknown: int) -> _ScaledFrequencyData:
+    """The checked data of :func:`fit_transfer_function`, with s scaled by ω_max for conditioning."""
     f, h, w = _frequency_data(frequency_hz, response, weights)
-    n_unknown = n_num + 1 + n_den + (fixed_delay is None)
     if 2 * int(np.count_nonzero(w)) < n_unknown:
         raise InputError(f"{f.size} frequencies (2 real equations each) cannot fit {n_unknown} unknowns")
     f_max = float(f.max())
@@ -1186,17 +1250,11 @@ def fit_transfer_function(
         raise InputError("frequency_hz needs at least one frequency > 0")
     omega = 2 * np.pi * f
     scale = 2 * np.pi * f_max
-    s_scaled = 1j * omega / scale
+    return _ScaledFrequencyData(f, h, w, f_max, omega, scale, 1j * omega / scale)
 
-    def fit_at(tau: float) -> _SkResult:
-        return _sanathanan_koerner(s_scaled, h * np.exp(1j * omega * tau), w, n_num, n_den, max_iter, tol)
 
-    if fixed_delay is None:
-        lo, hi = _delay_bounds(delay_bounds_s, f_max)
-        tau = _search_delay(lambda t: fit_at(t).cost, lo, hi, f_max)
-    else:
-        tau = fixed_delay
-    sk = fit_at(tau)
+def _descaled_fit(sk: _SkResult, scale: float, n_num: int, n_den: int, tau: float, w: np.ndarray) -> TransferFunctionFit:
+    """The fit in descending powers of s (rad/s) from the one in s_scaled = s/ω_max."""
     # back to s = s_scaled·scale: coefficient of s^i is c_i/scale^i; multiply by scale^n_den (monic D)
     num = sk.num * scale ** (n_den - np.arange(n_num + 1))
     den = sk.den * scale ** (n_den - np.arange(n_den + 1))
@@ -1323,16 +1381,7 @@ def fit_second_order(
     f, h, w = _frequency_data(frequency_hz, response, weights)
     if f.size < 3:
         raise InputError(f"a second-order fit needs at least 3 frequencies, got {f.size}")
-    rational = fit_transfer_function(f, h, 0, 2, weights=w, delay=delay, delay_bounds_s=delay_bounds_s)
-    _, a1, a0 = rational.denominator
-    if a0 > 0 and a1 > 0:
-        w0 = math.sqrt(a0)
-        f0, q, gain = w0 / (2 * np.pi), w0 / a1, rational.numerator[-1] / a0
-    else:
-        f0, q, gain = _peak_start(f, h)
-    tau = rational.delay_s
-    if gain == 0:
-        gain = float(np.max(np.abs(h))) / q
+    f0, q, gain, tau = _second_order_start(f, h, w, delay, delay_bounds_s)
     w0s = 2 * np.pi * f0
     scales = np.array([f0, q, gain, 1.0 / w0s])
     sqrt_w = np.sqrt(w)
@@ -1346,16 +1395,46 @@ def fit_second_order(
         err = sqrt_w * (h - _second_order(f, *unpack(p)))
         return np.concatenate((err.real, err.imag))
 
+    p0, lower, upper = _normalised_start_and_bounds(tau, scales, estimate_delay, delay_bounds_s, float(f.max()))
+    sol = scipy.optimize.least_squares(residual, p0, bounds=(lower, upper), xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    return _second_order_record(sol, unpack(sol.x), scales, estimate_delay, w)
+
+
+def _second_order_start(f, h, w, delay, delay_bounds_s) -> tuple[float, float, float, float]:
+    """Start (f0, Q, gain, τ) of :func:`fit_second_order` from the (0, 2) rational fit.
+
+    D = s² + a1·s + a0, N = b0 give ω0 = √a0, Q = ω0/a1, gain = b0/a0; if
+    that is not a resonance, the |H| peak and its half-power width.
+    """
+    rational = fit_transfer_function(f, h, 0, 2, weights=w, delay=delay, delay_bounds_s=delay_bounds_s)
+    _, a1, a0 = rational.denominator
+    if a0 > 0 and a1 > 0:
+        w0 = math.sqrt(a0)
+        f0, q, gain = w0 / (2 * np.pi), w0 / a1, rational.numerator[-1] / a0
+    else:
+        f0, q, gain = _peak_start(f, h)
+    tau = rational.delay_s
+    if gain == 0:
+        gain = float(np.max(np.abs(h))) / q
+    return f0, q, gain, tau
+
+
+def _normalised_start_and_bounds(tau, scales, estimate_delay, delay_bounds_s, f_max):
+    """Start p0 = (1, 1, 1[, τ/scale]) of the normalised parameters and their bounds (f0, Q > 0; τ in its interval)."""
     p0 = np.array([1.0, 1.0, 1.0, tau / scales[3]])[: 4 if estimate_delay else 3]
     lower = [1e-6, 1e-6, -np.inf]
     upper = [np.inf, np.inf, np.inf]
     if estimate_delay:
-        lo, hi = _delay_bounds(delay_bounds_s, float(f.max()))
+        lo, hi = _delay_bounds(delay_bounds_s, f_max)
         lower.append(lo / scales[3])
         upper.append(hi / scales[3])
         p0[3] = np.clip(p0[3], lower[3], upper[3])
-    sol = scipy.optimize.least_squares(residual, p0, bounds=(lower, upper), xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    f0, q, gain, tau = unpack(sol.x)
+    return p0, lower, upper
+
+
+def _second_order_record(sol, values, scales: np.ndarray, estimate_delay: bool, w: np.ndarray) -> SecondOrderFit:
+    """The fit with its errors: cov = s²·(JᵀJ)⁻¹, s² = Σ r²/(2K − p), in the normalised parameters."""
+    f0, q, gain, tau = values
     dof = max(sol.fun.size - sol.x.size, 1)
     s2 = float(np.dot(sol.fun, sol.fun)) / dof
     cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)

@@ -451,6 +451,27 @@ def _crossing(f: np.ndarray, magnitude_db: np.ndarray, level_db: float) -> float
     return float(10.0 ** ((level_db - intercept) / slope))
 
 
+def _dc_and_bandwidth(f, h, magnitude_db, dc_band_factor) -> tuple[complex, float, np.ndarray]:
+    """Γ(0), the −3 dB bandwidth f_bw (Hz, NaN if |Γ| never falls 3 dB) and the bins Γ(0) came from.
+
+    Three passes of: f_bw where |Γ| crosses |Γ(0)|/√2, then Γ(0)
+    extrapolated from the bins below ``dc_band_factor``·f_bw (at least the
+    three lowest), starting from the mean of the three lowest bins.
+    """
+    dc = complex(np.mean(h[:3]))
+    low = f[:3]
+    for _ in range(3):
+        bandwidth = _crossing(f, magnitude_db, 20.0 * math.log10(abs(dc)) - 10.0 * math.log10(2.0))
+        limit = dc_band_factor * (bandwidth if math.isfinite(bandwidth) else f[-1])
+        low_mask = f <= limit
+        if np.count_nonzero(low_mask) < 3:
+            low_mask = np.zeros(f.size, dtype=bool)
+            low_mask[:3] = True
+        low = f[low_mask]
+        dc = _dc_extrapolation(low, h[low_mask])
+    return dc, bandwidth, low
+
+
 def sensing_summary(
     fr: FrequencyResponse,
     mask: np.ndarray,
@@ -505,17 +526,7 @@ def sensing_summary(
     if f.size < 4:
         raise InputError(f"only {f.size} usable frequencies; at least 4 are needed for the sensing summary")
     magnitude_db = 20.0 * np.log10(np.abs(h))
-    dc = complex(np.mean(h[:3]))
-    low = f[:3]
-    for _ in range(3):
-        bandwidth = _crossing(f, magnitude_db, 20.0 * math.log10(abs(dc)) - 10.0 * math.log10(2.0))
-        limit = dc_band_factor * (bandwidth if math.isfinite(bandwidth) else f[-1])
-        low_mask = f <= limit
-        if np.count_nonzero(low_mask) < 3:
-            low_mask = np.zeros(f.size, dtype=bool)
-            low_mask[:3] = True
-        low = f[low_mask]
-        dc = _dc_extrapolation(low, h[low_mask])
+    dc, bandwidth, low = _dc_and_bandwidth(f, h, magnitude_db, dc_band_factor)
     if not math.isfinite(bandwidth):
         return SensingSummary(dc.real, math.nan, math.nan, (math.nan, math.nan), (float(low[0]), float(low[-1])))
     lo, hi = roll_off_start_factor * bandwidth, min(roll_off_stop_factor * bandwidth, float(f[-1]))

@@ -509,26 +509,30 @@ def fit_record_response(
         sample_rate_hz, f0_start_hz, q_start, band_halfwidths, hold, transient_order, delay, band, drive_edges_s
     )
     x, y, x_scale, y_scale = _records(dither, deflection)
-    n = x.size
-    spectrum_u = np.fft.rfft(x)
-    spectrum_y = np.fft.rfft(y)
-    freq = np.fft.rfftfreq(n, 1.0 / fs)
-    n_linear = 1 + 2 * (order + 1) + 2 * (_EDGE_ORDER + 1) * len(edges)
+    spectra = _RecordSpectra(np.fft.rfftfreq(x.size, 1.0 / fs), np.fft.rfft(x), np.fft.rfft(y), x.size, fs)
     tau0 = float(delay_start_s) if fixed_delay is None else fixed_delay
+    fit = _band_fits(spectra, hold, order, edges, f0_start, max(q_start, 0.6), tau0, fixed_delay, band, band_halfwidths,
+                     delay_search)
+    return _checked_result(fit.result, y_scale / x_scale, y_scale, fs)
 
-    f0, q, tau = f0_start, max(q_start, 0.6), tau0
+
+class _RecordSpectra(NamedTuple):
+    freq: np.ndarray  # rfft bin frequencies, Hz
+    u: np.ndarray  # DFT of the (scaled) dither
+    y: np.ndarray  # DFT of the (scaled) deflection
+    n_samples: int
+    fs: float  # Hz
+
+
+def _band_fits(spectra: _RecordSpectra, hold, order, edges, f0, q, tau0, fixed_delay, band, band_halfwidths,
+               delay_search):
+    """Fit in the band around the start values, then once more in the band around that fit's (unless ``band`` is given)."""
+    fs, n = spectra.fs, spectra.n_samples
+    n_unknown = 1 + 2 * (order + 1) + 2 * (_EDGE_ORDER + 1) * len(edges) + 2 + (fixed_delay is None)
+    tau = tau0
     fit = None
     for _ in range(1 if band is not None else 2):
-        mask = _band_mask(freq, f0, q, band_halfwidths, band, fs)
-        k = int(np.count_nonzero(mask))
-        n_unknown = n_linear + 2 + (fixed_delay is None)
-        if k < _MIN_BAND_BINS or 2 * k < 2 * n_unknown:
-            per_edge = f", {2 * (_EDGE_ORDER + 1)} per drive switch" if edges else ""
-            raise InputError(
-                f"the fit band holds {k} frequency bins of {fs / n:g} Hz, too few for {n_unknown} unknowns"
-                f"{per_edge}; a longer record (finer resolution) is needed"
-            )
-        data = _Band(freq[mask], spectrum_u[mask], spectrum_y[mask], order, edges)
+        data = _band_data(spectra, _band_mask(spectra.freq, f0, q, band_halfwidths, band, fs), n_unknown, order, edges)
         if fixed_delay is None and fit is None and delay_search:
             # a delay of half a period is a sign flip of the gain at f0: only the phase slope across
             # the band tells the two apart, so start from both neighbours too and keep the best
@@ -538,7 +542,19 @@ def fit_record_response(
         else:
             fit = _fit_band(data, fs, hold, f0, q, tau, tau if fixed_delay is None else tau0, fixed_delay, n)
         f0, q, tau = fit.f0_hz, fit.q, fit.delay_s
-    return _checked_result(fit.result, y_scale / x_scale, y_scale, fs)
+    return fit
+
+
+def _band_data(spectra: _RecordSpectra, mask: np.ndarray, n_unknown: int, order, edges) -> _Band:
+    """The bins of the fit band, after checking they are enough for the unknowns (≥ 8 and ≥ n_unknown complex)."""
+    k = int(np.count_nonzero(mask))
+    if k < _MIN_BAND_BINS or 2 * k < 2 * n_unknown:
+        per_edge = f", {2 * (_EDGE_ORDER + 1)} per drive switch" if edges else ""
+        raise InputError(
+            f"the fit band holds {k} frequency bins of {spectra.fs / spectra.n_samples:g} Hz, too few for {n_unknown} unknowns"
+            f"{per_edge}; a longer record (finer resolution) is needed"
+        )
+    return _Band(spectra.freq[mask], spectra.u[mask], spectra.y[mask], order, edges)
 
 
 def _record_options(sample_rate_hz, f0_start_hz, q_start, band_halfwidths, hold, transient_order, delay, band,
