@@ -12,9 +12,13 @@ import numpy as np
 import pytest
 
 from afmtool import sim
+from afmtool.analyses.accumulators import ReepBinner
 from afmtool.analyses.kalman_bank import run_kalman_bank
-from afmtool.analyses.kalman_bank_reep import HeldReepCoefficients, ReepBinner
-from afmtool.analyses.kalman_bank_verdict import (
+from afmtool.analyses.kalman_bank_reep import HeldReepCoefficients
+from afmtool.config import resolve
+from afmtool.config.params import KalmanBankParams
+from afmtool.errors import ConfigError, InputError
+from afmtool.estimators.kalman_bank_verdict import (
     DesignPoint,
     ModelTable,
     RmsTable,
@@ -26,9 +30,6 @@ from afmtool.analyses.kalman_bank_verdict import (
     parse_model_list,
     parse_z_list,
 )
-from afmtool.config import resolve
-from afmtool.config.params import KalmanBankParams
-from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import Chunk
 from afmtool.io.memory import ArrayReader
 

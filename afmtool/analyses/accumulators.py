@@ -12,9 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afmtool.estimators.kalman_bank_verdict import ModelTable
 from afmtool.io.metadata import ScanMetadata
 
-__all__ = ["ScanGeometry", "ImageAccumulator", "ForceCurveAccumulator", "ForceCurveTable"]
+__all__ = ["ScanGeometry", "ImageAccumulator", "ForceCurveAccumulator", "ForceCurveTable", "DelayLine", "ReepBinner"]
 
 
 @dataclass(frozen=True)
@@ -170,4 +171,66 @@ class ForceCurveAccumulator:
             means = {name: sums[i + 1] / sums[0] for i, name in enumerate(self.names)}
             sensitivities = {name: np.gradient(m, z) if len(z) > 1 else np.full(len(z), np.nan) for name, m in means.items()}
             out[label] = ForceCurveTable(z, sums[0].astype(np.int64), means, sensitivities)
+        return out
+
+
+class DelayLine:
+    """x(n − d) of a stream, carried across chunks; the first value stands in before the start."""
+
+    def __init__(self, delay: int) -> None:
+        if delay < 0:
+            raise ValueError(f"{delay=} must be >= 0")
+        self.delay = delay
+        self._tail: np.ndarray | None = None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        if self.delay == 0 or len(x) == 0:
+            return x
+        if self._tail is None:
+            self._tail = np.full(self.delay, x[0])
+        extended = np.concatenate((self._tail, x))
+        self._tail = extended[-self.delay :]
+        return extended[: len(x)]
+
+
+class ReepBinner:
+    """REEP's model binned against z at the centroid of its window (module docstring).
+
+    It takes the columns REEP writes (``t``, ``z``, ``f0_hz``, ``q`` and
+    optionally ``amplitude``), so it can stand in for ``run_reep``'s writer.
+
+    Parameters
+    ----------
+    z_bin : float
+        Bin width, z_piezo units.
+    delay : int
+        λ/(1 − λ) in kept samples (:func:`afmtool.analyses.kalman_bank_reep.reep_delay`).
+    warmup_s : float
+        Estimates before this time are left out (REEP's start-up).
+    """
+
+    def __init__(self, z_bin: float, delay: int, warmup_s: float) -> None:
+        self.accumulator = ForceCurveAccumulator(z_bin, ("f0_hz", "q", "amplitude"))
+        self.z_delay = DelayLine(delay)
+        self.warmup_s = warmup_s
+
+    def append(self, columns) -> None:
+        z = self.z_delay(columns["z"])
+        if len(z) == 0:
+            return
+        settled = np.asarray(columns["t"]) >= self.warmup_s
+        amplitude = columns.get("amplitude", np.zeros(len(z)))
+        values = {"f0_hz": columns["f0_hz"], "q": columns["q"], "amplitude": amplitude}
+        self.accumulator.add(z, {k: np.where(settled, v, np.nan) for k, v in values.items()})
+
+    def put(self, *args, **kwargs) -> None:
+        """Whole arrays of ``run_reep`` (tables, images) are not needed here."""
+
+    def tables(self, *, amplitude_known: bool = True) -> dict[str, ModelTable]:
+        """REEP's model per leg; amplitude NaN when the source had none."""
+        out = {}
+        for leg, t in self.accumulator.tables().items():
+            amplitude = t.means["amplitude"] if amplitude_known else np.full(t.z.shape, np.nan)
+            out[leg] = ModelTable(t.z, t.count.astype(np.float64), t.means["f0_hz"], t.means["q"], amplitude)
         return out

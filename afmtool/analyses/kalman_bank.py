@@ -16,7 +16,7 @@ least innovation RMS):
    sample (REEP runs again beside it, chunk by chunk, bit for bit as in
    pass 1; or its decimated estimates are held).  Each innovation's window
    RMS is binned against z, approach and retract apart.
-4. The verdict (:mod:`afmtool.analyses.kalman_bank_verdict`): every
+4. The verdict (:mod:`afmtool.estimators.kalman_bank_verdict`): every
    filter's least RMS lies in its design bin, and the adaptive observer has
    the least RMS for a stated share of the time.
 
@@ -60,19 +60,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from afmtool.analyses.accumulators import ForceCurveAccumulator, ForceCurveTable
+from afmtool.analyses.accumulators import DelayLine, ForceCurveAccumulator, ForceCurveTable, ReepBinner
 from afmtool.analyses.freeair_source import drive_frequency
 from afmtool.analyses.kalman_bank_reep import (
-    DelayLine,
     HeldReepCoefficients,
     InternalReep,
-    ReepBinner,
     reep_delay,
     reep_pass_one,
     reep_tables_from_file,
     warmup_samples,
 )
-from afmtool.analyses.kalman_bank_verdict import (
+from afmtool.config.params import KalmanBankParams
+from afmtool.errors import ConfigError, InputError
+from afmtool.estimators.kalman_bank_verdict import (
     BankVerdict,
     DesignPoint,
     ModelTable,
@@ -87,8 +87,6 @@ from afmtool.analyses.kalman_bank_verdict import (
     parse_model_list,
     parse_z_list,
 )
-from afmtool.config.params import KalmanBankParams
-from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import require_channels
 from afmtool.models.free_air import FreeAirModel

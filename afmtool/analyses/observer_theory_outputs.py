@@ -66,7 +66,7 @@ def _direction(params: ObserverTheoryParams, f0: float, q: float, drive_hz: floa
         q_low = params.q_low or q
         return Direction(f0, q, params.f0_low_hz, q_low, "given"), []
     if params.reep:
-        from afmtool.analyses.kalman_bank_reep import ReepBinner
+        from afmtool.analyses.accumulators import ReepBinner
         from afmtool.io.reep_results import open_reep_results
 
         with open_reep_results(params.reep) as reep:
@@ -88,7 +88,7 @@ def _direction(params: ObserverTheoryParams, f0: float, q: float, drive_hz: floa
 
 def _observers(params: ObserverTheoryParams, direction: Direction) -> tuple[tuple[float, float], ...]:
     if params.observers:
-        from afmtool.analyses.kalman_bank_verdict import parse_model_list
+        from afmtool.estimators.kalman_bank_verdict import parse_model_list
 
         return parse_model_list(params.observers, "observers")
     return ((direction.f0_free_hz, direction.q_free), (direction.f0_low_hz, direction.q_low))
