@@ -6,6 +6,7 @@ memory is set by the number of bins or pixels, not by the capture length.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -19,23 +20,15 @@ __all__ = ["ScanGeometry", "ImageAccumulator", "ForceCurveAccumulator", "ForceCu
 
 
 @dataclass(frozen=True)
-class ScanGeometry:
-    """Raster geometry from capture metadata ``scan`` (see the metadata schema)."""
-
-    lines: int
-    pixels_per_line: int
-    scan_size_m: float
-    line_rate_hz: float
-    trace_retrace: bool = True
-    start_s: float = 0.0
+class ScanGeometry(ScanMetadata):
+    """Raster geometry: the capture's validated metadata ``scan``, with the pixel arithmetic of a scan."""
 
     @classmethod
     def from_scan(cls, scan: ScanMetadata | None) -> ScanGeometry | None:
         """The geometry of a capture's (validated) metadata ``scan``; None without one."""
         if scan is None:
             return None
-        return cls(scan.lines, scan.pixels_per_line, scan.scan_size_m, scan.line_rate_hz, scan.trace_retrace,
-                   scan.start_s)
+        return cls(**dataclasses.asdict(scan))
 
     def pixel_index(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(direction 0=trace 1=retrace, line, pixel) for each time; line −1 outside the scan.

@@ -26,6 +26,7 @@ __all__ = [
     "sine",
     "three_sine",
     "build_dither",
+    "drive_metadata",
 ]
 
 #: Names accepted by :func:`build_dither`.
@@ -366,3 +367,28 @@ def build_dither(
         freqs = (center_hz,) if sweep_steps == 1 else tuple(np.linspace(low, high, sweep_steps).tolist())
         return SteppedSine(amplitude, freqs, duration_s / sweep_steps, start_s)
     raise ConfigError(f"drive={kind!r} must be one of {', '.join(DRIVE_KINDS)}")
+
+
+def drive_metadata(params, center_hz: float, amplitude_v: float) -> dict:
+    """The capture metadata ``drive`` of a simulated dither (ltv, tapping).
+
+    ``params`` carries ``drive`` (the kind), ``amplitude_nm`` (free amplitude,
+    nm), ``dither_gain_nm_per_v``, ``drive_hold`` and, for a three-sine
+    drive, ``sideband_offset_hz`` and ``sideband_scale``; ``center_hz`` (Hz)
+    and ``amplitude_v`` (V) are the excitation's.  A single sine says
+    ``sideband_offset_hz`` 0, which the free-air route reads as one tone.
+    """
+    drive = {
+        "kind": params.drive,
+        "frequency_hz": float(center_hz),
+        "amplitude_v": float(amplitude_v),
+        "free_amplitude_nm": float(params.amplitude_nm),
+        "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
+        "hold": params.drive_hold,
+    }
+    if params.drive == "three-sine":
+        drive["sideband_offset_hz"] = float(params.sideband_offset_hz)
+        drive["sideband_scale"] = float(params.sideband_scale)
+    elif params.drive == "sine":
+        drive["sideband_offset_hz"] = 0.0
+    return drive

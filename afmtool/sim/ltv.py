@@ -50,7 +50,7 @@ from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.discretisation import DiscreteNumerator, discrete_denominator, sampled_numerator
 from afmtool.sim import SimulatedCapture, param, validate_parameters
-from afmtool.sim.excitation import DRIVE_KINDS, LinearChirp, MultiSine, SteppedSine, build_dither, sine
+from afmtool.sim.excitation import DRIVE_KINDS, LinearChirp, MultiSine, SteppedSine, build_dither, drive_metadata, sine
 
 __all__ = ["LtvParams", "parameter_profile", "ltv_recursion", "simulate_ltv"]
 
@@ -236,19 +236,7 @@ def _ltv_metadata(params: LtvParams, center_hz: float, amplitude_v: float, numer
     """The capture metadata of :func:`simulate_ltv`: cantilever, drive, numerator and noise."""
     a2, a1, a0 = numerator
     cantilever = Cantilever(params.f0_hz, params.q)
-    drive = {
-        "kind": params.drive,
-        "frequency_hz": float(center_hz),
-        "amplitude_v": float(amplitude_v),
-        "free_amplitude_nm": float(params.amplitude_nm),
-        "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
-        "hold": params.drive_hold,
-    }
-    if params.drive == "three-sine":
-        drive["sideband_offset_hz"] = float(params.sideband_offset_hz)
-        drive["sideband_scale"] = float(params.sideband_scale)
-    elif params.drive == "sine":
-        drive["sideband_offset_hz"] = 0.0
+    drive = drive_metadata(params, center_hz, amplitude_v)
     metadata = {
         "scenario": "ltv",
         "cantilever": {"f0_hz": float(cantilever.f0_hz), "q": float(cantilever.q)},

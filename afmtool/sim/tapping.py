@@ -44,7 +44,7 @@ from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce, force_per_mass
 from afmtool.sim import SimulatedCapture, param, validate_parameters
-from afmtool.sim.excitation import DRIVE_KINDS, LinearChirp, MultiSine, SteppedSine, build_dither, sine
+from afmtool.sim.excitation import DRIVE_KINDS, LinearChirp, MultiSine, SteppedSine, build_dither, drive_metadata, sine
 from afmtool.sim.separation import ConstantSeparation, ForceCurve, LineScan, SeparationSteps
 
 __all__ = [
@@ -414,20 +414,8 @@ def _initial_state(excitation, cantilever: Cantilever, gain: float, hold_fs: flo
 
 
 def _drive_metadata(params: TappingParams, excitation, center_hz: float, amplitude_v: float) -> dict:
-    drive = {
-        "kind": params.drive,
-        "frequency_hz": float(center_hz),
-        "amplitude_v": float(amplitude_v),
-        "free_amplitude_nm": float(params.amplitude_nm),
-        "dither_gain_nm_per_v": float(params.dither_gain_nm_per_v),
-        "hold": params.drive_hold,
-    }
-    if params.drive == "three-sine":
-        drive["sideband_offset_hz"] = float(params.sideband_offset_hz)
-        drive["sideband_scale"] = float(params.sideband_scale)
-    elif params.drive == "sine":
-        drive["sideband_offset_hz"] = 0.0
-    elif params.drive == "chirp":
+    drive = drive_metadata(params, center_hz, amplitude_v)
+    if params.drive == "chirp":
         drive["start_hz"] = float(excitation.start_hz)
         drive["end_hz"] = float(excitation.end_hz)
     return drive
