@@ -7,7 +7,7 @@ from pathlib import Path
 
 from afmtool.analyses.command_inputs import CommandRun, channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.probeloss import SERIES_UNITS, ProbeLossResult, run_probeloss
-from afmtool.analyses.stream import run_stream
+from afmtool.analyses.stream import run_stream_with_model
 from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
@@ -46,11 +46,7 @@ def run_probeloss_command(run: CommandRun) -> dict:
 def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:
     """Run the analysis and write decimated rows to stdout as each chunk completes (``--stream``)."""
 
-    def analysis(reader: CaptureReader, params: ProbeLossParams, writer) -> ProbeLossResult:
-        model = given_free_air_model(params.model)
-        return run_probeloss(reader, params, writer, model=model)
-
-    run_stream(analysis, ProbeLossParams, "probeloss", reader, config, flags, fmt)
+    run_stream_with_model(run_probeloss, ProbeLossParams, "probeloss", reader, config, flags, fmt)
 
 
 def _write_time_series(staged: OutputDir, reader: CaptureReader, results: Mapping) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 
 from afmtool.analyses.command_inputs import CommandRun, channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.reep import SERIES_UNITS, ReepResult, run_reep
-from afmtool.analyses.stream import run_stream
+from afmtool.analyses.stream import run_stream_with_model
 from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
@@ -61,11 +61,7 @@ def run_reep_command(run: CommandRun) -> dict:
 def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:
     """Run REEP and write decimated rows to stdout as each chunk completes (``--stream``)."""
 
-    def analysis(reader: CaptureReader, params: ReepParams, writer) -> ReepResult:
-        model = given_free_air_model(params.model)
-        return run_reep(reader, params, writer, model=model)
-
-    run_stream(analysis, ReepParams, "reep", reader, config, flags, fmt)
+    run_stream_with_model(run_reep, ReepParams, "reep", reader, config, flags, fmt)
 
 
 def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, deflection_units: str) -> dict:

@@ -16,7 +16,7 @@ from typing import Any
 from afmtool.config import load_toml, resolve_from
 from afmtool.io.rows import RowWriter
 
-__all__ = ["STREAM_CHUNK_SAMPLES", "run_stream"]
+__all__ = ["STREAM_CHUNK_SAMPLES", "run_stream", "run_stream_with_model"]
 
 #: Chunk size for --stream: small, so rows follow the input closely.
 STREAM_CHUNK_SAMPLES = 4096
@@ -71,3 +71,19 @@ def run_stream(
         result = analysis(reader, params, rows if row_columns is None else _Selected(rows, row_columns))
     for warning in result.warnings:
         print(f"afmtool: warning: {warning}", file=sys.stderr)
+
+
+def run_stream_with_model(
+    run: Callable[..., Any], params_cls: type, section: str, reader, config: Path | None, flags: Mapping, fmt: str
+) -> None:
+    """:func:`run_stream` for an analysis ``run(reader, params, writer, model=...)`` that takes ``--model``.
+
+    The free-air model file of ``params.model`` (if given) is loaded once the
+    parameters are resolved, as the folder outputs do.
+    """
+    from afmtool.analyses.command_inputs import given_free_air_model
+
+    def analysis(reader, params, writer):
+        return run(reader, params, writer, model=given_free_air_model(params.model))
+
+    run_stream(analysis, params_cls, section, reader, config, flags, fmt)
