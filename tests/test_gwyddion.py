@@ -192,11 +192,11 @@ def thumbnails(cli_outputs, gwy_home, tmp_path_factory) -> dict[str, tuple[np.nd
 
 
 def test_every_gsf_writer_is_covered():
-    """Only the REEP and probe-loss image writers call write_gsf; a new caller needs adding to GSF_NAMES."""
+    """Only the REEP and probe-loss image writers write .gsf files; a new caller needs adding to GSF_NAMES."""
     callers = sorted(
         path.relative_to(REPO / "afmtool").as_posix()
         for path in (REPO / "afmtool").rglob("*.py")
-        if re.search(r"\bwrite_gsf\(", path.read_text(encoding="utf-8"))
+        if re.search(r"\b(write_gsf|write_scan_image_files)\(", path.read_text(encoding="utf-8"))
     )
     assert callers == ["analyses/probeloss_outputs.py", "analyses/reep_outputs.py", "report/images.py"]
 
