@@ -16,6 +16,8 @@ import pytest
 from tests.conftest import REPO, run_cli
 
 KILLS = 20
+#: SIGKILLs in the swap test: each costs a run; twelve are enough for both outcomes to show.
+SIGKILLS = 12
 
 
 def _snapshot(folder):
@@ -103,7 +105,7 @@ def test_sigkill_leaves_old_or_new_and_the_next_run_cleans_up(tmp_path, capture)
     assert subprocess.run(args(short), cwd=REPO, capture_output=True).returncode == 0
     seen = {_run_of(out, lengths)}
     rng = np.random.default_rng(2027)
-    for k in range(KILLS):
+    for k in range(SIGKILLS):
         proc = subprocess.Popen(args(capture if k % 2 else short), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(rng.uniform(0.1, 1.2) * full_run_s)
         proc.kill()
