@@ -105,9 +105,13 @@ def test_sigkill_leaves_old_or_new_and_the_next_run_cleans_up(tmp_path, capture)
     assert subprocess.run(args(short), cwd=REPO, capture_output=True).returncode == 0
     seen = {_run_of(out, lengths)}
     rng = np.random.default_rng(2027)
+    # Kill times are stratified over 0.1-1.6 full runs, one random point per stratum: a uniform draw
+    # left the long capture's runs all killed before their swap in 30 % of CI runs, and the test then
+    # saw only one outcome.  The late strata make some long runs finish; the early ones land mid-stream.
+    fractions = 0.1 + 1.5 * (np.arange(SIGKILLS) + rng.uniform(size=SIGKILLS)) / SIGKILLS
     for k in range(SIGKILLS):
         proc = subprocess.Popen(args(capture if k % 2 else short), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        time.sleep(rng.uniform(0.1, 1.2) * full_run_s)
+        time.sleep(fractions[k] * full_run_s)
         proc.kill()
         proc.wait(timeout=60)
         seen.add(_run_of(out, lengths))  # the old folder or the new one, complete
