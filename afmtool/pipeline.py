@@ -13,7 +13,11 @@ owns what every command used to write by hand:
 - one side thread, on which a stage runs a second kernel beside its own
   (both release the GIL);
 - progress, from the consumer thread;
-- merging the stages' columns per chunk and handing them to the sink.
+- merging the stages' columns per chunk and handing them to the sink;
+- with a :class:`Split`, running the stages' kernels on several chunks at
+  once (local threads or a Dask cluster), each chunk's kernels started
+  from a fresh state a warm-up ahead of it (:class:`ChunkKernels`), and the
+  rest of each stage in capture order.
 
 This is the only module outside :mod:`afmtool.io` that calls
 ``iter_chunks`` or ``prefetch`` (``tests/test_architecture.py`` checks it).
@@ -23,10 +27,12 @@ The rule of which samples a decimated output keeps lives in
 
 from __future__ import annotations
 
+import os
+from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Protocol, Self
+from typing import Any, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -36,7 +42,20 @@ from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
 from afmtool.io.prefetch import prefetch
 
-__all__ = ["Decimation", "Head", "SideThread", "Stage", "Warmup", "read_segment", "replay_held", "run_stream"]
+__all__ = [
+    "ChunkKernels",
+    "Decimation",
+    "Head",
+    "SideThread",
+    "Split",
+    "SplitStage",
+    "Stage",
+    "Warmup",
+    "lead_start",
+    "read_segment",
+    "replay_held",
+    "run_stream",
+]
 
 
 @dataclass(frozen=True)
@@ -139,6 +158,88 @@ class Stage(Protocol):
         """The stage's result, after the last chunk."""
 
 
+@dataclass(frozen=True)
+class Split:
+    """How :func:`run_stream` spreads the stages' kernels over one capture.
+
+    Attributes
+    ----------
+    jobs : int
+        Chunks whose kernels run at once on this machine's threads (numba
+        kernels release the GIL); 1 runs the capture sequentially.
+    scheduler : str or None
+        A Dask scheduler address (``tcp://host:8786``): the kernels run on
+        its workers instead of local threads.
+    """
+
+    jobs: int = 1
+    scheduler: str | None = None
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.jobs, int) and self.jobs >= 1):
+            raise ValueError(f"jobs={self.jobs!r} must be an integer >= 1")
+
+    @classmethod
+    def of(cls, jobs: int | None, scheduler: str | None = None) -> Split:
+        """``--jobs`` (None: every core this process may use) and ``--scheduler``."""
+        if jobs is None:
+            jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        return cls(int(jobs), scheduler or None)
+
+    @property
+    def parallel(self) -> bool:
+        """Whether chunks run at once (more than one job, or a cluster)."""
+        return self.jobs > 1 or self.scheduler is not None
+
+
+class ChunkKernels(Protocol):
+    """A stage's per-sample recursions as a pure, picklable function of the samples.
+
+    Every recursion here forgets its past (EW-RLS weighs it by λⁿ, an
+    observer's error decays with its poles, a low-pass with its own), so the
+    output on a chunk computed from a fresh state started ``lead_samples``
+    earlier equals the sequential output to a stated tolerance.  Such an
+    object runs on a worker thread or a Dask worker and touches no stage
+    state.
+
+    Attributes
+    ----------
+    lead_samples : int
+        Warm-up W: samples before the chunk that the kernels run over first.
+    alignment : int
+        The warm-up starts at a capture index that is a multiple of this
+        (the decimation, so that the kept samples are the sequential run's).
+    """
+
+    lead_samples: int
+    alignment: int
+
+    def estimate(self, lead: Chunk | None, chunk: Chunk) -> Any:
+        """The kernels' output on ``chunk``, from a fresh state warmed on ``lead`` (which ends where ``chunk`` starts)."""
+
+
+def lead_start(start: int, lead_samples: int, alignment: int) -> int:
+    """The first sample of the warm-up of a chunk starting at ``start``: W early, on the alignment grid, >= 0."""
+    first = max(start - lead_samples, 0)
+    return first - first % alignment
+
+
+@runtime_checkable
+class SplitStage(Stage, Protocol):
+    """A stage whose kernels can run on several chunks at once.
+
+    ``step(chunk)`` is ``account(chunk, <its kernels' output with carried
+    state>)``; with a :class:`Split`, :func:`run_stream` calls
+    ``kernels().estimate`` on workers and ``account`` in capture order.
+    """
+
+    def kernels(self) -> ChunkKernels | None:
+        """The stage's kernels after ``prepare``; None if they cannot run split (then the run is sequential)."""
+
+    def account(self, chunk: Chunk, estimate: Any) -> Mapping[str, np.ndarray] | None:
+        """Everything after the kernels, in capture order: returns the chunk's columns."""
+
+
 def replay_held(held: list[Chunk], rest: Iterator[Chunk]) -> Iterator[Chunk]:
     """Yield ``held`` chunks then ``rest``, dropping each held chunk once it is handed on (no reference is kept)."""
     while held:
@@ -168,16 +269,19 @@ def read_segment(
     return segment, replay_held(held, chunks)
 
 
+def _merge_into(merged: dict[str, np.ndarray], columns: Mapping[str, np.ndarray] | None, stage: Stage) -> None:
+    if not columns:
+        return
+    clash = merged.keys() & columns.keys()
+    if clash:
+        raise ValueError(f"{type(stage).__name__} writes column(s) {sorted(clash)} that an earlier stage writes")
+    merged.update(columns)
+
+
 def _merge(stages: Sequence[Stage], chunk: Chunk) -> dict[str, np.ndarray]:
     merged: dict[str, np.ndarray] = {}
     for stage in stages:
-        columns = stage.step(chunk)
-        if not columns:
-            continue
-        clash = merged.keys() & columns.keys()
-        if clash:
-            raise ValueError(f"{type(stage).__name__} writes column(s) {sorted(clash)} that an earlier stage writes")
-        merged.update(columns)
+        _merge_into(merged, stage.step(chunk), stage)
     return merged
 
 
@@ -191,6 +295,7 @@ def run_stream(
     progress: Callable[[int], None] | None = None,
     prologue: Callable[[Iterator[Chunk]], Iterator[Chunk]] | None = None,
     read_ahead: int = 2,
+    split: Split | None = None,
 ) -> list[Any]:
     """Stream ``reader`` through ``stages`` once, chunk by chunk.
 
@@ -220,6 +325,11 @@ def run_stream(
         Chunks read ahead in a background thread; 0 reads each chunk in
         this thread when it is needed (memory: up to ``read_ahead + 2``
         chunks are held at once with read-ahead, one without).
+    split : Split, optional
+        Run the kernels of ``split.jobs`` chunks at once (or on a Dask
+        cluster) when every stage is a :class:`SplitStage` with kernels;
+        otherwise, or by default, the run is sequential.  Up to
+        ``jobs + 1`` more chunks are then held.
 
     Returns
     -------
@@ -250,13 +360,111 @@ def run_stream(
         if read_ahead:
             stream = prefetch(stream, read_ahead)
         del head, first  # the stream hands the first chunk on once; keep no reference for the whole run
+        kernels = _split_kernels(stages, split)
+
+        def deliver(merged: Mapping[str, np.ndarray], done: int) -> None:
+            if sink is not None and merged:
+                sink.append(merged)
+            if progress is not None:
+                progress(done)
+
         try:
-            for chunk in stream:
-                merged = _merge(stages, chunk)
-                if sink is not None and merged:
-                    sink.append(merged)
-                if progress is not None:
-                    progress(chunk.start + len(chunk))
+            if kernels is None:
+                for chunk in stream:
+                    deliver(_merge(stages, chunk), chunk.start + len(chunk))
+            else:
+                _run_split(stream, stages, kernels, split, deliver)
         finally:
             stream.close()  # stops the read-ahead thread when a stage raised
         return [stage.finish() for stage in stages]
+
+
+def _split_kernels(stages: Sequence[Stage], split: Split | None) -> list[ChunkKernels] | None:
+    """Every stage's kernels when the run is split and all of them can be; else None (sequential)."""
+    if split is None or not split.parallel or not all(isinstance(stage, SplitStage) for stage in stages):
+        return None
+    kernels = [stage.kernels() for stage in stages]
+    return None if any(k is None for k in kernels) else kernels
+
+
+class _Tail:
+    """The last ``keep`` samples of the stream's channels, copied: the warm-ups of the next chunks."""
+
+    def __init__(self, keep: int) -> None:
+        self.keep = keep
+        self.start = 0
+        self.data: dict[str, np.ndarray] = {}
+
+    def lead(self, start: int, end: int) -> Chunk | None:
+        """Samples [start, end) (end = the next chunk's start), or None when empty."""
+        if start >= end:
+            return None
+        if start < self.start:
+            raise RuntimeError(f"warm-up from {start} asked, but only samples from {self.start} are kept")
+        return Chunk(start, {name: values[start - self.start:end - self.start] for name, values in self.data.items()})
+
+    def push(self, chunk: Chunk) -> None:
+        end = chunk.start + len(chunk)
+        first = max(end - self.keep, 0)
+        if not self.data or first >= chunk.start:
+            self.data = {name: np.array(values[first - chunk.start:]) for name, values in chunk.data.items()}
+        else:  # a chunk shorter than the warm-up: keep some of the older tail too
+            self.data = {name: np.concatenate([self.data[name][first - self.start:], values])
+                         for name, values in chunk.data.items()}
+        self.start = first
+
+
+def _executor(split: Split):
+    """``(submit, close)``: local threads, or a Dask client for ``split.scheduler``."""
+    if split.scheduler is None:
+        pool = ThreadPoolExecutor(max_workers=split.jobs, thread_name_prefix="afmtool-split")
+        return pool.submit, lambda: pool.shutdown(wait=True, cancel_futures=True)
+    try:
+        from distributed import Client
+    except ImportError:
+        raise InputError("--scheduler needs Dask: pip install 'afmtool[cluster]'") from None
+    try:
+        client = Client(split.scheduler, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise InputError(f"cannot reach the Dask scheduler {split.scheduler} ({exc})") from None
+
+    def submit(fn: Callable[..., Any], /, *args: Any) -> Any:
+        return client.submit(fn, *args, pure=False)
+
+    return submit, client.close
+
+
+def _run_split(stream: Iterator[Chunk], stages: Sequence[Stage], kernels: Sequence[ChunkKernels], split: Split,
+               deliver: Callable[[Mapping[str, np.ndarray], int], None]) -> None:
+    """Kernels of up to ``jobs`` chunks at once, each warmed on its lead; ``account`` in capture order."""
+    keep = max(k.lead_samples + k.alignment for k in kernels)
+    tail = _Tail(keep)
+    submit, close = _executor(split)
+    depth = split.jobs if split.scheduler is None else 2 * max(split.jobs, 2)
+    pending: deque = deque()
+
+    def account_oldest() -> None:
+        chunk, futures = pending.popleft()
+        merged: dict[str, np.ndarray] = {}
+        for stage, future in zip(stages, futures):
+            columns = stage.account(chunk, future.result())
+            _merge_into(merged, columns, stage)
+        deliver(merged, chunk.start + len(chunk))
+
+    try:
+        for chunk in stream:
+            futures = []
+            for k in kernels:
+                lead = tail.lead(lead_start(chunk.start, k.lead_samples, k.alignment), chunk.start)
+                futures.append(submit(k.estimate, lead, chunk))
+            pending.append((chunk, futures))
+            tail.push(chunk)
+            if len(pending) > depth:
+                account_oldest()
+        while pending:
+            account_oldest()
+    finally:
+        for _, futures in pending:
+            for future in futures:
+                future.cancel()
+        close()

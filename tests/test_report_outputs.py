@@ -327,8 +327,8 @@ def test_page_order_headline_figures_warnings_details(runs):
     assert 'class="warning-flag" href="#warnings"' in page and 'class="warning"' in page
     main = re.search(r'<figure class="main"><img alt="([^"]+)"', page)
     assert main and main.group(1) == "bank_rms_vs_time"
-    sha = json.loads((folders["bank"] / "report.json").read_text())["inputs"][0]["sha256"]
-    assert sha in page  # the full hash, in the collapsed inputs
+    digest = json.loads((folders["bank"] / "report.json").read_text())["inputs"][0]["hash"]
+    assert digest["algorithm"] == "xxh3-128" and digest["value"] in page  # the full hash, in the collapsed inputs
     assert "src=\"http" not in page and "href=\"http" not in page
 
 

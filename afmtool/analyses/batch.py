@@ -4,8 +4,9 @@ Each input runs as its own ``afmtool COMMAND INPUT --out SUBDIR`` process on
 a Dask worker, so a batch result is exactly the single-file result and a
 crash in one file cannot take the others down.  A failing input is recorded
 with its reason and the batch goes on; ``summary.csv`` has one row per input.
-Inputs whose output folder already holds a ``report.json`` for the same
-input bytes are skipped (resume).
+Inputs whose output folder already holds a ``report.json`` whose recorded
+input hash still matches the input, and every output file intact, are
+skipped (resume).
 """
 
 from __future__ import annotations
@@ -116,16 +117,40 @@ def _complete(item: BatchItem) -> dict | None:
         return None
     try:
         report = json.loads(report_path.read_text())
-        recorded = report["inputs"][0]["sha256"]
+        recorded = report["inputs"][0]["hash"]
         names = [str(name) for name in report["outputs"]]
         manifest = json.loads(_manifest_path(item).read_text())
     except (ValueError, KeyError, IndexError, TypeError, OSError, RecursionError):
         return None
-    if recorded != sha256_file(Path(item.source)):
+    if not _input_unchanged(item.source, recorded):
         return None
     if any(not (folder / name).exists() for name in names):
         return None
     return report if manifest == _output_hashes(folder, names) else None
+
+
+def _input_unchanged(source: str, recorded) -> bool:
+    """Whether ``source`` still has the hash its report recorded, by the report's own algorithm.
+
+    A file hash (sha256) is recomputed over the file; a sample hash (XXH3-128,
+    :mod:`afmtool.io.provenance`) over the same channels, read with the default
+    options (units converted as the metadata says).  A run made with capture
+    options (``--arg=--channel ...``) that change those samples, or with
+    ``--no-hash``, cannot be checked this way and is redone.
+    """
+    if not isinstance(recorded, dict):
+        return False
+    try:
+        if recorded.get("over") == "file":
+            return recorded.get("algorithm") == "sha256" and recorded.get("value") == sha256_file(Path(source))
+        from afmtool.io.provenance import hash_matches
+        from afmtool.io.registry import open_capture
+        from afmtool.io.units import Calibration, UnitsReader
+
+        with UnitsReader(open_capture(source), Calibration()) as reader:
+            return hash_matches(recorded, reader)
+    except (InputError, ConfigError, OSError, ValueError):
+        return False
 
 
 def headline(command: str, report: dict) -> dict:

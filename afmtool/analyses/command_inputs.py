@@ -17,10 +17,12 @@ from typing import TYPE_CHECKING, TypeVar
 
 from afmtool.config import load_toml, resolve_from
 from afmtool.io.capture import CaptureReader
+from afmtool.io.provenance import HashedReader
 from afmtool.models.free_air import FreeAirModel, load_free_air_model
 
 if TYPE_CHECKING:
-    from afmtool.report.json_report import PendingInputRecord
+    from afmtool.pipeline import Split
+    from afmtool.report.json_report import SampleInputRecord
 
 __all__ = ["CommandRun", "channel_units", "given_free_air_model", "model_input_records"]
 
@@ -34,7 +36,9 @@ class CommandRun:
     Attributes
     ----------
     reader : CaptureReader
-        The open capture (units converted, metadata validated).
+        The open capture (units converted, metadata validated).  With
+        ``hash_input`` it is wrapped in a :class:`~afmtool.io.provenance.HashedReader`,
+        so that the capture's hash is computed in the analysis's own read pass.
     capture : str
         Its path as given (``-`` for stdin), for the input record.
     out : Path
@@ -45,11 +49,12 @@ class CommandRun:
         ``{field: value or None}`` from the command's generated flags.
     progress : callable
         Called with the samples done so far.
-    capture_record : PendingInputRecord, optional
-        The capture's hash already under way (started by the CLI before its
-        imports, so that hashing overlaps them); by default it starts here.
     reopen : callable, optional
         Opens the capture again, for a command that reads it twice.
+    hash_input : bool
+        Record the hash of the samples read (``--no-hash`` turns it off, for live pipelines).
+    split : Split, optional
+        ``--jobs`` and ``--scheduler``: the kernels of several chunks at once; None runs sequentially.
     """
 
     reader: CaptureReader
@@ -58,18 +63,23 @@ class CommandRun:
     config: Path | None
     flags: Mapping
     progress: Callable[[int], None]
-    capture_record: PendingInputRecord | None = None
     reopen: Callable[[], CaptureReader] | None = None
+    hash_input: bool = True
+    split: Split | None = None
+
+    def __post_init__(self) -> None:
+        if self.hash_input and not isinstance(self.reader, HashedReader):
+            object.__setattr__(self, "reader", HashedReader(self.reader))
 
     def params(self, cls: type[P], section: str) -> P:
         """The effective parameters: packaged defaults, then ``[section]`` of ``--config``, then flags."""
         return resolve_from(cls, section, load_toml(self.config) if self.config else None, self.flags)
 
-    def input_record(self) -> PendingInputRecord:
-        """The capture's input record (path, role, hash), under way."""
-        from afmtool.report.json_report import PendingInputRecord
+    def input_record(self) -> SampleInputRecord:
+        """The capture's input record (path, role, hash); ``result()`` once the capture has been read."""
+        from afmtool.report.json_report import SampleInputRecord
 
-        return self.capture_record or PendingInputRecord(self.capture)
+        return SampleInputRecord(self.capture, self.reader if self.hash_input else None)
 
 
 def given_free_air_model(model: str) -> FreeAirModel | None:

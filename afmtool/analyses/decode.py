@@ -32,7 +32,7 @@ from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.metadata import CantileverMetadata, ElectrostaticMetadata
 from afmtool.io.results import ResultWriter
 from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, LeverVoltages, actuation_voltage
-from afmtool.pipeline import Decimation, Head, read_segment, run_stream
+from afmtool.pipeline import Decimation, Head, Split, read_segment, run_stream
 from afmtool.report.results import JsonResults
 
 if TYPE_CHECKING:  # numba and scipy load when a decode runs, not on import
@@ -560,6 +560,7 @@ def run_decode(
     *,
     progress: Callable[[int], None] | None = None,
     on_stream_start: Callable[[], None] | None = None,
+    split: Split | None = None,
 ) -> DecodeResult:
     """Decode the bits of a capture, streaming, and write the per-sample series.
 
@@ -580,6 +581,9 @@ def run_decode(
     on_stream_start : callable, optional
         Called once, when the model is tuned and the stream begins (the
         command starts loading its plotting library then).
+    split : Split, optional
+        Run the EKF on several chunks at once (:class:`~afmtool.pipeline.Split`);
+        the bits are those of the sequential run (``tests/test_split.py``).
 
     Returns
     -------
@@ -594,7 +598,7 @@ def run_decode(
     decoding = _DecodeStage(info, params, setup, channels, on_stream_start)
     (totals,) = run_stream(
         reader, [decoding], writer, channels=channels, chunk_samples=params.chunk_samples, progress=progress,
-        prologue=decoding.nominal_prologue, read_ahead=_READ_AHEAD,
+        prologue=decoding.nominal_prologue, read_ahead=_READ_AHEAD, split=split,
     )
     tuning, stage, nominal, mean_window = decoding.tuning, decoding.bits, decoding.nominal, decoding.mean_window
     baseline, psd, bits_start = decoding.baseline, decoding.psd, decoding.bits_start
@@ -745,6 +749,8 @@ class _DecodeStage:
         self.held = _Hold(self.baseline.keep)
         self.mean_kept = Decimation(self.design.mean_window)
         self.side = head.side
+        self.split_sums = [0.0, 0.0, 0]
+        self.ekf_settle = self._ekf_settle(head.first)
         if self.on_stream_start is not None:
             self.on_stream_start()
 
@@ -753,13 +759,32 @@ class _DecodeStage:
         from afmtool.estimators.ekf import ekf_update
 
         y = chunk.data["deflection"]
-        n = len(y)
         demodulating = self.side.submit(self.baseline.lockin.process, (y,), self.lock_state, self.baseline.keep)
         step = ekf_update(
             self.design, self.ekf_state, y, _lever_voltages(chunk.data, self.params, self.setup.electrostatic.alpha_r)
         )
         self.ekf_state = step.state
-        innovation, mean = step.block
+        (demod,), self.lock_state = demodulating.result()
+        return self.account(chunk, (step.block, demod.amplitude, None))
+
+    def kernels(self) -> DecodeKernels | None:
+        """The EKF and the baseline lock-in as :class:`DecodeKernels`, for a split run (None if the EKF did not settle)."""
+        from afmtool.estimators.split_lead import sos_lead
+
+        lockin_lead = sos_lead(self.baseline.lockin.sos)
+        if self.ekf_settle is None or lockin_lead is None:
+            return None
+        lead = max(2 * self.ekf_settle + self.design.mean_window, lockin_lead)
+        return DecodeKernels(self.design, self.params, self.setup.electrostatic.alpha_r, self.baseline.lockin,
+                             self.baseline.keep, self.bits_start, lead)
+
+    def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
+        """Everything after the kernels, in capture order: columns, PSD buffer, bit cells, statistics."""
+        (innovation, mean), amplitude, sums = estimate
+        y = chunk.data["deflection"]
+        n = len(y)
+        if sums is not None:  # a split run: the chunk's statistics, added up here
+            self.split_sums = [a + b for a, b in zip(self.split_sums, sums)]
         kept = self.mean_kept.kept_index(chunk.start, n)
         # Per sample, t = n / sample_rate_hz (a root attribute of decode.h5), and float32: its
         # resolution (~1e-7 of the value) is far below the measurement noise, and at 1e8 samples
@@ -770,8 +795,7 @@ class _DecodeStage:
             "innovation_mean": self.mean_kept.take(mean, chunk.start),
         }
         self.psd.feed(chunk.start, y, innovation)
-        (demod,), self.lock_state = demodulating.result()
-        self.bits.feed(chunk.start, mean, self.held(chunk.start, n, demod.amplitude))
+        self.bits.feed(chunk.start, mean, self.held(chunk.start, n, amplitude))
         self.n_total = chunk.start + n
         return columns
 
@@ -780,8 +804,61 @@ class _DecodeStage:
         self.bits.finish()
         if self.bits.clock is None:
             raise InputError(f"the bit stream (from {self.bits_start / self.fs:g} s) is empty; check --bits-from")
-        stats = self.ekf_state.stats()
+        from afmtool.estimators.ekf import InnovationSums
+
+        # a split run adds its chunks' sums; a sequential one carries them in the EKF's state
+        stats = InnovationSums(*self.split_sums).stats() if self.split_sums[2] else self.ekf_state.stats()
         return _Totals(self.n_total, stats.rms_nm if stats.count else None)
+
+
+    def _ekf_settle(self, first: Chunk) -> int | None:
+        """Samples the EKF needs to forget its start, measured on the first chunk (None: not within it)."""
+        from afmtool.estimators.ekf import ekf_forgetting_samples
+
+        volts = _lever_voltages(first.data, self.params, self.setup.electrostatic.alpha_r)
+        return ekf_forgetting_samples(self.design, first.data["deflection"], volts)
+
+
+@dataclass(frozen=True)
+class DecodeKernels:
+    """The EKF and the baseline lock-in as a pure function of a chunk: :class:`_DecodeStage`'s
+    :class:`~afmtool.pipeline.ChunkKernels`.
+
+    The EKF starts from its prior (eq. 7.14) a lead ahead, twice the
+    samples it was measured to need to forget its start
+    (:func:`~afmtool.estimators.ekf.ekf_forgetting_samples`) plus one
+    running-mean window; its innovation statistics are returned as sums
+    for the stage to add up.
+    """
+
+    design: object
+    params: DecodeParams
+    alpha_r: float
+    lockin: LockIn
+    every: int
+    bits_start: int
+    lead_samples: int
+
+    @property
+    def alignment(self) -> int:
+        return self.every
+
+    def estimate(self, lead: Chunk | None, chunk: Chunk):
+        """``(EkfBlock, amplitude, InnovationSums)`` of ``chunk``."""
+        from afmtool.estimators.ekf import ekf_from_prior
+
+        def signals(part: Chunk):
+            return part.data["deflection"], _lever_voltages(part.data, self.params, self.alpha_r)
+
+        block, sums = ekf_from_prior(self.design, signals(lead) if lead is not None else None, signals(chunk),
+                                     stats_from=self.bits_start - chunk.start)
+        lock_state = self.lockin.initial_state(1, lead.start if lead is not None else chunk.start)
+        amplitude = None
+        for part in (lead, chunk):
+            if part is not None:
+                (demod,), lock_state = self.lockin.process((part.data["deflection"],), lock_state, self.every)
+                amplitude = demod.amplitude
+        return block, amplitude, sums
 
 
 class _Decided(NamedTuple):

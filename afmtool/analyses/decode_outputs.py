@@ -34,7 +34,8 @@ def run_decode_command(run: CommandRun) -> dict:
         attrs = {"afmtool_command": "decode", "sample_rate_hz": reader.info.sample_rate_hz}
         with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs, write_behind=True) as writer:
             # matplotlib, for the eye, PSD and ℓ0 figures at the end, loads while the EKF streams
-            result = run_decode(reader, params, writer, progress=run.progress, on_stream_start=start_matplotlib_import)
+            result = run_decode(reader, params, writer, progress=run.progress, on_stream_start=start_matplotlib_import,
+                                split=run.split)
             if result.psd:
                 for name in ("frequency_hz", "deflection", "innovation"):
                     units = "Hz" if name == "frequency_hz" else "nm^2/Hz"

@@ -90,7 +90,7 @@ from afmtool.estimators.kalman_bank_verdict import (
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import require_channels
 from afmtool.models.free_air import FreeAirModel
-from afmtool.pipeline import Decimation, Head, Warmup, run_stream
+from afmtool.pipeline import Decimation, Head, Split, Warmup, run_stream
 from afmtool.report.results import JsonResults
 
 __all__ = ["SERIES_UNITS", "KalmanBankResult", "BankSetup", "build_bank", "run_kalman_bank"]
@@ -289,6 +289,56 @@ def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
 # ---------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class BankKernels:
+    """Pass 2's recursions as a pure function of a chunk: :class:`_PassTwo`'s
+    :class:`~afmtool.pipeline.ChunkKernels`.
+
+    REEP (θ̂_C per sample), the bank of N observers and the adaptive observer
+    fed by REEP start from their initial states a lead ahead: REEP's
+    forgetting, then the slowest observer's settling (error poles and one
+    RMS window).  Returns the kept samples only, so the hand-back is small.
+    """
+
+    reep: object
+    designs: tuple
+    window: int
+    adaptive_model: tuple
+    radius: float
+    every: int
+    lead_samples: int
+
+    @property
+    def alignment(self) -> int:
+        return 1  # REEP runs at every sample here; the kept ones are taken by capture index
+
+    def estimate(self, lead: Chunk | None, chunk: Chunk):
+        """``(rms (N, K), adaptive rms (K,), b1 (K,), b0 (K,), held)`` at the chunk's kept samples.
+
+        ``held``: the chunk's samples on which the adaptive observer kept its model (no valid REEP model).
+        """
+        from afmtool.estimators.observer import AdaptiveState, BankState, adaptive_update, bank_update
+
+        reep = self.reep.fresh()
+        bank = BankState.initial(self.designs, self.window)
+        adaptive = AdaptiveState.initial(*self.adaptive_model, self.radius, self.window)
+        out = None
+        held_before = 0
+        for part in (lead, chunk):
+            if part is None:
+                continue
+            held_before = adaptive.held_samples
+            y, g = part.data["deflection"], part.data["dither"]
+            b1, b0 = reep.block(part)
+            bank_step = bank_update(bank, y, g)
+            adaptive_step = adaptive_update(adaptive, y, g, b1, b0)
+            bank, adaptive = bank_step.state, adaptive_step.state
+            out = bank_step.block.rms, adaptive_step.block.rms, b1, b0
+        keep = Decimation(self.every).keep(chunk.start)
+        rms, adaptive_rms, b1, b0 = out
+        return rms[:, keep], adaptive_rms[keep], b1[keep], b0[keep], adaptive.held_samples - held_before
+
+
 class _PassTwo:
     """Pass 2 as a :mod:`afmtool.pipeline` stage: observers, REEP, delay lines, accumulators, counters.
 
@@ -336,12 +386,13 @@ class _PassTwo:
         self.decimation = Decimation(setup.decimate)
         self.warmup = Warmup(setup.warmup)
         self.bank = BankState.initial(setup.designs, setup.window)
-        self.adaptive = AdaptiveState.initial(model.numerator_at(fs), model.denominator_at(fs), setup.radius,
-                                              setup.window)
+        self.adaptive_model = (model.numerator_at(fs), model.denominator_at(fs))
+        self.adaptive = AdaptiveState.initial(*self.adaptive_model, setup.radius, setup.window)
         self.z_delay = DelayLine(setup.rms_delay)
         names = tuple(f"rms_{k}" for k in range(len(setup.designs))) + ("adaptive", "lowest")
         self.accumulator = ForceCurveAccumulator(params.z_bin, names)
         self.reep_binner = ReepBinner(params.z_bin, reep_delay(setup.lam, setup.decimate), setup.warmup / fs)
+        self.split_held = 0
         self.counted = 0  # kept samples after the warm-up
         self.lowest = 0  # ... where the adaptive observer had the least RMS
         self.z_travel = 0.0  # Σ|Δz| between kept samples
@@ -351,21 +402,50 @@ class _PassTwo:
     def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
         """One chunk: observers; the kept samples' columns for the writer; statistics."""
         from afmtool.estimators.observer import adaptive_update, bank_update
-        from afmtool.models.discretisation import resonance_from_denominator
 
         y, g = chunk.data["deflection"], chunk.data["dither"]
         b1, b0 = self.coefficients.block(chunk)
         bank_step = bank_update(self.bank, y, g)
         adaptive_step = adaptive_update(self.adaptive, y, g, b1, b0)
         self.bank, self.adaptive = bank_step.state, adaptive_step.state
+        keep = self.decimation.keep(chunk.start)  # the samples REEP keeps
+        return self.account(chunk, (bank_step.block.rms[:, keep], adaptive_step.block.rms[keep], b1[keep], b0[keep], 0))
+
+    def kernels(self) -> BankKernels | None:
+        """The internal REEP, the bank and the adaptive observer as :class:`BankKernels`, for a split run.
+
+        None with ``--reep`` (its coefficients are read from a file as the pass goes) or when
+        a recursion never forgets.
+        """
+        from afmtool.estimators.reliability import settle_samples
+        from afmtool.estimators.split_lead import DEFAULT_RESIDUAL, forgetting_lead, pole_lead
+
+        if not isinstance(self.coefficients, InternalReep):
+            return None
+        setup = self.setup
+        reep_lead = forgetting_lead(self.lam)
+        adaptive_lead = pole_lead([setup.radius], DEFAULT_RESIDUAL)
+        if reep_lead is None or adaptive_lead is None:
+            return None
+        bank_lead = max(settle_samples(d, setup.window, DEFAULT_RESIDUAL) for d in setup.designs)
+        # the adaptive observer follows REEP's estimate, so it settles once REEP has
+        lead = reep_lead + max(bank_lead, adaptive_lead + setup.window)
+        return BankKernels(self.coefficients.fresh(), setup.designs, setup.window, self.adaptive_model, setup.radius,
+                           setup.decimate, lead)
+
+    def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
+        """Everything after the kernels, in capture order: z delay, columns, bins, counters."""
+        from afmtool.models.discretisation import resonance_from_denominator
+
+        rms, adaptive, b1, b0, held = estimate
+        self.split_held += held  # a split run's count; a sequential one's is in the adaptive state
+        y = chunk.data["deflection"]
         z_rms = self.z_delay(chunk.data["z_piezo"])
         keep = self.decimation.keep(chunk.start)  # the samples REEP keeps
         index = self.decimation.kept_index(chunk.start, len(y))
         t = index / self.fs
         z = chunk.data["z_piezo"][keep]
-        rms = bank_step.block.rms[:, keep]
-        adaptive = adaptive_step.block.rms[keep]
-        f0, q, _ = resonance_from_denominator(b1[keep], b0[keep], self.fs)
+        f0, q, _ = resonance_from_denominator(b1, b0, self.fs)
         settled = self.warmup.settled(index)
         lowest = adaptive < rms.min(axis=0)
         self.counted += int(np.count_nonzero(settled))
@@ -389,6 +469,11 @@ class _PassTwo:
         self.moving += int(np.count_nonzero(moved))
         if len(z):
             self.last_z = float(z[-1])
+
+    @property
+    def held_samples(self) -> int:
+        """Samples on which the adaptive observer had no valid REEP model and kept the previous one."""
+        return self.adaptive.held_samples + self.split_held
 
     @property
     def z_per_sample(self) -> float:
@@ -436,6 +521,7 @@ def run_kalman_bank(
     reep_results=None,
     reopen: Callable[[], CaptureReader] | None = None,
     progress: Callable[[int], None] | None = None,
+    split: Split | None = None,
 ) -> KalmanBankResult:
     """Validate REEP on a force curve by a Kalman bank and an adaptive observer, streaming.
 
@@ -461,6 +547,9 @@ def run_kalman_bank(
         HDF5 readers allow.
     progress : callable, optional
         Called with the samples read so far (both passes on one count).
+    split : Split, optional
+        Run the kernels of several chunks at once in both passes
+        (:class:`~afmtool.pipeline.Split`); with ``reep_results`` pass 2 runs sequentially.
 
     Returns
     -------
@@ -484,14 +573,15 @@ def run_kalman_bank(
     progress_one, progress_two = _pass_progress(progress, 2 if two_passes else 1, info.n_samples)
     source = reader
     if two_passes:
-        first = reep_pass_one(reader, params, model, progress_one)
+        first = reep_pass_one(reader, params, model, progress_one, split)
         tables, model, segment_s, route = first.tables, first.model, first.segment_s, first.route
         source = reopen() if reopen is not None else reader
     stream = _PassTwo(source, params, model=model, lam=lam, tables=tables, segment_s=segment_s, route=route,
                       reep_results=reep_results)
     try:
         run_stream(source, [stream], writer, channels=_CHANNELS, chunk_samples=params.chunk_samples,
-                   progress=progress_two, prologue=stream.free_air_prologue, read_ahead=_PASS_TWO_READ_AHEAD)
+                   progress=progress_two, prologue=stream.free_air_prologue, read_ahead=_PASS_TWO_READ_AHEAD,
+                   split=split)
     finally:
         if source is not reader:
             source.close()
@@ -530,9 +620,9 @@ def _judge(params, setup: BankSetup, stream: _PassTwo, tables, z_units: str, ree
     adaptive = adaptive_verdict(fraction, rms_tables, points, tol, _adaptive_hint(stream, params, z_units))
     verdict = bank_verdict(filters, adaptive)
     warnings = []
-    if stream.adaptive.held_samples:
+    if stream.held_samples:
         warnings.append(
-            f"{stream.adaptive.held_samples} samples had no valid REEP model (start-up, or (b1, b0) outside the "
+            f"{stream.held_samples} samples had no valid REEP model (start-up, or (b1, b0) outside the "
             "under-damped region); the adaptive observer kept its previous model there"
         )
     results = _results(params, setup, stream, points, verdict, tol, z_units, reep_results, rms_tables)
@@ -615,7 +705,7 @@ def _results(params, setup: BankSetup, stream: _PassTwo, points, verdict, tol, z
         "adaptive": {
             "pole_radius": setup.radius,
             "error_time_constant_periods": -1.0 / math.log(setup.radius) * setup.drive_hz / fs,
-            "held_samples": stream.adaptive.held_samples,
+            "held_samples": stream.held_samples,
             "fraction_lowest": adaptive.fraction,
             "fraction_lowest_by_leg": dict(adaptive.fraction_by_leg),
             "fraction_lowest_within_bank_span": adaptive.fraction_within_span,

@@ -43,7 +43,8 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
     deflection_units = channel_units(reader, "deflection")
     z_units = channel_units(reader, "z_piezo")
     units = {**SERIES_UNITS, "z": z_units, "rms": deflection_units, "adaptive_rms": deflection_units}
-    inputs = [input_record(run.capture), *model_input_records(params.model)]
+    capture_record = run.input_record()
+    inputs = [*model_input_records(params.model)]
     reep_results = open_reep_results(params.reep) if params.reep else None
     try:
         if reep_results is not None:
@@ -52,7 +53,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
             with MatrixResultWriter(staged.path("bank.h5"), units, {"afmtool_command": "kalman-bank"}) as writer:
                 result = run_kalman_bank(
                     reader, params, writer, model=model, reep_results=reep_results, reopen=run.reopen,
-                    progress=run.progress,
+                    progress=run.progress, split=run.split,
                 )
                 _write_tables(writer, result, deflection_units)
             _plot_rms_vs_z(staged.path("bank_rms_vs_z.png"), result, deflection_units)
@@ -60,7 +61,8 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
             warnings = list(result.warnings)
             if not result.verdict.passed:
                 warnings.append("verdict FAIL: " + "; ".join(result.verdict.reasons))
-            inputs[0] = {**inputs[0], **calibration_record(reader)}  # after the run: the drive phases are fitted
+            # after the run: the samples are hashed and the drive phases fitted
+            inputs.insert(0, {**capture_record.result(), **calibration_record(reader)})
             return finish_run(staged, "kalman-bank", inputs, "kalman-bank", params, result.results, warnings)
     finally:
         if reep_results is not None:

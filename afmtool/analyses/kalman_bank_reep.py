@@ -116,7 +116,12 @@ class InternalReep:
         from afmtool.estimators.rls import ReepState
 
         self.state = ReepState.initial(lam=lam)
+        self.lam = lam
         self.numerator = numerator
+
+    def fresh(self) -> InternalReep:
+        """The same REEP from its initial state (a split chunk's warm-up)."""
+        return InternalReep(self.lam, self.numerator)
 
     def block(self, chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
         """(b1, b0) for every sample of the chunk (θ̂_C of eq. 3.39)."""
@@ -149,6 +154,13 @@ class _ReepTables:
     def step(self, chunk: Chunk) -> None:
         self.binner.append(self.reep.step(chunk))
 
+    def kernels(self):
+        """REEP's kernels (:meth:`afmtool.analyses.reep.ReepStage.kernels`), for a split run."""
+        return self.reep.kernels()
+
+    def account(self, chunk: Chunk, estimate) -> None:
+        self.binner.append(self.reep.account(chunk, estimate))
+
     def finish(self):
         """(REEP's result, its model binned against z per leg)."""
         return self.reep.finish(), self.binner.tables()
@@ -174,8 +186,12 @@ class PassOne(NamedTuple):
     route: dict | None = None
 
 
-def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel | None, progress) -> PassOne:
-    """Run REEP (its stage, with the bank's λ, z bin and decimation) and bin its model against z."""
+def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel | None, progress,
+                  split=None) -> PassOne:
+    """Run REEP (its stage, with the bank's λ, z bin and decimation) and bin its model against z.
+
+    ``split`` (a :class:`~afmtool.pipeline.Split`) runs REEP's kernels on several chunks at once.
+    """
     from afmtool.analyses.reep import ReepStage
     from afmtool.pipeline import run_stream
 
@@ -195,7 +211,7 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
     reep = ReepStage(reader, reep_params, model=model)
     ((result, tables),) = run_stream(
         reader, [_ReepTables(reep, params, reader.info.sample_rate_hz)], channels=reep.channels,
-        chunk_samples=reep_params.chunk_samples, progress=progress, prologue=reep.free_air_prologue,
+        chunk_samples=reep_params.chunk_samples, progress=progress, prologue=reep.free_air_prologue, split=split,
     )
     if not result.force_curves:
         raise InputError(f"{reader.info.source}: REEP found no force curve (z_piezo never moves)")

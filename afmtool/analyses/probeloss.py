@@ -41,14 +41,22 @@ from afmtool.estimators.probeloss_events import (
 )
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
-from afmtool.pipeline import Decimation, Head, run_stream
+from afmtool.pipeline import Decimation, Head, Split, run_stream
 from afmtool.report.results import JsonResults
 
 if TYPE_CHECKING:  # numba-backed modules load when the command runs
     from afmtool.estimators.observer import ObserverDesign
     from afmtool.estimators.reliability import FreeAirCalibration
 
-__all__ = ["SERIES_UNITS", "ProbeLossResult", "ProbeLossSetup", "ProbeLossStage", "prepare_probeloss", "run_probeloss"]
+__all__ = [
+    "SERIES_UNITS",
+    "ProbeLossKernels",
+    "ProbeLossResult",
+    "ProbeLossSetup",
+    "ProbeLossStage",
+    "prepare_probeloss",
+    "run_probeloss",
+]
 
 #: Decimated series written per kept sample ("" = dimensionless; amplitude in input units).
 SERIES_UNITS = {"t": "s", "index": "", "switch": "", "amplitude": "deflection units", "amplitude_switch": ""}
@@ -230,6 +238,51 @@ def prepare_probeloss(
 # --------------------------------------------------------------------------- pass
 
 
+@dataclass(frozen=True)
+class ProbeLossKernels:
+    """The free-air observer with its index, and the lock-in, as a pure function of a chunk.
+
+    The :class:`~afmtool.pipeline.ChunkKernels` of :class:`ProbeLossStage`:
+    ``estimate`` runs both from their initial state over the lead and the
+    chunk.  The observer's error forgets its start with its poles and the
+    window RMS after one window (:func:`~afmtool.estimators.reliability.settle_samples`),
+    the lock-in with its low-pass's poles.  The switch, whose hysteresis
+    remembers its state for as long as the index stays between the
+    thresholds, is put right by :meth:`ProbeLossStage.account` from the
+    chunk's first decisive sample.
+    """
+
+    design: ObserverDesign
+    window_samples: int
+    level: float
+    thresholds: tuple[float, float]
+    every: int
+    lockin: object
+    lead_samples: int
+
+    @property
+    def alignment(self) -> int:
+        return self.every
+
+    def estimate(self, lead: Chunk | None, chunk: Chunk):
+        """``(ReliabilityBlock, amplitude)`` of ``chunk`` from the initial states warmed on ``lead``."""
+        from afmtool.estimators.observer import ObserverState
+        from afmtool.estimators.reliability import ReliabilityState, reliability_update
+
+        first = lead.start if lead is not None else chunk.start
+        detector = ReliabilityState(ObserverState.initial(self.design, self.window_samples), self.level,
+                                    self.thresholds, samples_seen=first)
+        lock_state = self.lockin.initial_state(1, first)
+        block = amplitude = None
+        for part in (lead, chunk):
+            if part is not None:
+                p = part.data["deflection"]
+                block, detector = reliability_update(detector, p, part.data["dither"], keep_every=self.every)
+                (demodulated,), lock_state = self.lockin.process(p, lock_state, self.every)
+                amplitude = demodulated.amplitude
+        return block, amplitude
+
+
 class ProbeLossStage:
     """The streaming pass as a :mod:`afmtool.pipeline` stage: detectors, events, counts, images.
 
@@ -272,6 +325,7 @@ class ProbeLossStage:
         self.lockin = LockIn(setup.drive_hz, self.fs, setup.lowpass_hz)
         self.lock_state = self.lockin.initial_state(1)
         self.amp_switch = 0
+        self.switch_state = 0
         self.kept_seen = 0
         self.index_runs = RunState()
         self.amp_runs = RunState()
@@ -282,7 +336,7 @@ class ProbeLossStage:
 
     def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
         """The index, switch and amplitude baseline at the kept samples of this chunk."""
-        from afmtool.estimators.reliability import hysteresis_update, reliability_update
+        from afmtool.estimators.reliability import reliability_update
 
         setup = self.setup
         p = chunk.data["deflection"]
@@ -293,11 +347,36 @@ class ProbeLossStage:
         finally:
             demodulated, self.lock_state = demodulating.result()
         self.detector = step.state
-        switch = step.block.switch
+        return self.account(chunk, (step.block, demodulated[0].amplitude))
+
+    def kernels(self) -> ProbeLossKernels | None:
+        """The observer and the lock-in as :class:`ProbeLossKernels`, for a split run."""
+        from afmtool.estimators.reliability import settle_samples
+        from afmtool.estimators.split_lead import DEFAULT_RESIDUAL, sos_lead
+
+        setup = self.setup
+        lockin_lead = sos_lead(self.lockin.sos)
+        if lockin_lead is None:
+            return None
+        lead = max(settle_samples(setup.design, setup.window_samples, DEFAULT_RESIDUAL), lockin_lead)
+        return ProbeLossKernels(setup.design, setup.window_samples, float(setup.calibration.level),
+                                tuple(setup.calibration.thresholds), setup.decimate, self.lockin, lead)
+
+    def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
+        """Everything after the kernels, in capture order: the switch's true state, events, baseline, images."""
+        from afmtool.estimators.reliability import hysteresis_update
+
+        setup = self.setup
+        block, amplitude = estimate
+        switch = block.switch
+        # a chunk's kernels may have started from a guessed switch state: up to the first
+        # sample that sets the switch whatever its state, it holds the state it came in with
+        switch[:block.first_decisive if block.first_decisive >= 0 else len(switch)] = self.switch_state
+        if len(switch):
+            self.switch_state = int(switch[-1])
         runs = runs_update(self.index_runs, switch, chunk.start)
         self.index_runs = runs.state
         self.index_events.append(runs.events)
-        amplitude = demodulated[0].amplitude
         # a skipped baseline (no A_upper) never switches
         upper = setup.amplitude_upper if setup.amplitude_upper is not None else float(np.finfo(np.float64).max)
         amp = hysteresis_update(self.amp_switch, amplitude, upper, upper, loss_when="above")
@@ -305,12 +384,12 @@ class ProbeLossStage:
         amp_runs = runs_update(self.amp_runs, amp.switch, self.kept_seen)
         self.amp_runs = amp_runs.state
         self.amp_events.append(amp_runs.events)
-        kept = self.decimation.kept_index(chunk.start, len(p))
+        kept = self.decimation.kept_index(chunk.start, len(switch))
         self.kept_seen += amplitude.size
-        self.n_samples = chunk.start + len(p)
+        self.n_samples = chunk.start + len(switch)
         columns = {
             "t": kept / self.fs,
-            "index": step.block.index,
+            "index": block.index,
             "switch": self.decimation.take(switch, chunk.start),
             "amplitude": amplitude,
             "amplitude_switch": amp.switch,
@@ -488,6 +567,7 @@ def run_probeloss(
     *,
     model: FreeAirModel | None = None,
     progress: Callable[[int], None] | None = None,
+    split: Split | None = None,
 ) -> ProbeLossResult:
     """Reliability index, switching signal and amplitude baseline over a whole capture, streaming.
 
@@ -502,6 +582,8 @@ def run_probeloss(
         ``amplitude_switch`` at the kept samples.
     model : FreeAirModel, optional
         A given free-air model; otherwise identified from the free-air segment.
+    split : Split, optional
+        Run the kernels of several chunks at once (:class:`~afmtool.pipeline.Split`).
 
     Returns
     -------
@@ -512,7 +594,7 @@ def run_probeloss(
     state = ProbeLossStage(reader, params, model)
     ((index_events, amp_events),) = run_stream(
         reader, [state], writer, channels=("deflection", "dither"), chunk_samples=params.chunk_samples,
-        progress=progress, prologue=state.free_air_prologue,
+        progress=progress, prologue=state.free_air_prologue, split=split,
     )
     setup, geometry = state.setup, state.geometry
     lead = overlapping_lead(index_events, amp_events)

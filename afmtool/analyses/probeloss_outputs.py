@@ -33,7 +33,7 @@ def run_probeloss_command(run: CommandRun) -> dict:
     capture_record = run.input_record()
     with OutputDir(run.out) as staged:
         with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"}) as writer:
-            result = run_probeloss(reader, params, writer, model=model, progress=run.progress)
+            result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split)
             _write_images(staged, writer, result)
         results = dict(result.results)
         _write_time_series(staged, reader, results)

@@ -33,10 +33,10 @@ from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.metadata import DriveMetadata
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import FreeAirModel
-from afmtool.pipeline import Decimation, Head, Warmup, run_stream
+from afmtool.pipeline import Decimation, Head, Split, Warmup, run_stream
 from afmtool.report.results import JsonResults
 
-__all__ = ["SERIES_UNITS", "ReepResult", "ReepStage", "run_reep"]
+__all__ = ["SERIES_UNITS", "ReepKernels", "ReepResult", "ReepStage", "run_reep"]
 
 #: Quantities kept per decimated sample, with their units ("" = dimensionless).
 SERIES_UNITS = {
@@ -108,6 +108,7 @@ class _Bandpass:
     def __init__(self, centre_hz: float, half_width_hz: float, sample_rate_hz: float) -> None:
         from scipy.signal import butter, sosfilt_zi
 
+        self.design = (centre_hz, half_width_hz, sample_rate_hz)
         low = max(centre_hz - half_width_hz, 1.0)
         high = min(centre_hz + half_width_hz, 0.49 * sample_rate_hz)
         self.sos = butter(2, [low, high], btype="bandpass", fs=sample_rate_hz, output="sos")
@@ -118,6 +119,63 @@ class _Bandpass:
 
         y, self.zi = sosfilt(self.sos, x, zi=self.zi)
         return y
+
+
+@dataclass(frozen=True)
+class ReepKernels:
+    """REEP's recursions (BCEWRLS, the lock-in, the output-only band-pass) as a pure function of a chunk.
+
+    The :class:`~afmtool.pipeline.ChunkKernels` of :class:`ReepStage`: on a
+    worker, ``estimate`` runs them from their initial state over the lead
+    (W samples, :func:`ReepKernels.lead_for`) and then over the chunk, and
+    returns what :meth:`ReepStage.account` takes.
+    """
+
+    params: ReepParams
+    numerator: tuple[float, float, float] | None
+    lockin: object
+    every: int
+    bandpass: tuple[float, float, float] | None
+    lead_samples: int
+
+    @property
+    def alignment(self) -> int:
+        return self.every
+
+    @staticmethod
+    def lead_for(params: ReepParams, lockin, bandpass: _Bandpass | None) -> int | None:
+        """W: the longest of the RLS forgetting and the filters' decay (:mod:`afmtool.estimators.split_lead`)."""
+        from afmtool.estimators.split_lead import forgetting_lead, sos_lead
+
+        leads = [forgetting_lead(params.lam), sos_lead(lockin.sos)]
+        if bandpass is not None:
+            leads.append(sos_lead(bandpass.sos))
+        return None if any(lead is None for lead in leads) else max(leads)
+
+    def estimate(self, lead: Chunk | None, chunk: Chunk):
+        """``(ReepBlock, LockInBlock)`` of ``chunk``, from the initial states warmed on ``lead``."""
+        from afmtool.estimators.rls import ReepState, reep_update
+
+        params = self.params
+        first = lead.start if lead is not None else chunk.start
+        state = ReepState.initial(lam=params.lam, p0=params.p0, static_offset=params.static_offset)
+        n_signals = 2 if params.use_input else 1
+        lock_state = self.lockin.initial_state(n_signals, first)
+        bandpass = _Bandpass(*self.bandpass) if self.bandpass is not None else None
+        block = demod = None
+        for part in (lead, chunk):
+            if part is None:
+                continue
+            p, g = part.data["deflection"], part.data.get("dither")
+            block, state = reep_update(
+                state, bandpass(p) if bandpass is not None else p, g, self.numerator,
+                bias_compensation=params.bias_compensation, use_input=params.use_input, keep_every=self.every,
+            )
+            if params.use_input:
+                demod, lock_state = self.lockin.process_against(p, g, lock_state, self.every)
+            else:
+                (demod,), lock_state = self.lockin.process(p, lock_state, self.every)
+        return block, demod
 
 
 def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirModel | None, chunks):
@@ -307,9 +365,21 @@ class ReepStage:
 
     def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
         """The decimated columns of this chunk for ``reep.h5``; the trusted ones summarised."""
+        return self.account(chunk, self._estimate(chunk))
+
+    def kernels(self) -> ReepKernels | None:
+        """The recursions as :class:`ReepKernels`, for a split run; None if one of them never forgets (λ = 1)."""
+        lead = ReepKernels.lead_for(self.params, self.lockin, self.bandpass)
+        if lead is None:
+            return None
+        bandpass = self.bandpass.design if self.bandpass is not None else None
+        return ReepKernels(self.params, self.numerator, self.lockin, self.decimation.every, bandpass, lead)
+
+    def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
+        """Everything after the kernels, in capture order: f0′, Q′, flags, columns, summaries."""
         from afmtool.models.discretisation import resonance_from_denominator
 
-        block, demod = self._estimate(chunk)
+        block, demod = estimate
         # everything below runs on the kept samples only (Decimation)
         kept_index = self.decimation.kept_index(chunk.start, len(chunk))
         f0, q, valid = resonance_from_denominator(block.b1, block.b0, self.fs)
@@ -419,6 +489,7 @@ def run_reep(
     *,
     model: FreeAirModel | None = None,
     progress: Callable[[int], None] | None = None,
+    split: Split | None = None,
 ) -> ReepResult:
     """Run REEP over a whole capture, streaming, and write the decimated series.
 
@@ -436,10 +507,13 @@ def run_reep(
         free-air segment (``params.free_air`` or the capture metadata).
     progress : callable, optional
         Called with the capture samples done so far.
+    split : Split, optional
+        Run the kernels of several chunks at once (:class:`~afmtool.pipeline.Split`);
+        the result equals the sequential one to 1e-9 (``tests/test_split.py``).
     """
     stage = ReepStage(reader, params, model=model)
     (result,) = run_stream(
         reader, [stage], writer, channels=stage.channels, chunk_samples=params.chunk_samples,
-        progress=progress, prologue=stage.free_air_prologue,
+        progress=progress, prologue=stage.free_air_prologue, split=split,
     )
     return result

@@ -33,7 +33,7 @@ def run_reep_command(run: CommandRun) -> dict:
     model_records = model_input_records(params.model)
     with OutputDir(run.out) as staged:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
-            result = run_reep(reader, params, writer, model=model, progress=run.progress)
+            result = run_reep(reader, params, writer, model=model, progress=run.progress, split=run.split)
             _write_force_curves(staged, writer, result, deflection_units)
             _write_images(staged, writer, result, deflection_units)
         results = dict(result.results)

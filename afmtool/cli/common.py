@@ -158,20 +158,17 @@ def run_capture_analysis(
 
 
 def run_streaming_command(name: str, capture: str, source_args: tuple, output, flags: dict, analysis: str) -> None:
-    """reep, probeloss and decode: hash the input, then run ``analysis`` into ``--stream`` rows or ``--out``.
+    """reep, probeloss and decode: run ``analysis`` into ``--stream`` rows or ``--out``.
 
     ``analysis`` is the module holding ``run_<name>_stream(reader, config, flags, fmt)`` and
-    ``run_<name>_command(run)`` (an :class:`~afmtool.analyses.command_inputs.CommandRun`);
-    it is imported only after the input's hash has started, so that hashing a large
-    capture overlaps the import.  ``output`` is the command's
-    :class:`~afmtool.cli.groups.CommandOutput`.
+    ``run_<name>_command(run)`` (an :class:`~afmtool.analyses.command_inputs.CommandRun`,
+    which hashes the samples as they are read unless ``--no-hash``, and splits the capture
+    over ``--jobs``).  ``output`` is the command's :class:`~afmtool.cli.groups.CommandOutput`.
     """
     import importlib
 
     from afmtool.analyses.command_inputs import CommandRun
-    from afmtool.report.json_report import PendingInputRecord
 
-    capture_record = None if output.stream or output.out is None else PendingInputRecord(capture)
     module = importlib.import_module(analysis)
     stem = name.replace("-", "_")
     to_rows, to_folder = getattr(module, f"run_{stem}_stream"), getattr(module, f"run_{stem}_command")
@@ -179,6 +176,7 @@ def run_streaming_command(name: str, capture: str, source_args: tuple, output, f
         name, capture, source_args, output.out, output.stream_mode, output.json_output, output.quiet,
         to_rows=lambda reader: to_rows(reader, output.config, flags, output.stream_format),
         to_folder=lambda reader, update: to_folder(
-            CommandRun(reader, capture, output.out, output.config, flags, update, capture_record)
+            CommandRun(reader, capture, output.out, output.config, flags, update, hash_input=not output.no_hash,
+                       split=output.split())
         ),
     )

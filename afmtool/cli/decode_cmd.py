@@ -13,7 +13,7 @@ from afmtool.config.params import DecodeParams
 __all__ = ["register"]
 
 
-@with_options(param_flags(DecodeParams), output_options(stream=True), capture_options(drive=False))
+@with_options(param_flags(DecodeParams), output_options(stream=True, capture_run=True), capture_options(drive=False))
 def decode(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: CaptureSource) -> None:
     """Decode bits read by an electrostatically actuated probe with an EKF (thesis ch. 7).
 

@@ -27,10 +27,13 @@ from afmtool.cli.calibration_options import CaptureCalibration, DriveOpt, Invols
 from afmtool.cli.options import (
     ChannelOpt,
     ConfigOpt,
+    JobsOpt,
     JsonOpt,
+    NoHashOpt,
     OutOpt,
     QuietOpt,
     SampleRateOpt,
+    SchedulerOpt,
     SegmentOpt,
     StreamFormatOpt,
     StreamOpt,
@@ -164,7 +167,11 @@ def capture_options(
 
 
 class CommandOutput(NamedTuple):
-    """``--out``, ``--json``, ``--config``, ``--quiet`` (and ``--stream``, ``--stream-format``)."""
+    """``--out``, ``--json``, ``--config``, ``--quiet`` (and ``--stream``, ``--stream-format``).
+
+    The capture commands also take ``--no-hash``, ``--jobs`` and ``--scheduler``: how the run
+    is carried out, not what it computes.
+    """
 
     out: Path | None
     json_output: bool = False
@@ -172,6 +179,15 @@ class CommandOutput(NamedTuple):
     quiet: bool = False
     stream: bool = False
     stream_format: str = "csv"
+    no_hash: bool = False
+    jobs: int | None = None
+    scheduler: str | None = None
+
+    def split(self):
+        """The :class:`afmtool.pipeline.Split` of ``--jobs`` and ``--scheduler``."""
+        from afmtool.pipeline import Split
+
+        return Split.of(self.jobs, self.scheduler)
 
     @property
     def stream_mode(self) -> tuple[bool, str]:
@@ -180,12 +196,19 @@ class CommandOutput(NamedTuple):
 
 
 def output_options(
-    default_out: Path | None = None, *, stream: bool = False, json: bool = True, keyword: str = "output"
+    default_out: Path | None = None, *, stream: bool = False, json: bool = True, keyword: str = "output",
+    capture_run: bool = False,
 ) -> OptionGroup:
-    """The output options; with ``stream``, ``--out`` is optional and ``--stream``/``--stream-format`` join."""
+    """The output options; with ``stream``, ``--out`` is optional and ``--stream``/``--stream-format`` join.
+
+    ``capture_run`` adds ``--no-hash``, ``--jobs`` and ``--scheduler`` (the streaming capture commands).
+    """
     parameters = [option("out", StreamOutOpt, None) if stream else option("out", OutOpt, default_out)]
     if stream:
         parameters += [option("stream", StreamOpt, False), option("stream_format", StreamFormatOpt, "csv")]
+    if capture_run:
+        parameters += [option("no_hash", NoHashOpt, False), option("jobs", JobsOpt, None),
+                       option("scheduler", SchedulerOpt, None)]
     if json:
         parameters.append(option("json_output", JsonOpt, False))
     parameters += [option("config", ConfigOpt, None), option("quiet", QuietOpt, False)]

@@ -39,7 +39,7 @@ _MODEL = frozenset({
 })
 _OUTPUT = frozenset({
     "--out", "--output", "--json", "--quiet", "--stream", "--stream-format", "--format", "--compression",
-    "--params", "--help", "--version", "--force",
+    "--params", "--help", "--version", "--force", "--no-hash",
 })
 
 #: Example lines closing each command's help, by command path.

@@ -16,7 +16,7 @@ from afmtool.config.params import KalmanBankParams
 __all__ = ["register"]
 
 
-@with_options(param_flags(KalmanBankParams), output_options(Path("kalman_bank")), capture_options(segment=False))
+@with_options(param_flags(KalmanBankParams), output_options(Path("kalman_bank"), capture_run=True), capture_options(segment=False))
 def kalman_bank(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: CaptureSource) -> None:
     """Validate REEP's on-sample f0', Q' on a force curve by minimum innovation RMS (thesis §3.4.2).
 
@@ -39,7 +39,9 @@ def kalman_bank(capture: CaptureArg, *, flags: dict, output: CommandOutput, sour
 
     with source.open(capture, calibration) as reader:
         with progress_bar("kalman-bank", reader.info.n_samples, output.quiet) as update:
-            report = run_kalman_bank_command(CommandRun(reader, capture, output.out, output.config, flags, update, reopen=reopen))
+            run = CommandRun(reader, capture, output.out, output.config, flags, update, reopen=reopen,
+                             hash_input=not output.no_hash, split=output.split())
+            report = run_kalman_bank_command(run)
     finish_command(report, output.out, output.json_output, output.quiet)
 
 

@@ -23,6 +23,9 @@ __all__ = [
     "StreamOutOpt",
     "StreamOpt",
     "StreamFormatOpt",
+    "NoHashOpt",
+    "JobsOpt",
+    "SchedulerOpt",
     "check_stream_format",
     "parse_mapping",
 ]
@@ -70,6 +73,21 @@ StreamOpt = Annotated[
     bool, typer.Option("--stream", help="Write result rows to stdout as they are computed (live pipelines).")
 ]
 StreamFormatOpt = Annotated[str, typer.Option("--stream-format", help="Rows on stdout: csv or jsonl.")]
+NoHashOpt = Annotated[
+    bool,
+    typer.Option("--no-hash", help="Record no hash of the samples read (live pipelines); by default report.json "
+                 "has their XXH3-128, computed as they are read."),
+]
+JobsOpt = Annotated[
+    Optional[int],
+    typer.Option("--jobs", "-j", min=1, help="Cores that run the estimators on one capture, each chunk started a "
+                 "warm-up early (results equal the sequential run's to 1e-9); default: all cores."),
+]
+SchedulerOpt = Annotated[
+    Optional[str],
+    typer.Option("--scheduler", help="Run the chunks on a Dask cluster instead (tcp://host:8786); the workers "
+                 "read their chunks from the capture file, which they must see at the same path."),
+]
 
 
 def check_stream_format(stream_format: str) -> None:

@@ -15,7 +15,7 @@ from afmtool.config.params import ProbeLossParams
 __all__ = ["register"]
 
 
-@with_options(param_flags(ProbeLossParams), output_options(stream=True), capture_options())
+@with_options(param_flags(ProbeLossParams), output_options(stream=True, capture_run=True), capture_options())
 def probeloss(
     capture: CaptureArg,
     kalman: Annotated[

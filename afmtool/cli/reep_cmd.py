@@ -17,7 +17,7 @@ from afmtool.config.params import FreeAirParams, ReepParams, SpringConstantParam
 __all__ = ["register"]
 
 
-@with_options(param_flags(ReepParams), output_options(stream=True), capture_options())
+@with_options(param_flags(ReepParams), output_options(stream=True, capture_run=True), capture_options())
 def reep(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: CaptureSource) -> None:
     """Real-time equivalent f0' and Q' by bias-compensated EW-RLS (thesis ch. 3).
 

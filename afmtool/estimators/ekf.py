@@ -92,6 +92,9 @@ __all__ = [
     "discretise",
     "ekf_update",
     "ekf_run",
+    "ekf_from_prior",
+    "ekf_forgetting_samples",
+    "InnovationSums",
     "force_per_mass_constant",
     "interpolation_weights",
     "thermal_force_asd",
@@ -668,3 +671,76 @@ def ekf_update(design: EkfDesign, state: EkfState, deflection_nm, voltage_v: np.
 def ekf_run(design: EkfDesign, deflection_nm, voltage_v, *, stats_from: int = 0) -> EkfStep:
     """:func:`ekf_update` from the initial state over a whole segment."""
     return ekf_update(design, EkfState.initial(design, stats_from=stats_from), deflection_nm, voltage_v)
+
+
+class InnovationSums(NamedTuple):
+    """The sums behind :class:`InnovationStats`, so that chunks run apart can be added up."""
+
+    sum_e2: float  #: Σ ε², nm²
+    sum_nis: float  #: Σ ε²/S
+    count: int  #: samples counted
+
+    def stats(self) -> InnovationStats:
+        if self.count == 0:
+            return InnovationStats(math.nan, math.nan, 0)
+        return InnovationStats(math.sqrt(self.sum_e2 / self.count), self.sum_nis / self.count, self.count)
+
+
+def ekf_from_prior(design: EkfDesign, lead: tuple | None, chunk: tuple, *, stats_from: int = 0) -> tuple[EkfBlock, InnovationSums]:
+    """The EKF started from its prior (eq. 7.14) over ``lead``, then over ``chunk``: a chunk of a split capture.
+
+    Parameters
+    ----------
+    design : EkfDesign
+        From :func:`discretise`.
+    lead, chunk : (deflection_nm, voltage) or None
+        The warm-up samples just before the chunk (None: the chunk starts
+        the stream), and the chunk; each as :func:`ekf_update` takes them.
+    stats_from : int
+        The first position in ``chunk`` whose innovation the sums count.
+
+    Returns
+    -------
+    (EkfBlock, InnovationSums)
+        The chunk's innovation and running mean, and its statistics sums.
+        The running mean is exact once the lead is at least one mean window
+        long; the state forgets the prior as :func:`ekf_forgetting_samples` measures.
+    """
+    state = EkfState.initial(design, stats_from=np.iinfo(np.int64).max)  # the lead counts nothing
+    if lead is not None:
+        state = ekf_update(design, state, *lead).state
+    vector = state.vector.copy()
+    vector[_STATS_FROM] = vector[_N] + max(int(stats_from), 0)
+    step = ekf_update(design, EkfState(vector, state.ring), *chunk)
+    v = step.state.vector
+    return step.block, InnovationSums(float(v[_SUM_E2]), float(v[_SUM_NIS]), int(v[_COUNT]))
+
+
+def ekf_forgetting_samples(design: EkfDesign, deflection_nm, voltage_v, *, residual: float = 1e-13) -> int | None:
+    """Samples after which the EKF's output no longer depends on where it started, measured on a record.
+
+    The filter is run from its prior over the record and again from its
+    prior a quarter of the way in; the answer is the number of samples the
+    second run needs before its innovation stays within ``residual`` of the
+    first's largest innovation.  The EKF is nonlinear (the electrostatic
+    force), so this is measured rather than derived from a pole radius.
+    None if the two runs have not met within the record.
+    """
+    y = np.asarray(deflection_nm, dtype=np.float64)
+    volts = voltage_v if isinstance(voltage_v, LeverVoltages) else np.asarray(voltage_v, dtype=np.float64)
+    n = y.shape[0]
+    offset = n // 4
+    if n < 8:
+        return None
+    full = ekf_run(design, y, volts).block.innovation_nm[offset:]
+    if isinstance(volts, LeverVoltages):
+        late_volts = LeverVoltages(volts.v_r[offset:], volts.v_sub[offset:], volts.alpha_r)
+    else:
+        late_volts = volts[offset:]
+    late = ekf_run(design, y[offset:], late_volts).block.innovation_nm
+    apart = np.flatnonzero(np.abs(full - late) > residual * max(float(np.max(np.abs(full))), 1e-300))
+    if apart.size == 0:
+        return 0
+    last = int(apart[-1]) + 1
+    return None if last >= (n - offset) // 2 else last
+

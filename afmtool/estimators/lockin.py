@@ -212,9 +212,19 @@ class LockIn:
         zi = np.zeros((1, self._sos.shape[0], 2), dtype=np.complex128)
         self._run([np.zeros(1)], 0, zi, 1, np.empty((1, 1), dtype=np.complex128))
 
-    def initial_state(self, n_signals: int = 1) -> LockInState:
-        """Zero filter state for ``n_signals`` signals demodulated together."""
-        return LockInState(np.zeros((n_signals, self._sos.shape[0], 2), dtype=np.complex128), 0)
+    @property
+    def sos(self) -> np.ndarray:
+        """The low-pass's second-order sections (a copy)."""
+        return self._sos.copy()
+
+    def initial_state(self, n_signals: int = 1, samples_seen: int = 0) -> LockInState:
+        """Zero filter state for ``n_signals`` signals demodulated together.
+
+        ``samples_seen``: the capture index of the first sample to come, which
+        fixes the reference's phase and the kept samples (a chunk's warm-up
+        in a split run starts there; 0 for a whole capture).
+        """
+        return LockInState(np.zeros((n_signals, self._sos.shape[0], 2), dtype=np.complex128), int(samples_seen))
 
     def process(
         self, signals: np.ndarray | tuple[np.ndarray, ...], state: LockInState, keep_every: int = 1

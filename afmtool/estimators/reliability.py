@@ -334,7 +334,7 @@ def _hysteresis_kernel(x, sign, on, off, carried, out):
 
 @njit(**JIT_OPTIONS)
 def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, off, carried, first_keep, keep_every,
-                        out_switch, out_index):
+                        out_switch, out_index, out_decisive):
     """Observer, window RMS, index and switch in one pass over a chunk.
 
     The observer and window steps are the shared helpers of
@@ -344,7 +344,9 @@ def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, of
     ``counters`` [pos, filled, since] and ``carried`` [s] are read at entry
     and written at exit.  ``out_switch`` gets s(n) for every sample,
     ``out_index`` index(n) at the samples first_keep, first_keep +
-    keep_every, ...
+    keep_every, ..., and ``out_decisive[0]`` the first sample whose index
+    sets the switch whatever its state before (below ``on`` or above
+    ``off``), −1 if none: up to it the switch only holds its initial state.
     """
     n_samples = y.shape[0]
     width = ring.shape[1]
@@ -358,6 +360,7 @@ def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, of
     inv_count = 1.0 / filled if filled > 0 else 0.0
     next_keep = first_keep
     k = 0
+    decisive = -1
     start = 0
     while start < n_samples:
         stop = _window_block_end(start, n_samples, since)
@@ -372,6 +375,8 @@ def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, of
             pos += 1
             if pos == width:
                 pos = 0
+            if decisive < 0 and (v < on or v > off):
+                decisive = i
             state = hysteresis_step(v, state, on, off)
             out_switch[i] = state
             if i == next_keep:
@@ -386,6 +391,7 @@ def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, of
     counters[1] = filled
     counters[2] = since
     carried[0] = state
+    out_decisive[0] = decisive
 
 
 class HysteresisStep(NamedTuple):
@@ -502,10 +508,17 @@ class ReliabilityBlock(NamedTuple):
         Reliability index (dimensionless, about 1 in free air) at the kept
         samples n, (n + 1) % keep_every == 0 (n counted from the stream's
         first sample); every sample when keep_every = 1.
+    first_decisive : int
+        Position in the chunk of the first sample whose index sets the
+        switch whatever its state before (below ``on`` or above ``off``);
+        −1 if none.  Before it the switch holds the state it entered with,
+        so a chunk run from a guessed state is corrected by overwriting
+        ``switch[:first_decisive]`` (all of it if −1) with the true one.
     """
 
     switch: np.ndarray
     index: np.ndarray
+    first_decisive: int = -1
 
 
 class ReliabilityStep(NamedTuple):
@@ -575,12 +588,13 @@ def reliability_update(state: ReliabilityState, deflection, dither, *, keep_ever
     switch = np.empty(n, dtype=np.int8)
     index = np.empty(n_kept, dtype=np.float64)
     carried = np.array([state.switch], dtype=np.int64)
+    decisive = np.empty(1, dtype=np.int64)
     on, off = state.thresholds
     _reliability_kernel(y, g, obs, xhat, ring, sums, counters, 1.0 / state.level, on, off, carried,
-                        first_keep, int(keep_every), switch, index)
+                        first_keep, int(keep_every), switch, index, decisive)
     estimate = xhat[0]
     estimate.setflags(write=False)
     new_observer = ObserverState(design, estimate, WindowState._pack(ring, sums, counters))
     new_state = ReliabilityState(new_observer, state.level, state.thresholds, int(carried[0]),
                                  state.samples_seen + n)
-    return ReliabilityStep(ReliabilityBlock(switch, index), new_state)
+    return ReliabilityStep(ReliabilityBlock(switch, index, int(decisive[0])), new_state)

@@ -4,7 +4,7 @@ The page is laid out for a reader, not as a dump of ``report.json``: first
 the headline block (the few numbers that matter, with units and
 uncertainties: ``report.json``'s ``headline``), then the figures (the
 command's main figure first and full width), then the warnings, made
-prominent, and last, collapsed in ``<details>``, the inputs (path, sha256),
+prominent, and last, collapsed in ``<details>``, the inputs (path, hash),
 the parameters, every result and the list of files.  Every PNG is embedded
 as a data URI, so the file can be mailed or archived alone.  Nothing is
 recomputed.
@@ -248,16 +248,25 @@ def _figures(command: str, folder: Path) -> str:
     return "".join(figures)
 
 
+def _hash_text(record) -> str:
+    """``xxh3-128 of the samples (deflection, dither): 3f…`` or ``sha256 of the file: 9a…``; "none" if not recorded."""
+    if not isinstance(record, Mapping):
+        return "none"
+    over = record.get("over")
+    what = f"the samples ({', '.join(map(str, record.get('channels') or []))})" if over == "samples" else "the file"
+    return f"{record.get('algorithm')} of {what}: {record.get('value')}"
+
+
 def _inputs(report: Mapping) -> str:
     rows = []
     for item in report.get("inputs", []):
         rows.append(
             f"<tr><td><code>{html.escape(str(item.get('path')))}</code></td><td>{html.escape(str(item.get('role')))}</td>"
-            f"<td><code>{html.escape(str(item.get('sha256')))}</code></td></tr>"
+            f"<td><code>{html.escape(_hash_text(item.get('hash')))}</code></td></tr>"
         )
     if not rows:
         return "<p>none</p>"
-    return "<table><tr><th>path</th><th>role</th><th>sha256</th></tr>" + "".join(rows) + "</table>"
+    return "<table><tr><th>path</th><th>role</th><th>hash</th></tr>" + "".join(rows) + "</table>"
 
 
 def render_report_html(folder: Path) -> str:

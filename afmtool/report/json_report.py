@@ -1,7 +1,8 @@
 """The ``report.json`` every analysis writes (``schemas/report.schema.json``).
 
 A report records what was run (command, afmtool version), on what (inputs
-with their sha256), how (the effective parameters), what came out (results
+with their hash: sha256 of a file, or the XXH3-128 of the samples a
+streaming command read, :mod:`afmtool.io.provenance`), how (the effective parameters), what came out (results
 and the list of output files) and what to be careful about (warnings).
 """
 
@@ -11,14 +12,13 @@ import dataclasses
 import hashlib
 import json
 import math
-import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import afmtool
 
-__all__ = ["sha256_file", "input_record", "PendingInputRecord", "build_report", "to_jsonable", "dumps"]
+__all__ = ["sha256_file", "file_hash", "input_record", "SampleInputRecord", "build_report", "to_jsonable", "dumps"]
 
 _HASH_BLOCK = 1 << 20
 
@@ -39,44 +39,45 @@ def sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
+def file_hash(path: Path | str) -> dict:
+    """``{"algorithm": "sha256", "value", "over": "file"}``: the hash of a (small) input file's bytes."""
+    return {"algorithm": "sha256", "value": sha256_file(Path(path)), "over": "file"}
+
+
 def input_record(path: Path | str, role: str = "capture") -> dict:
-    """``{"path", "role", "sha256"}``; stdin has no hash."""
+    """``{"path", "role", "hash"}`` with the sha256 of the file's bytes; stdin has no hash."""
     if str(path) == "-":
-        return {"path": "-", "role": role, "sha256": None}
+        return {"path": "-", "role": role, "hash": None}
     from afmtool.report.input_guard import register_input
 
     register_input(path)  # no output of this run may overwrite what it hashed
-    return {"path": str(path), "role": role, "sha256": sha256_file(Path(path))}
+    return {"path": str(path), "role": role, "hash": file_hash(path)}
 
 
-class PendingInputRecord:
-    """:func:`input_record` computed in a daemon thread, started at construction.
+class SampleInputRecord:
+    """The input record of a capture that a streaming command hashes in its own read pass.
 
-    Hashing a 1.6 GB capture takes about 2 s of CPU; hashlib releases the GIL
-    on large blocks, so started before the analysis imports its modules the
-    hash overlaps the imports and the pass instead of following them.  An
-    interrupted run never waits for it (the thread is a daemon).
+    Parameters
+    ----------
+    path : path or "-"
+        The capture as given (stdin too: its samples are hashed like a file's).
+    reader : HashedReader or None
+        The view the analysis reads through; None records no hash (``--no-hash``).
+    role : str
+        The input's role in the report.
     """
 
-    def __init__(self, path: Path | str, role: str = "capture") -> None:
-        self._value: dict | None = None
-        self._error: BaseException | None = None
+    def __init__(self, path: Path | str, reader=None, role: str = "capture") -> None:
+        self._path, self._reader, self._role = str(path), reader, role
+        if self._path != "-":
+            from afmtool.report.input_guard import register_input
 
-        def run() -> None:
-            try:
-                self._value = input_record(path, role)
-            except BaseException as exc:  # noqa: BLE001 - re-raised by result() in the caller's thread
-                self._error = exc
-
-        self._thread = threading.Thread(target=run, name="afmtool-sha256", daemon=True)
-        self._thread.start()
+            register_input(path)  # no output of this run may overwrite what it read
 
     def result(self) -> dict:
-        """The record; re-raises whatever hashing raised."""
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self._value
+        """``{"path", "role", "hash"}``, the hash being :meth:`afmtool.io.provenance.HashedReader.record`."""
+        record = self._reader.record() if self._reader is not None else None
+        return {"path": self._path, "role": self._role, "hash": record}
 
 
 def to_jsonable(value: Any) -> Any:
