@@ -103,6 +103,13 @@ class HashedReader(ReaderBase):
         if digest is not None and self.digest is None:
             self.digest = digest
 
+    def __getattr__(self, name: str):
+        # what the views below record of themselves (unit conversions, calibration, a synthesised
+        # drive) is read through this one, e.g. by afmtool.io.units.calibration_record
+        if name.startswith("__") or name == "_reader":
+            raise AttributeError(name)
+        return getattr(self._reader, name)
+
     def truth(self):
         return self._reader.truth()
 
