@@ -346,10 +346,10 @@ def run_theory_fit_command(reep_dir: Path, out: Path, config: Path | None, flags
         panels = [
             {"y_label": label, "series": [(separation[m], measured[m], "REEP (fitted samples)", dots),
                                           (separation, model, "averaging theory, fitted force", line)]}
-            for label, measured, model in (("f0' (Hz)", data.f0_hz, f0e), ("Q'", data.q, qe),
+            for label, measured, model in (("f0' (Hz)", data.f0_hz, f0e), ("Q' (dimensionless)", data.q, qe),
                                            ("amplitude (nm)", data.amplitude_nm, amplitude))
         ]
-        write_multi_panel_png(staged.path("fit.png"), panels, x_label="separation l (nm), fitted contact point",
+        write_multi_panel_png(staged.path("fit.png"), panels, x_label="separation l from the fitted contact point (nm)",
                               title="Force parameters fitted to the approach (averaging theory, eq. 4.8)")
         inputs = [input_record(Path(reep_dir) / "report.json", "reep report"),
                   input_record(Path(reep_dir) / "reep.h5", "reep series")]

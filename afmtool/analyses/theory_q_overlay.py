@@ -82,7 +82,7 @@ def write_q_overlay(staged, q_values: Sequence[float], params, force, force_name
 
     title = f"Averaging theory, {force_name} force, free amplitude {params.free_amplitude_nm:g} nm, several Q"
     write_multi_panel_png(staged.path("averaging_q.png"), panels((
-        ("f0e (Hz)", lambda c, s: c.f0_e_hz), ("Qe", lambda c, s: c.q_e),
+        ("f0e (Hz)", lambda c, s: c.f0_e_hz), ("Qe (dimensionless)", lambda c, s: c.q_e),
         ("amplitude (nm)", lambda c, s: c.amplitude_nm), ("phase (deg)", lambda c, s: np.degrees(c.phase_rad)),
     )), x_label="separation l (nm)", title=title + " (Figs. 4.2a-4.5)")
     write_multi_panel_png(staged.path("averaging_q_sensitivity.png"), panels((

@@ -76,7 +76,7 @@ h1 { font-size: 1.45em; margin: 0; } h2 { font-size: 1.15em; border-bottom: 1px 
 .card .name { font-size: .8em; color: #445; } .card .value { font-size: 1.15em; font-variant-numeric: tabular-nums; }
 .card .units { color: #445; }
 figure { display: inline-block; margin: .4em; vertical-align: top; }
-figure.main { display: block; margin: .3em 0; } figure.main img { max-width: 100%; max-height: 88vh; }
+figure.main { display: block; margin: .3em 0; } figure.main img { max-width: 100%; max-height: calc(100vh - 16em); width: auto; height: auto; }
 figure img { max-width: 34em; height: auto; border: 1px solid #eee; }
 figcaption { font-size: .85em; color: #555; }
 .warning { background: #fde7e9; border-left: 6px solid #b00020; padding: .5em .9em; margin: .35em 0; font-weight: 500; }
