@@ -84,3 +84,61 @@ def test_the_rule_passes_the_pipeline_and_plain_code() -> None:
     assert not _allowed(Path("analyses/reep.py"))
     assert stream_uses("from afmtool.pipeline import run_stream\nrun_stream(r, [s])\n", Path("analyses/x.py")) == []
     assert stream_uses("from afmtool.io.chunks import require_channels\n", Path("analyses/x.py")) == []
+
+
+# --------------------------------------------------------------------------- repeated blocks
+
+#: Lines shared by two places before they count as a repeated block (issue 15).
+REPEAT_LINES = 6
+
+
+def _code_lines(source: str) -> list[tuple[int, str]]:
+    """``(line number, stripped line)`` of the code: no blank, comment, import, docstring or lone-bracket lines."""
+    tree = ast.parse(source)
+    skipped: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            skipped.update(range(node.lineno, node.end_lineno + 1))
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                skipped.update(range(first.lineno, first.end_lineno + 1))
+    lines = []
+    for number, line in enumerate(source.splitlines(), start=1):
+        text = line.strip()
+        if number in skipped or not text or text.startswith("#") or text in {")", "]", "}", "),", "],", "})", "):"}:
+            continue
+        lines.append((number, " ".join(text.split())))
+    return lines
+
+
+def repeated_blocks(files: dict[str, str], size: int = REPEAT_LINES) -> list[str]:
+    """Every run of ``size`` code lines that stands in two places (``a.py:10 ~ b.py:40``)."""
+    first_seen: dict[tuple[str, ...], str] = {}
+    repeats = []
+    for name, source in sorted(files.items()):
+        lines = _code_lines(source)
+        for k in range(len(lines) - size + 1):
+            window = tuple(text for _, text in lines[k : k + size])
+            where = f"{name}:{lines[k][0]}"
+            if window in first_seen and not first_seen[window].startswith(f"{name}:"):
+                repeats.append(f"{first_seen[window]} ~ {where}: {window[0][:60]}")
+            first_seen.setdefault(window, where)
+    return repeats
+
+
+def test_no_option_block_or_command_preamble_is_repeated():
+    """The CLI's option blocks and the commands' runners share no run of six code lines (issue 15)."""
+    files = {
+        path.relative_to(PACKAGE).as_posix(): path.read_text(encoding="utf-8")
+        for folder in ("cli", "analyses")
+        for path in sorted((PACKAGE / folder).glob("*.py"))
+    }
+    assert repeated_blocks(files) == []
+
+
+def test_the_repeat_check_can_fail():
+    block = "\n".join(f"    value_{k} = options[{k}] + offset" for k in range(6))
+    one = f"def a(options, offset):\n    '''doc'''\n{block}\n    return value_0\n"
+    assert repeated_blocks({"a.py": one, "b.py": one.replace("def a", "def b")}) != []
+    assert repeated_blocks({"a.py": one, "b.py": one.replace("value_3", "other")}) == []

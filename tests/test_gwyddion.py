@@ -196,7 +196,7 @@ def test_every_gsf_writer_is_covered():
     callers = sorted(
         path.relative_to(REPO / "afmtool").as_posix()
         for path in (REPO / "afmtool").rglob("*.py")
-        if re.search(r"\b(write_gsf|write_scan_image_files)\(", path.read_text(encoding="utf-8"))
+        if re.search(r"\b(write_gsf|write_scan_image_files|write_scan_images)\(", path.read_text(encoding="utf-8"))
     )
     assert callers == ["analyses/probeloss_outputs.py", "analyses/reep_outputs.py", "report/images.py"]
 

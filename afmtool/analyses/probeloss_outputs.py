@@ -12,13 +12,16 @@ from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
+from afmtool.report.images import ImageStyle
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
 __all__ = ["run_probeloss_command", "run_probeloss_stream"]
 
-_IMAGE_TITLES = {"loss": ("probe-loss fraction", ""), "index": ("reliability index", "")}
-_IMAGE_STEMS = {"loss": "loss_mask", "index": "index"}
+_IMAGE_STYLES = {
+    "loss": ImageStyle("probe-loss fraction", "", stem="loss_mask", cmap="gray_r", z_range=(0.0, 1.0)),
+    "index": ImageStyle("reliability index", ""),
+}
 
 
 def _units(reader: CaptureReader) -> dict[str, str]:
@@ -64,14 +67,6 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResu
     """Probe-loss mask (fraction of each pixel's samples in loss) and index images, PNG and .gsf."""
     if result.geometry is None:
         return
-    from afmtool.report.images import write_scan_image_files
+    from afmtool.report.images import write_scan_images
 
-    geometry = result.geometry
-    for key, image in sorted(result.images.items()):
-        quantity, direction = key.split("/")
-        title, units = _IMAGE_TITLES[quantity]
-        writer.put(f"images/{key}", image, units, {"row0": "first line scanned"})
-        loss = quantity == "loss"
-        write_scan_image_files(staged.path, f"{_IMAGE_STEMS[quantity]}_{direction}", image, geometry.scan_size_m,
-                               geometry.lines / geometry.pixels_per_line, title=title, direction=direction, units=units,
-                               cmap="gray_r" if loss else "afmhot", z_range=(0.0, 1.0) if loss else None)
+    write_scan_images(staged.path, result.images, result.geometry, _IMAGE_STYLES.__getitem__, writer.put)

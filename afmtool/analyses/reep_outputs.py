@@ -151,16 +151,13 @@ def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepRes
 def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str) -> None:
     if result.geometry is None:
         return
-    from afmtool.report.images import write_scan_image_files
+    from afmtool.report.images import ImageStyle, write_scan_images
 
-    geometry = result.geometry
-    for key, image in sorted(result.images.items()):
-        quantity, direction = key.split("/")
+    def style(quantity: str) -> ImageStyle:
         title, units = _IMAGE_TITLES[quantity]
-        units = deflection_units if units is None else units
-        writer.put(f"images/{key}", image, units, {"row0": "first line scanned"})
-        write_scan_image_files(staged.path, f"{quantity}_{direction}", image, geometry.scan_size_m,
-                               geometry.lines / geometry.pixels_per_line, title=title, direction=direction, units=units)
+        return ImageStyle(title, deflection_units if units is None else units)
+
+    write_scan_images(staged.path, result.images, result.geometry, style, writer.put)
 
 
 #: Image titles of the /interaction quantities (afmtool.models.interaction).
@@ -194,12 +191,7 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
         for key, image in sorted(binned.images.items()):
             f.put(f"images/{key}", image, binned.units[key.split("/")[0]], {"row0": "first line scanned"})
     if binned.images:
-        from afmtool.report.images import write_scan_image_files
+        from afmtool.report.images import ImageStyle, write_scan_images
 
-        geometry = result.geometry
-        for key, image in sorted(binned.images.items()):
-            quantity, direction = key.split("/")
-            write_scan_image_files(staged.path, f"{quantity}_{direction}", image, geometry.scan_size_m,
-                                   geometry.lines / geometry.pixels_per_line,
-                                   title=_INTERACTION_TITLES.get(quantity, quantity), direction=direction,
-                                   units=binned.units[quantity])
+        write_scan_images(staged.path, binned.images, result.geometry,
+                          lambda quantity: ImageStyle(_INTERACTION_TITLES.get(quantity, quantity), binned.units[quantity]))

@@ -36,6 +36,7 @@ __all__ = [
     "PNG_DPI",
     "RETRACT_STYLE",
     "GsfImage",
+    "ImageStyle",
     "PanelSpec",
     "Series",
     "read_gsf",
@@ -44,6 +45,7 @@ __all__ = [
     "write_image_png",
     "write_line_plot_png",
     "write_scan_image_files",
+    "write_scan_images",
     "write_multi_panel_png",
     "write_side_by_side_png",
 ]
@@ -426,6 +428,50 @@ def _image_figure_size(x_real_m: float, y_real_m: float, n: int) -> tuple[float,
     panel = 4.8 if n == 1 else 3.6
     height = min(max(panel * aspect, 2.4), 9.0) + 1.0
     return panel * n + 1.6, height
+
+
+@dataclass(frozen=True)
+class ImageStyle:
+    """How one scan-image quantity is written: its title and units, the file stem, colour map and range."""
+
+    title: str
+    units: str
+    stem: str | None = None  #: file stem before ``_trace``/``_retrace``; the quantity's name by default
+    cmap: str = "afmhot"
+    z_range: tuple[float, float] | None = None
+
+
+def write_scan_images(
+    path_of: Callable[[str], Path],
+    images: Mapping[str, np.ndarray],
+    geometry,
+    style_of: Callable[[str], ImageStyle],
+    put: Callable[..., None] | None = None,
+) -> None:
+    """Every ``quantity/direction`` image of a scan as PNG + .gsf (:func:`write_scan_image_files`).
+
+    Parameters
+    ----------
+    path_of : callable
+        Output file name -> path.
+    images : mapping of str to ndarray
+        ``"f0_hz/trace"`` and the like -> (lines, pixels) image, row 0 the first line scanned.
+    geometry
+        The scan's geometry (``scan_size_m``, ``lines``, ``pixels_per_line``).
+    style_of : callable
+        Quantity -> :class:`ImageStyle`.
+    put : callable, optional
+        ``put(name, values, units, attrs)`` of the command's result file: each image is
+        stored there as ``images/<key>`` too.
+    """
+    for key, image in sorted(images.items()):
+        quantity, direction = key.split("/")
+        style = style_of(quantity)
+        if put is not None:
+            put(f"images/{key}", image, style.units, {"row0": "first line scanned"})
+        write_scan_image_files(path_of, f"{style.stem or quantity}_{direction}", image, geometry.scan_size_m,
+                               geometry.lines / geometry.pixels_per_line, title=style.title, direction=direction,
+                               units=style.units, cmap=style.cmap, z_range=style.z_range)
 
 
 def write_scan_image_files(
