@@ -7,7 +7,7 @@ at the I/O boundary with ``raise ... from None`` so the message names the
 user's file, not a library internal.
 """
 
-__all__ = ["AfmtoolError", "InputError", "ConfigError"]
+__all__ = ["AfmtoolError", "InputError", "ConfigError", "SegmentsAtDifferentRates"]
 
 
 class AfmtoolError(Exception):
@@ -35,3 +35,15 @@ class InputError(AfmtoolError):
 
 class ConfigError(AfmtoolError):
     """A parameter, config file or flag value that is not valid."""
+
+
+class SegmentsAtDifferentRates(InputError):
+    """A segmented file whose segments are sampled at different rates: one must be chosen (``--segment``).
+
+    ``segments`` lists them (:class:`afmtool.io.capture.SegmentSpec`), so that ``info`` can
+    summarise each one instead.
+    """
+
+    def __init__(self, message: object, segments: tuple = ()) -> None:
+        super().__init__(message)
+        self.segments = tuple(segments)

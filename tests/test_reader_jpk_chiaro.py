@@ -61,9 +61,17 @@ def test_old_format_spot3(shared):
     assert info["metadata"]["instrument"]["file_format_version"] == "0.12"
 
 
-def test_qi_segments_at_different_rates(shared):
-    refused = run_cli("info", shared / QI)
-    assert refused.returncode == 2
+def test_qi_segments_at_different_rates(shared, tmp_path):
+    # info lists and summarises each segment; an analysis must be told which one to read
+    listed = run_cli("info", shared / QI)
+    assert listed.returncode == 0, listed.stderr.decode()
+    text = listed.stdout.decode()
+    assert "segment 0 extend" in text and "segment 1 retract" in text
+    assert "5,000 Hz, 1,000 samples" in text and "50,000 Hz, 1,000 samples" in text
+    both = _info(shared / QI)
+    assert [(s["sample_rate_hz"], s["n_samples"]) for s in both] == [(5000.0, 1000), (50000.0, 1000)]
+    refused = run_cli("reep", shared / QI, "--out", tmp_path / "out", "--no-input")
+    assert refused.returncode == 2 and not (tmp_path / "out").exists()
     err = refused.stderr.decode()
     assert err.count("\n") == 1 and "different rates" in err and "extend (1000 samples, 5000 Hz)" in err
     assert "retract (1000 samples, 50000 Hz)" in err

@@ -34,19 +34,33 @@ def info(
 
     Statistics are computed by streaming, so any size of capture works.
     Segmented files (force curves) list their segments; --segment NAME|N
-    summarises one of them.
+    summarises one of them.  A file whose segments have different sample
+    rates is summarised segment by segment (with --json, as a list).
     """
-    from afmtool.analyses.info import summarize
+    from afmtool.errors import SegmentsAtDifferentRates
     from afmtool.report.json_report import dumps, to_jsonable
+
+    try:
+        summaries = [_summarize(capture, source, chunk_samples, quiet)]
+    except SegmentsAtDifferentRates as exc:
+        if source.segment is not None:
+            raise
+        summaries = [_summarize(capture, source._replace(segment=str(i)), chunk_samples, quiet)
+                     for i in range(len(exc.segments))]
+    with stdout_pipe():
+        if json_output:
+            typer.echo(dumps(to_jsonable(summaries[0] if len(summaries) == 1 else summaries)), nl=False)
+        else:
+            for summary in summaries:
+                _print_summary(summary)
+
+
+def _summarize(capture: str, source: CaptureSource, chunk_samples: int, quiet: bool):
+    from afmtool.analyses.info import summarize
 
     with source.open(capture, convert_units=False) as reader:
         with progress_bar("info", reader.info.n_samples, quiet) as update:
-            summary = summarize(reader, chunk_samples, update)
-    with stdout_pipe():
-        if json_output:
-            typer.echo(dumps(to_jsonable(summary)), nl=False)
-        else:
-            _print_summary(summary)
+            return summarize(reader, chunk_samples, update)
 
 
 #: Above this many channels ``info`` prints plain lines instead of a rich table.
@@ -58,7 +72,9 @@ def _print_summary(summary) -> None:
     from rich.table import Table
 
     console = Console()
-    console.print(f"[bold]{summary.source}[/] ({summary.format})")
+    chosen = summary.metadata.get("segment") if isinstance(summary.metadata.get("segment"), dict) else None
+    segment = f", segment {chosen.get('index')} {chosen.get('name')}" if chosen else ""
+    console.print(f"[bold]{summary.source}[/] ({summary.format}{segment})")
     console.print(
         f"sample rate {summary.sample_rate_hz:,.6g} Hz, {summary.n_samples:,} samples, {summary.duration_s:.6g} s"
     )

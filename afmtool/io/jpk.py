@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afmtool.errors import InputError
+from afmtool.errors import InputError, SegmentsAtDifferentRates
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase, SegmentSpec
 from afmtool.io.unit_names import unit_symbol
 from afmtool.io.views import SEGMENTS_KEY, describe_segments, segments_metadata, select_segment
@@ -213,8 +213,9 @@ class JpkReader(ReaderBase):
         elif uniform:
             self._chosen = list(range(len(self._segments)))
         else:
-            raise InputError(
-                f"{self._path}: segments at different rates: {describe_segments(segments)}; choose one with --segment"
+            raise SegmentsAtDifferentRates(
+                f"{self._path}: segments at different rates: {describe_segments(segments)}; choose one with --segment",
+                segments,
             )
         chosen = [self._segments[i] for i in self._chosen]
         channel_names = list(chosen[0][3])
