@@ -360,23 +360,28 @@ def run_stream(
         if read_ahead:
             stream = prefetch(stream, read_ahead)
         del head, first  # the stream hands the first chunk on once; keep no reference for the whole run
-        kernels = _split_kernels(stages, split)
-
-        def deliver(merged: Mapping[str, np.ndarray], done: int) -> None:
-            if sink is not None and merged:
-                sink.append(merged)
-            if progress is not None:
-                progress(done)
-
         try:
-            if kernels is None:
-                for chunk in stream:
-                    deliver(_merge(stages, chunk), chunk.start + len(chunk))
-            else:
-                _run_split(stream, stages, kernels, split, deliver)
+            _run_chunks(stream, stages, sink, progress, split)
         finally:
             stream.close()  # stops the read-ahead thread when a stage raised
         return [stage.finish() for stage in stages]
+
+
+def _run_chunks(stream: Iterator[Chunk], stages: Sequence[Stage], sink, progress, split: Split | None) -> None:
+    """Every chunk through the stages, sequentially or split; the merged columns to the sink."""
+    kernels = _split_kernels(stages, split)
+
+    def deliver(merged: Mapping[str, np.ndarray], done: int) -> None:
+        if sink is not None and merged:
+            sink.append(merged)
+        if progress is not None:
+            progress(done)
+
+    if kernels is None:
+        for chunk in stream:
+            deliver(_merge(stages, chunk), chunk.start + len(chunk))
+    else:
+        _run_split(stream, stages, kernels, split, deliver)
 
 
 def _split_kernels(stages: Sequence[Stage], split: Split | None) -> list[ChunkKernels] | None:

@@ -185,8 +185,11 @@ class CommandOutput(NamedTuple):
 
     def split(self):
         """The :class:`afmtool.pipeline.Split` of ``--jobs`` and ``--scheduler``."""
+        from afmtool.errors import ConfigError
         from afmtool.pipeline import Split
 
+        if self.jobs is not None and self.jobs < 1:
+            raise ConfigError(f"--jobs {self.jobs} must be at least 1")
         return Split.of(self.jobs, self.scheduler)
 
     @property

@@ -80,13 +80,13 @@ NoHashOpt = Annotated[
 ]
 JobsOpt = Annotated[
     Optional[int],
-    typer.Option("--jobs", "-j", min=1, help="Cores that run the estimators on one capture, each chunk started a "
-                 "warm-up early (results equal the sequential run's to 1e-9); default: all cores."),
+    typer.Option("--jobs", "-j", metavar="N", help="Cores that run the estimators on one capture, each chunk started "
+                 "a warm-up early (results equal the sequential run's to 1e-9); default: all cores."),
 ]
 SchedulerOpt = Annotated[
     Optional[str],
-    typer.Option("--scheduler", help="Run the chunks on a Dask cluster instead (tcp://host:8786); the workers "
-                 "read their chunks from the capture file, which they must see at the same path."),
+    typer.Option("--scheduler", metavar="ADDRESS", help="Run the chunks' estimators on a Dask cluster instead "
+                 "(tcp://host:8786); chunks go to the workers as they are read."),
 ]
 
 
