@@ -122,7 +122,7 @@ def kernel_ms_per_s(command: str, n: int = 2_000_000) -> float:
         return bench_kernel()["kernel_ms_per_s"]
 
     def kalman_bank():
-        from afmtool.estimators.observer import ObserverDesign, bank_update, BankState
+        from afmtool.estimators.observer import BankState, ObserverDesign, bank_update
 
         designs = tuple(ObserverDesign.from_decay((-1.27 + 0.001 * k, 0.9956), numerator, 4.0, 7.14) for k in range(5))
         reep()  # pass 1
