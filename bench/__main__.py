@@ -20,11 +20,12 @@ MODULES = [
     "bench.bench_decode",
     "bench.bench_kalman_bank",
     "bench.bench_probeloss",
+    "bench.bench_split",
 ]
 
 #: (bench.json section, key path, criterion, test) rows of the closing table.
 CRITERIA = [
-    ("io", "help.help_seconds", "afmtool --help < 0.3 s", lambda v: v < 0.3),
+    ("io", "help.help_seconds", "afmtool --help < 0.15 s", lambda v: v < 0.15),
     ("io", "info_2gb.afmtool_info.peak_rss_mb", "info on 2 GB: peak RSS < 300 MB", lambda v: v < 300),
     ("rls", "kernel_ms_per_s", "REEP kernel >= 50 MS/s", lambda v: v >= 50),
     ("rls", "ratio_kernel_to_padasip", "REEP >= 300x padasip RLS", lambda v: v >= 300),
@@ -47,6 +48,19 @@ CRITERIA = [
     ("decode", "largest_ms_per_s", "decode end to end >= 15 MS/s", lambda v: v >= 15),
     ("decode", "rss_ratio_largest_to_smallest", "decode RSS at 1e8 <= 1.5x RSS at 1e6", lambda v: v <= 1.5),
     ("decode", "fraction_of_read_ceiling", "decode >= 5% of the raw-read ceiling", lambda v: v >= 0.05),
+    # issue 19: 1e8 float32 samples in the page cache, all cores (bench_split)
+    ("split", "summary.reep.ms_per_s", "reep end to end >= 50 MS/s (all cores)", lambda v: v >= 50),
+    ("split", "summary.probeloss.ms_per_s", "probeloss end to end >= 80 MS/s (all cores)", lambda v: v >= 80),
+    ("split", "summary.decode.ms_per_s", "decode end to end >= 30 MS/s (all cores)", lambda v: v >= 30),
+    ("split", "summary.kalman-bank.ms_per_s", "kalman-bank end to end >= 20 MS/s (all cores)", lambda v: v >= 20),
+    *[("split", f"summary.{c}.peak_rss_mb", f"{c} peak RSS < 300 MB", lambda v: v < 300)
+      for c in ("reep", "probeloss", "decode", "kalman-bank")],
+    *[("split", f"summary.{c}.rss_ratio_largest_to_smallest", f"{c} RSS at 1e8 <= 1.2x RSS at 1e6", lambda v: v <= 1.2)
+      for c in ("reep", "probeloss", "decode", "kalman-bank")],
+    *[("split", f"summary.{c}.split_speedup", f"{c} split against sequential >= 1.8x", lambda v: v >= 1.8)
+      for c in ("reep", "probeloss", "decode", "kalman-bank")],
+    *[("split", f"summary.{c}.hash_share", f"{c} hash share of the run < 5 %", lambda v: v < 0.05)
+      for c in ("reep", "probeloss", "decode", "kalman-bank")],
 ]
 
 
