@@ -135,6 +135,17 @@ def _write_foreign(fmt: str, folder):
             wave["wave"] = np.vstack([dither, deflection])
             wave.attrs["dt"] = 1.0 / fs
         return path, ["--channel", "dither=ch1", "--channel", "deflection=ch2"]
+    if fmt == "csv":  # a plain CSV with units in the header, as numpy writes it
+        path = folder / "ltv_plain.csv"
+        t = np.arange(len(dither)) / fs
+        np.savetxt(path, np.column_stack([t, dither, deflection]), delimiter=",", fmt="%.17g",
+                   header="t (s),dither (V),deflection (nm)", comments="")
+        return path, []
+    if fmt in ("ros1", "ros2-mcap"):  # bags, written by rosbags (through afmtool's writer)
+        path = folder / ("ltv.bag" if fmt == "ros1" else "ltv_mcap")
+        result = run_cli("convert", SAMPLE_DATA / "ltv_step.h5", path, "--format", fmt)
+        assert result.returncode == 0, result.stderr.decode()
+        return path, []
     if fmt == "scope-csv":
         path = folder / "ltv_scope.csv"
         t = np.arange(len(dither)) / fs
@@ -196,7 +207,7 @@ def reference_runs(tmp_path_factory):
 
 
 @pytest.mark.slow  # 13 CLI runs, about 15 s of CPU
-@pytest.mark.parametrize("fmt", ["tdms", "wav", "labone", "scope-csv"])
+@pytest.mark.parametrize("fmt", ["tdms", "wav", "labone", "scope-csv", "csv", "ros1", "ros2-mcap"])
 def test_reep_and_probeloss_identical_through_each_format(tmp_path, reference_runs, fmt):
     (tmp_path / "p.toml").write_text(PARAMETERS)
     foreign, mapping = _write_foreign(fmt, tmp_path)
