@@ -146,6 +146,25 @@ def _write_foreign(fmt: str, folder):
         result = run_cli("convert", SAMPLE_DATA / "ltv_step.h5", path, "--format", fmt)
         assert result.returncode == 0, result.stderr.decode()
         return path, []
+    if fmt == "ibw":  # no library writes Igor binary waves: a minimal version-5 wave packed here
+        path = folder / "ltv.ibw"
+        _write_ibw(path, [dither, deflection], [b"dither", b"deflection"], fs)
+        return path, ["--units", "dither=V", "--units", "deflection=nm"]
+    if fmt == "jpk":  # a JPK force file (format 0.x, float64 channels) in one extend segment
+        path = folder / "ltv.jpk-force"
+        _write_jpk(path, {"dither": (dither, "V"), "vDeflection": (deflection, "nm")}, fs)
+        return path, []
+    if fmt == "chiaro":  # an Optics11 Chiaro text export: the real file's header lines, this capture's table
+        path = folder / "ltv_chiaro.txt"
+        t = np.arange(len(dither)) / fs
+        # no Piezo (nm) column: a z_piezo would make reep bin force curves, which the original has not
+        table = np.column_stack([t, np.zeros_like(t), np.zeros_like(t), deflection, dither])
+        with open(path, "w", encoding="latin-1", newline="") as handle:
+            handle.write("Date\t02/12/2026\tTime\t06:00:00\tStatus\tOK\r\nltv\r\n\r\n"
+                         "Device:\tChiaro\r\nSoftware version: V3.5.0\r\n\r\n"
+                         "Time (s)\tLoad (uN)\tIndentation (nm)\tCantilever (nm)\tAuxiliary\r\n")
+            np.savetxt(handle, table, delimiter="\t", fmt="%.17g", newline="\r\n")
+        return path, ["--channel", "dither=Auxiliary", "--units", "dither=V"]
     if fmt == "scope-csv":
         path = folder / "ltv_scope.csv"
         t = np.arange(len(dither)) / fs
@@ -154,6 +173,50 @@ def _write_foreign(fmt: str, folder):
             np.savetxt(handle, np.column_stack([t, dither, deflection]), delimiter=",", fmt="%.17g", newline="\r\n")
         return path, ["--channel", "dither=CH1", "--channel", "deflection=CH2"]
     raise AssertionError(fmt)
+
+
+def _write_ibw(path, columns, labels, sample_rate_hz):
+    """A minimal Igor binary wave, version 5 (Igor Technical Note 003): one 2-D float64 wave, x in s.
+
+    Header fields not listed are zero; the dimension labels name the columns.  igor2 reads
+    what it checks: the version, the checksum (the 16-bit words of both headers sum to 0),
+    the section sizes and the wave header.
+    """
+    import struct
+
+    data = np.column_stack(columns).astype("<f8")
+    n, m = data.shape
+    body = data.tobytes(order="F")  # Igor stores the rows (samples) fastest
+    wave_header = b"".join([
+        struct.pack("<iIIihh", 0, 0, 0, n * m, 4, 0),  # next, creationDate, modDate, npnts, type (NT_FP64), dLock
+        bytes(6), struct.pack("<h", 1), b"capture".ljust(32, b"\0"), bytes(8),  # whpad1, whVersion, bname, whpad2, dFolder
+        struct.pack("<4i", n, m, 0, 0), struct.pack("<4d", 1.0 / sample_rate_hz, 1, 1, 1), bytes(32),  # nDim, sfA, sfB
+        bytes(4), b"s".ljust(16, b"\0"), bytes(4 + 16 + 4 + 16 + 16 + 4 + 64 + 8 + 8 + 2 + 2 + 8),  # units, rest
+    ])
+    labels_block = b"".join(label.ljust(32, b"\0") for label in [b"", *labels])
+    sizes = struct.pack("<iiii4i4iiii", 320 + len(body), 0, 0, 0, 0, 0, 0, 0, 0, len(labels_block), 0, 0, 0, 0, 0)
+    head = struct.pack("<hh", 5, 0) + sizes + wave_header
+    assert len(head) == 384
+    checksum = (-sum(struct.unpack("<192h", head))) % 65536
+    head = struct.pack("<hH", 5, checksum) + head[4:]
+    path.write_bytes(head + body + labels_block)
+
+
+def _write_jpk(path, channels: dict, sample_rate_hz: float) -> None:
+    """A JPK force file in the 0.x layout: one segment, each channel float64 with its unit and no scaling."""
+    import zipfile
+
+    n = len(next(iter(channels.values()))[0])
+    lines = [f"force-segment-header.num-points={n}", f"force-segment-header.duration={n / sample_rate_hz!r}",
+             "force-segment-header.settings.style=extend", f"channels.list={' '.join(channels)}"]
+    for name, (_, unit) in channels.items():
+        lines += [f"channel.{name}.data.type=double", f"channel.{name}.data.file.name=channels/{name}.dat",
+                  f"channel.{name}.data.num-points={n}", f"channel.{name}.unit.unit={unit}"]
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("header.properties", "file-format-version=0.12\n")
+        archive.writestr("segments/0/segment-header.properties", "\n".join(lines) + "\n")
+        for name, (values, _) in channels.items():
+            archive.writestr(f"segments/0/channels/{name}.dat", np.asarray(values, dtype=">f8").tobytes())
 
 
 def _units_flags(command: str) -> list[str]:
@@ -207,7 +270,7 @@ def reference_runs(tmp_path_factory):
 
 
 @pytest.mark.slow  # 13 CLI runs, about 15 s of CPU
-@pytest.mark.parametrize("fmt", ["tdms", "wav", "labone", "scope-csv", "csv", "ros1", "ros2-mcap"])
+@pytest.mark.parametrize("fmt", ["tdms", "wav", "labone", "scope-csv", "csv", "ros1", "ros2-mcap", "ibw", "jpk", "chiaro"])
 def test_reep_and_probeloss_identical_through_each_format(tmp_path, reference_runs, fmt):
     (tmp_path / "p.toml").write_text(PARAMETERS)
     foreign, mapping = _write_foreign(fmt, tmp_path)
