@@ -138,13 +138,33 @@ def test_bad_dac_rate_is_one_line_and_no_output(tmp_path):
     assert len(result.stderr.decode().strip().splitlines()) == 1
 
 
+def _drive_from_wav(path, full_scale_v: float) -> rs.MultiSine:
+    """The signal the exported loop is, as the reference simulator's continuous drive.
+
+    A DAC replaying the loop behind its reconstruction filter outputs the band-limited
+    periodic signal through its samples: the loop's discrete Fourier series.  Its
+    non-zero terms (the samples are float32, so the rest is rounding) become cosine lines.
+    """
+    _, _, rate, _, samples = _wav(path)
+    volts = samples.astype(np.float64) * full_scale_v
+    n = len(volts)
+    spectrum = np.fft.rfft(volts) / n
+    bins = np.flatnonzero(np.abs(spectrum) > 1e-4 * np.abs(spectrum).max())
+    return rs.MultiSine(tuple(rs.Sine(k * rate / n, 2.0 * abs(spectrum[k]), float(np.angle(spectrum[k]))) for k in bins))
+
+
 @pytest.mark.parametrize("q", [200.0, 40.0])
 def test_closed_loop_reference_capture_driven_by_the_export_meets_reep_accuracy(tmp_path, q):
     out, _ = _design_cli(tmp_path, q, "--dac-rate", "1000000")
     record = json.loads((out / "lines.json").read_text())
-    # sine phases -> the reference simulator's cosine lines: sin(x + φ) = cos(x + φ - π/2)
-    drive = rs.MultiSine(tuple(rs.Sine(ln["frequency_hz"], ln["amplitude_v"], math.radians(ln["phase_deg"]) - math.pi / 2)
-                               for ln in record["lines"]))
+    drive = _drive_from_wav(out / "excitation.wav", record["wav_full_scale_v"])
+    # the file holds the designed lines and nothing else (sine phases are the simulator's cosines - π/2)
+    assert len(drive.lines) == len(record["lines"])
+    for line, designed in zip(drive.lines, sorted(record["lines"], key=lambda ln: ln["frequency_hz"])):
+        assert line.frequency_hz == pytest.approx(designed["frequency_hz"], rel=1e-12)
+        assert line.amplitude_v == pytest.approx(designed["amplitude_v"], rel=1e-5)
+        phase = math.remainder(line.phase_rad - math.radians(designed["phase_deg"]) + math.pi / 2, 2 * math.pi)
+        assert abs(phase) < 1e-4
     cap = rs.simulate(f0_hz=F0, q=q, gain_nm_per_v=GAIN, sample_rate_hz=ADC_RATE, duration_s=0.1, drive=drive,
                       hold="continuous", noise_nm=0.05, seed=17)
     capture = rs.write_capture_h5(tmp_path / "driven.h5", cap)
