@@ -151,3 +151,10 @@ def test_reep_writes_interaction_series_only_with_a_spring_constant(tmp_path):
         own_loss_ev = math.pi * K / Q * (20e-9) ** 2 * EV_PER_J
         assert np.nanmedian(np.abs(g["energy_per_cycle_ev"][()][settled])) < 0.02 * own_loss_ev
         assert np.nanmedian(g["k_e_n_per_m"][()][settled]) == pytest.approx(K, rel=1e-3)
+        from_metadata = {name: g[name][()] for name in g}
+    # --spring-constant gives k to a capture without it (a thermal tune's, say): the same series
+    flagged = run_cli("reep", tmp_path / "no_k.h5", "--out", tmp_path / "flag_k", "--spring-constant", str(K), "-q")
+    assert flagged.returncode == 0, flagged.stderr.decode()
+    with h5py.File(tmp_path / "flag_k" / "reep.h5") as f:
+        for name, values in from_metadata.items():
+            np.testing.assert_array_equal(f["interaction"][name][()], values, err_msg=name)

@@ -60,6 +60,10 @@ def _session(tmp_path) -> dict:
     launcher = bin_dir / "afmtool"
     launcher.write_text(f"#!/bin/sh\nexec {sys.executable} -m afmtool \"$@\"\n")
     launcher.chmod(0o755)
+    # and the tutorial's `python -c` lines run in the same interpreter (with h5py), venv activated or not
+    python = bin_dir / "python"
+    python.write_text(f"#!/bin/sh\nexec {sys.executable} \"$@\"\n")
+    python.chmod(0o755)
     env["PATH"] = f"{bin_dir}{os.pathsep}{env['PATH']}"
     env["PYTHONPATH"] = str(REPO)
     return env

@@ -46,14 +46,19 @@ def _free_reference(f: ResultFile, results: Mapping) -> tuple[float, float, str]
     raise ValueError("no free-air reference")
 
 
-def add_interaction_series(path: Path, results: Mapping, metadata: CaptureMetadata, amplitude_units: str) -> dict:
-    """Write ``/interaction/...`` into the reep.h5 at ``path``; return the report section."""
+def add_interaction_series(path: Path, results: Mapping, metadata: CaptureMetadata, amplitude_units: str,
+                           spring_constant_n_per_m: float = 0.0) -> dict:
+    """Write ``/interaction/...`` into the reep.h5 at ``path``; return the report section.
+
+    ``spring_constant_n_per_m`` (``--spring-constant``) overrides the metadata's k; 0 uses it.
+    """
     from afmtool.models.interaction import InteractionQuantities, interaction_quantities
 
-    k = metadata.cantilever.spring_constant_n_per_m
+    k = spring_constant_n_per_m or metadata.cantilever.spring_constant_n_per_m
     if not k:
-        return {"written": False, "reason": "no spring constant (metadata cantilever.spring_constant_n_per_m): "
-                                              "k_e, the force gradient, damping, Phi_c, Phi_d, energy and virial need it"}
+        return {"written": False, "reason": "no spring constant (--spring-constant or metadata "
+                                              "cantilever.spring_constant_n_per_m): k_e, the force gradient, damping, "
+                                              "Phi_c, Phi_d, energy and virial need it"}
     scale = _NM_PER_UNIT.get(str(amplitude_units).strip())
     if scale is None:
         return {"written": False, "reason": f"the amplitude is in {amplitude_units!r}, not a length (no InvOLS applied)"}

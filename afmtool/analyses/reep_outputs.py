@@ -41,7 +41,7 @@ def run_reep_command(run: CommandRun) -> dict:
         from afmtool.analyses.interaction_outputs import add_interaction_series
 
         results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.capture_metadata,
-                                                        deflection_units)
+                                                        deflection_units, params.spring_constant_n_per_m)
         if results["interaction"].get("written"):
             _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz)
         if result.force_curves:

@@ -184,6 +184,10 @@ class ReepParams:
     )
     vs: str = field("auto", "Force-curve binning against z_piezo", choices=("auto", "time", "z"), flag="--vs")
     z_bin: float = field(0.5, "Force-curve bin width, in the units of z_piezo", bounds="> 0", flag="--z-bin")
+    spring_constant_n_per_m: float = field(
+        0.0, "Spring constant k for the interaction quantities (e.g. identify freeair --psd); 0 = metadata "
+        "cantilever.spring_constant_n_per_m", "N/m", bounds=">= 0", flag="--spring-constant",
+    )
     warmup_windows: float = field(5.0, "Windows 1/(1-λ) left out of summary statistics at the start", bounds=">= 0")
     min_amplitude_fraction: float = field(
         0.01,
