@@ -63,7 +63,7 @@ def capture(command: str, n: int, dtype: str) -> Path:
 
         source = generate_capture(scratch / f"decode_{n}.h5", n)
     else:
-        source = generate_h5(scratch / f"{command}_{n}.h5", n, CHANNELS[command])
+        source = generate_h5(scratch / f"{'_'.join(CHANNELS[command])}_{n}.h5", n, CHANNELS[command])  # reep, probeloss share
     if dtype == "f8":
         return source
     return _as_float32(source, scratch / f"{source.stem}_f4.h5")
