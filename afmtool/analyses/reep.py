@@ -265,6 +265,8 @@ class ReepStage:
         self._segment = None
         self._resolved = False
         self.n_total = 0
+        #: Called at the end of ``prepare`` (run_reep's ``on_stream_start``).
+        self.on_stream_start: Callable[[], None] | None = None
 
     def free_air_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:
         """The free-air route, its segment read ahead (:func:`_resolve_model`); the stream handed on."""
@@ -303,6 +305,8 @@ class ReepStage:
         self.image_acc = ImageAccumulator(self.geometry, _IMAGE_QUANTITIES) if self.geometry else None
         self.curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if self.z_mode else None
         self._side = head.side
+        if self.on_stream_start is not None:
+            self.on_stream_start()
 
     def _input_checks(self, first_dither: np.ndarray | None) -> list[float]:
         """The dither's lines near resonance, with warnings on too few lines and an unmodelled delay."""
@@ -490,6 +494,7 @@ def run_reep(
     model: FreeAirModel | None = None,
     progress: Callable[[int], None] | None = None,
     split: Split | None = None,
+    on_stream_start: Callable[[], None] | None = None,
 ) -> ReepResult:
     """Run REEP over a whole capture, streaming, and write the decimated series.
 
@@ -510,8 +515,12 @@ def run_reep(
     split : Split, optional
         Run the kernels of several chunks at once (:class:`~afmtool.pipeline.Split`);
         the result equals the sequential one to 1e-9 (``tests/test_split.py``).
+    on_stream_start : callable, optional
+        Called once the free-air route is resolved and the stream begins (the command
+        starts loading its plotting library then, so that it overlaps the kernels).
     """
     stage = ReepStage(reader, params, model=model)
+    stage.on_stream_start = on_stream_start
     (result,) = run_stream(
         reader, [stage], writer, channels=stage.channels, chunk_samples=params.chunk_samples,
         progress=progress, prologue=stage.free_air_prologue, split=split,

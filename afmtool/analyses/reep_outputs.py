@@ -14,6 +14,7 @@ from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
+from afmtool.report.images import start_matplotlib_import
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -33,7 +34,8 @@ def run_reep_command(run: CommandRun) -> dict:
     model_records = model_input_records(params.model)
     with OutputDir(run.out) as staged:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
-            result = run_reep(reader, params, writer, model=model, progress=run.progress, split=run.split)
+            result = run_reep(reader, params, writer, model=model, progress=run.progress, split=run.split,
+                              on_stream_start=start_matplotlib_import)
             _write_force_curves(staged, writer, result, deflection_units)
             _write_images(staged, writer, result, deflection_units)
         results = dict(result.results)
