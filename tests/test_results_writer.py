@@ -48,13 +48,3 @@ def test_write_behind_raises_the_writer_threads_error_in_the_caller(tmp_path):
             writer.append({"x": np.zeros(10)})
         writer.close()
     writer.close()  # a second close after the failure is harmless
-
-
-@pytest.mark.parametrize(("start", "stop", "step", "block"), [(0, 1000, 7, 64), (13, 997, 10, 50), (5, 6, 3, 4), (0, 100, 1, 8),
-                                                               (40, 40, 3, 8)])
-def test_strided_reads_equal_hdf5_strided_selections(tmp_path, start, stop, step, block):
-    from afmtool.io.result_files import _strided
-
-    with h5py.File(tmp_path / "s.h5", "w") as f:
-        f["x"] = np.arange(1000.0)
-        np.testing.assert_array_equal(_strided(f["x"], start, stop, step, block), f["x"][start:stop:step])

@@ -188,23 +188,18 @@ def _read_thinned(reep_h5: Path, names: tuple[str, ...]) -> _Thinned:
     with _open(reep_h5) as h5:
         n = len(h5["t"])
         step = max(1, math.ceil(n / MAX_PLOT_POINTS))
-        present = tuple(name for name in names if name in h5)
+        t = h5["t"][::step]
+        columns = {name: h5[name][::step] for name in names if name in h5}
         flag_name = FLAG_COLUMN if FLAG_COLUMN in h5 else None
-        # whole blocks thinned in numpy: an HDF5 selection with a stride reads every chunk anyway,
-        # and walks it point by point (seconds at 1e8 input samples)
-        thinned: dict[str, list[np.ndarray]] = {name: [] for name in ("t", *present)}
         flagged_rows: list[np.ndarray] = []
+        count = 0
         for start, f0 in h5.blocks("f0_hz", n):
-            stop = start + len(f0)
-            first = (-start) % step  # rows 0, step, 2·step, ... of the whole series
-            for name in thinned:
-                thinned[name].append((f0 if name == "f0_hz" else h5[name][start:stop])[first::step])
             bad = ~np.isfinite(f0)
             if flag_name is not None:
-                bad |= h5[flag_name][start:stop] != 0
-            flagged_rows.append(np.flatnonzero(bad) + start)
-        t = np.concatenate(thinned.pop("t")) if n else np.zeros(0)
-        columns = {name: np.concatenate(parts) if parts else np.zeros(0) for name, parts in thinned.items()}
+                bad |= h5[flag_name][start : start + len(f0)] != 0
+            rows = np.flatnonzero(bad) + start
+            flagged_rows.append(rows)
+            count += rows.size
         rows = np.concatenate(flagged_rows) if flagged_rows else np.zeros(0, dtype=np.int64)
         if rows.size > _MAX_FLAG_MARKS:
             rows = rows[:: math.ceil(rows.size / _MAX_FLAG_MARKS)]
