@@ -108,3 +108,19 @@ def test_baseline_finding_nothing_is_no_internal_error(tmp_path):
     assert results["truth"]["amplitude"]["recall"] == 0.0
     assert results["truth"]["index_first"]["amplitude_only"] == 0
     assert np.isfinite(results["truth"]["index"]["recall"])
+
+
+def test_an_index_without_contrast_is_warned_about(tmp_path):
+    """Issue 14's corner (Q 400, 0.1 nm noise): the switch stays in loss on the sample; the report says so."""
+    path = _capture(tmp_path, 70e3, 400.0, 0.1, "continuous")
+    result = _run(path)
+    index = result.results["truth"]["index"]
+    print(f"Q 400, 0.1 nm: loss fraction {result.results['loss_fraction']:.2f}, "
+          f"on-sample flagged {index['on_sample_flagged_fraction']:.2f}")
+    assert result.results["loss_fraction"] > 0.5
+    assert any("reads probe loss" in w and "--decay-cycles" in w for w in result.warnings)
+
+
+def test_no_such_warning_when_the_index_works(tmp_path):
+    path = _capture(tmp_path, 70e3, 200.0, 0.05, "continuous")
+    assert not any("reads probe loss" in w for w in _run(path).warnings)

@@ -548,6 +548,26 @@ def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
     }
 
 
+#: A loss fraction above this gets :func:`_mostly_loss_warning`.
+MOSTLY_LOSS_FRACTION = 0.5
+
+
+def _mostly_loss_warning(loss_fraction: float) -> list[str]:
+    """A warning when the switch read loss most of the time: off the sample, or an index without contrast.
+
+    On the sample the index rises by about ΔA·π·c/(Q·σ) (module docstring of
+    :mod:`afmtool.estimators.reliability`): at high Q and noise it can stay below
+    the off threshold, and the switch then never leaves the loss it entered in
+    free air (issue 14: 91-96 % of on-sample time flagged at Q 300-400, 0.1 nm).
+    """
+    if not loss_fraction > MOSTLY_LOSS_FRACTION:
+        return []
+    return [f"the switch reads probe loss {100 * loss_fraction:.0f} % of the time: either the tip was off the sample "
+            "that long, or the index does not rise above its off threshold on the sample (its contrast falls as "
+            "Q x noise / amplitude change grows); check the index figure, and try a longer observer memory "
+            "(--decay-cycles) or --kalman"]
+
+
 def _event_results(index_events: Events, amp_events: Events, lead: np.ndarray, n_samples: int, fs: float,
                    limit: int) -> dict:
     """Loss fraction, the index events and their lead over the amplitude baseline."""
@@ -611,6 +631,7 @@ def run_probeloss(
         "sample_rate_hz": fs,
         **_event_results(index_events, amp_events, lead, state.n_samples, fs, params.max_events),
     }
+    warnings.extend(_mostly_loss_warning(results["loss_fraction"]))
     skipped = setup.amplitude_upper is None
     results["amplitude_baseline"]["skipped"] = skipped
     results["amplitude_baseline"]["loss_fraction"] = None if skipped else float(np.sum(amp_events.duration)) / state.n_samples
