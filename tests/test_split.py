@@ -90,6 +90,18 @@ def long_ltv(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def reference_capture(tmp_path_factory):
+    """0.1 s from tests/reference_sim.py (continuous three-sine drive, a step in f0 and Q): four chunks of 16,384 samples."""
+    from tests import reference_sim as rs
+
+    f0, q = 70e3, 200.0
+    cap = rs.simulate(f0_hz=f0, q=q, gain_nm_per_v=1.0, sample_rate_hz=500e3, duration_s=0.1,
+                      drive=rs.three_sine(f0, 6000.0, 20.0 / q, 0.5), noise_nm=0.05, seed=5, free_air_s=0.02,
+                      f0_of_t=lambda t: np.where(t < 0.05, f0, f0 - 350.0), q_of_t=lambda t: np.where(t < 0.05, q, q - 30.0))
+    return rs.write_capture_h5(tmp_path_factory.mktemp("split_ref") / "reference.h5", cap)
+
+
 CASES = {
     "reep": (lambda ltv: ltv, {}),
     "reep-offset": (lambda ltv: SAMPLE / "force_curve_thesis.h5", {"static_offset": True}),
@@ -97,6 +109,16 @@ CASES = {
     "decode": (lambda ltv: SAMPLE / "bits_30khz.h5", {"bit_rate_hz": 30000.0}),
     "kalman-bank": (lambda ltv: SAMPLE / "force_curve_thesis.h5", {}),
 }
+
+
+def test_split_equals_sequential_on_a_reference_capture(reference_capture, tmp_path):
+    """The same check on a capture afmtool did not simulate (continuous drive, tests/reference_sim.py)."""
+    _, sequential_path = _run("reep", reference_capture, tmp_path, None)
+    _, split_path = _run("reep", reference_capture, tmp_path, Split(jobs=2))
+    assert_same_run(split_path, sequential_path)
+    _, sequential_path = _run("probeloss", reference_capture, tmp_path, None, f0_hz=70e3, q=200.0)
+    _, split_path = _run("probeloss", reference_capture, tmp_path, Split(jobs=2), f0_hz=70e3, q=200.0)
+    assert_same_run(split_path, sequential_path)
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
