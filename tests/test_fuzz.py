@@ -90,6 +90,7 @@ def test_tdms_with_a_damaged_scaling_chain_is_an_input_error(tmp_path):
             list(iter_chunks(reader, reader.info.channel_names, 257))
 
 
+@pytest.mark.serial
 def test_ibw_with_a_huge_declared_section_is_refused_before_allocating(tmp_path):
     """Long run, ibw cases 1345, 1380 and 1392: a damaged section size made igor2 ask for
     gigabytes (7.7 GB RSS, and a worker killed as a hang); the header is now checked first."""

@@ -237,6 +237,7 @@ def test_compressed_chunks_are_each_read_once():
 
 
 @pytest.mark.slow
+@pytest.mark.serial
 def test_gzip_bomb_ends_within_10_s(tmp_path):
     path = tmp_path / "bomb.h5"
     n = 1 << 25  # 256 MiB of zeros in a few hundred kB
@@ -340,6 +341,7 @@ def _lock_is_held(lock: Path) -> bool:
 
 
 @pytest.mark.slow
+@pytest.mark.serial
 def test_two_concurrent_runs_one_succeeds_the_other_fails_at_once(tmp_path):
     long = tmp_path / "long.h5"
     assert run_cli("simulate", "ltv", "-o", long, "--set", "duration_s=0.6").returncode == 0
@@ -533,6 +535,7 @@ def compressed(tmp_path_factory) -> Path:
 
 
 @pytest.mark.slow
+@pytest.mark.serial
 def test_sigterm_at_random_points_ends_every_run_within_2_s(tmp_path, compressed):
     import signal
 

@@ -15,6 +15,9 @@ import pytest
 
 from tests.conftest import REPO, run_cli
 
+# Kill times are drawn against a measured full run: a second busy core would skew them.
+pytestmark = pytest.mark.serial
+
 KILLS = 20
 #: SIGKILLs in the swap test (issue 20 asks for 20 random points); their times are stratified so
 #: that both outcomes show in every run.
