@@ -119,6 +119,11 @@ def test_split_equals_sequential_on_a_reference_capture(reference_capture, tmp_p
     _, sequential_path = _run("probeloss", reference_capture, tmp_path, None, f0_hz=70e3, q=200.0)
     _, split_path = _run("probeloss", reference_capture, tmp_path, Split(jobs=2), f0_hz=70e3, q=200.0)
     assert_same_run(split_path, sequential_path)
+    # the coherent index's phasor is anchored at each chunk's stream position
+    coherent = {"f0_hz": 70e3, "q": 200.0, "index": "coherent", "window_periods": 1.5}
+    _, sequential_path = _run("probeloss", reference_capture, tmp_path, None, **coherent)
+    _, split_path = _run("probeloss", reference_capture, tmp_path, Split(jobs=2), **coherent)
+    assert_same_run(split_path, sequential_path)
 
 
 @pytest.mark.parametrize("case", sorted(CASES))

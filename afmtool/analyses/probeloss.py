@@ -101,6 +101,9 @@ class ProbeLossSetup:
         How the model was chosen and the drive's hold, for report.json.
     warnings : tuple of str
         Set-up warnings (route fallbacks, a skipped baseline).
+    drive_rad : float
+        0 for the RMS index, ω_d·T (rad per sample) for the coherent index
+        (:mod:`afmtool.estimators.reliability`).
     """
 
     model: FreeAirModel
@@ -118,6 +121,7 @@ class ProbeLossSetup:
     segment_s: tuple[float, float] | None
     route: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    drive_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -145,10 +149,16 @@ def _design(params: ProbeLossParams, model: FreeAirModel, fs: float, period_samp
     return ObserverDesign.from_decay(denominator, numerator, params.decay_cycles, period_samples)
 
 
-def _calibrate(params: ProbeLossParams, design, window: int, segment: FreeAirSegment | None):
+def _calibrate(params: ProbeLossParams, design, window: int, segment: FreeAirSegment | None, drive_rad: float):
     """Index level and thresholds: from the segment, or given."""
-    from afmtool.estimators.observer import ObserverState, observer_update
-    from afmtool.estimators.reliability import FreeAirCalibration, calibrate_index, check_thresholds, settle_samples
+    from afmtool.estimators.reliability import (
+        FreeAirCalibration,
+        ReliabilityState,
+        calibrate_index,
+        check_thresholds,
+        reliability_update,
+        settle_samples,
+    )
 
     on = params.on or None
     off = params.off or None
@@ -159,15 +169,17 @@ def _calibrate(params: ProbeLossParams, design, window: int, segment: FreeAirSeg
             )
         thresholds = check_thresholds(on, off)
         return FreeAirCalibration(params.index_level, thresholds, 0, math.nan, math.nan, math.nan, params.quantile)
-    step = observer_update(ObserverState.initial(design, window), segment.data["deflection"], segment.data["dither"])
+    # the detector itself with level 1 gives the un-normalised statistic (RMS or |X|) on the segment
+    unit = ReliabilityState.initial(design, window, 1.0, (1.0, 2.0), drive_rad=drive_rad)
+    statistic = reliability_update(unit, segment.data["deflection"], segment.data["dither"]).block.index
     skip = settle_samples(design, window)
-    if step.block.rms.size < skip + 16:
+    if statistic.size < skip + 16:
         raise InputError(
             f"free-air segment {segment.interval_s[0]:g}:{segment.interval_s[1]:g} s is shorter than the "
             f"observer's settling ({skip} samples) plus 16"
         )
     calibration = calibrate_index(
-        step.block.rms[skip:], on=on, off=off, quantile=params.quantile, off_ratio=params.off_ratio
+        statistic[skip:], on=on, off=off, quantile=params.quantile, off_ratio=params.off_ratio
     )
     if params.index_level:
         calibration = calibration._replace(level=params.index_level)
@@ -216,7 +228,8 @@ def prepare_probeloss(
     period = fs / drive_hz
     design = _design(params, model, fs, period)
     window = index_window(fs, drive_hz, params.window_periods)
-    calibration = _calibrate(params, design, window, segment)
+    drive_rad = 2.0 * math.pi * drive_hz / fs if params.index == "coherent" else 0.0
+    calibration = _calibrate(params, design, window, segment, drive_rad)
     sideband_offset_hz = reader.info.capture_metadata.drive.sideband_offset_hz
     lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, sideband_offset_hz)
     free_amplitude = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
@@ -230,7 +243,7 @@ def prepare_probeloss(
     decimate = params.decimate or max(1, round(period))
     setup = ProbeLossSetup(
         model, source, design, window, drive_hz, period, calibration, upper, free_amplitude, setpoint,
-        lowpass_hz, decimate, interval, route.report, tuple(warnings),
+        lowpass_hz, decimate, interval, route.report, tuple(warnings), drive_rad,
     )
     return setup, chunks
 
@@ -259,6 +272,7 @@ class ProbeLossKernels:
     every: int
     lockin: object
     lead_samples: int
+    drive_rad: float = 0.0
 
     @property
     def alignment(self) -> int:
@@ -266,12 +280,11 @@ class ProbeLossKernels:
 
     def estimate(self, lead: Chunk | None, chunk: Chunk):
         """``(ReliabilityBlock, amplitude)`` of ``chunk`` from the initial states warmed on ``lead``."""
-        from afmtool.estimators.observer import ObserverState
         from afmtool.estimators.reliability import ReliabilityState, reliability_update
 
         first = lead.start if lead is not None else chunk.start
-        detector = ReliabilityState(ObserverState.initial(self.design, self.window_samples), self.level,
-                                    self.thresholds, samples_seen=first)
+        detector = ReliabilityState.initial(self.design, self.window_samples, self.level, self.thresholds,
+                                            drive_rad=self.drive_rad, samples_seen=first)
         lock_state = self.lockin.initial_state(1, first)
         block = amplitude = None
         for part in (lead, chunk):
@@ -309,7 +322,6 @@ class ProbeLossStage:
     def prepare(self, head: Head) -> None:
         """Detectors and counters at their initial state."""
         from afmtool.estimators.lockin import LockIn
-        from afmtool.estimators.observer import ObserverState
         from afmtool.estimators.reliability import ReliabilityState
 
         setup = self.setup
@@ -317,10 +329,9 @@ class ProbeLossStage:
             raise RuntimeError("ProbeLossStage runs with prologue=stage.free_air_prologue (the free-air setup)")
         self.side = head.side
         self.decimation = Decimation(setup.decimate)
-        self.detector = ReliabilityState(
-            ObserverState.initial(setup.design, setup.window_samples),
-            float(setup.calibration.level),
-            setup.calibration.thresholds,
+        self.detector = ReliabilityState.initial(
+            setup.design, setup.window_samples, float(setup.calibration.level), setup.calibration.thresholds,
+            drive_rad=setup.drive_rad,
         )
         self.lockin = LockIn(setup.drive_hz, self.fs, setup.lowpass_hz)
         self.lock_state = self.lockin.initial_state(1)
@@ -360,7 +371,7 @@ class ProbeLossStage:
             return None
         lead = max(settle_samples(setup.design, setup.window_samples, DEFAULT_RESIDUAL), lockin_lead)
         return ProbeLossKernels(setup.design, setup.window_samples, float(setup.calibration.level),
-                                tuple(setup.calibration.thresholds), setup.decimate, self.lockin, lead)
+                                tuple(setup.calibration.thresholds), setup.decimate, self.lockin, lead, setup.drive_rad)
 
     def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
         """Everything after the kernels, in capture order: the switch's true state, events, baseline, images."""
@@ -531,6 +542,7 @@ def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
             "window_samples": setup.window_samples,
         },
         "index": {
+            "kind": params.index,
             "level": calibration.level,
             "on": calibration.thresholds.on,
             "off": calibration.thresholds.off,
@@ -564,8 +576,8 @@ def _mostly_loss_warning(loss_fraction: float) -> list[str]:
         return []
     return [f"the switch reads probe loss {100 * loss_fraction:.0f} % of the time: either the tip was off the sample "
             "that long, or the index does not rise above its off threshold on the sample (its contrast falls as "
-            "Q x noise / amplitude change grows); check the index figure, and try a longer observer memory "
-            "(--decay-cycles) or --kalman"]
+            "Q x noise / amplitude change grows); check the index figure, and try the coherent index "
+            "(--index coherent --window-periods 1.5), a longer observer memory (--decay-cycles) or --kalman"]
 
 
 def _event_results(index_events: Events, amp_events: Events, lead: np.ndarray, n_samples: int, fs: float,

@@ -244,6 +244,13 @@ class ProbeLossParams:
     measurement_noise: float = field(
         0.0, "Kalman design: measurement noise rms (> 0)", "deflection units", bounds=">= 0", flag="--measurement-noise"
     )
+    index: str = field(
+        "rms",
+        "Reliability index: the innovation's window RMS (thesis), or its coherent amplitude at the drive "
+        "(reads loss at high Q x noise, with --window-periods 1.5)",
+        choices=("rms", "coherent"),
+        flag="--index",
+    )
     window_periods: float = field(
         1.0, "Reliability-index window (RMS of the innovation)", "drive periods", bounds="> 0", flag="--window-periods"
     )
