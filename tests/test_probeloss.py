@@ -183,6 +183,35 @@ def test_reliability_is_observer_rms_over_level_and_streams(rng):
     np.testing.assert_array_equal(np.concatenate(parts), whole.block.index)
 
 
+def test_coherent_index_matches_naive_demodulation_and_streams(rng):
+    """index(n) = |(2/W) Σ_W e(k) e^{−jω_d k}|/ρ_fa, k from the stream's start, against a naive loop."""
+    y, g = _free_air_signals(rng, 6000)
+    n = np.arange(y.size)
+    y = y + 0.3 * np.sin(2 * np.pi * F0 / FS * n + 0.4)  # a drive-frequency part the model does not explain
+    design = _design()
+    window = round(1.5 * FS / F0)
+    drive_rad = 2 * np.pi * F0 / FS
+    state = ReliabilityState.initial(design, window, 0.5, (1.0, 2.0), drive_rad=drive_rad)
+    whole = reliability_update(state, y, g)
+    e = observer_update(ObserverState.initial(design, window), y, g).block.innovation
+    naive = np.empty(y.size)
+    for k in range(y.size):
+        lo = max(0, k - window + 1)
+        phasor = np.exp(-1j * drive_rad * np.arange(lo, k + 1))
+        naive[k] = abs(2.0 / (k + 1 - lo) * np.sum(e[lo:k + 1] * phasor)) / 0.5
+    np.testing.assert_allclose(whole.block.index, naive, rtol=1e-9, atol=1e-12)
+    parts = []
+    for chunk in np.array_split(np.arange(y.size), [3, 1000, 1001, 4500]):
+        step = reliability_update(state, y[chunk], g[chunk])
+        parts.append(step.block.index)
+        state = step.state
+    np.testing.assert_allclose(np.concatenate(parts), whole.block.index, rtol=1e-10, atol=1e-13)
+    with pytest.raises(ConfigError, match="row"):
+        ReliabilityState(ObserverState.initial(design, window), 1.0, (1.0, 2.0), drive_rad=drive_rad)
+    with pytest.raises(ConfigError, match="drive_rad"):
+        ReliabilityState.initial(design, window, 1.0, (1.0, 2.0), drive_rad=4.0)
+
+
 def test_settle_samples_bounds_the_start_up_transient(rng):
     """After settle_samples the window RMS no longer depends on the observer's initial estimate."""
     y, g = _free_air_signals(rng, 3000)

@@ -246,13 +246,13 @@ class ProbeLossParams:
     )
     index: str = field(
         "rms",
-        "Reliability index: the innovation's window RMS (thesis), or its coherent amplitude at the drive "
-        "(reads loss at high Q x noise, with --window-periods 1.5)",
+        "Reliability index: the innovation's window RMS (thesis), or its amplitude at the drive, "
+        "demodulated over the window (keeps its contrast at high Q x noise; with --window-periods 1.5)",
         choices=("rms", "coherent"),
         flag="--index",
     )
     window_periods: float = field(
-        1.0, "Reliability-index window (RMS of the innovation)", "drive periods", bounds="> 0", flag="--window-periods"
+        1.0, "Reliability-index window (RMS or demodulation)", "drive periods", bounds="> 0", flag="--window-periods"
     )
     index_level: float = field(
         0.0,
