@@ -184,8 +184,10 @@ def test_peak_memory_does_not_grow_with_the_capture(case, monkeypatch):
     ratio = peaks[LONG] / peaks[SHORT]
     print(f"{case}: peak {peaks[SHORT] / 1e6:.2f} MB at {SHORT:,} samples, {peaks[LONG] / 1e6:.2f} MB at {LONG:,}: "
           f"ratio {ratio:.3f}")
-    # a kept record would be 16 MB per channel at 2e6 samples
-    assert ratio < 1.5
+    # a kept record would be 16 MB per channel at 2e6 samples.  Where the peak is a few tens of kB
+    # (info), tracemalloc also counts what other threads allocate meanwhile (pytest-xdist's channel
+    # to its controller: +30 kB once in CI), so a growth under 1 MB passes whatever its ratio
+    assert ratio < 1.5 or peaks[LONG] - peaks[SHORT] < 1e6
     assert peaks[LONG] < 8e6
 
 
