@@ -17,7 +17,10 @@ owns what every command used to write by hand:
 - with a :class:`Split`, running the stages' kernels on several chunks at
   once (local threads or a Dask cluster), each chunk's kernels started
   from a fresh state a warm-up ahead of it (:class:`ChunkKernels`), and the
-  rest of each stage in capture order.
+  rest of each stage in capture order.  On a Dask cluster each task reads
+  its chunk and warm-up from the shared file itself when the reader offers
+  random access (:mod:`afmtool.io.ranges`: HDF5 and the views over it);
+  otherwise the samples travel with the task.
 
 This is the only module outside :mod:`afmtool.io` that calls
 ``iter_chunks`` or ``prefetch`` (``tests/test_architecture.py`` checks it).
@@ -41,6 +44,7 @@ from afmtool.estimators.decimation import Decimation
 from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.chunks import iter_chunks
 from afmtool.io.prefetch import prefetch
+from afmtool.io.ranges import RangeSource, range_source
 
 __all__ = [
     "ChunkKernels",
@@ -360,14 +364,17 @@ def run_stream(
         if read_ahead:
             stream = prefetch(stream, read_ahead)
         del head, first  # the stream hands the first chunk on once; keep no reference for the whole run
+        # a Dask worker reads its own chunk and warm-up from the shared file when the reader allows it
+        ranges = range_source(reader) if split is not None and split.scheduler is not None else None
         try:
-            _run_chunks(stream, stages, sink, progress, split)
+            _run_chunks(stream, stages, sink, progress, split, ranges)
         finally:
             stream.close()  # stops the read-ahead thread when a stage raised
         return [stage.finish() for stage in stages]
 
 
-def _run_chunks(stream: Iterator[Chunk], stages: Sequence[Stage], sink, progress, split: Split | None) -> None:
+def _run_chunks(stream: Iterator[Chunk], stages: Sequence[Stage], sink, progress, split: Split | None,
+                ranges: RangeSource | None = None) -> None:
     """Every chunk through the stages, sequentially or split; the merged columns to the sink."""
     kernels = _split_kernels(stages, split)
 
@@ -381,7 +388,7 @@ def _run_chunks(stream: Iterator[Chunk], stages: Sequence[Stage], sink, progress
         for chunk in stream:
             deliver(_merge(stages, chunk), chunk.start + len(chunk))
     else:
-        _run_split(stream, stages, kernels, split, deliver)
+        _run_split(stream, stages, kernels, split, deliver, ranges)
 
 
 def _split_kernels(stages: Sequence[Stage], split: Split | None) -> list[ChunkKernels] | None:
@@ -439,9 +446,20 @@ def _executor(split: Split):
     return submit, client.close
 
 
+def _estimate_from_ranges(kernels: ChunkKernels, ranges: RangeSource, channels: tuple[str, ...], first: int,
+                          start: int, stop: int) -> Any:
+    """``kernels.estimate`` of samples [start, stop), warmed on [first, start), read here from ``ranges``."""
+    data = ranges.read(channels, first, stop)
+    lead = Chunk(first, {name: values[:start - first] for name, values in data.items()}) if first < start else None
+    return kernels.estimate(lead, Chunk(start, {name: values[start - first:] for name, values in data.items()}))
+
+
 def _run_split(stream: Iterator[Chunk], stages: Sequence[Stage], kernels: Sequence[ChunkKernels], split: Split,
-               deliver: Callable[[Mapping[str, np.ndarray], int], None]) -> None:
-    """Kernels of up to ``jobs`` chunks at once, each warmed on its lead; ``account`` in capture order."""
+               deliver: Callable[[Mapping[str, np.ndarray], int], None], ranges: RangeSource | None = None) -> None:
+    """Kernels of up to ``jobs`` chunks at once, each warmed on its lead; ``account`` in capture order.
+
+    With ``ranges`` each task gets only sample indices and reads its samples itself.
+    """
     keep = max(k.lead_samples + k.alignment for k in kernels)
     tail = _Tail(keep)
     submit, close = _executor(split)
@@ -460,8 +478,12 @@ def _run_split(stream: Iterator[Chunk], stages: Sequence[Stage], kernels: Sequen
         for chunk in stream:
             futures = []
             for k in kernels:
-                lead = tail.lead(lead_start(chunk.start, k.lead_samples, k.alignment), chunk.start)
-                futures.append(submit(k.estimate, lead, chunk))
+                first = lead_start(chunk.start, k.lead_samples, k.alignment)
+                if ranges is not None:
+                    futures.append(submit(_estimate_from_ranges, k, ranges, tuple(chunk.data), first, chunk.start,
+                                          chunk.start + len(chunk)))
+                else:
+                    futures.append(submit(k.estimate, tail.lead(first, chunk.start), chunk))
             pending.append((chunk, futures))
             tail.push(chunk)
             if len(pending) > depth:

@@ -19,6 +19,7 @@ import signal
 import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -354,6 +355,10 @@ class Hdf5Reader(ReaderBase):
                     raise InputError(f"{self._path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
             yield Chunk(start, data)
 
+    def ranges(self) -> Hdf5Ranges:
+        """The channels' datasets by path, for a worker that reads its own ranges (:mod:`afmtool.io.ranges`)."""
+        return Hdf5Ranges(str(self._path), {name: ds.name for name, ds in self._datasets.items()})
+
     def truth(self) -> dict[str, np.ndarray]:
         try:
             return {name: ds[()] for name, ds in self._truth.items()}
@@ -365,6 +370,32 @@ class Hdf5Reader(ReaderBase):
         # teardown, so no finaliser runs libhdf5 later.
         self._datasets, self._truth = {}, {}
         self._file.close()
+
+
+@dataclass(frozen=True)
+class Hdf5Ranges:
+    """Samples [start, stop) of an HDF5 capture's channels, read by whoever holds this (a Dask worker).
+
+    ``datasets`` maps each channel to the dataset path :class:`Hdf5Reader`
+    resolved and checked when it opened the file; the values are read into
+    float64 exactly as its chunks are.
+    """
+
+    path: str
+    datasets: Mapping[str, str]
+
+    def read(self, channels: Sequence[str], start: int, stop: int) -> dict[str, np.ndarray]:
+        out = {}
+        with _open_h5(Path(self.path)) as h5:
+            for name in channels:
+                buffer = np.empty(stop - start, dtype=np.float64)
+                if stop > start:
+                    try:
+                        h5[self.datasets[name]].read_direct(buffer, np.s_[start:stop])
+                    except (OSError, RuntimeError, ValueError, KeyError) as exc:
+                        raise InputError(f"{self.path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
+                out[name] = buffer
+        return out
 
 
 class _ChunkWindow:

@@ -266,6 +266,13 @@ class UnitsReader(ReaderBase):
                 chunk = Chunk(chunk.start, data)
             yield chunk
 
+    def ranges(self):
+        """The source's ranges, scaled as :meth:`blocks` scales them (:mod:`afmtool.io.ranges`)."""
+        from afmtool.io.ranges import ScaledRanges, range_source
+
+        source = range_source(self._reader)
+        return None if source is None else ScaledRanges(source, dict(self._factors))
+
     def truth(self):
         return self._reader.truth()
 

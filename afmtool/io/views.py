@@ -114,6 +114,13 @@ class SegmentView(ReaderBase):
             if hi >= stop:
                 break
 
+    def ranges(self):
+        """The source's ranges from the segment's first sample (:mod:`afmtool.io.ranges`)."""
+        from afmtool.io.ranges import OffsetRanges, range_source
+
+        source = range_source(self._reader)
+        return None if source is None else OffsetRanges(source, self._segment.start)
+
     def truth(self) -> dict:
         return {}
 
