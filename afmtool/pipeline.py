@@ -364,17 +364,15 @@ def run_stream(
         if read_ahead:
             stream = prefetch(stream, read_ahead)
         del head, first  # the stream hands the first chunk on once; keep no reference for the whole run
-        # a Dask worker reads its own chunk and warm-up from the shared file when the reader allows it
-        ranges = range_source(reader) if split is not None and split.scheduler is not None else None
         try:
-            _run_chunks(stream, stages, sink, progress, split, ranges)
+            _run_chunks(stream, stages, sink, progress, split, reader)
         finally:
             stream.close()  # stops the read-ahead thread when a stage raised
         return [stage.finish() for stage in stages]
 
 
 def _run_chunks(stream: Iterator[Chunk], stages: Sequence[Stage], sink, progress, split: Split | None,
-                ranges: RangeSource | None = None) -> None:
+                reader: CaptureReader | None = None) -> None:
     """Every chunk through the stages, sequentially or split; the merged columns to the sink."""
     kernels = _split_kernels(stages, split)
 
@@ -388,6 +386,8 @@ def _run_chunks(stream: Iterator[Chunk], stages: Sequence[Stage], sink, progress
         for chunk in stream:
             deliver(_merge(stages, chunk), chunk.start + len(chunk))
     else:
+        # a Dask worker reads its own chunk and warm-up from the shared file when the reader allows it
+        ranges = range_source(reader) if reader is not None and split.scheduler is not None else None
         _run_split(stream, stages, kernels, split, deliver, ranges)
 
 

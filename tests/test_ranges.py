@@ -2,8 +2,8 @@
 
 A range read through :func:`afmtool.io.ranges.range_source` must give exactly the values the chunks
 carry, through every view that can sit over an HDF5 capture (a metadata segment, units converted by
-``--invols`` and ``--units``); a Dask split run must send sample indices, not samples, and still equal
-the sequential run.
+``--invols`` and ``--units``).  tests/test_split.py checks that a Dask split run sends sample indices,
+not samples, and still equals the sequential run.
 """
 
 from __future__ import annotations
@@ -13,14 +13,11 @@ import pickle
 
 import h5py
 import numpy as np
-import pytest
 
 from afmtool.io.hdf5 import Hdf5Ranges
 from afmtool.io.ranges import OffsetRanges, ScaledRanges, range_source
 from afmtool.io.registry import open_capture
 from afmtool.io.units import Calibration, UnitsReader
-from afmtool.pipeline import Split
-from tests.test_split import CASES, _run, assert_same_run, dask_cluster, long_ltv  # noqa: F401 (fixtures)
 
 
 def _segmented_capture(path, rng):
@@ -71,29 +68,3 @@ def test_no_range_source_without_random_access(tmp_path, rng):
     csv.write_text("# sample_rate_hz: 1000\ndeflection,dither\n" + "".join(f"{i},{-i}\n" for i in range(50)))
     with open_capture(csv) as reader:
         assert range_source(reader) is None
-
-
-@pytest.mark.slow
-def test_dask_workers_read_their_own_samples(long_ltv, tmp_path, dask_cluster, monkeypatch):  # noqa: F811
-    """On a cluster the tasks carry sample indices only, and the run still equals the sequential one."""
-    import afmtool.pipeline as pipeline
-
-    sent = []
-    executor = pipeline._executor
-
-    def spying(split):
-        submit, close = executor(split)
-
-        def record(fn, /, *args):
-            sent.append((fn.__name__, [a for a in args if isinstance(a, np.ndarray) or hasattr(a, "data")]))
-            return submit(fn, *args)
-
-        return record, close
-
-    monkeypatch.setattr(pipeline, "_executor", spying)
-    capture_of, flags = CASES["reep"]
-    _, sequential_path = _run("reep", capture_of(long_ltv), tmp_path, None, **flags)
-    _, split_path = _run("reep", capture_of(long_ltv), tmp_path, Split(jobs=2, scheduler=dask_cluster), **flags)
-    assert_same_run(split_path, sequential_path)
-    assert len(sent) > 2
-    assert all(name == "_estimate_from_ranges" and not samples for name, samples in sent)

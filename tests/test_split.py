@@ -212,3 +212,29 @@ def test_cli_jobs_and_scheduler(long_ltv, tmp_path):
     assert bad.returncode == 2
     assert len(bad.stderr.decode().strip().splitlines()) == 1 and "Dask scheduler" in bad.stderr.decode()
     assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.slow
+def test_dask_workers_read_their_own_samples(long_ltv, tmp_path, dask_cluster, monkeypatch):
+    """On a cluster the tasks carry sample indices only, and the run still equals the sequential one."""
+    import afmtool.pipeline as pipeline
+
+    sent = []
+    executor = pipeline._executor
+
+    def spying(split):
+        submit, close = executor(split)
+
+        def record(fn, /, *args):
+            sent.append((fn.__name__, [a for a in args if isinstance(a, np.ndarray) or hasattr(a, "data")]))
+            return submit(fn, *args)
+
+        return record, close
+
+    monkeypatch.setattr(pipeline, "_executor", spying)
+    capture_of, flags = CASES["reep"]
+    _, sequential_path = _run("reep", capture_of(long_ltv), tmp_path, None, **flags)
+    _, split_path = _run("reep", capture_of(long_ltv), tmp_path, Split(jobs=2, scheduler=dask_cluster), **flags)
+    assert_same_run(split_path, sequential_path)
+    assert len(sent) > 2
+    assert all(name == "_estimate_from_ranges" and not samples for name, samples in sent)
