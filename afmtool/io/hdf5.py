@@ -357,7 +357,8 @@ class Hdf5Reader(ReaderBase):
 
     def ranges(self) -> Hdf5Ranges:
         """The channels' datasets by path, for a worker that reads its own ranges (:mod:`afmtool.io.ranges`)."""
-        return Hdf5Ranges(str(self._path), {name: ds.name for name, ds in self._datasets.items()})
+        # absolute: a worker runs in its own directory
+        return Hdf5Ranges(str(self._path.resolve()), {name: ds.name for name, ds in self._datasets.items()})
 
     def truth(self) -> dict[str, np.ndarray]:
         try:
