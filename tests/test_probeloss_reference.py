@@ -122,6 +122,37 @@ def test_coherent_index_meets_item_4_where_the_rms_index_does_not(tmp_path, f0_h
     assert rms["time_precision"] < 0.9 or rms["on_sample_flagged_fraction"] > 0.02
 
 
+#: The on-sample amplitude of these captures (the sample sits 12 nm from the rest position), nm.
+SETPOINT_NM = 12.0
+
+
+@pytest.mark.parametrize(("f0_hz", "q", "noise_nm", "hold", "chosen"), [
+    (70e3, 300.0, 0.08, "continuous", "coherent"),
+    (70e3, 200.0, 0.1, "continuous", "coherent"),
+    (110e3, 100.0, 0.1, "zoh", "coherent"),
+    (90e3, 350.0, 0.03, "continuous", "coherent"),
+    (70e3, 200.0, 0.05, "continuous", "rms"),
+    (50e3, 150.0, 0.07, "continuous", "rms"),
+])
+def test_auto_index_from_the_set_point_meets_item_4(tmp_path, f0_hz, q, noise_nm, hold, chosen):
+    """Given the set point, the default ``--index auto`` predicts the RMS index's on-sample contrast from
+    A0 − A_sp, Q and the free-air innovation level, and runs the coherent index where it would stay below
+    the off threshold; item 4's four numbers hold either way."""
+    path = _capture(tmp_path, f0_hz, q, noise_nm, hold)
+    result = _run(path, setpoint=SETPOINT_NM)
+    index = result.results["index"]
+    print(f"\n{f0_hz:g} Hz Q {q:g} noise {noise_nm} {hold}: {index['kind']} ({index['choice']['reason']})\n  "
+          f"{_scores(result.results['truth']['index'])}")
+    assert index["kind"] == index["choice"]["kind"] == chosen
+    _assert_item_4(result.results["truth"]["index"])
+
+
+def test_auto_index_without_a_set_point_is_the_thesis_index(tmp_path):
+    path = _capture(tmp_path, 70e3, 300.0, 0.08, "continuous")
+    index = _run(path).results["index"]
+    assert index["kind"] == "rms" and "unknown" in index["choice"]["reason"]
+
+
 @pytest.mark.parametrize(("f0_hz", "q", "hold"), [(70e3, 400.0, "continuous"), (50e3, 300.0, "zoh")])
 def test_coherent_index_at_the_far_corner_is_short_of_item_4(tmp_path, f0_hz, q, hold):
     """Q 300-400 with 0.1 nm of noise: the coherent index no longer stays in loss on the sample (the RMS

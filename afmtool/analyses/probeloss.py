@@ -104,6 +104,8 @@ class ProbeLossSetup:
     drive_rad : float
         0 for the RMS index, ω_d·T (rad per sample) for the coherent index
         (:mod:`afmtool.estimators.reliability`).
+    index_choice : dict
+        Which index runs and why (:func:`_choose_index`), for report.json.
     """
 
     model: FreeAirModel
@@ -122,6 +124,7 @@ class ProbeLossSetup:
     route: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
     drive_rad: float = 0.0
+    index_choice: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -199,14 +202,53 @@ def _free_amplitude(segment: FreeAirSegment | None, drive_hz: float, fs: float, 
     return float(np.mean(amplitude[skip:]))
 
 
+#: Window of the coherent index when ``index = "auto"`` chooses it, drive periods: at one period
+#: its Rayleigh tail (0.999 quantile 2.6) leaves it no better than the RMS index (reliability docstring).
+AUTO_COHERENT_WINDOW_PERIODS = 1.5
+
+
+def _setpoint(params: ProbeLossParams, reader: CaptureReader) -> float | None:
+    """A_sp from ``--setpoint`` or metadata ``controller.setpoint_nm``, deflection units; None if neither."""
+    value = params.setpoint or reader.info.capture_metadata.controller.setpoint_nm
+    return None if value is None else float(value)
+
+
+def _choose_index(params: ProbeLossParams, q: float, design, period: float, rms_calibration, free_amplitude,
+                  setpoint) -> dict:
+    """Which index runs, and why (``results.index.choice``).
+
+    ``auto`` keeps the thesis's RMS index unless the amplitude the sample takes
+    away is known (A0 from the free-air segment, A_sp from the set point) and
+    the RMS index it predicts on the sample
+    (:func:`~afmtool.estimators.reliability.predicted_rms_index`) stays below
+    the off threshold: the switch would then never leave loss on the sample,
+    and the coherent index, linear in the contrast, runs instead.
+    """
+    from afmtool.estimators.reliability import predicted_rms_index
+
+    if params.index != "auto":
+        return {"kind": params.index, "reason": "--index"}
+    if free_amplitude is None or setpoint is None or not 0 < setpoint < free_amplitude:
+        return {"kind": "rms", "reason": "the thesis's index; A0 or A_sp unknown, so its on-sample contrast cannot be predicted"}
+    radius = float(np.max(np.abs(design.error_poles)))
+    predicted = predicted_rms_index(free_amplitude - setpoint, q, rms_calibration.level, radius, period)
+    off = rms_calibration.thresholds.off
+    record = {"predicted_rms_index_on_sample": predicted, "rms_off_threshold": off}
+    if predicted >= off:
+        return {"kind": "rms", "reason": f"the RMS index is predicted to read {predicted:.2f} on the sample, above its "
+                                         f"off threshold {off:.2f}", **record}
+    return {"kind": "coherent", "reason": f"the RMS index is predicted to read only {predicted:.2f} on the sample, "
+                                          f"below its off threshold {off:.2f} (high Q x noise / amplitude change)",
+            **record}
+
+
 def _amplitude_upper(params: ProbeLossParams, reader: CaptureReader, free_amplitude: float | None):
     if params.amplitude_upper:
         return params.amplitude_upper, None
-    setpoint = params.setpoint or reader.info.capture_metadata.controller.setpoint_nm
+    setpoint = _setpoint(params, reader)
     if setpoint is None or free_amplitude is None:
         # the baseline is only a comparison: without A_upper the index still runs
         return None, None
-    setpoint = float(setpoint)
     # A_upper = A_sp + fraction·(A0 − A_sp)
     return setpoint + params.upper_fraction * (free_amplitude - setpoint), setpoint
 
@@ -227,13 +269,19 @@ def prepare_probeloss(
     interval = segment.interval_s if segment is not None else None
     period = fs / drive_hz
     design = _design(params, model, fs, period)
-    window = index_window(fs, drive_hz, params.window_periods)
-    drive_rad = 2.0 * math.pi * drive_hz / fs if params.index == "coherent" else 0.0
-    calibration = _calibrate(params, design, window, segment, drive_rad)
     sideband_offset_hz = reader.info.capture_metadata.drive.sideband_offset_hz
     lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, sideband_offset_hz)
     free_amplitude = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
     upper, setpoint = _amplitude_upper(params, reader, free_amplitude)
+    window = index_window(fs, drive_hz, params.window_periods)
+    calibration = _calibrate(params, design, window, segment, 0.0)
+    index = _choose_index(params, model.q, design, period, calibration, free_amplitude, _setpoint(params, reader))
+    drive_rad = 0.0
+    if index["kind"] == "coherent":
+        drive_rad = 2.0 * math.pi * drive_hz / fs
+        if params.index == "auto":
+            window = index_window(fs, drive_hz, AUTO_COHERENT_WINDOW_PERIODS)
+        calibration = _calibrate(params, design, window, segment, drive_rad)
     warnings = list(route.warnings)
     if upper is None:
         warnings.append(
@@ -243,7 +291,7 @@ def prepare_probeloss(
     decimate = params.decimate or max(1, round(period))
     setup = ProbeLossSetup(
         model, source, design, window, drive_hz, period, calibration, upper, free_amplitude, setpoint,
-        lowpass_hz, decimate, interval, route.report, tuple(warnings), drive_rad,
+        lowpass_hz, decimate, interval, route.report, tuple(warnings), drive_rad, index,
     )
     return setup, chunks
 
@@ -542,7 +590,8 @@ def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
             "window_samples": setup.window_samples,
         },
         "index": {
-            "kind": params.index,
+            "kind": "coherent" if setup.drive_rad else "rms",
+            "choice": setup.index_choice,
             "level": calibration.level,
             "on": calibration.thresholds.on,
             "off": calibration.thresholds.off,
@@ -577,7 +626,8 @@ def _mostly_loss_warning(loss_fraction: float) -> list[str]:
     return [f"the switch reads probe loss {100 * loss_fraction:.0f} % of the time: either the tip was off the sample "
             "that long, or the index does not rise above its off threshold on the sample (its contrast falls as "
             "Q x noise / amplitude change grows); check the index figure, and try the coherent index "
-            "(--index coherent --window-periods 1.5), a longer observer memory (--decay-cycles) or --kalman"]
+            "(--index coherent --window-periods 1.5, or give --setpoint and --index auto chooses it where it "
+            "is needed), a longer observer memory (--decay-cycles) or --kalman"]
 
 
 def _event_results(index_events: Events, amp_events: Events, lead: np.ndarray, n_samples: int, fs: float,

@@ -245,10 +245,11 @@ class ProbeLossParams:
         0.0, "Kalman design: measurement noise rms (> 0)", "deflection units", bounds=">= 0", flag="--measurement-noise"
     )
     index: str = field(
-        "rms",
+        "auto",
         "Reliability index: the innovation's window RMS (thesis), or its amplitude at the drive, "
-        "demodulated over the window (keeps its contrast at high Q x noise; with --window-periods 1.5)",
-        choices=("rms", "coherent"),
+        "demodulated over the window (keeps its contrast at high Q x noise; with --window-periods 1.5); "
+        "auto = coherent (1.5 periods) where A0 and the set point predict too little RMS contrast",
+        choices=("auto", "rms", "coherent"),
         flag="--index",
     )
     window_periods: float = field(

@@ -117,6 +117,7 @@ __all__ = [
     "FreeAirCalibration",
     "calibrate_index",
     "index_window",
+    "predicted_rms_index",
     "settle_samples",
     "HysteresisStep",
     "hysteresis_update",
@@ -226,6 +227,37 @@ def settle_samples(design: ObserverDesign, window_samples: int, residual: float 
     radius = float(np.max(np.abs(design.error_poles)))
     decay = 0 if radius == 0.0 else math.ceil(math.log(residual) / math.log(radius))
     return int(decay + window_samples)
+
+
+def predicted_rms_index(amplitude_deficit: float, q: float, level: float, error_radius: float,
+                        period_samples: float) -> float:
+    """The RMS index expected on the sample, from the amplitude the tip-sample force takes away.
+
+    For a steady oscillation the innovation's part at the drive has amplitude
+    (module docstring)::
+
+        |e| ≈ ΔA·τ_obs/τ_cant = ΔA·π·τ_obs/Q,    τ_obs = −1/(ln r · fs/f_d) drive periods
+
+    and the index is √(ρ_fa² + |e|²/2)/ρ_fa = √(1 + C²/2) with C = |e|/ρ_fa.
+    Measured on the single-tone reference captures the index reads 1.3-1.6×
+    this (the impacts add harmonics), so it errs towards "no contrast".
+
+    Parameters
+    ----------
+    amplitude_deficit : float
+        ΔA = A0 − A_sp, deflection units.
+    q : float
+        Free-air quality factor.
+    level : float
+        ρ_fa, the free-air innovation RMS, deflection units.
+    error_radius : float
+        r, the largest modulus of the observer's error poles, in (0, 1).
+    period_samples : float
+        fs/f_d, samples per drive period.
+    """
+    tau_periods = -1.0 / (math.log(error_radius) * period_samples)
+    contrast = abs(amplitude_deficit) * math.pi * tau_periods / (q * level)
+    return math.sqrt(1.0 + 0.5 * contrast * contrast)
 
 
 def _check_threshold(name: str, value) -> float | None:
