@@ -133,17 +133,23 @@ SETPOINT_NM = 12.0
     (90e3, 350.0, 0.03, "continuous", "coherent"),
     (70e3, 200.0, 0.05, "continuous", "rms"),
     (50e3, 150.0, 0.07, "continuous", "rms"),
+    (70e3, 100.0, 0.03, "continuous", "rms"),  # and a shorter observer memory (3.2 periods of latency at 1)
 ])
 def test_auto_index_from_the_set_point_meets_item_4(tmp_path, f0_hz, q, noise_nm, hold, chosen):
     """Given the set point, the default ``--index auto`` predicts the RMS index's on-sample contrast from
     A0 − A_sp, Q and the free-air innovation level, and runs the coherent index where it would stay below
-    the off threshold; item 4's four numbers hold either way."""
+    the off threshold; where it has contrast to spare, the default ``--decay-cycles 0`` shortens the
+    observer's memory.  Item 4's four numbers hold in every case."""
     path = _capture(tmp_path, f0_hz, q, noise_nm, hold)
     result = _run(path, setpoint=SETPOINT_NM)
     index = result.results["index"]
     print(f"\n{f0_hz:g} Hz Q {q:g} noise {noise_nm} {hold}: {index['kind']} ({index['choice']['reason']})\n  "
           f"{_scores(result.results['truth']['index'])}")
     assert index["kind"] == index["choice"]["kind"] == chosen
+    decay = result.results["observer"]["decay_cycles"]
+    assert (decay < 1.0) == ("decay_cycles" in index["choice"])
+    if q == 100.0 and noise_nm == 0.03:
+        assert decay == 0.5
     _assert_item_4(result.results["truth"]["index"])
 
 

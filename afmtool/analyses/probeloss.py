@@ -141,7 +141,7 @@ class ProbeLossResult(JsonResults):
 # --------------------------------------------------------------------------- set-up
 
 
-def _design(params: ProbeLossParams, model: FreeAirModel, fs: float, period_samples: float):
+def _design(params: ProbeLossParams, model: FreeAirModel, fs: float, period_samples: float, decay_cycles: float):
     from afmtool.estimators.observer import ObserverDesign
 
     denominator, numerator = model.denominator_at(fs), model.numerator_at(fs)
@@ -149,7 +149,7 @@ def _design(params: ProbeLossParams, model: FreeAirModel, fs: float, period_samp
         return ObserverDesign.from_kalman(
             denominator, numerator, params.process_noise, params.measurement_noise, input_gain=model.gain
         )
-    return ObserverDesign.from_decay(denominator, numerator, params.decay_cycles, period_samples)
+    return ObserverDesign.from_decay(denominator, numerator, decay_cycles, period_samples)
 
 
 def _calibrate(params: ProbeLossParams, design, window: int, segment: FreeAirSegment | None, drive_rad: float):
@@ -202,6 +202,12 @@ def _free_amplitude(segment: FreeAirSegment | None, drive_hz: float, fs: float, 
     return float(np.mean(amplitude[skip:]))
 
 
+#: The observer's error time constant when ``decay_cycles = 0`` (auto), drive periods.
+DEFAULT_DECAY_CYCLES = 1.0
+#: Auto: the shortest time constant it may choose, drive periods, and the on-sample RMS index it aims
+#: at, as a multiple of the off threshold (the index reads 1.3-1.6x its prediction; tests/test_probeloss_reference.py).
+AUTO_MIN_DECAY_CYCLES = 0.5
+AUTO_TARGET_OFF_RATIO = 1.5
 #: Window of the coherent index when ``index = "auto"`` chooses it, drive periods: at one period
 #: its Rayleigh tail (0.999 quantile 2.6) leaves it no better than the RMS index (reliability docstring).
 AUTO_COHERENT_WINDOW_PERIODS = 1.5
@@ -253,12 +259,58 @@ def _amplitude_upper(params: ProbeLossParams, reader: CaptureReader, free_amplit
     return setpoint + params.upper_fraction * (free_amplitude - setpoint), setpoint
 
 
+def _auto_decay_cycles(params: ProbeLossParams, choice: dict, cycles: float) -> float | None:
+    """A shorter observer memory where the RMS index has contrast to spare (``decay_cycles = 0``), else None.
+
+    The index falls to ``on`` after the tip leaves in about τ_obs·ln(index/on):
+    at Q 100 with 0.03 nm of noise it reads 12 on the sample and takes 3.2
+    drive periods.  The contrast C grows as τ_obs (:func:`~afmtool.estimators.reliability.predicted_rms_index`),
+    so τ_obs is cut in proportion until the predicted index is
+    ``AUTO_TARGET_OFF_RATIO`` × off, down to ``AUTO_MIN_DECAY_CYCLES``.
+    """
+    predicted = choice.get("predicted_rms_index_on_sample")
+    if params.decay_cycles or params.gain != "decay" or choice["kind"] != "rms" or predicted is None:
+        return None
+    target = AUTO_TARGET_OFF_RATIO * choice["rms_off_threshold"]
+    if predicted <= target:
+        return None
+    # index = √(1 + C²/2) with C ∝ τ_obs: the C that reads ``target``, over the C per drive period now
+    shorter = cycles * math.sqrt(2.0 * (target * target - 1.0)) / math.sqrt(2.0 * (predicted * predicted - 1.0))
+    return max(AUTO_MIN_DECAY_CYCLES, shorter)
+
+
+def _detector(params: ProbeLossParams, model: FreeAirModel, fs: float, drive_hz: float,
+              segment: FreeAirSegment | None, free_amplitude: float | None, setpoint: float | None):
+    """The observer, index window, calibration, demodulation angle and index choice, as ``params`` ask."""
+    from afmtool.estimators.reliability import index_window
+
+    period = fs / drive_hz
+    cycles = params.decay_cycles or DEFAULT_DECAY_CYCLES
+    design = _design(params, model, fs, period, cycles)
+    window = index_window(fs, drive_hz, params.window_periods)
+    calibration = _calibrate(params, design, window, segment, 0.0)
+    choice = _choose_index(params, model.q, design, period, calibration, free_amplitude, setpoint)
+    shorter = _auto_decay_cycles(params, choice, cycles)
+    if shorter is not None:
+        choice = {**choice, "decay_cycles": shorter, "decay_cycles_reason":
+                  f"the RMS index has contrast to spare ({choice['predicted_rms_index_on_sample']:.1f} predicted on the "
+                  f"sample); a shorter observer memory reads loss sooner"}
+        design = _design(params, model, fs, period, shorter)
+        calibration = _calibrate(params, design, window, segment, 0.0)
+    drive_rad = 0.0
+    if choice["kind"] == "coherent":
+        drive_rad = 2.0 * math.pi * drive_hz / fs
+        if params.index == "auto":
+            window = index_window(fs, drive_hz, AUTO_COHERENT_WINDOW_PERIODS)
+        calibration = _calibrate(params, design, window, segment, drive_rad)
+    return design, window, calibration, drive_rad, choice
+
+
 def prepare_probeloss(
     reader: CaptureReader, params: ProbeLossParams, chunks: Iterator[Chunk], model: FreeAirModel | None
 ) -> tuple[ProbeLossSetup, Iterator[Chunk]]:
     """Read the free-air segment ahead and fix the model, observer, index level, thresholds and A_upper."""
     from afmtool.estimators.lockin import default_lowpass_hz
-    from afmtool.estimators.reliability import index_window
 
     fs = reader.info.sample_rate_hz
     route, chunks = resolve_free_air(
@@ -268,20 +320,13 @@ def prepare_probeloss(
     model, source, segment, drive_hz = route.model, route.route, route.segment, route.drive_hz
     interval = segment.interval_s if segment is not None else None
     period = fs / drive_hz
-    design = _design(params, model, fs, period)
     sideband_offset_hz = reader.info.capture_metadata.drive.sideband_offset_hz
     lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, sideband_offset_hz)
     free_amplitude = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
     upper, setpoint = _amplitude_upper(params, reader, free_amplitude)
-    window = index_window(fs, drive_hz, params.window_periods)
-    calibration = _calibrate(params, design, window, segment, 0.0)
-    index = _choose_index(params, model.q, design, period, calibration, free_amplitude, _setpoint(params, reader))
-    drive_rad = 0.0
-    if index["kind"] == "coherent":
-        drive_rad = 2.0 * math.pi * drive_hz / fs
-        if params.index == "auto":
-            window = index_window(fs, drive_hz, AUTO_COHERENT_WINDOW_PERIODS)
-        calibration = _calibrate(params, design, window, segment, drive_rad)
+    design, window, calibration, drive_rad, index = _detector(
+        params, model, fs, drive_hz, segment, free_amplitude, _setpoint(params, reader)
+    )
     warnings = list(route.warnings)
     if upper is None:
         warnings.append(
@@ -585,6 +630,8 @@ def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
         "decimate": setup.decimate,
         "observer": {
             "gain_design": params.gain,
+            "decay_cycles": (setup.index_choice.get("decay_cycles", params.decay_cycles or DEFAULT_DECAY_CYCLES)
+                             if params.gain == "decay" else None),
             "gain": list(setup.design.gain),
             "error_pole_radius": float(np.max(np.abs(setup.design.error_poles))),
             "window_samples": setup.window_samples,

@@ -232,7 +232,12 @@ class ProbeLossParams:
         "decay", "Observer gain: error decay in decay_cycles, or steady-state Kalman", choices=("decay", "kalman")
     )
     decay_cycles: float = field(
-        1.0, "Decay design: time constant of the observer error", "drive periods", bounds="> 0", flag="--decay-cycles"
+        0.0,
+        "Decay design: time constant of the observer error; 0 = 1, or shorter (down to 0.5) where A0 and the "
+        "set point predict contrast to spare",
+        "drive periods",
+        bounds=">= 0",
+        flag="--decay-cycles",
     )
     process_noise: float = field(
         0.0,
