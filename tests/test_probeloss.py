@@ -9,6 +9,7 @@ the index's lead over the amplitude threshold.
 from __future__ import annotations
 
 import json
+import math
 
 import h5py
 import numpy as np
@@ -210,6 +211,18 @@ def test_coherent_index_matches_naive_demodulation_and_streams(rng):
         ReliabilityState(ObserverState.initial(design, window), 1.0, (1.0, 2.0), drive_rad=drive_rad)
     with pytest.raises(ConfigError, match="drive_rad"):
         ReliabilityState.initial(design, window, 1.0, (1.0, 2.0), drive_rad=4.0)
+
+
+def test_predicted_rms_index():
+    from afmtool.estimators.reliability import predicted_rms_index
+
+    period = 500e3 / 70e3
+    radius = math.exp(-1.0 / period)  # an error time constant of one drive period
+    contrast = 18.0 * math.pi * 1.0 / (400.0 * 0.1)  # C = ΔA·π·τ/(Q·ρ_fa), τ in drive periods
+    assert predicted_rms_index(18.0, 400.0, 0.1, radius, period) == pytest.approx(math.sqrt(1 + contrast**2 / 2))
+    assert predicted_rms_index(18.0, 400.0, 0.1, 0.0, period) == 1.0  # dead-beat: no memory
+    with pytest.raises(ConfigError):
+        predicted_rms_index(18.0, 400.0, 0.1, 1.0, period)
 
 
 def test_settle_samples_bounds_the_start_up_transient(rng):

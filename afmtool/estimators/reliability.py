@@ -251,11 +251,14 @@ def predicted_rms_index(amplitude_deficit: float, q: float, level: float, error_
     level : float
         ρ_fa, the free-air innovation RMS, deflection units.
     error_radius : float
-        r, the largest modulus of the observer's error poles, in (0, 1).
+        r, the largest modulus of the observer's error poles, in [0, 1).
     period_samples : float
         fs/f_d, samples per drive period.
     """
-    tau_periods = -1.0 / (math.log(error_radius) * period_samples)
+    if not error_radius < 1.0:
+        raise ConfigError(f"error_radius={error_radius!r} must be < 1 (a stable observer)")
+    # a dead-beat observer (r = 0) forgets at once: no memory, no build-up of the contrast
+    tau_periods = -1.0 / (math.log(error_radius) * period_samples) if error_radius > 0 else 0.0
     contrast = abs(amplitude_deficit) * math.pi * tau_periods / (q * level)
     return math.sqrt(1.0 + 0.5 * contrast * contrast)
 
