@@ -485,7 +485,8 @@ def _run_split(stream: Iterator[Chunk], stages: Sequence[Stage], kernels: Sequen
                 else:
                     futures.append(submit(k.estimate, tail.lead(first, chunk.start), chunk))
             pending.append((chunk, futures))
-            tail.push(chunk)
+            if ranges is None:  # the workers read their warm-ups themselves otherwise
+                tail.push(chunk)
             if len(pending) > depth:
                 account_oldest()
         while pending:

@@ -232,8 +232,8 @@ def _choose_index(params: ProbeLossParams, q: float, design, period: float, rms_
     """
     from afmtool.estimators.reliability import predicted_rms_index
 
-    if params.index != "auto":
-        return {"kind": params.index, "reason": "--index"}
+    if params.index == "rms":
+        return {"kind": "rms", "reason": "--index"}
     if free_amplitude is None or setpoint is None or not 0 < setpoint < free_amplitude:
         return {"kind": "rms", "reason": "the thesis's index; A0 or A_sp unknown, so its on-sample contrast cannot be predicted"}
     radius = float(np.max(np.abs(design.error_poles)))
@@ -285,9 +285,13 @@ def _detector(params: ProbeLossParams, model: FreeAirModel, fs: float, drive_hz:
     from afmtool.estimators.reliability import index_window
 
     period = fs / drive_hz
+    coherent_rad = 2.0 * math.pi * drive_hz / fs
     cycles = params.decay_cycles or DEFAULT_DECAY_CYCLES
     design = _design(params, model, fs, period, cycles)
     window = index_window(fs, drive_hz, params.window_periods)
+    if params.index == "coherent":  # nothing to choose: one calibration, of the coherent index
+        calibration = _calibrate(params, design, window, segment, coherent_rad)
+        return design, window, calibration, coherent_rad, {"kind": "coherent", "reason": "--index"}
     calibration = _calibrate(params, design, window, segment, 0.0)
     choice = _choose_index(params, model.q, design, period, calibration, free_amplitude, setpoint)
     shorter = _auto_decay_cycles(params, choice, cycles)
@@ -297,13 +301,11 @@ def _detector(params: ProbeLossParams, model: FreeAirModel, fs: float, drive_hz:
                   f"sample); a shorter observer memory reads loss sooner"}
         design = _design(params, model, fs, period, shorter)
         calibration = _calibrate(params, design, window, segment, 0.0)
-    drive_rad = 0.0
-    if choice["kind"] == "coherent":
-        drive_rad = 2.0 * math.pi * drive_hz / fs
-        if params.index == "auto":
-            window = index_window(fs, drive_hz, AUTO_COHERENT_WINDOW_PERIODS)
-        calibration = _calibrate(params, design, window, segment, drive_rad)
-    return design, window, calibration, drive_rad, choice
+    if choice["kind"] != "coherent":
+        return design, window, calibration, 0.0, choice
+    window = index_window(fs, drive_hz, AUTO_COHERENT_WINDOW_PERIODS)
+    calibration = _calibrate(params, design, window, segment, coherent_rad)
+    return design, window, calibration, coherent_rad, choice
 
 
 def prepare_probeloss(

@@ -88,6 +88,7 @@ chunked runs equal one call bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -594,8 +595,9 @@ class ReliabilityState:
         samples_seen : int, optional
             Stream position of the first sample the detector will see.
         """
-        rows = 2 if drive_rad else 1
-        observer = ObserverState(design, ObserverState.initial(design, 1).estimate, WindowState.initial(rows, window_samples))
+        observer = ObserverState.initial(design, window_samples)
+        if drive_rad:  # the coherent index sums the real and imaginary parts: two rows
+            observer = dataclasses.replace(observer, window=WindowState.initial(2, window_samples))
         return cls(observer, float(level), thresholds, samples_seen=samples_seen, drive_rad=float(drive_rad))
 
     def __post_init__(self) -> None:
