@@ -50,7 +50,8 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
         if reep_results is not None:
             inputs.append(input_record(reep_results.path, "reep series"))
         with OutputDir(run.out) as staged:
-            with MatrixResultWriter(staged.path("bank.h5"), units, {"afmtool_command": "kalman-bank"}) as writer:
+            with MatrixResultWriter(staged.path("bank.h5"), units, {"afmtool_command": "kalman-bank"},
+                                    write_behind=True) as writer:
                 result = run_kalman_bank(
                     reader, params, writer, model=model, reep_results=reep_results, reopen=run.reopen,
                     progress=run.progress, split=run.split,

@@ -35,7 +35,8 @@ def run_probeloss_command(run: CommandRun) -> dict:
     model = given_free_air_model(params.model)
     capture_record = run.input_record()
     with OutputDir(run.out) as staged:
-        with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"}) as writer:
+        with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"},
+                          write_behind=True) as writer:
             result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split)
             _write_images(staged, writer, result)
         results = dict(result.results)
