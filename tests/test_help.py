@@ -99,3 +99,17 @@ def test_help_imports_no_scipy_numba_matplotlib():
         result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
         marker = [line for line in result.stderr.splitlines() if line.startswith("HEAVY=")]
         assert marker == ["HEAVY="], (argv, result.stderr[-500:])
+
+
+def test_a_command_does_not_import_the_help_renderer():
+    """typer's rich help module (0.12-0.17 s of rich markdown, traceback, pretty) loads only for help or a usage error."""
+    script = (
+        "import sys\n"
+        "sys.argv = ['afmtool', '--version']\n"
+        "from afmtool.cli.main import main\n"
+        "try:\n    main()\nexcept SystemExit:\n    pass\n"
+        "print('LOADED=' + str('typer.rich_utils' in sys.modules), file=sys.stderr)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "TERMINAL_WIDTH"}
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120)
+    assert "LOADED=False" in result.stderr.splitlines(), result.stderr[-500:]

@@ -17,7 +17,9 @@ Nothing here imports scipy, numba or matplotlib: ``afmtool --help`` stays fast.
 
 from __future__ import annotations
 
+import os
 import shutil
+import sys
 from collections.abc import Mapping
 
 __all__ = ["PANELS", "EXAMPLES", "arrange_help", "panel_of"]
@@ -119,8 +121,24 @@ def _walk(command, path: str, settings: Mapping) -> None:
 
 def arrange_help(root) -> None:
     """Panels, flag metavars, examples on every command under ``root``; the help's width."""
-    import typer.rich_utils
-
-    if typer.rich_utils.MAX_WIDTH is None:  # TERMINAL_WIDTH, when set, still wins
-        typer.rich_utils.MAX_WIDTH = shutil.get_terminal_size(fallback=(120, 24)).columns
+    _set_help_width()
     _walk(root, "", dict(root.context_settings or {}))
+
+
+def _set_help_width() -> None:
+    """Give typer's rich help the terminal's width, without importing it.
+
+    typer reads ``TERMINAL_WIDTH`` once, when its help module is imported,
+    which happens only for ``--help`` or a usage error.  Importing that module
+    here to set its width cost every command 0.12-0.17 s (rich's markdown,
+    traceback and pretty-printing modules).  A ``TERMINAL_WIDTH`` the user
+    set still wins; the one set here is inherited by child processes, which
+    share the terminal.
+    """
+    rich_utils = sys.modules.get("typer.rich_utils")
+    if rich_utils is not None:  # already imported (a test, an embedding program): set it directly
+        if rich_utils.MAX_WIDTH is None:
+            rich_utils.MAX_WIDTH = shutil.get_terminal_size(fallback=(120, 24)).columns
+        return
+    if not os.environ.get("TERMINAL_WIDTH"):
+        os.environ["TERMINAL_WIDTH"] = str(shutil.get_terminal_size(fallback=(120, 24)).columns)
