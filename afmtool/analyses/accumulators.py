@@ -119,34 +119,19 @@ class ForceCurveAccumulator:
         self._last_direction = 0
 
     def add(self, z: np.ndarray, values: Mapping[str, np.ndarray]) -> None:
+        """Add a chunk's samples to their bins (:mod:`afmtool.estimators.force_curve_bins` defines which)."""
+        from afmtool.estimators.force_curve_bins import force_curve_legs, leg_sums
+
         z = np.asarray(z, dtype=np.float64)
         if len(z) == 0:
             return
-        previous = np.concatenate([[self._last_z], z[:-1]])
-        step = np.sign(z - previous)
-        step[~np.isfinite(step)] = 0
-        # hold the last direction through flat stretches (forward fill)
-        last_nonzero = np.maximum.accumulate(np.where(step != 0, np.arange(len(step)), -1))
-        direction = np.where(last_nonzero >= 0, step[np.maximum(last_nonzero, 0)], self._last_direction)
-        if self._approach_sign == 0 and np.any(direction != 0):
-            self._approach_sign = int(direction[np.flatnonzero(direction)[0]])
-        self._last_z = float(z[-1])
-        self._last_direction = int(direction[-1])
-        if self._approach_sign == 0:
-            return
-        leg = np.where(direction == self._approach_sign, 0, 1)
-        index = np.floor(z / self.z_bin).astype(np.int64)
-        stacked = np.vstack([np.ones(len(z))] + [np.asarray(values[n], dtype=np.float64) for n in self.names])
+        stacked = np.vstack([np.asarray(values[n], dtype=np.float64) for n in self.names])
+        legs = force_curve_legs(z, stacked, self.z_bin, self._last_z, self._last_direction, self._approach_sign)
+        self._last_z, self._last_direction, self._approach_sign = float(z[-1]), legs.last_direction, legs.approach_sign
         for which in (0, 1):
-            mask = (leg == which) & (direction != 0) & np.all(np.isfinite(stacked), axis=0)
-            if not mask.any():
-                continue
-            unique, inverse = np.unique(index[mask], return_inverse=True)
-            sums = np.zeros((len(self.names) + 1, len(unique)))
-            for row in range(stacked.shape[0]):
-                sums[row] = np.bincount(inverse, weights=stacked[row, mask], minlength=len(unique))
+            keys, sums = leg_sums(legs, stacked, which)
             bins = self._bins[which]
-            for k, b in enumerate(unique):
+            for k, b in enumerate(keys.tolist()):
                 if b in bins:
                     bins[b] += sums[:, k]
                 else:
