@@ -136,6 +136,19 @@ def test_reep_command_writes_outputs(tmp_path, ltv_constant):
         assert len(f["t"]) == 15_000 // decimate
     assert report["results"]["window_samples"] == pytest.approx(100.0)
     assert report["results"]["window_us"] == pytest.approx(200.0)
+    # the segment statistics are gathered in the stream; they equal those read back from reep.h5
+    from afmtool.analyses.reep_timeseries import segment_statistics
+
+    results = report["results"]
+    read_back = segment_statistics(out / "reep.h5", results["summary_after_warmup_samples"] / FS,
+                                   results["free_air_segment_s"])
+    assert set(results["segments"]) == {"free_air", "after_free_air"} == set(read_back)
+    for segment, stats in read_back.items():
+        assert results["segments"][segment]["t_s"] == pytest.approx(stats["t_s"], rel=1e-12)
+        for name in ("f0_hz", "q"):
+            assert results["segments"][segment][name]["count"] == stats[name]["count"] > 0
+            assert results["segments"][segment][name]["mean"] == pytest.approx(stats[name]["mean"], rel=1e-12)
+            assert results["segments"][segment][name]["std"] == pytest.approx(stats[name]["std"], rel=1e-9)
 
 
 def test_single_sine_warns_not_persistently_exciting():

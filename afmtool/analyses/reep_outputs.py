@@ -69,10 +69,11 @@ def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, 
 def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, deflection_units: str) -> dict:
     """``reep_time_series.png`` and the results read back from the finished reep.h5.
 
-    ``segments``: f0', Q' in and after the free-air segment; with ``/truth``
-    f0_hz and q, ``truth_tracking``: the error against them after the warm-up.
+    With ``/truth`` f0_hz and q, ``truth_tracking``: the error against them
+    after the warm-up.  (``segments``, f0' and Q' in and after the free-air
+    segment, come from the stream: ``run_reep``.)
     """
-    from afmtool.analyses.reep_timeseries import segment_statistics, tracking_error, write_reep_time_series_png
+    from afmtool.analyses.reep_timeseries import tracking_error, write_reep_time_series_png
 
     fs = reader.info.sample_rate_hz
     warmup_s = result.results["summary_after_warmup_samples"] / fs
@@ -82,7 +83,7 @@ def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, d
     truth = {}
     if any(name in reader.info.truth_names for name in wanted):
         truth = {name: values for name, values in reader.truth().items() if name in wanted}
-    out: dict = {"segments": segment_statistics(reep_h5, warmup_s, segment)}
+    out: dict = {}
     tracking = tracking_error(reep_h5, truth, fs, warmup_s)
     if tracking is not None:
         out["truth_tracking"] = tracking

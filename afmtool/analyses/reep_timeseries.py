@@ -25,6 +25,7 @@ from afmtool.io.result_files import FLAG_COLUMN, MAX_PLOT_POINTS, open_result_fi
 
 __all__ = [
     "MAX_PLOT_POINTS",
+    "SegmentMoments",
     "MAX_PERCENTILE_POINTS",
     "FLAG_COLUMN",
     "segment_statistics",
@@ -68,6 +69,44 @@ class _Moments:
         return {"mean": self.mean, "std": std, "count": self.count}
 
 
+class SegmentMoments:
+    """Mean and standard deviation of f0' (Hz) and Q' per time segment, fed block by block in time order.
+
+    :func:`segment_statistics` reads a finished reep.h5 through it;
+    ``run_reep`` feeds it the rows as they stream, so the command need not
+    read the file back.  The parameters are those of :func:`segment_statistics`.
+    """
+
+    def __init__(self, warmup_s: float, free_air_segment_s: tuple[float, float] | None) -> None:
+        if free_air_segment_s:
+            start, end = (float(v) for v in free_air_segment_s)
+            # after the segment, REEP needs the same settling as at the start to forget the change
+            self.bounds = {"free_air": (max(start, warmup_s), end), "after_free_air": (end + warmup_s, math.inf)}
+        else:
+            self.bounds = {"settled": (warmup_s, math.inf)}
+        self.moments = {seg: {"f0_hz": _Moments(), "q": _Moments()} for seg in self.bounds}
+        self.last_t: float | None = None
+
+    def add(self, t: np.ndarray, f0_hz: np.ndarray, q: np.ndarray) -> None:
+        """Rows at times ``t`` (s), with flagged rows NaN in ``f0_hz`` and ``q``."""
+        for seg, (t0, t1) in self.bounds.items():
+            inside = (t >= t0) & (t < t1)
+            self.moments[seg]["f0_hz"].add(f0_hz[inside])
+            self.moments[seg]["q"].add(q[inside])
+        if len(t):
+            self.last_t = float(t[-1])
+
+    def as_dict(self) -> dict:
+        """``{segment: {"t_s": [start, end], "f0_hz": {...}, "q": {...}}}`` (:func:`segment_statistics`)."""
+        out = {}
+        for seg, (t0, t1) in self.bounds.items():
+            if self.moments[seg]["f0_hz"].count == 0:
+                continue
+            end = self.last_t if math.isinf(t1) else t1
+            out[seg] = {"t_s": [t0, end], **{name: m.as_dict() for name, m in self.moments[seg].items()}}
+        return out
+
+
 def segment_statistics(
     reep_h5: Path, warmup_s: float, free_air_segment_s: tuple[float, float] | None
 ) -> dict:
@@ -95,31 +134,12 @@ def segment_statistics(
         spread, not the error of the mean).  Rows flagged in reep.h5's
         ``flag`` column (0 = valid) are left out, as the summary leaves them.
     """
-    if free_air_segment_s:
-        start, end = (float(v) for v in free_air_segment_s)
-        # after the segment, REEP needs the same settling as at the start to forget the change
-        bounds = {"free_air": (max(start, warmup_s), end), "after_free_air": (end + warmup_s, math.inf)}
-    else:
-        bounds = {"settled": (warmup_s, math.inf)}
-    moments = {seg: {"f0_hz": _Moments(), "q": _Moments()} for seg in bounds}
-    last_t = None
+    moments = SegmentMoments(warmup_s, free_air_segment_s)
     with _open(reep_h5) as reep:
         for start_row, t in reep.blocks("t"):
-            stop_row = start_row + len(t)
-            columns = {name: reep.trusted(name, slice(start_row, stop_row)) for name in ("f0_hz", "q")}
-            for seg, (t0, t1) in bounds.items():
-                inside = (t >= t0) & (t < t1)
-                for name, values in columns.items():
-                    moments[seg][name].add(values[inside])
-            if len(t):
-                last_t = float(t[-1])
-    out = {}
-    for seg, (t0, t1) in bounds.items():
-        if moments[seg]["f0_hz"].count == 0:
-            continue
-        end = last_t if math.isinf(t1) else t1
-        out[seg] = {"t_s": [t0, end], **{name: m.as_dict() for name, m in moments[seg].items()}}
-    return out
+            rows = slice(start_row, start_row + len(t))
+            moments.add(t, reep.trusted("f0_hz", rows), reep.trusted("q", rows))
+    return moments.as_dict()
 
 
 def _percentiles(values: np.ndarray) -> dict:
