@@ -24,6 +24,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from afmtool.estimators._common import JIT_OPTIONS
+
 __all__ = ["ChunkLegs", "force_curve_legs", "leg_sums"]
 
 #: Largest dense bin range per chunk, as a multiple of its samples; a wider one (an outlier z) is summed sparsely.
@@ -42,7 +44,7 @@ class ChunkLegs(NamedTuple):
     approach_sign: int
 
 
-@njit(cache=True)
+@njit(**JIT_OPTIONS)
 def _legs_kernel(z, values, z_bin, last_z, last_direction, approach_sign):
     n = z.shape[0]
     m = values.shape[0]
@@ -79,7 +81,7 @@ def _legs_kernel(z, values, z_bin, last_z, last_direction, approach_sign):
     return leg, bin_index, lo, hi, direction, approach_sign
 
 
-@njit(cache=True)
+@njit(**JIT_OPTIONS)
 def _dense_sums_kernel(leg, bin_index, values, which, lo, n_bins):
     m = values.shape[0]
     sums = np.zeros((m + 1, n_bins))
