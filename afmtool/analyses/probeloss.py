@@ -274,8 +274,8 @@ def _auto_decay_cycles(params: ProbeLossParams, choice: dict, cycles: float) -> 
     target = AUTO_TARGET_OFF_RATIO * choice["rms_off_threshold"]
     if predicted <= target:
         return None
-    # index = √(1 + C²/2) with C ∝ τ_obs: the C that reads ``target``, over the C per drive period now
-    shorter = cycles * math.sqrt(2.0 * (target * target - 1.0)) / math.sqrt(2.0 * (predicted * predicted - 1.0))
+    # index = √(1 + C²/2) with C ∝ τ_obs: scale τ_obs by C(target)/C(predicted)
+    shorter = cycles * math.sqrt((target * target - 1.0) / (predicted * predicted - 1.0))
     return max(AUTO_MIN_DECAY_CYCLES, shorter)
 
 

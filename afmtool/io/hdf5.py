@@ -352,7 +352,7 @@ class Hdf5Reader(ReaderBase):
                 try:
                     data[name] = windows[name].read(start, stop)
                 except (OSError, RuntimeError, ValueError) as exc:
-                    raise InputError(f"{self._path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
+                    raise _unreadable(self._path, name, start, exc) from None
             yield Chunk(start, data)
 
     def ranges(self) -> Hdf5Ranges:
@@ -389,14 +389,23 @@ class Hdf5Ranges:
         out = {}
         with _open_h5(Path(self.path)) as h5:
             for name in channels:
-                buffer = np.empty(stop - start, dtype=np.float64)
-                if stop > start:
-                    try:
-                        h5[self.datasets[name]].read_direct(buffer, np.s_[start:stop])
-                    except (OSError, RuntimeError, ValueError, KeyError) as exc:
-                        raise InputError(f"{self.path}: cannot read {name} at sample {start} ({_first_line(exc)})") from None
-                out[name] = buffer
+                try:
+                    out[name] = _read_float64(h5[self.datasets[name]], start, stop)
+                except (OSError, RuntimeError, ValueError, KeyError) as exc:
+                    raise _unreadable(self.path, name, start, exc) from None
         return out
+
+
+def _read_float64(dataset: h5py.Dataset, start: int, stop: int) -> np.ndarray:
+    """Samples [start, stop) of ``dataset`` as float64 (libhdf5 converts the stored type)."""
+    buffer = np.empty(stop - start, dtype=np.float64)
+    if stop > start:
+        dataset.read_direct(buffer, np.s_[start:stop])
+    return buffer
+
+
+def _unreadable(path, name: str, start: int, exc: BaseException) -> InputError:
+    return InputError(f"{path}: cannot read {name} at sample {start} ({_first_line(exc)})")
 
 
 class _ChunkWindow:
@@ -417,10 +426,7 @@ class _ChunkWindow:
         self._buffer = np.empty(0, dtype=np.float64)
 
     def _read(self, start: int, stop: int) -> np.ndarray:
-        buffer = np.empty(stop - start, dtype=np.float64)
-        if stop > start:
-            self._dataset.read_direct(buffer, np.s_[start:stop])
-        return buffer
+        return _read_float64(self._dataset, start, stop)
 
     def read(self, start: int, stop: int) -> np.ndarray:
         if not self._chunk:
