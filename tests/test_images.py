@@ -476,3 +476,27 @@ def test_pending_path_for_open_close_writers(tmp_path):
     aborted.abort()
     aborted.abort()
     assert _listing(tmp_path) == ["c.h5"]
+
+
+@pytest.mark.filterwarnings("ignore:All-NaN slice")
+def test_line_envelope_keeps_each_runs_extremes_in_order(rng):
+    from afmtool.report.images import line_envelope
+
+    n, bins = 100_000, 1000
+    x = np.arange(n) / 1e3
+    y = rng.standard_normal(n)
+    y[54_321] = 40.0  # a spike one sample wide: every-k-th thinning would drop it
+    y[10_000:10_500] = np.nan  # five whole runs flagged: a gap
+    ex, ey = line_envelope(x, y, bins)
+    assert ex.size == 2 * bins and np.all(np.diff(ex) >= 0)
+    runs = y.reshape(bins, n // bins)
+    np.testing.assert_array_equal(ey.reshape(bins, 2).min(axis=1), np.nanmin(runs, axis=1))
+    np.testing.assert_array_equal(ey.reshape(bins, 2).max(axis=1), np.nanmax(runs, axis=1))
+    assert 40.0 in ey and np.isnan(ey[200:210]).all()
+    # the values are the line's own points, at their x
+    finite = np.isfinite(ey)
+    np.testing.assert_array_equal(y[np.rint(ex[finite] * 1e3).astype(int)], ey[finite])
+    # short lines, and lines whose x turns back (approach then retract), are drawn whole
+    assert line_envelope(x[:4000], y[:4000], bins)[0].size == 4000
+    back = np.r_[x, x[::-1]]
+    assert line_envelope(back, np.r_[y, y], bins)[0].size == 2 * n

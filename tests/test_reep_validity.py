@@ -196,3 +196,58 @@ def test_offset_drift_is_chunk_independent_and_measures_the_window_variance(rng)
     expected = 0.01**2 * lam_out / (1 - lam_out) ** 2
     assert np.all(np.isfinite(whole))
     assert abs(whole[-1] / expected - 1) < 0.01
+
+
+@pytest.mark.parametrize("with_offset", [True, False])
+@pytest.mark.parametrize("levels_known", [True, False])
+def test_reep_rows_equals_the_steps_one_after_the_other(rng, with_offset, levels_known):
+    """The fused pass against eq. 3.48, c/(1 + b1 + b0), OffsetDrift and validity_flags, bit for bit."""
+    from afmtool.estimators.reep_validity import reep_rows
+    from afmtool.models.discretisation import resonance_from_denominator
+
+    fs, lam, keep, n = 500e3, 0.995, 6, 5000
+    b0 = 0.998 + 0.003 * rng.standard_normal(n)  # some above 1: not under-damped
+    b1 = -2.0 * np.sqrt(np.abs(b0)) * np.cos(2 * np.pi * 70e3 / fs) + 0.002 * rng.standard_normal(n)
+    b1[17], b0[18] = np.nan, np.nan
+    c = 0.3 * (1.0 + b1 + b0) + 0.02 * np.cumsum(rng.standard_normal(n)) * (1.0 + b1 + b0)
+    c[40] = np.nan
+    sigma2 = 0.0025 * np.exp(rng.standard_normal(n))
+    sigma2[:5] = np.nan
+    amplitude = 5.0 * np.exp(0.5 * rng.standard_normal(n))
+    levels = FreeAirLevels(5.0, 0.0025, "free-air segment") if levels_known else FreeAirLevels(None, None, "none")
+    limits = ValidityLimits(0.3, 2.0, 0.01)
+
+    f0, q, valid = resonance_from_denominator(b1, b0, fs)
+    offset = c / (1.0 + b1 + b0) if with_offset else None
+    variance = OffsetDrift(lam, keep)(offset) if with_offset else None
+    flags = validity_flags(valid, amplitude, sigma2, levels, limits, variance)
+
+    drift = OffsetDrift(lam, keep) if with_offset else None
+    cuts = (0, 1, 999, 2500, n)
+    parts = [
+        reep_rows(b1[a:b], b0[a:b], c[a:b] if with_offset else None, sigma2[a:b], amplitude[a:b], fs, levels, limits,
+                  drift)
+        for a, b in zip(cuts[:-1], cuts[1:])
+    ]
+    np.testing.assert_array_equal(np.concatenate([p.f0_hz for p in parts]), f0)
+    np.testing.assert_array_equal(np.concatenate([p.q for p in parts]), q)
+    np.testing.assert_array_equal(np.concatenate([p.flags for p in parts]), flags)
+    if with_offset:
+        np.testing.assert_array_equal(np.concatenate([p.offset for p in parts]), offset)
+    else:
+        assert all(p.offset is None for p in parts)
+    # the case exercises every check that is on
+    expected_bits = FLAG_NOT_UNDERDAMPED | (FLAG_LOW_AMPLITUDE | FLAG_HIGH_SIGMA2 if levels_known else 0)
+    assert np.bitwise_or.reduce(flags) == expected_bits | (FLAG_OFFSET_DRIFT if with_offset else 0)
+
+
+def test_flag_counter_counts_each_bit(rng):
+    from afmtool.estimators.reep_validity import FlagCounter
+
+    flags = rng.integers(0, 16, 1000).astype(np.uint8)
+    counter = FlagCounter()
+    counter.add(flags[:300])
+    counter.add(flags[300:])
+    assert counter.total == 1000 and counter.flagged == np.count_nonzero(flags)
+    for bit in (FLAG_NOT_UNDERDAMPED, FLAG_LOW_AMPLITUDE, FLAG_HIGH_SIGMA2, FLAG_OFFSET_DRIFT):
+        assert counter.by_bit[bit] == np.count_nonzero(flags & bit)

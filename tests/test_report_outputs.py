@@ -438,7 +438,7 @@ def test_headline_and_first_figure_above_the_fold(runs, batch_folder, run, tmp_p
 def test_reep_rows_flagged_in_reep_h5_are_left_out_and_marked(tmp_path):
     import h5py
 
-    from afmtool.analyses.reep_timeseries import _read_thinned, segment_statistics, tracking_error
+    from afmtool.analyses.reep_timeseries import read_thinned, segment_statistics, tracking_error
 
     fs, n = 500_000.0, 4000
     t = (np.arange(n) * 7 + 6) / fs
@@ -457,5 +457,34 @@ def test_reep_rows_flagged_in_reep_h5_are_left_out_and_marked(tmp_path):
     truth = {"f0_hz": np.full(n * 7 + 7, 70_000.0), "q": np.full(n * 7 + 7, 200.0)}
     error = tracking_error(path, truth, fs, 0.0)
     assert error["f0_hz"]["p95_abs"] == 0.0 and error["rows_compared"] == n - 100
-    marked = _read_thinned(path, ("f0_hz",))
+    marked = read_thinned(path, ("f0_hz",))
     np.testing.assert_array_equal(marked.flagged_t, t[1000:1100])
+
+
+@pytest.mark.parametrize("expected_rows", [None, 10_000, 50_001])
+def test_thinned_rows_in_the_stream_are_every_kth_row_and_the_flagged_rows(rng, expected_rows):
+    from afmtool.analyses import reep_timeseries
+    from afmtool.analyses.reep_timeseries import ThinnedRows
+
+    n = 50_001
+    t = np.arange(n) / 1e3
+    f0 = 7e4 + rng.standard_normal(n)
+    flag = (rng.random(n) < 0.3).astype(np.uint8)
+    f0[::1000] = np.nan  # not finite: marked even with flag 0
+    flag[::1000] = 0
+    thinned = ThinnedRows(("f0_hz", "q"), expected_rows)
+    cuts = np.unique(np.r_[0, rng.integers(0, n, 40), n])
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        thinned.add(t[a:b], {"f0_hz": f0[a:b], "q": 2 * f0[a:b]}, flag[a:b])
+    got = thinned.result()
+    rows = np.rint(got.t * 1e3).astype(int)
+    step = rows[1]
+    assert got.t.size <= 2 * reep_timeseries.MAX_PLOT_POINTS and (expected_rows is None or step >= 2)
+    np.testing.assert_array_equal(rows, np.arange(0, n, step))  # as reep.h5[::step]
+    np.testing.assert_array_equal(got.columns["q"], 2 * f0[::step])
+    bad = np.flatnonzero((flag != 0) | ~np.isfinite(f0))
+    marks = np.rint(got.flagged_t * 1e3).astype(int)
+    flag_step = int(np.searchsorted(bad, marks[1]))
+    assert marks.size <= 2 * reep_timeseries._MAX_FLAG_MARKS
+    np.testing.assert_array_equal(marks, bad[::flag_step])
+    np.testing.assert_array_equal(got.flagged["f0_hz"], f0[bad[::flag_step]])

@@ -11,24 +11,24 @@ everything but ``reep.h5``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
-from afmtool.analyses.reep_timeseries import SegmentMoments
+from afmtool.analyses.reep_timeseries import PLOTTED, SegmentMoments, Thinned, ThinnedRows
 from afmtool.config.params import ReepParams
 from afmtool.errors import InputError
 from afmtool.estimators.drive_lines import excitation_lines
+from afmtool.estimators.moments import RunningMoments
 from afmtool.estimators.reep_validity import (
     FlagCounter,
     FreeAirLevels,
     OffsetDrift,
     ValidityLimits,
     free_air_levels,
-    validity_flags,
+    reep_rows,
 )
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.metadata import DriveMetadata
@@ -56,31 +56,11 @@ _IMAGE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
 _CURVE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
 
 
-@dataclass
-class _Summary:
-    """Running sums of the post-warm-up series (mean, std, min, max)."""
-
-    count: int = 0
-    total: float = 0.0
-    total_sq: float = 0.0
-    low: float = math.inf
-    high: float = -math.inf
-
-    def add(self, values: np.ndarray) -> None:
-        values = values[np.isfinite(values)]
-        if values.size:
-            self.count += values.size
-            self.total += float(values.sum())
-            self.total_sq += float(np.square(values).sum())  # not np.dot: BLAS start-up costs ms per call
-            self.low = min(self.low, float(values.min()))
-            self.high = max(self.high, float(values.max()))
-
-    def as_dict(self) -> dict:
-        if not self.count:
-            return {"count": 0, "mean": None, "std": None, "min": None, "max": None}
-        mean = self.total / self.count
-        var = max(self.total_sq / self.count - mean * mean, 0.0)
-        return {"count": self.count, "mean": mean, "std": math.sqrt(var), "min": self.low, "max": self.high}
+def _summary_dict(moments: RunningMoments) -> dict:
+    """Count, mean, (population) std, min and max of the trusted rows after the warm-up."""
+    if not moments.count:
+        return {"count": 0, "mean": None, "std": None, "min": None, "max": None}
+    return {"count": moments.count, "mean": moments.mean, "std": moments.std(), "min": moments.low, "max": moments.high}
 
 
 @dataclass(frozen=True)
@@ -93,6 +73,8 @@ class ReepResult(JsonResults):
     geometry: ScanGeometry | None = None
     force_curves: dict = field(default_factory=dict)
     z_units: str = ""
+    #: The rows of reep_time_series.png, gathered in the stream (None: read them from reep.h5).
+    plot_rows: Thinned | None = None
 
 
 def _spectral_peak_hz(x: np.ndarray, sample_rate_hz: float) -> float:
@@ -300,9 +282,11 @@ class ReepStage:
         self.limits = ValidityLimits(params.min_amplitude_fraction, params.max_sigma2_ratio, params.max_offset_drift)
         self.offset_drift = OffsetDrift(params.lam, self.decimation.every) if params.static_offset else None
         self.levels = self._free_air_levels()
-        self.summaries = {name: _Summary() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
+        self.summaries = {name: RunningMoments() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
         # in the stream, so that the command need not read reep.h5 back for them (0.7 s at 1e8 samples)
         self.segment_moments = SegmentMoments(self.warmup.samples / fs, self.segment_s)
+        n_samples = head.info.n_samples
+        self.plot_rows = ThinnedRows(PLOTTED, self.decimation.count(0, n_samples) if n_samples else None)
         self.flag_counter = FlagCounter()
         self.geometry = ScanGeometry.from_scan(head.info.capture_metadata.scan)
         self.image_acc = ImageAccumulator(self.geometry, _IMAGE_QUANTITIES) if self.geometry else None
@@ -384,49 +368,46 @@ class ReepStage:
 
     def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
         """Everything after the kernels, in capture order: f0′, Q′, flags, columns, summaries."""
-        from afmtool.models.discretisation import resonance_from_denominator
-
         block, demod = estimate
         # everything below runs on the kept samples only (Decimation)
         kept_index = self.decimation.kept_index(chunk.start, len(chunk))
-        f0, q, valid = resonance_from_denominator(block.b1, block.b0, self.fs)
-        offset = None
-        if block.c is not None:
-            # p̄ = c / (1 + b1 + b0), the static deflection offset (reep_update, Notes)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                offset = block.c / (1.0 + block.b1 + block.b0)
-        offset_variance = self.offset_drift(offset) if self.offset_drift is not None else None
-        flags = validity_flags(valid, demod.amplitude, block.sigma2, self.levels, self.limits, offset_variance)
+        rows = reep_rows(
+            block.b1, block.b0, block.c, block.sigma2, demod.amplitude, self.fs, self.levels, self.limits,
+            self.offset_drift,
+        )
         columns = {
             "t": kept_index / self.fs,
-            "f0_hz": f0,
-            "q": q,
+            "f0_hz": rows.f0_hz,
+            "q": rows.q,
             "b1": block.b1,
             "b0": block.b0,
             "sigma2": block.sigma2,
             "amplitude": demod.amplitude,
             "phase_deg": np.degrees(demod.phase_rad),
         }
-        if offset is not None:
-            columns["offset"] = offset
-        columns["flag"] = flags
+        if rows.offset is not None:
+            columns["offset"] = rows.offset
+        columns["flag"] = rows.flags
         if self.z_mode:
             columns["z"] = self.decimation.take(chunk.data["z_piezo"], chunk.start)
-        self._account(columns, kept_index, flags)
+        self._account(columns, kept_index, rows.flags)
         self.n_total = chunk.start + len(chunk)
         return columns
 
     def _account(self, columns: dict[str, np.ndarray], kept_index: np.ndarray, flags: np.ndarray) -> None:
         """Summaries, flag counts, images and force curves, from the trusted values past the warm-up."""
-        # reep.h5 keeps the fitted values; everything else sees NaN where the fit is flagged
+        first_settled = self.warmup.first_settled(kept_index)
+        self.flag_counter.add(flags[first_settled:])  # counted over what the summary covers
+        # reep.h5 keeps the fitted values; everything else leaves out f0′ and Q′ where the fit is flagged
+        for name, summary in self.summaries.items():
+            summary.add(columns[name], flags if name in ("f0_hz", "q") else None, start=first_settled)
+        self.segment_moments.add(columns["t"], columns["f0_hz"], columns["q"], flags)
+        self.plot_rows.add(columns["t"], columns, flags)
+        if self.image_acc is None and self.curve_acc is None:
+            return
         trusted = dict(
             columns, f0_hz=np.where(flags == 0, columns["f0_hz"], np.nan), q=np.where(flags == 0, columns["q"], np.nan)
         )
-        first_settled = self.warmup.first_settled(kept_index)
-        self.flag_counter.add(flags[first_settled:])  # counted over what the summary covers
-        for name, summary in self.summaries.items():
-            summary.add(trusted[name][first_settled:])
-        self.segment_moments.add(columns["t"], trusted["f0_hz"], trusted["q"])
         if self.image_acc is not None:
             self.image_acc.add(columns["t"], trusted)
         if self.curve_acc is not None:
@@ -438,7 +419,9 @@ class ReepStage:
         force_curves = self.curve_acc.tables() if self.curve_acc is not None else {}
         images = self.image_acc.images() if self.image_acc is not None else {}
         z_units = self.reader.info.units("z_piezo") if self.z_mode else ""
-        return ReepResult(self._results(), tuple(self.warnings), images, self.geometry, force_curves, z_units)
+        return ReepResult(
+            self._results(), tuple(self.warnings), images, self.geometry, force_curves, z_units, self.plot_rows.result()
+        )
 
     def _results(self) -> dict:
         params, fs, model, n_total = self.params, self.fs, self.model, self.n_total
@@ -471,7 +454,7 @@ class ReepStage:
                 "flags": self.flag_counter.as_dict(),
             },
             "summary_after_warmup_samples": self.warmup.samples,
-            "summary": {name: s.as_dict() for name, s in self.summaries.items()},
+            "summary": {name: _summary_dict(s) for name, s in self.summaries.items()},
             "segments": self.segment_moments.as_dict(),
         }
 

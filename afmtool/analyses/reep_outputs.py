@@ -88,7 +88,8 @@ def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, d
     if tracking is not None:
         out["truth_tracking"] = tracking
     write_reep_time_series_png(
-        staged.path("reep_time_series.png"), reep_h5, amplitude_units=deflection_units, truth=truth or None,
+        staged.path("reep_time_series.png"), reep_h5 if result.plot_rows is None else result.plot_rows,
+        amplitude_units=deflection_units, truth=truth or None,
         sample_rate_hz=fs, free_air_segment_s=segment, warmup_s=warmup_s,
     )
     return out

@@ -1,11 +1,13 @@
 """REEP's decimated series against time: segment statistics, tracking error, the figure.
 
-Everything here reads the finished ``reep.h5`` (the decimated ``t``,
-``f0_hz``, ``q``, ``amplitude``, ``phase_deg``) in blocks, so memory stays
-flat however long the capture: the statistics are running sums, the
-figure draws at most :data:`MAX_PLOT_POINTS` evenly spaced rows per line, and
-the percentiles of the tracking error use at most
-:data:`MAX_PERCENTILE_POINTS` evenly spaced rows.
+The segment statistics (:class:`SegmentMoments`) and the figure's rows
+(:class:`ThinnedRows`) are gathered as the rows stream, by ``run_reep``, or
+from a finished ``reep.h5`` (the decimated ``t``, ``f0_hz``, ``q``,
+``amplitude``, ``phase_deg``) read in blocks; either way memory stays flat
+however long the capture: the statistics are running sums, the figure draws
+at most 2·:data:`MAX_PLOT_POINTS` evenly spaced rows per line, and the
+percentiles of the tracking error use at most :data:`MAX_PERCENTILE_POINTS`
+evenly spaced rows.
 
 The truth (``/truth/f0_hz``, ``/truth/q`` of a simulated capture, one value
 per input sample) is never seen by the estimator; it is compared here, after
@@ -21,6 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from afmtool.estimators.moments import RunningMoments
 from afmtool.io.result_files import FLAG_COLUMN, MAX_PLOT_POINTS, open_result_file
 
 __all__ = [
@@ -31,12 +34,18 @@ __all__ = [
     "segment_statistics",
     "tracking_error",
     "write_reep_time_series_png",
+    "PLOTTED",
+    "Thinned",
+    "ThinnedRows",
+    "read_thinned",
 ]
 
 #: Most rows over which the tracking-error percentiles are taken.
 MAX_PERCENTILE_POINTS = 1_000_000
 #: Most flagged rows marked on the figure.
 _MAX_FLAG_MARKS = 5000
+#: The columns drawn against t.
+PLOTTED = ("f0_hz", "q", "amplitude", "phase_deg")
 
 
 def _open(reep_h5: Path):
@@ -44,29 +53,11 @@ def _open(reep_h5: Path):
     return open_result_file(reep_h5, required=("t", "f0_hz", "q"), what="reep output")
 
 
-class _Moments:
-    """Count, mean and standard deviation of the finite values added (Chan's parallel update)."""
-
-    def __init__(self) -> None:
-        self.count, self.mean, self.m2 = 0, 0.0, 0.0
-
-    def add(self, values: np.ndarray) -> None:
-        values = values[np.isfinite(values)]
-        if values.size == 0:
-            return
-        n_b, mean_b = values.size, float(values.mean())
-        m2_b = float(np.sum((values - mean_b) ** 2))
-        n = self.count + n_b
-        delta = mean_b - self.mean
-        self.mean += delta * n_b / n
-        self.m2 += m2_b + delta * delta * self.count * n_b / n
-        self.count = n
-
-    def as_dict(self) -> dict:
-        if self.count == 0:
-            return {"mean": None, "std": None, "count": 0}
-        std = math.sqrt(self.m2 / (self.count - 1)) if self.count > 1 else None
-        return {"mean": self.mean, "std": std, "count": self.count}
+def _moments_dict(moments: RunningMoments) -> dict:
+    """Mean and sample standard deviation (a spread, not the error of the mean)."""
+    if moments.count == 0:
+        return {"mean": None, "std": None, "count": 0}
+    return {"mean": moments.mean, "std": moments.std(ddof=1), "count": moments.count}
 
 
 class SegmentMoments:
@@ -84,15 +75,15 @@ class SegmentMoments:
             self.bounds = {"free_air": (max(start, warmup_s), end), "after_free_air": (end + warmup_s, math.inf)}
         else:
             self.bounds = {"settled": (warmup_s, math.inf)}
-        self.moments = {seg: {"f0_hz": _Moments(), "q": _Moments()} for seg in self.bounds}
+        self.moments = {seg: {"f0_hz": RunningMoments(), "q": RunningMoments()} for seg in self.bounds}
         self.last_t: float | None = None
 
-    def add(self, t: np.ndarray, f0_hz: np.ndarray, q: np.ndarray) -> None:
-        """Rows at times ``t`` (s), with flagged rows NaN in ``f0_hz`` and ``q``."""
+    def add(self, t: np.ndarray, f0_hz: np.ndarray, q: np.ndarray, flags: np.ndarray | None = None) -> None:
+        """Rows at times ``t`` (s, ascending); a row is left out where NaN or (with ``flags``) flagged."""
         for seg, (t0, t1) in self.bounds.items():
-            inside = (t >= t0) & (t < t1)
-            self.moments[seg]["f0_hz"].add(f0_hz[inside])
-            self.moments[seg]["q"].add(q[inside])
+            start, stop = np.searchsorted(t, (t0, t1), side="left")
+            self.moments[seg]["f0_hz"].add(f0_hz, flags, start, stop)
+            self.moments[seg]["q"].add(q, flags, start, stop)
         if len(t):
             self.last_t = float(t[-1])
 
@@ -103,7 +94,7 @@ class SegmentMoments:
             if self.moments[seg]["f0_hz"].count == 0:
                 continue
             end = self.last_t if math.isinf(t1) else t1
-            out[seg] = {"t_s": [t0, end], **{name: m.as_dict() for name, m in self.moments[seg].items()}}
+            out[seg] = {"t_s": [t0, end], **{name: _moments_dict(m) for name, m in self.moments[seg].items()}}
         return out
 
 
@@ -197,40 +188,101 @@ def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_h
     }
 
 
-class _Thinned(NamedTuple):
+class Thinned(NamedTuple):
+    """The rows a figure draws: evenly spaced rows, and (some of) the flagged ones."""
+
     t: np.ndarray
     columns: dict[str, np.ndarray]
     flagged_t: np.ndarray
     flagged: dict[str, np.ndarray]
 
 
-def _read_thinned(reep_h5: Path, names: tuple[str, ...]) -> _Thinned:
+def _rows_in(items: Mapping[str, np.ndarray]) -> int:
+    return len(next(iter(items.values())))
+
+
+class _EveryKth:
+    """Every ``step``-th item of a stream, the step doubling (every other kept item dropped) past ``2·most``."""
+
+    def __init__(self, most: int, step: int = 1) -> None:
+        self.most, self.step, self.seen, self.kept = most, max(1, int(step)), 0, 0
+        self.parts: list[dict[str, np.ndarray]] = []
+
+    def add(self, items: Mapping[str, np.ndarray], rows: np.ndarray | None = None) -> None:
+        """The items (all rows of ``items``, or those at ``rows``) next in the stream."""
+        n = _rows_in(items) if rows is None else len(rows)
+        first = -self.seen % self.step  # the next item whose stream position is a multiple of the step
+        self.seen += n
+        if first < n:
+            taken = slice(first, None, self.step) if rows is None else rows[first::self.step]
+            self.parts.append({name: values[taken].copy() for name, values in items.items()})
+            self.kept += _rows_in(self.parts[-1])
+        while self.kept > 2 * self.most:
+            # kept items sit at positions 0, step, 2·step, …: every other one is a multiple of 2·step
+            self.parts = [{name: values[::2] for name, values in self.items().items()}]
+            self.kept = _rows_in(self.parts[0])
+            self.step *= 2
+
+    def items(self) -> dict[str, np.ndarray]:
+        if not self.parts:
+            return {}
+        return {name: np.concatenate([part[name] for part in self.parts]) for name in self.parts[0]}
+
+
+class ThinnedRows:
+    """The rows of REEP's figure, gathered as the rows stream (memory bounded, no second read of reep.h5).
+
+    Every ``step``-th row, the step starting at ⌈expected_rows / MAX_PLOT_POINTS⌉
+    (1 when the length is unknown) and doubling whenever more than
+    2·MAX_PLOT_POINTS rows are held; likewise up to about 2·``_MAX_FLAG_MARKS``
+    evenly spaced flagged rows (flag ≠ 0, or f0′ not finite).
+
+    Parameters
+    ----------
+    names : tuple of str
+        The columns drawn besides ``t``.
+    expected_rows : int, optional
+        Rows the stream will have, if known.
+    """
+
+    def __init__(self, names: tuple[str, ...], expected_rows: int | None = None) -> None:
+        self.names = names
+        step = math.ceil(expected_rows / MAX_PLOT_POINTS) if expected_rows else 1
+        self._rows = _EveryKth(MAX_PLOT_POINTS, step)
+        self._flagged = _EveryKth(_MAX_FLAG_MARKS)
+
+    def add(self, t: np.ndarray, columns: Mapping[str, np.ndarray], flags: np.ndarray | None = None) -> None:
+        """Rows at times ``t`` with their ``columns`` (those of ``names`` present) and ``flag`` values."""
+        present = {"t": t, **{name: columns[name] for name in self.names if name in columns}}
+        self._rows.add(present)
+        bad = ~np.isfinite(columns["f0_hz"]) if "f0_hz" in columns else np.zeros(len(t), dtype=bool)
+        if flags is not None:
+            bad |= flags != 0
+        self._flagged.add(present, np.flatnonzero(bad))
+
+    def result(self) -> Thinned:
+        rows, flagged = self._rows.items(), self._flagged.items()
+        columns = {name: rows[name] for name in self.names if name in rows}
+        if not flagged:
+            return Thinned(rows.get("t", np.zeros(0)), columns, np.zeros(0), {name: np.zeros(0) for name in columns})
+        return Thinned(rows["t"], columns, flagged["t"], {name: flagged[name] for name in columns})
+
+
+def read_thinned(reep_h5: Path, names: tuple[str, ...]) -> Thinned:
+    """:class:`ThinnedRows` of a finished reep.h5, read in blocks."""
     with _open(reep_h5) as h5:
-        n = len(h5["t"])
-        step = max(1, math.ceil(n / MAX_PLOT_POINTS))
-        t = h5["t"][::step]
-        columns = {name: h5[name][::step] for name in names if name in h5}
-        flag_name = FLAG_COLUMN if FLAG_COLUMN in h5 else None
-        flagged_rows: list[np.ndarray] = []
-        count = 0
-        for start, f0 in h5.blocks("f0_hz", n):
-            bad = ~np.isfinite(f0)
-            if flag_name is not None:
-                bad |= h5[flag_name][start : start + len(f0)] != 0
-            rows = np.flatnonzero(bad) + start
-            flagged_rows.append(rows)
-            count += rows.size
-        rows = np.concatenate(flagged_rows) if flagged_rows else np.zeros(0, dtype=np.int64)
-        if rows.size > _MAX_FLAG_MARKS:
-            rows = rows[:: math.ceil(rows.size / _MAX_FLAG_MARKS)]
-        flagged_t = h5["t"][rows] if rows.size else np.zeros(0)
-        flagged = {name: (h5[name][rows] if rows.size else np.zeros(0)) for name in columns}
-    return _Thinned(t, columns, flagged_t, flagged)
+        thinned = ThinnedRows(names, len(h5["t"]))
+        present = [name for name in names if name in h5]
+        for start, t in h5.blocks("t"):
+            rows = slice(start, start + len(t))
+            flags = h5[FLAG_COLUMN][rows] if FLAG_COLUMN in h5 else None
+            thinned.add(t, {name: h5[name][rows] for name in present}, flags)
+    return thinned.result()
 
 
 def write_reep_time_series_png(
     path: Path,
-    reep_h5: Path,
+    rows: Thinned | Path,
     *,
     amplitude_units: str,
     truth: Mapping[str, np.ndarray] | None = None,
@@ -244,11 +296,12 @@ def write_reep_time_series_png(
     window has passed) marked, and flagged rows ((b1, b0) outside the
     under-damped region of eq. 3.48, or a non-zero ``flag`` in reep.h5)
     marked with red crosses: at their value, or at the panel's median where
-    the value is NaN.
+    the value is NaN.  ``rows`` are those gathered in the stream
+    (:class:`ThinnedRows`) or a finished reep.h5 to read them from.
     """
     from afmtool.report.images import write_multi_panel_png
 
-    data = _read_thinned(reep_h5, ("f0_hz", "q", "amplitude", "phase_deg"))
+    data = rows if isinstance(rows, Thinned) else read_thinned(rows, PLOTTED)
     reep_style = {"color": "C0", "linewidth": 1.0}
     truth_style = {"color": "k", "linestyle": "--", "linewidth": 1.2}
     labels = {

@@ -87,6 +87,7 @@ __all__ = [
     "sampled_numerator",
     "sampled_response",
     "is_underdamped",
+    "resonance_scalar",
     "DiscreteDenominator",
     "DiscreteNumerator",
     "ResonanceFromDenominator",
@@ -228,24 +229,26 @@ def is_underdamped(b1, b0) -> np.ndarray:
 
 
 @njit(**JIT_OPTIONS)
+def resonance_scalar(b1, b0, period):
+    """Eq. 3.48 for one (b1, b0): (f0 in Hz, Q), or (NaN, NaN) where (b1, b0) is not under-damped."""
+    # is_underdamped, written so that NaN lands in the else branch
+    if b0 > 0.0 and b0 < 1.0 and b1 * b1 < 4.0 * b0:
+        decay = -math.log(b0) / (2.0 * period)
+        # rounding can put the ratio a hair outside [-1, 1] at the edge
+        ratio = min(max(-b1 / (2.0 * math.sqrt(b0)), -1.0), 1.0)
+        damped = math.acos(ratio) / period
+        f0 = math.sqrt(decay * decay + damped * damped) / (2.0 * math.pi)
+        return f0, math.pi * f0 / decay
+    return np.nan, np.nan
+
+
+@njit(**JIT_OPTIONS)
 def _resonance_kernel(b1, b0, period, f0_out, q_out):
     """Eq. 3.48 sample by sample; NaN where (b1, b0) is not under-damped.  Returns that count."""
     flagged = 0
     for i in range(b1.shape[0]):
-        x1 = b1[i]
-        x0 = b0[i]
-        # is_underdamped, written so that NaN lands in the else branch
-        if x0 > 0.0 and x0 < 1.0 and x1 * x1 < 4.0 * x0:
-            decay = -math.log(x0) / (2.0 * period)
-            # rounding can put the ratio a hair outside [-1, 1] at the edge
-            ratio = min(max(-x1 / (2.0 * math.sqrt(x0)), -1.0), 1.0)
-            damped = math.acos(ratio) / period
-            f0 = math.sqrt(decay * decay + damped * damped) / (2.0 * math.pi)
-            f0_out[i] = f0
-            q_out[i] = math.pi * f0 / decay
-        else:
-            f0_out[i] = np.nan
-            q_out[i] = np.nan
+        f0_out[i], q_out[i] = resonance_scalar(b1[i], b0[i], period)
+        if math.isnan(f0_out[i]):
             flagged += 1
     return flagged
 

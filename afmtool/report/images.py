@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "APPROACH_STYLE",
+    "ENVELOPE_BINS",
     "GSF_MAGIC",
     "NAN_COLOUR",
     "PNG_DPI",
@@ -48,12 +49,17 @@ __all__ = [
     "write_scan_images",
     "write_multi_panel_png",
     "write_side_by_side_png",
+    "line_envelope",
 ]
 
 GSF_MAGIC = b"Gwyddion Simple Field 1.0\n"
 
 #: Resolution of every PNG, in dots per inch.
 PNG_DPI = 150
+
+#: Runs a long line is reduced to (:func:`line_envelope`): about the pixel
+#: columns of a 7-inch panel at PNG_DPI, each run drawn as its two extremes.
+ENVELOPE_BINS = 1000
 
 #: Colour of NaN (and infinite) pixels: a neutral grey, outside every AFM colour map.
 NAN_COLOUR = "#7f7f7f"
@@ -683,8 +689,38 @@ def _check_markers(markers: Sequence[tuple[float, str]] | None) -> list[tuple[fl
     return checked
 
 
+def line_envelope(x: np.ndarray, y: np.ndarray, bins: int = ENVELOPE_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """A long line over ascending x as the extremes of ``bins`` runs of consecutive points.
+
+    Each run keeps its lowest and its highest point, in their order, so the
+    line drawn covers the same pixels as the full one at the figure's width
+    (and shows a spike that taking every k-th point would miss), while
+    matplotlib lays out and draws 2·``bins`` points instead of all of them.
+    A run with no finite y is NaN: a gap, as in the full line.  Lines of at
+    most 4·``bins`` points, or over x that is not ascending (an approach
+    and its retract), are returned as they are.
+    """
+    n = len(y)
+    if n <= 4 * bins or not np.all(np.diff(x) >= 0):
+        return x, y
+    per_run = -(-n // bins)
+    runs = -(-n // per_run)
+    padded = np.full(runs * per_run, np.nan)
+    padded[:n] = y
+    padded = padded.reshape(runs, per_run)
+    finite = np.isfinite(padded)
+    lowest = np.where(finite, padded, np.inf).argmin(axis=1)
+    highest = np.where(finite, padded, -np.inf).argmax(axis=1)
+    starts = np.arange(runs) * per_run
+    index = np.stack([starts + np.minimum(lowest, highest), starts + np.maximum(lowest, highest)], axis=1).ravel()
+    values = np.where(np.repeat(finite.any(axis=1), 2), y[index], np.nan)
+    return x[index], values
+
+
 def _draw_series(ax: Axes, series: Sequence[tuple[np.ndarray, np.ndarray, str, dict[str, Any]]]) -> None:
     for x, y, label, style in series:
+        if style.get("linestyle", "-") not in ("none", "None", "") and "marker" not in style:
+            x, y = line_envelope(x, y)
         ax.plot(x, y, label=label or None, **style)
     if any(label for _, _, label, _ in series):
         ax.legend(fontsize="small")
