@@ -97,3 +97,16 @@ def test_stdin_needs_reep_or_models():
     result = run_cli("kalman-bank", "-", "--out", "/nonexistent/x", input=rows)
     assert result.returncode == 2
     assert b"stdin cannot be re-read" in result.stderr
+
+
+def test_a_capture_whose_z_never_moves_is_refused(tmp_path):
+    # REEP's model against z (pass 1) has no leg to bin: one line, exit 2, nothing written
+    still = tmp_path / "still.h5"
+    still.write_bytes(FAST_CAPTURE.read_bytes())
+    with h5py.File(still, "r+") as f:
+        z = f["channels/z_piezo"]
+        z[...] = np.full(z.shape, z[0])
+    result = run_cli("kalman-bank", still, "--out", tmp_path / "kb", "-q")
+    assert result.returncode == 2
+    assert "REEP found no force curve" in result.stderr.decode() and len(result.stderr.decode().splitlines()) == 1
+    assert not (tmp_path / "kb").exists()

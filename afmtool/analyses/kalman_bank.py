@@ -391,7 +391,11 @@ class _PassTwo:
         self.z_delay = DelayLine(setup.rms_delay)
         names = tuple(f"rms_{k}" for k in range(len(setup.designs))) + ("adaptive", "lowest")
         self.accumulator = ForceCurveAccumulator(params.z_bin, names)
-        self.reep_binner = ReepBinner(params.z_bin, reep_delay(setup.lam, setup.decimate), setup.warmup / fs)
+        # REEP's model against z comes from pass 1 or --reep; pass 2 bins it only when neither gave it (--models)
+        self.reep_binner = (
+            ReepBinner(params.z_bin, reep_delay(setup.lam, setup.decimate), setup.warmup / fs)
+            if self.tables is None else None
+        )
         self.split_held = 0
         self.counted = 0  # kept samples after the warm-up
         self.lowest = 0  # ... where the adaptive observer had the least RMS
@@ -452,8 +456,11 @@ class _PassTwo:
         self.lowest += int(np.count_nonzero(lowest & settled))
         values = {f"rms_{k}": row for k, row in enumerate(rms)}
         values.update(adaptive=adaptive, lowest=lowest.astype(np.float64))
-        self.accumulator.add(z_rms[keep], {name: np.where(settled, v, np.nan) for name, v in values.items()})
-        self.reep_binner.append({"t": t, "z": z, "f0_hz": f0, "q": q})
+        if not settled.all():  # only the chunks of the warm-up need the mask
+            values = {name: np.where(settled, v, np.nan) for name, v in values.items()}
+        self.accumulator.add(z_rms[keep], values)
+        if self.reep_binner is not None:
+            self.reep_binner.append({"t": t, "z": z, "f0_hz": f0, "q": q})
         self._travel(z)
         self.n_total = chunk.start + len(y)
         return {"t": t, "z": z_rms[keep], "rms": rms, "adaptive_rms": adaptive, "reep_f0_hz": f0, "reep_q": q}

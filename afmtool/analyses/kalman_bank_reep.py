@@ -208,12 +208,12 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
         warmup_windows=params.warmup_windows,
         chunk_samples=params.chunk_samples,
     )
-    reep = ReepStage(reader, reep_params, model=model)
+    reep = ReepStage(reader, reep_params, model=model, force_curves=False)  # _ReepTables bins at the centroid
     ((result, tables),) = run_stream(
         reader, [_ReepTables(reep, params, reader.info.sample_rate_hz)], channels=reep.channels,
         chunk_samples=reep_params.chunk_samples, progress=progress, prologue=reep.free_air_prologue, split=split,
     )
-    if not result.force_curves:
+    if not tables:
         raise InputError(f"{reader.info.source}: REEP found no force curve (z_piezo never moves)")
     # the model REEP ran beside: a given one as the route refined it (gain and phase fitted at the drive)
     used = FreeAirModel.from_dict(result.results["free_air_model"], "identified free-air model")

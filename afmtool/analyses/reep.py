@@ -229,15 +229,20 @@ class ReepStage:
     model : FreeAirModel, optional
         A given free-air model; otherwise it is identified from the
         free-air segment (``params.free_air`` or the capture metadata).
+    force_curves : bool, optional
+        Bin the trusted values against z (with z_piezo); False still
+        writes ``z`` with the columns, for a caller that bins them itself.
     """
 
-    def __init__(self, reader: CaptureReader, params: ReepParams, *, model: FreeAirModel | None = None) -> None:
+    def __init__(self, reader: CaptureReader, params: ReepParams, *, model: FreeAirModel | None = None,
+                 force_curves: bool = True) -> None:
         info = reader.info
         self.reader = reader
         self.params = params
         self.model = model
         self.fs = info.sample_rate_hz
         self.z_mode = params.vs == "z" or (params.vs == "auto" and "z_piezo" in info.channel_names)
+        self.force_curves = force_curves
         #: Channels the stage reads.
         self.channels = (
             ["deflection"] + (["dither"] if params.use_input else []) + (["z_piezo"] if self.z_mode else [])
@@ -290,7 +295,7 @@ class ReepStage:
         self.flag_counter = FlagCounter()
         self.geometry = ScanGeometry.from_scan(head.info.capture_metadata.scan)
         self.image_acc = ImageAccumulator(self.geometry, _IMAGE_QUANTITIES) if self.geometry else None
-        self.curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if self.z_mode else None
+        self.curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if self.z_mode and self.force_curves else None
         self._side = head.side
         if self.on_stream_start is not None:
             self.on_stream_start()
