@@ -140,20 +140,24 @@ def free_air_levels(sigma2: np.ndarray, amplitude: np.ndarray, settled: int) -> 
 
 
 @njit(**JIT_OPTIONS)
+def _ew_variance_step(v, lam, s0, s1, s2):
+    """One sample of the EW variance: (s0, s1, s2, variance); NaN ``v`` skipped, NaN variance before any value."""
+    if not math.isnan(v):
+        s0 = lam * s0 + 1.0
+        s1 = lam * s1 + v
+        s2 = lam * s2 + v * v
+    if s0 > 0.0:
+        mean = s1 / s0
+        return s0, s1, s2, max(s2 / s0 - mean * mean, 0.0)
+    return s0, s1, s2, np.nan
+
+
+@njit(**JIT_OPTIONS)
 def _ew_variance_kernel(x, lam, state, out):
     """Exponentially weighted variance of ``x`` (NaN samples skipped), state = [Σλᵏ, Σλᵏx, Σλᵏx²]."""
     s0, s1, s2 = state[0], state[1], state[2]
     for i in range(x.shape[0]):
-        v = x[i]
-        if not math.isnan(v):
-            s0 = lam * s0 + 1.0
-            s1 = lam * s1 + v
-            s2 = lam * s2 + v * v
-        if s0 > 0.0:
-            mean = s1 / s0
-            out[i] = max(s2 / s0 - mean * mean, 0.0)
-        else:
-            out[i] = np.nan
+        s0, s1, s2, out[i] = _ew_variance_step(x[i], lam, s0, s1, s2)
     state[0], state[1], state[2] = s0, s1, s2
 
 
@@ -244,15 +248,9 @@ def _rows_kernel(
         if has_offset:
             offset = c[i] / (1.0 + b1[i] + b0[i])
             offset_out[i] = offset
-            # _ew_variance_kernel, one sample
-            if not math.isnan(offset):
-                s0 = drift_lam * s0 + 1.0
-                s1 = drift_lam * s1 + offset
-                s2 = drift_lam * s2 + offset * offset
-            if s0 > 0.0:
-                mean = s1 / s0
-                if max(s2 / s0 - mean * mean, 0.0) > max_drift * 0.5 * (amp * amp):
-                    flag |= FLAG_OFFSET_DRIFT
+            s0, s1, s2, variance = _ew_variance_step(offset, drift_lam, s0, s1, s2)
+            if variance > max_drift * 0.5 * (amp * amp):  # NaN (no offset yet) never flags
+                flag |= FLAG_OFFSET_DRIFT
         f0_out[i] = f0
         q_out[i] = q
         flags_out[i] = flag
