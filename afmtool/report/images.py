@@ -717,11 +717,16 @@ def line_envelope(x: np.ndarray, y: np.ndarray, bins: int = ENVELOPE_BINS) -> tu
     return x[index], values
 
 
+def _plot(ax: Axes, x: np.ndarray, y: np.ndarray, label: str, style: Mapping[str, Any]) -> None:
+    """``ax.plot``; a long line over ascending x is drawn as its envelope (:func:`line_envelope`)."""
+    if style.get("linestyle", "-") not in ("none", "None", "") and "marker" not in style:
+        x, y = line_envelope(x, y)
+    ax.plot(x, y, label=label or None, **style)
+
+
 def _draw_series(ax: Axes, series: Sequence[tuple[np.ndarray, np.ndarray, str, dict[str, Any]]]) -> None:
     for x, y, label, style in series:
-        if style.get("linestyle", "-") not in ("none", "None", "") and "marker" not in style:
-            x, y = line_envelope(x, y)
-        ax.plot(x, y, label=label or None, **style)
+        _plot(ax, x, y, label, style)
     if any(label for _, _, label, _ in series):
         ax.legend(fontsize="small")
     ax.grid(True, alpha=0.3)
@@ -769,7 +774,7 @@ def _draw_twin(ax: Axes, twin: Mapping[str, Any], p: int) -> None:
         raise ValueError(f"panels[{p}]['twin'] must hold a non-empty 'series'")
     right = ax.twinx()
     for x, y, label, style in lines:
-        right.plot(x, y, label=label or None, **{"color": "0.45", "linewidth": 1.0, **style})
+        _plot(right, x, y, label, {"color": "0.45", "linewidth": 1.0, **style})
     right.set_ylabel(str(twin.get("y_label", "")))
     if any(label for _, _, label, _ in lines):
         right.legend(fontsize="small", loc="lower right")
