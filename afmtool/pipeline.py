@@ -300,6 +300,7 @@ def run_stream(
     prologue: Callable[[Iterator[Chunk]], Iterator[Chunk]] | None = None,
     read_ahead: int = 2,
     split: Split | None = None,
+    on_start: Callable[[], None] | None = None,
 ) -> list[Any]:
     """Stream ``reader`` through ``stages`` once, chunk by chunk.
 
@@ -334,6 +335,8 @@ def run_stream(
         cluster) when every stage is a :class:`SplitStage` with kernels;
         otherwise, or by default, the run is sequential.  Up to
         ``jobs + 1`` more chunks are then held.
+    on_start : callable, optional
+        Called as the stream starts, every stage prepared (work for the end that can overlap the kernels).
 
     Returns
     -------
@@ -350,16 +353,13 @@ def run_stream(
     """
     if read_ahead < 0:
         raise ValueError(f"{read_ahead=} must be >= 0")
-    chunks = iter_chunks(reader, channels, chunk_samples)
-    if prologue is not None:
-        chunks = prologue(chunks)
-    first = next(chunks, None)
-    if first is None:
-        raise InputError(f"{reader.info.source}: the capture has no samples")
+    first, chunks = _first_chunk(reader, channels, chunk_samples, prologue)
     with SideThread() as side:
         head = Head(reader, reader.info, first, side)
         for stage in stages:
             stage.prepare(head)
+        if on_start is not None:
+            on_start()
         stream = replay_held([first], chunks)
         if read_ahead:
             stream = prefetch(stream, read_ahead)
@@ -369,6 +369,17 @@ def run_stream(
         finally:
             stream.close()  # stops the read-ahead thread when a stage raised
         return [stage.finish() for stage in stages]
+
+
+def _first_chunk(reader: CaptureReader, channels: Sequence[str], chunk_samples: int, prologue) -> tuple[Chunk, Iterator[Chunk]]:
+    """The first chunk the stages see, and the rest of the stream (after the prologue)."""
+    chunks = iter_chunks(reader, channels, chunk_samples)
+    if prologue is not None:
+        chunks = prologue(chunks)
+    first = next(chunks, None)
+    if first is None:
+        raise InputError(f"{reader.info.source}: the capture has no samples")
+    return first, chunks
 
 
 def _run_chunks(stream: Iterator[Chunk], stages: Sequence[Stage], sink, progress, split: Split | None,

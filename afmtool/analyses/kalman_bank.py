@@ -529,6 +529,7 @@ def run_kalman_bank(
     reopen: Callable[[], CaptureReader] | None = None,
     progress: Callable[[int], None] | None = None,
     split: Split | None = None,
+    on_stream_start: Callable[[], None] | None = None,
 ) -> KalmanBankResult:
     """Validate REEP on a force curve by a Kalman bank and an adaptive observer, streaming.
 
@@ -543,20 +544,19 @@ def run_kalman_bank(
         ``rms`` (N, T), ``adaptive_rms``, ``reep_f0_hz``, ``reep_q``,
         decimated, chunk by chunk.
     model : FreeAirModel, optional
-        The free-air model; else that of ``reep_results``, else identified
-        from the free-air segment.
+        The free-air model; else that of ``reep_results``, else identified from the free-air segment.
     reep_results : afmtool.io.reep_results.ReepResults, optional
-        A finished REEP run of this capture (``--reep``); else REEP runs
-        internally.
+        A finished REEP run of this capture (``--reep``); else REEP runs internally.
     reopen : callable, optional
-        Returns a fresh reader of the same capture for pass 2 (closed
-        here); by default ``reader`` is read again, which in-memory and
-        HDF5 readers allow.
+        Returns a fresh reader of the same capture for pass 2 (closed here); by default
+        ``reader`` is read again, which in-memory and HDF5 readers allow.
     progress : callable, optional
         Called with the samples read so far (both passes on one count).
     split : Split, optional
         Run the kernels of several chunks at once in both passes
         (:class:`~afmtool.pipeline.Split`); with ``reep_results`` pass 2 runs sequentially.
+    on_stream_start : callable, optional
+        Called as the first pass's stream starts (:func:`~afmtool.pipeline.run_stream`'s ``on_start``).
 
     Returns
     -------
@@ -580,7 +580,8 @@ def run_kalman_bank(
     progress_one, progress_two = _pass_progress(progress, 2 if two_passes else 1, info.n_samples)
     source = reader
     if two_passes:
-        first = reep_pass_one(reader, params, model, progress_one, split)
+        first = reep_pass_one(reader, params, model, progress_one, split, on_stream_start)
+        on_stream_start = None
         tables, model, segment_s, route = first.tables, first.model, first.segment_s, first.route
         source = reopen() if reopen is not None else reader
     stream = _PassTwo(source, params, model=model, lam=lam, tables=tables, segment_s=segment_s, route=route,
@@ -588,7 +589,7 @@ def run_kalman_bank(
     try:
         run_stream(source, [stream], writer, channels=_CHANNELS, chunk_samples=params.chunk_samples,
                    progress=progress_two, prologue=stream.free_air_prologue, read_ahead=_PASS_TWO_READ_AHEAD,
-                   split=split)
+                   split=split, on_start=on_stream_start)
     finally:
         if source is not reader:
             source.close()

@@ -18,6 +18,7 @@ from afmtool.config.params import KalmanBankParams
 from afmtool.errors import ConfigError
 from afmtool.io.matrix_results import MatrixResultWriter
 from afmtool.io.units import calibration_record
+from afmtool.report.images import start_matplotlib_import
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -54,7 +55,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
                                     write_behind=True) as writer:
                 result = run_kalman_bank(
                     reader, params, writer, model=model, reep_results=reep_results, reopen=run.reopen,
-                    progress=run.progress, split=run.split,
+                    progress=run.progress, split=run.split, on_stream_start=start_matplotlib_import,
                 )
                 _write_tables(writer, result, deflection_units)
             _plot_rms_vs_z(staged.path("bank_rms_vs_z.png"), result, deflection_units)

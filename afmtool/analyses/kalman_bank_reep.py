@@ -187,10 +187,11 @@ class PassOne(NamedTuple):
 
 
 def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel | None, progress,
-                  split=None) -> PassOne:
+                  split=None, on_start=None) -> PassOne:
     """Run REEP (its stage, with the bank's λ, z bin and decimation) and bin its model against z.
 
-    ``split`` (a :class:`~afmtool.pipeline.Split`) runs REEP's kernels on several chunks at once.
+    ``split`` (a :class:`~afmtool.pipeline.Split`) runs REEP's kernels on several chunks at once;
+    ``on_start`` is called as the stream starts.
     """
     from afmtool.analyses.reep import ReepStage
     from afmtool.pipeline import run_stream
@@ -212,6 +213,7 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
     ((result, tables),) = run_stream(
         reader, [_ReepTables(reep, params, reader.info.sample_rate_hz)], channels=reep.channels,
         chunk_samples=reep_params.chunk_samples, progress=progress, prologue=reep.free_air_prologue, split=split,
+        on_start=on_start,
     )
     if not tables:
         raise InputError(f"{reader.info.source}: REEP found no force curve (z_piezo never moves)")

@@ -699,6 +699,7 @@ def run_probeloss(
     model: FreeAirModel | None = None,
     progress: Callable[[int], None] | None = None,
     split: Split | None = None,
+    on_stream_start: Callable[[], None] | None = None,
 ) -> ProbeLossResult:
     """Reliability index, switching signal and amplitude baseline over a whole capture, streaming.
 
@@ -715,6 +716,8 @@ def run_probeloss(
         A given free-air model; otherwise identified from the free-air segment.
     split : Split, optional
         Run the kernels of several chunks at once (:class:`~afmtool.pipeline.Split`).
+    on_stream_start : callable, optional
+        Called as the stream starts (:func:`~afmtool.pipeline.run_stream`'s ``on_start``).
 
     Returns
     -------
@@ -725,7 +728,7 @@ def run_probeloss(
     state = ProbeLossStage(reader, params, model)
     ((index_events, amp_events),) = run_stream(
         reader, [state], writer, channels=("deflection", "dither"), chunk_samples=params.chunk_samples,
-        progress=progress, prologue=state.free_air_prologue, split=split,
+        progress=progress, prologue=state.free_air_prologue, split=split, on_start=on_stream_start,
     )
     setup, geometry = state.setup, state.geometry
     lead = overlapping_lead(index_events, amp_events)

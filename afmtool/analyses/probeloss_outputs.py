@@ -12,7 +12,7 @@ from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.report.images import ImageStyle
+from afmtool.report.images import ImageStyle, start_matplotlib_import
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -37,7 +37,9 @@ def run_probeloss_command(run: CommandRun) -> dict:
     with OutputDir(run.out) as staged:
         with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"},
                           write_behind=True) as writer:
-            result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split)
+            # matplotlib, for the figures at the end, loads while the observer streams
+            result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split,
+                                   on_stream_start=start_matplotlib_import)
             _write_images(staged, writer, result)
         results = dict(result.results)
         _write_time_series(staged, reader, results)

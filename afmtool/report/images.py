@@ -332,17 +332,18 @@ def start_matplotlib_import() -> None:
 
 
 @contextmanager
-def _png_figure(path: Path, width_in: float, height_in: float) -> Iterator[Figure]:
+def _png_figure(path: Path, width_in: float, height_in: float, layout: str | None = "constrained") -> Iterator[Figure]:
     """Yield a new figure, then save it to ``path`` as PNG if the block succeeds.
 
     The figure is built and saved under matplotlib's default style, not the
     user's matplotlibrc, so the output does not depend on who runs it.
+    ``layout=None``: the caller places the axes (:func:`_stacked_margins`).
     """
     import matplotlib.style
 
     figure_class = _figure_class()
     with matplotlib.style.context("default"):
-        fig = figure_class(figsize=(width_in, height_in), dpi=PNG_DPI, layout="constrained")
+        fig = figure_class(figsize=(width_in, height_in), dpi=PNG_DPI, layout=layout)
         yield fig
         with atomic_path(path) as tmp:
             fig.savefig(tmp, format="png", dpi=PNG_DPI)
@@ -767,6 +768,44 @@ def _draw_spans(ax: Axes, spans: Sequence[tuple[float, float, str]], *, labelled
         ax.axvspan(x0, x1, color="0.85", alpha=0.6, zorder=0, label=label if labelled and label else None)
 
 
+def _check_panels(panels: Sequence[PanelSpec]) -> list[tuple[list, str, str]]:
+    """``(series, y label, title)`` of each panel of :func:`write_multi_panel_png`, checked."""
+    if len(panels) == 0:
+        raise ValueError("panels must hold at least one panel")
+    checked = []
+    for p, panel in enumerate(panels):
+        unknown = sorted(set(panel) - _PANEL_KEYS)
+        if unknown:
+            raise ValueError(f"panels[{p}]: unknown keys {unknown}; allowed: {sorted(_PANEL_KEYS)}")
+        if not panel.get("series"):
+            raise ValueError(f"panels[{p}] must hold a non-empty 'series'")
+        lines = [_as_series(item, f"panels[{p}]['series'][{i}]") for i, item in enumerate(panel["series"])]
+        if panel.get("y_scale", "linear") not in ("linear", "log"):
+            raise ValueError(f"panels[{p}]['y_scale']={panel['y_scale']!r} must be 'linear' or 'log'")
+        checked.append((lines, str(panel.get("y_label", "")), str(panel.get("title", ""))))
+    return checked
+
+
+def _stacked_margins(fig: Figure, width_in: float, height_in: float, *, twin: bool, panel_titles: bool,
+                     title: bool) -> None:
+    """Fixed margins (inches) for panels stacked on one x axis, room made for a right axis and titles.
+
+    Constrained layout measured every tick label of every panel before the
+    draw measured them again: half of such a figure's time (0.7 of 1.3 s for
+    probeloss's two).  The stacked panels need no search: tick labels of up
+    to about eight characters fit the left margin, and matplotlib sets each
+    y label beside its tick labels.
+    """
+    fig.subplots_adjust(
+        left=1.0 / width_in,
+        right=1.0 - (0.95 if twin else 0.25) / width_in,
+        bottom=0.6 / height_in,
+        top=1.0 - (0.6 if title else 0.25) / height_in,
+        hspace=0.3 if panel_titles else 0.12,
+    )
+    fig.align_ylabels()
+
+
 def _draw_twin(ax: Axes, twin: Mapping[str, Any], p: int) -> None:
     """Lines of ``twin`` on a second y axis at the right of ``ax``, greyed so that the panel's own lines lead."""
     lines = [_as_series(item, f"panels[{p}]['twin']['series'][{i}]") for i, item in enumerate(twin.get("series", ()))]
@@ -867,24 +906,17 @@ def write_multi_panel_png(
     >>> write_multi_panel_png(Path("curve.png"), panels, x_label="z (nm)")  # doctest: +SKIP
     """
     path = _check_png_path(path)
-    if len(panels) == 0:
-        raise ValueError("panels must hold at least one panel")
-    checked = []
-    for p, panel in enumerate(panels):
-        unknown = sorted(set(panel) - _PANEL_KEYS)
-        if unknown:
-            raise ValueError(f"panels[{p}]: unknown keys {unknown}; allowed: {sorted(_PANEL_KEYS)}")
-        if not panel.get("series"):
-            raise ValueError(f"panels[{p}] must hold a non-empty 'series'")
-        lines = [_as_series(item, f"panels[{p}]['series'][{i}]") for i, item in enumerate(panel["series"])]
-        if panel.get("y_scale", "linear") not in ("linear", "log"):
-            raise ValueError(f"panels[{p}]['y_scale']={panel['y_scale']!r} must be 'linear' or 'log'")
-        checked.append((lines, str(panel.get("y_label", "")), str(panel.get("title", ""))))
+    checked = _check_panels(panels)
     marks = _check_markers(markers)
     shaded = _check_spans(spans)
 
-    with _png_figure(path, 7.0, 1.9 * len(checked) + 1.1) as fig:
+    width_in, height_in = 7.0, 1.9 * len(checked) + 1.1
+    with _png_figure(path, width_in, height_in, layout=None) as fig:
         axes = fig.subplots(len(checked), 1, sharex=True, squeeze=False)[:, 0]
+        _stacked_margins(
+            fig, width_in, height_in, twin=any(panel.get("twin") for panel in panels),
+            panel_titles=any(panel_title for _, _, panel_title in checked), title=bool(title),
+        )
         for i, (ax, (lines, y_label, panel_title)) in enumerate(zip(axes, checked, strict=True)):
             _draw_spans(ax, shaded, labelled=i == 0)
             _draw_series(ax, lines)
