@@ -595,10 +595,10 @@ def run_decode(
     if setup.f0_hz >= fs / 2:
         raise InputError(f"f0 = {setup.f0_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
     channels = ("deflection",) + ((params.voltage_channel,) if params.voltage_channel else ("v_sub", "v_r"))
-    decoding = _DecodeStage(info, params, setup, channels, on_stream_start)
+    decoding = _DecodeStage(info, params, setup, channels)
     (totals,) = run_stream(
         reader, [decoding], writer, channels=channels, chunk_samples=params.chunk_samples, progress=progress,
-        prologue=decoding.nominal_prologue, read_ahead=_READ_AHEAD, split=split,
+        prologue=decoding.nominal_prologue, read_ahead=_READ_AHEAD, split=split, on_start=on_stream_start,
     )
     tuning, stage, nominal, mean_window = decoding.tuning, decoding.bits, decoding.nominal, decoding.mean_window
     baseline, psd, bits_start = decoding.baseline, decoding.psd, decoding.bits_start
@@ -695,13 +695,11 @@ class _DecodeStage:
     thread (both kernels release the GIL); ``finish`` returns the totals.
     """
 
-    def __init__(self, info: CaptureInfo, params: DecodeParams, setup: ModelSetup, channels: tuple[str, ...],
-                 on_stream_start: Callable[[], None] | None) -> None:
+    def __init__(self, info: CaptureInfo, params: DecodeParams, setup: ModelSetup, channels: tuple[str, ...]) -> None:
         self.info = info
         self.params = params
         self.setup = setup
         self.channels = channels
-        self.on_stream_start = on_stream_start
         self.fs = info.sample_rate_hz
         self.nominal = _nominal_interval(info, params)
         self.segment = None
@@ -751,8 +749,6 @@ class _DecodeStage:
         self.side = head.side
         self.split_sums = [0.0, 0.0, 0]
         self.ekf_settle = self._ekf_settle(head.first)
-        if self.on_stream_start is not None:
-            self.on_stream_start()
 
     def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
         """The innovation per sample and its running mean at the end of each window."""

@@ -73,7 +73,7 @@ class ReepResult(JsonResults):
     geometry: ScanGeometry | None = None
     force_curves: dict = field(default_factory=dict)
     z_units: str = ""
-    #: The rows of reep_time_series.png, gathered in the stream (None: read them from reep.h5).
+    #: The rows of reep_time_series.png, gathered in the stream.
     plot_rows: Thinned | None = None
 
 
@@ -253,8 +253,6 @@ class ReepStage:
         self._segment = None
         self._resolved = False
         self.n_total = 0
-        #: Called at the end of ``prepare`` (run_reep's ``on_stream_start``).
-        self.on_stream_start: Callable[[], None] | None = None
 
     def free_air_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:
         """The free-air route, its segment read ahead (:func:`_resolve_model`); the stream handed on."""
@@ -297,8 +295,6 @@ class ReepStage:
         self.image_acc = ImageAccumulator(self.geometry, _IMAGE_QUANTITIES) if self.geometry else None
         self.curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if self.z_mode and self.force_curves else None
         self._side = head.side
-        if self.on_stream_start is not None:
-            self.on_stream_start()
 
     def _input_checks(self, first_dither: np.ndarray | None) -> list[float]:
         """The dither's lines near resonance, with warnings on too few lines and an unmodelled delay."""
@@ -513,9 +509,8 @@ def run_reep(
         starts loading its plotting library then, so that it overlaps the kernels).
     """
     stage = ReepStage(reader, params, model=model)
-    stage.on_stream_start = on_stream_start
     (result,) = run_stream(
         reader, [stage], writer, channels=stage.channels, chunk_samples=params.chunk_samples,
-        progress=progress, prologue=stage.free_air_prologue, split=split,
+        progress=progress, prologue=stage.free_air_prologue, split=split, on_start=on_stream_start,
     )
     return result

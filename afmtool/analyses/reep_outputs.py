@@ -67,7 +67,7 @@ def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, 
 
 
 def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, deflection_units: str) -> dict:
-    """``reep_time_series.png`` and the results read back from the finished reep.h5.
+    """``reep_time_series.png`` (rows from the stream) and the tracking error read back from reep.h5.
 
     With ``/truth`` f0_hz and q, ``truth_tracking``: the error against them
     after the warm-up.  (``segments``, f0' and Q' in and after the free-air
@@ -88,8 +88,7 @@ def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, d
     if tracking is not None:
         out["truth_tracking"] = tracking
     write_reep_time_series_png(
-        staged.path("reep_time_series.png"), reep_h5 if result.plot_rows is None else result.plot_rows,
-        amplitude_units=deflection_units, truth=truth or None,
+        staged.path("reep_time_series.png"), result.plot_rows, amplitude_units=deflection_units, truth=truth or None,
         sample_rate_hz=fs, free_air_segment_s=segment, warmup_s=warmup_s,
     )
     return out

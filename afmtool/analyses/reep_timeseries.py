@@ -215,7 +215,9 @@ class _EveryKth:
         self.seen += n
         if first < n:
             taken = slice(first, None, self.step) if rows is None else rows[first::self.step]
-            self.parts.append({name: values[taken].copy() for name, values in items.items()})
+            # a slice is a view of the caller's block, an index array a copy already
+            self.parts.append({name: values[taken].copy() if rows is None else values[taken]
+                               for name, values in items.items()})
             self.kept += _rows_in(self.parts[-1])
         while self.kept > 2 * self.most:
             # kept items sit at positions 0, step, 2·step, …: every other one is a multiple of 2·step
@@ -282,7 +284,7 @@ def read_thinned(reep_h5: Path, names: tuple[str, ...]) -> Thinned:
 
 def write_reep_time_series_png(
     path: Path,
-    rows: Thinned | Path,
+    data: Thinned,
     *,
     amplitude_units: str,
     truth: Mapping[str, np.ndarray] | None = None,
@@ -296,12 +298,11 @@ def write_reep_time_series_png(
     window has passed) marked, and flagged rows ((b1, b0) outside the
     under-damped region of eq. 3.48, or a non-zero ``flag`` in reep.h5)
     marked with red crosses: at their value, or at the panel's median where
-    the value is NaN.  ``rows`` are those gathered in the stream
-    (:class:`ThinnedRows`) or a finished reep.h5 to read them from.
+    the value is NaN.  ``data``: the rows gathered in the stream
+    (:class:`ThinnedRows`), or read from a finished reep.h5 (:func:`read_thinned`).
     """
     from afmtool.report.images import write_multi_panel_png
 
-    data = rows if isinstance(rows, Thinned) else read_thinned(rows, PLOTTED)
     reep_style = {"color": "C0", "linewidth": 1.0}
     truth_style = {"color": "k", "linestyle": "--", "linewidth": 1.2}
     labels = {
