@@ -40,6 +40,7 @@ def run_decode_command(run: CommandRun) -> dict:
                 for name in ("frequency_hz", "deflection", "innovation"):
                     units = "Hz" if name == "frequency_hz" else "nm^2/Hz"
                     writer.put(f"psd/{name}", result.psd[name], units)
+        staged.flush_early("decode.h5")  # to disk while the figures are drawn
         _write_figures(staged, result)
         _write_time_series(staged, reader, result.results)
         inputs = [{**record.result(), **calibration_record(reader)}]

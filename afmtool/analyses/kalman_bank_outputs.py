@@ -58,6 +58,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
                     progress=run.progress, split=run.split, on_stream_start=start_matplotlib_import,
                 )
                 _write_tables(writer, result, deflection_units)
+            staged.flush_early("bank.h5")  # to disk while the figures are drawn
             _plot_rms_vs_z(staged.path("bank_rms_vs_z.png"), result, deflection_units)
             _plot_rms_vs_time(staged.path("bank_rms_vs_time.png"), staged.path("bank.h5"), result, deflection_units)
             warnings = list(result.warnings)

@@ -41,6 +41,7 @@ def run_probeloss_command(run: CommandRun) -> dict:
             result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split,
                                    on_stream_start=start_matplotlib_import)
             _write_images(staged, writer, result)
+        staged.flush_early("probeloss.h5")  # to disk while the figures are drawn
         results = dict(result.results)
         _write_time_series(staged, reader, results)
         if result.setup is not None and result.setup.model_source == "segment":

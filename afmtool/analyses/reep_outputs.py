@@ -38,6 +38,7 @@ def run_reep_command(run: CommandRun) -> dict:
                               on_stream_start=start_matplotlib_import)
             _write_force_curves(staged, writer, result, deflection_units)
             _write_images(staged, writer, result, deflection_units)
+        staged.flush_early("reep.h5")  # to disk while the figures are drawn
         results = dict(result.results)
         results.update(_time_series(staged, reader, result, deflection_units))
         from afmtool.analyses.interaction_outputs import add_interaction_series

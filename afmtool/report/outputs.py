@@ -28,10 +28,11 @@ import hashlib
 import os
 import shutil
 import tempfile
+import threading
 from pathlib import Path
 
 from afmtool.errors import AfmtoolError
-from afmtool.report.atomic import OutputError, _fsync_dir, _fsync_tree
+from afmtool.report.atomic import OutputError, _fsync_dir, _fsync_path, _fsync_tree
 from afmtool.report.faults import environment_fault
 from afmtool.report.input_guard import refuse_output_over_inputs
 from afmtool.report.interrupts import signals_deferred
@@ -115,6 +116,7 @@ class OutputDir:
         self._lock_path: Path | None = None
         self._created: list[Path] = []
         self._names: list[str] = []
+        self._flushing: list[_EarlyFlush] = []
 
     # -- set-up ---------------------------------------------------------------------------
 
@@ -218,6 +220,21 @@ class OutputDir:
     def names(self) -> tuple[str, ...]:
         return tuple(self._names)
 
+    def flush_early(self, name: str) -> None:
+        """Start flushing the finished output ``name`` to disk now, beside the rest of the run.
+
+        The commit flushes every file before the swap.  For a result file of
+        a gigabyte that took 0.8 s at the end of ``afmtool kalman-bank``,
+        after the figures.  Once ``name`` is written, its flush can run in a
+        thread (``fsync`` releases the GIL) while the figures are drawn; the
+        commit waits for it and raises its error, and the commit's own flush
+        of the file then finds little left to write.  A later change to the
+        file is flushed by the commit as before.
+        """
+        flush = _EarlyFlush(self.path(name))
+        flush.start()
+        self._flushing.append(flush)
+
     # -- finish -----------------------------------------------------------------------------
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -272,6 +289,8 @@ class OutputDir:
             if entry.name not in wanted:
                 shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
         staging.chmod(0o777 & ~_umask())
+        for flush in self._flushing:
+            flush.wait()
         _fsync_tree(staging)
         if not os.path.lexists(final):
             os.rename(staging, final)
@@ -284,6 +303,34 @@ class OutputDir:
             shutil.rmtree(aside, ignore_errors=True)
         self._staging = None
         _fsync_dir(final.parent)
+
+
+class _EarlyFlush:
+    """``fsync`` of one staged file in a daemon thread; :meth:`wait` joins it and raises its error.
+
+    The error must reach the commit: after a failed ``fsync`` Linux may
+    report the next one on the same file as a success, though the data
+    never reached the disk.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self._path = path
+        self._error: OSError | None = None
+        self._thread = threading.Thread(target=self._run, name="afmtool-flush", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            _fsync_path(self._path)
+        except OSError as error:
+            self._error = error
+
+    def wait(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
 
 
 def _umask() -> int:
