@@ -119,6 +119,8 @@ def runs(tmp_path_factory):
     """Every run of RUNS in process, each figure inspected as it is saved: (folders, figure records)."""
     from matplotlib.figure import Figure
 
+    from afmtool.report.figure_process import FigureProcess
+
     base = tmp_path_factory.mktemp("report_outputs")
     (base / "sample_data").symlink_to(SAMPLE_DATA, target_is_directory=True)
     records: list[FigureRecord] = []
@@ -135,6 +137,8 @@ def runs(tmp_path_factory):
     folders = {}
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(Figure, "savefig", inspecting_savefig)
+        # the figures are inspected as they are saved, so in this process, not by a figure process
+        patch.setattr(FigureProcess, "start", classmethod(lambda cls: cls()))
         patch.chdir(base)
         _invoke(_CHIRP)
         _invoke(["simulate", "es-approach", "-o", "es.h5"])

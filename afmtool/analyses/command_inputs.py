@@ -11,7 +11,7 @@ request, the functions below the shared first steps.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
@@ -19,6 +19,7 @@ from afmtool.config import load_toml, resolve_from
 from afmtool.io.capture import CaptureReader
 from afmtool.io.provenance import HashedReader
 from afmtool.models.free_air import FreeAirModel, load_free_air_model
+from afmtool.report.figure_process import FigureProcess
 
 if TYPE_CHECKING:
     from afmtool.pipeline import Split
@@ -55,6 +56,9 @@ class CommandRun:
         Record the hash of the samples read (``--no-hash`` turns it off, for live pipelines).
     split : Split, optional
         ``--jobs`` and ``--scheduler``: the kernels of several chunks at once; None runs sequentially.
+    figures : FigureProcess
+        Draws the figures: a helper process the CLI forked as the command started, or by
+        default this process.
     """
 
     reader: CaptureReader
@@ -66,6 +70,7 @@ class CommandRun:
     reopen: Callable[[], CaptureReader] | None = None
     hash_input: bool = True
     split: Split | None = None
+    figures: FigureProcess = field(default_factory=FigureProcess)
 
     def __post_init__(self) -> None:
         if self.hash_input and not isinstance(self.reader, HashedReader):

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from afmtool.report.figure_process import FigureProcess
+
 __all__ = ["WINDOW_BITS", "write_decode_time_series_png"]
 
 #: Bit periods shown.
@@ -26,6 +28,7 @@ def write_decode_time_series_png(
     *,
     truth_bit: np.ndarray | None,
     sample_rate_hz: float,
+    figures: FigureProcess | None = None,
 ) -> bool:
     """Innovation running mean with the threshold and cell values over the decided bits and the truth.
 
@@ -44,6 +47,8 @@ def write_decode_time_series_png(
         latency (the alignment its BER was counted with).
     sample_rate_hz : float
         The capture's rate.
+    figures : FigureProcess, optional
+        Draws the figure (the command's figure process); by default this process.
 
     Returns
     -------
@@ -90,8 +95,8 @@ def write_decode_time_series_png(
         {"y_label": "bit (0/1)", "series": bit_series},
     ]
     count = int(np.count_nonzero(cells))
-    write_multi_panel_png(
-        directory_path("decode_time_series.png"), panels, x_label="time t (s)", x_limits=window,
+    (figures or FigureProcess()).draw(
+        write_multi_panel_png, directory_path("decode_time_series.png"), panels, x_label="time t (s)", x_limits=window,
         title=f"EKF innovation and decided bits: the first {count} bits ({rate / 1e3:.4g} kbit/s)",
     )
     return True

@@ -18,7 +18,7 @@ from afmtool.config.params import KalmanBankParams
 from afmtool.errors import ConfigError
 from afmtool.io.matrix_results import MatrixResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.report.images import start_matplotlib_import
+from afmtool.report.figure_process import FigureProcess
 from afmtool.report.json_report import input_record
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
@@ -55,17 +55,19 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
                                     write_behind=True) as writer:
                 result = run_kalman_bank(
                     reader, params, writer, model=model, reep_results=reep_results, reopen=run.reopen,
-                    progress=run.progress, split=run.split, on_stream_start=start_matplotlib_import,
+                    progress=run.progress, split=run.split, on_stream_start=run.figures.on_stream_start,
                 )
                 _write_tables(writer, result, deflection_units)
             staged.flush_early("bank.h5")  # to disk while the figures are drawn
-            _plot_rms_vs_z(staged.path("bank_rms_vs_z.png"), result, deflection_units)
-            _plot_rms_vs_time(staged.path("bank_rms_vs_time.png"), staged.path("bank.h5"), result, deflection_units)
+            _plot_rms_vs_z(run.figures, staged.path("bank_rms_vs_z.png"), result, deflection_units)
+            _plot_rms_vs_time(run.figures, staged.path("bank_rms_vs_time.png"), staged.path("bank.h5"), result,
+                              deflection_units)
             warnings = list(result.warnings)
             if not result.verdict.passed:
                 warnings.append("verdict FAIL: " + "; ".join(result.verdict.reasons))
             # after the run: the samples are hashed and the drive phases fitted
             inputs.insert(0, {**capture_record.result(), **calibration_record(reader)})
+            run.figures.wait()
             return finish_run(staged, "kalman-bank", inputs, "kalman-bank", params, result.results, warnings)
     finally:
         if reep_results is not None:
@@ -94,7 +96,7 @@ def _write_tables(writer: MatrixResultWriter, result: KalmanBankResult, deflecti
         writer.put(f"reep_force_curve/{leg}/q", table.q)
 
 
-def _plot_rms_vs_z(path: Path, result: KalmanBankResult, deflection_units: str) -> None:
+def _plot_rms_vs_z(figures: FigureProcess, path: Path, result: KalmanBankResult, deflection_units: str) -> None:
     """log10 RMS against z per leg: each filter, the adaptive observer in bold black, design points marked."""
     from afmtool.report.images import write_multi_panel_png
 
@@ -111,7 +113,8 @@ def _plot_rms_vs_z(path: Path, result: KalmanBankResult, deflection_units: str) 
         panels.append({"series": series, "y_label": f"log10 RMS ({units.strip() or 'units'})", "title": leg})
     markers = [(p.z, f"z{k + 1}") for k, p in enumerate(result.points)]
     verdict = "PASS" if result.verdict.passed else "FAIL"
-    write_multi_panel_png(
+    figures.draw(
+        write_multi_panel_png,
         path,
         panels,
         x_label=f"z_piezo ({result.z_units})" if result.z_units else "z_piezo",
@@ -120,7 +123,8 @@ def _plot_rms_vs_z(path: Path, result: KalmanBankResult, deflection_units: str) 
     )
 
 
-def _plot_rms_vs_time(path: Path, bank_h5: Path, result: KalmanBankResult, deflection_units: str) -> None:
+def _plot_rms_vs_time(figures: FigureProcess, path: Path, bank_h5: Path, result: KalmanBankResult,
+                      deflection_units: str) -> None:
     """Each filter's innovation RMS and the adaptive observer's against time, z_piezo overlaid (thesis Fig. 3.9).
 
     Read back from the finished bank.h5 with an HDF5 stride (at most
@@ -144,8 +148,8 @@ def _plot_rms_vs_time(path: Path, bank_h5: Path, result: KalmanBankResult, defle
         z_label = f"z_piezo ({result.z_units})" if result.z_units else "z_piezo (input units)"
         panel["twin"] = {"series": [(t, z, "z_piezo", {"color": "0.5", "linestyle": "--"})], "y_label": z_label}
     verdict = "PASS" if result.verdict.passed else "FAIL"
-    write_multi_panel_png(path, [panel], x_label="time t (s)",
-                          title=f"Kalman bank innovation RMS against time, z overlaid (§3.4.2): {verdict}")
+    figures.draw(write_multi_panel_png, path, [panel], x_label="time t (s)",
+                 title=f"Kalman bank innovation RMS against time, z overlaid (§3.4.2): {verdict}")
 
 
 def _log10(values: np.ndarray) -> np.ndarray:

@@ -12,7 +12,8 @@ from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.report.images import ImageStyle, start_matplotlib_import
+from afmtool.report.figure_process import FigureProcess
+from afmtool.report.images import ImageStyle
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -39,14 +40,15 @@ def run_probeloss_command(run: CommandRun) -> dict:
                           write_behind=True) as writer:
             # matplotlib, for the figures at the end, loads while the observer streams
             result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split,
-                                   on_stream_start=start_matplotlib_import)
-            _write_images(staged, writer, result)
+                                   on_stream_start=run.figures.on_stream_start)
+            _write_images(staged, writer, result, run.figures)
         staged.flush_early("probeloss.h5")  # to disk while the figures are drawn
         results = dict(result.results)
-        _write_time_series(staged, reader, results)
+        _write_time_series(run.figures, staged, reader, results)
         if result.setup is not None and result.setup.model_source == "segment":
             result.setup.model.save(staged.path("free_air.json"))
         inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_input_records(params.model)]
+        run.figures.wait()
         return finish_run(staged, "probeloss", inputs, "probeloss", params, results, result.warnings)
 
 
@@ -56,21 +58,21 @@ def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapp
     run_stream_with_model(run_probeloss, ProbeLossParams, "probeloss", reader, config, flags, fmt)
 
 
-def _write_time_series(staged: OutputDir, reader: CaptureReader, results: Mapping) -> None:
+def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: CaptureReader, results: Mapping) -> None:
     """The index, switches, amplitude and truth contact against time, from the finished probeloss.h5."""
     from afmtool.analyses.probeloss_timeseries import write_probeloss_time_series
 
     contact = reader.truth()["contact"] if "contact" in reader.info.truth_names else None
     write_probeloss_time_series(
         staged.path, staged.path("probeloss.h5"), results, amplitude_units=_units(reader)["amplitude"],
-        truth_contact=contact, sample_rate_hz=reader.info.sample_rate_hz,
+        truth_contact=contact, sample_rate_hz=reader.info.sample_rate_hz, figures=figures,
     )
 
 
-def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResult) -> None:
+def _write_images(staged: OutputDir, writer: ResultWriter, result: ProbeLossResult, figures: FigureProcess) -> None:
     """Probe-loss mask (fraction of each pixel's samples in loss) and index images, PNG and .gsf."""
     if result.geometry is None:
         return
     from afmtool.report.images import write_scan_images
 
-    write_scan_images(staged.path, result.images, result.geometry, _IMAGE_STYLES.__getitem__, writer.put)
+    write_scan_images(staged.path, result.images, result.geometry, _IMAGE_STYLES.__getitem__, writer.put, figures)

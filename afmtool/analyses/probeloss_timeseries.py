@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from afmtool.report.figure_process import FigureProcess
+
 __all__ = ["ZOOM_PERIODS", "write_probeloss_time_series"]
 
 #: Width of a zoomed segment, in drive periods.
@@ -61,6 +63,7 @@ def write_probeloss_time_series(
     amplitude_units: str,
     truth_contact: np.ndarray | None,
     sample_rate_hz: float,
+    figures: FigureProcess | None = None,
 ) -> list[str]:
     """Write ``probeloss_time_series.png`` and, for a long capture, ``probeloss_zoom_<k>.png``.
 
@@ -80,6 +83,8 @@ def write_probeloss_time_series(
         row's drive period.
     sample_rate_hz : float
         The capture's rate, to place the truth at the rows.
+    figures : FigureProcess, optional
+        Draws the figure (the command's figure process); by default this process.
 
     Returns
     -------
@@ -99,9 +104,9 @@ def write_probeloss_time_series(
         if len(rows["t"]) < 2:
             return
         contact = truth_per_row(truth_contact, rows["t"], sample_rate_hz, reduce="max") if truth_contact is not None else None
-        write_multi_panel_png(
-            directory_path(name), _panels(rows, results, amplitude_units, contact), x_label="time t (s)", title=title,
-            x_limits=t_range,
+        (figures or FigureProcess()).draw(
+            write_multi_panel_png, directory_path(name), _panels(rows, results, amplitude_units, contact),
+            x_label="time t (s)", title=title, x_limits=t_range,
         )
         written.append(name)
 

@@ -14,7 +14,7 @@ from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
-from afmtool.report.images import start_matplotlib_import
+from afmtool.report.figure_process import FigureProcess
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
@@ -35,18 +35,18 @@ def run_reep_command(run: CommandRun) -> dict:
     with OutputDir(run.out) as staged:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
             result = run_reep(reader, params, writer, model=model, progress=run.progress, split=run.split,
-                              on_stream_start=start_matplotlib_import)
-            _write_force_curves(staged, writer, result, deflection_units)
-            _write_images(staged, writer, result, deflection_units)
+                              on_stream_start=run.figures.on_stream_start)
+            _write_force_curves(staged, writer, result, deflection_units, run.figures)
+            _write_images(staged, writer, result, deflection_units, run.figures)
         staged.flush_early("reep.h5")  # to disk while the figures are drawn
         results = dict(result.results)
-        results.update(_time_series(staged, reader, result, deflection_units))
+        results.update(_time_series(staged, reader, result, deflection_units, run.figures))
         from afmtool.analyses.interaction_outputs import add_interaction_series
 
         results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.capture_metadata,
                                                         deflection_units, params.spring_constant_n_per_m)
         if results["interaction"].get("written"):
-            _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz)
+            _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz, run.figures)
         if result.force_curves:
             results["force_curve"] = _curve_summary(result)
         if result.geometry is not None:
@@ -58,6 +58,7 @@ def run_reep_command(run: CommandRun) -> dict:
 
             FreeAirModel(**result.results["free_air_model"]).save(staged.path("free_air.json"))
         inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_records]
+        run.figures.wait()
         return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
 
 
@@ -67,14 +68,15 @@ def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, 
     run_stream_with_model(run_reep, ReepParams, "reep", reader, config, flags, fmt)
 
 
-def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, deflection_units: str) -> dict:
+def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, deflection_units: str,
+                 figures: FigureProcess) -> dict:
     """``reep_time_series.png`` (rows from the stream) and the tracking error read back from reep.h5.
 
     With ``/truth`` f0_hz and q, ``truth_tracking``: the error against them
     after the warm-up.  (``segments``, f0' and Q' in and after the free-air
     segment, come from the stream: ``run_reep``.)
     """
-    from afmtool.analyses.reep_timeseries import tracking_error, write_reep_time_series_png
+    from afmtool.analyses.reep_timeseries import tracking_error, truth_at_rows, write_reep_time_series_png
 
     fs = reader.info.sample_rate_hz
     warmup_s = result.results["summary_after_warmup_samples"] / fs
@@ -88,9 +90,10 @@ def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, d
     tracking = tracking_error(reep_h5, truth, fs, warmup_s)
     if tracking is not None:
         out["truth_tracking"] = tracking
-    write_reep_time_series_png(
-        staged.path("reep_time_series.png"), result.plot_rows, amplitude_units=deflection_units, truth=truth or None,
-        sample_rate_hz=fs, free_air_segment_s=segment, warmup_s=warmup_s,
+    figures.draw(
+        write_reep_time_series_png, staged.path("reep_time_series.png"), result.plot_rows,
+        amplitude_units=deflection_units, truth=truth_at_rows(result.plot_rows.t, truth, fs) if truth else None,
+        free_air_segment_s=segment, warmup_s=warmup_s,
     )
     return out
 
@@ -116,7 +119,8 @@ def _curve_summary(result: ReepResult) -> dict:
     return summary
 
 
-def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str) -> None:
+def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str,
+                        figures: FigureProcess) -> None:
     if not result.force_curves:
         return
     from afmtool.report.images import APPROACH_STYLE, RETRACT_STYLE, write_multi_panel_png
@@ -127,7 +131,7 @@ def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepRes
         for name, values in table.means.items():
             writer.put(f"force_curve/{leg}/{name}", values, SERIES_UNITS.get(name, ""))
             writer.put(f"force_curve/{leg}/d_{name}_dz", table.sensitivities[name])
-    styles = {"approach": APPROACH_STYLE, "retract": RETRACT_STYLE}
+    styles = {"approach": dict(APPROACH_STYLE), "retract": dict(RETRACT_STYLE)}  # plain dicts pickle (FigureProcess)
     amplitude_units = deflection_units or "input units"
     z_units = result.z_units or "z units"
     # (quantity, units) per panel; a sensitivity's units are the quantity's per z unit
@@ -144,7 +148,8 @@ def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepRes
                 label = f"{quantity} ({units or 'dimensionless'})"
             panels.append({"y_label": label, "series": series})
         name = "force_curve.png" if not prefix else "force_curve_sensitivity.png"
-        write_multi_panel_png(
+        figures.draw(
+            write_multi_panel_png,
             staged.path(name),
             panels,
             x_label=f"z_piezo ({result.z_units})" if result.z_units else "z_piezo",
@@ -152,7 +157,8 @@ def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepRes
         )
 
 
-def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str) -> None:
+def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str,
+                  figures: FigureProcess) -> None:
     if result.geometry is None:
         return
     from afmtool.report.images import ImageStyle, write_scan_images
@@ -161,7 +167,7 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, d
         title, units = _IMAGE_TITLES[quantity]
         return ImageStyle(title, deflection_units if units is None else units)
 
-    write_scan_images(staged.path, result.images, result.geometry, style, writer.put)
+    write_scan_images(staged.path, result.images, result.geometry, style, writer.put, figures)
 
 
 #: Image titles of the /interaction quantities (afmtool.models.interaction).
@@ -172,7 +178,8 @@ _INTERACTION_TITLES = {
 }
 
 
-def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepParams, sample_rate_hz: float) -> None:
+def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepParams, sample_rate_hz: float,
+                            figures: FigureProcess) -> None:
     """The /interaction series binned as f0', Q' are: force-curve tables, images, PNG and .gsf.
 
     The report's ``interaction`` section is left as it was (the golden reports pin it); the
@@ -198,4 +205,5 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
         from afmtool.report.images import ImageStyle, write_scan_images
 
         write_scan_images(staged.path, binned.images, result.geometry,
-                          lambda quantity: ImageStyle(_INTERACTION_TITLES.get(quantity, quantity), binned.units[quantity]))
+                          lambda quantity: ImageStyle(_INTERACTION_TITLES.get(quantity, quantity), binned.units[quantity]),
+                          figures=figures)

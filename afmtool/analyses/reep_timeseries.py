@@ -19,12 +19,14 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from afmtool.estimators.moments import RunningMoments
 from afmtool.io.result_files import FLAG_COLUMN, MAX_PLOT_POINTS, open_result_file
+
+if TYPE_CHECKING:
+    from afmtool.estimators.moments import RunningMoments
 
 __all__ = [
     "MAX_PLOT_POINTS",
@@ -33,6 +35,7 @@ __all__ = [
     "FLAG_COLUMN",
     "segment_statistics",
     "tracking_error",
+    "truth_at_rows",
     "write_reep_time_series_png",
     "PLOTTED",
     "Thinned",
@@ -75,6 +78,9 @@ class SegmentMoments:
             self.bounds = {"free_air": (max(start, warmup_s), end), "after_free_air": (end + warmup_s, math.inf)}
         else:
             self.bounds = {"settled": (warmup_s, math.inf)}
+        # numba loads here, not at import: the figure process imports this module for the figure alone
+        from afmtool.estimators.moments import RunningMoments
+
         self.moments = {seg: {"f0_hz": RunningMoments(), "q": RunningMoments()} for seg in self.bounds}
         self.last_t: float | None = None
 
@@ -282,13 +288,28 @@ def read_thinned(reep_h5: Path, names: tuple[str, ...]) -> Thinned:
     return thinned.result()
 
 
+def truth_at_rows(t: np.ndarray, truth: Mapping[str, np.ndarray], sample_rate_hz: float) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each ``/truth`` series (one value per input sample) at the rows' times ``t`` (s).
+
+    Returns ``{name: (t, values)}``, leaving out rows beyond the truth's
+    end: what :func:`write_reep_time_series_png` draws, a few thousand
+    values instead of one per sample.
+    """
+    index = np.rint(t * sample_rate_hz).astype(np.int64)
+    at_rows = {}
+    for name, values in truth.items():
+        inside = (index >= 0) & (index < len(values))
+        if np.any(inside):
+            at_rows[name] = (t[inside], np.asarray(values)[index[inside]])
+    return at_rows
+
+
 def write_reep_time_series_png(
     path: Path,
     data: Thinned,
     *,
     amplitude_units: str,
-    truth: Mapping[str, np.ndarray] | None = None,
-    sample_rate_hz: float | None = None,
+    truth: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
     free_air_segment_s: tuple[float, float] | None = None,
     warmup_s: float = 0.0,
 ) -> None:
@@ -300,6 +321,7 @@ def write_reep_time_series_png(
     marked with red crosses: at their value, or at the panel's median where
     the value is NaN.  ``data``: the rows gathered in the stream
     (:class:`ThinnedRows`), or read from a finished reep.h5 (:func:`read_thinned`).
+    ``truth``: ``{name: (t, values)}`` at the rows (:func:`truth_at_rows`).
     """
     from afmtool.report.images import write_multi_panel_png
 
@@ -316,11 +338,8 @@ def write_reep_time_series_png(
         if name not in data.columns:
             continue
         series = [(data.t, data.columns[name], "REEP" if name in ("f0_hz", "q") else "lock-in", reep_style)]
-        if truth is not None and sample_rate_hz and name in truth:
-            index = np.rint(data.t * sample_rate_hz).astype(np.int64)
-            inside = (index >= 0) & (index < len(truth[name]))
-            if np.any(inside):
-                series.append((data.t[inside], np.asarray(truth[name])[index[inside]], "truth", truth_style))
+        if truth and name in truth:
+            series.append((*truth[name], "truth", truth_style))
         if data.flagged_t.size:
             # flagged rows are NaN in f0', Q': mark them at the panel's median so they show on the axis
             finite = data.columns[name][np.isfinite(data.columns[name])]

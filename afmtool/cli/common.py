@@ -13,7 +13,7 @@ from afmtool.cli.progress import progress_bar, stderr_console
 
 __all__ = [
     "open_input", "open_calibrated", "output_target", "stdout_pipe", "finish_command", "run_capture_analysis",
-    "run_streaming_command",
+    "run_streaming_command", "figure_process",
 ]
 
 
@@ -169,14 +169,26 @@ def run_streaming_command(name: str, capture: str, source_args: tuple, output, f
 
     from afmtool.analyses.command_inputs import CommandRun
 
-    module = importlib.import_module(analysis)
-    stem = name.replace("-", "_")
-    to_rows, to_folder = getattr(module, f"run_{stem}_stream"), getattr(module, f"run_{stem}_command")
-    run_capture_analysis(
-        name, capture, source_args, output.out, output.stream_mode, output.json_output, output.quiet,
-        to_rows=lambda reader: to_rows(reader, output.config, flags, output.stream_format),
-        to_folder=lambda reader, update: to_folder(
-            CommandRun(reader, capture, output.out, output.config, flags, update, hash_input=not output.no_hash,
-                       split=output.split())
-        ),
-    )
+    with figure_process(output) as figures:
+        module = importlib.import_module(analysis)
+        stem = name.replace("-", "_")
+        to_rows, to_folder = getattr(module, f"run_{stem}_stream"), getattr(module, f"run_{stem}_command")
+        run_capture_analysis(
+            name, capture, source_args, output.out, output.stream_mode, output.json_output, output.quiet,
+            to_rows=lambda reader: to_rows(reader, output.config, flags, output.stream_format),
+            to_folder=lambda reader, update: to_folder(
+                CommandRun(reader, capture, output.out, output.config, flags, update, hash_input=not output.no_hash,
+                           split=output.split(), figures=figures)
+            ),
+        )
+
+
+def figure_process(output):
+    """The helper that draws a folder run's figures, forked now, before numba loads and threads start.
+
+    ``--stream`` draws none: the figures are then drawn (never) in this process.
+    """
+    from afmtool.report.figure_process import FigureProcess
+
+    streaming, _ = output.stream_mode
+    return FigureProcess() if streaming or output.out is None else FigureProcess.start()

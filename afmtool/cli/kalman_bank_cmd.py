@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from afmtool.cli.common import finish_command, open_calibrated
+from afmtool.cli.common import figure_process, finish_command, open_calibrated
 from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
 from afmtool.cli.options import CaptureArg
 from afmtool.cli.param_flags import param_flags
@@ -29,7 +29,6 @@ def kalman_bank(capture: CaptureArg, *, flags: dict, output: CommandOutput, sour
     config.toml.  Needs dither, deflection and z_piezo.
     """
     from afmtool.analyses.command_inputs import CommandRun
-    from afmtool.analyses.kalman_bank_outputs import run_kalman_bank_command
 
     calibration = source.calibration(flags["free_air"], accepts_drive=True)
     channel, topic, sample_rate, _, _ = source.args()
@@ -37,11 +36,14 @@ def kalman_bank(capture: CaptureArg, *, flags: dict, output: CommandOutput, sour
     def reopen():
         return open_calibrated(capture, channel, topic, sample_rate, calibration)
 
-    with source.open(capture, calibration) as reader:
-        with progress_bar("kalman-bank", reader.info.n_samples, output.quiet) as update:
-            run = CommandRun(reader, capture, output.out, output.config, flags, update, reopen=reopen,
-                             hash_input=not output.no_hash, split=output.split())
-            report = run_kalman_bank_command(run)
+    with figure_process(output) as figures:
+        from afmtool.analyses.kalman_bank_outputs import run_kalman_bank_command
+
+        with source.open(capture, calibration) as reader:
+            with progress_bar("kalman-bank", reader.info.n_samples, output.quiet) as update:
+                run = CommandRun(reader, capture, output.out, output.config, flags, update, reopen=reopen,
+                                 hash_input=not output.no_hash, split=output.split(), figures=figures)
+                report = run_kalman_bank_command(run)
     finish_command(report, output.out, output.json_output, output.quiet)
 
 

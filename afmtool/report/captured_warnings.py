@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 import warnings
 
-__all__ = ["capture_warnings", "drain"]
+__all__ = ["add", "capture_warnings", "drain", "take"]
 
 _lock = threading.Lock()
 _seen: dict[str, int] = {}
@@ -29,9 +29,21 @@ def capture_warnings() -> None:
     warnings.showwarning = _record
 
 
+def take() -> dict[str, int]:
+    """The warnings recorded so far, ``{text: count}``, and forget them."""
+    with _lock:
+        taken = dict(_seen)
+        _seen.clear()
+    return taken
+
+
+def add(counts: dict[str, int]) -> None:
+    """Record warnings another process took (:func:`take`), e.g. the figure process's."""
+    with _lock:
+        for text, count in counts.items():
+            _seen[text] = _seen.get(text, 0) + count
+
+
 def drain() -> list[str]:
     """The distinct warnings recorded so far (with counts), and forget them."""
-    with _lock:
-        items = list(_seen.items())
-        _seen.clear()
-    return [text if count == 1 else f"{text} ({count} times)" for text, count in items]
+    return [text if count == 1 else f"{text} ({count} times)" for text, count in take().items()]

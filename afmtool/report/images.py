@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike
 
 from afmtool.errors import InputError
 from afmtool.report.atomic import OutputError, atomic_path
+from afmtool.report.figure_process import FigureProcess
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -42,6 +43,7 @@ __all__ = [
     "Series",
     "read_gsf",
     "start_matplotlib_import",
+    "warm_up_figures",
     "write_gsf",
     "write_image_png",
     "write_line_plot_png",
@@ -331,6 +333,27 @@ def start_matplotlib_import() -> None:
     threading.Thread(target=run, name="afmtool-matplotlib", daemon=True).start()
 
 
+def warm_up_figures() -> None:
+    """Import matplotlib and draw a small figure into memory, discarded.
+
+    The first figure of a process pays for loading the fonts and for the
+    first pass through matplotlib's drawing code (0.1-0.2 s more than the
+    next one); the figure process (:mod:`afmtool.report.figure_process`)
+    pays it while the command is still analysing.
+    """
+    import io
+
+    import matplotlib.style
+
+    figure_class = _figure_class()
+    with matplotlib.style.context("default"):
+        fig = figure_class(figsize=(2.0, 1.5), dpi=PNG_DPI)
+        axes = fig.add_subplot()
+        axes.plot([0.0, 1.0], [0.0, 1.0])
+        axes.set(xlabel="time t (s)", ylabel="f0' (Hz)", title="warm-up")
+        fig.savefig(io.BytesIO(), format="png", dpi=PNG_DPI)
+
+
 @contextmanager
 def _png_figure(path: Path, width_in: float, height_in: float, layout: str | None = "constrained") -> Iterator[Figure]:
     """Yield a new figure, then save it to ``path`` as PNG if the block succeeds.
@@ -454,6 +477,7 @@ def write_scan_images(
     geometry,
     style_of: Callable[[str], ImageStyle],
     put: Callable[..., None] | None = None,
+    figures: FigureProcess | None = None,
 ) -> None:
     """Every ``quantity/direction`` image of a scan as PNG + .gsf (:func:`write_scan_image_files`).
 
@@ -470,6 +494,8 @@ def write_scan_images(
     put : callable, optional
         ``put(name, values, units, attrs)`` of the command's result file: each image is
         stored there as ``images/<key>`` too.
+    figures : FigureProcess, optional
+        Draws the PNGs (the command's figure process); by default this process.
     """
     for key, image in sorted(images.items()):
         quantity, direction = key.split("/")
@@ -478,7 +504,7 @@ def write_scan_images(
             put(f"images/{key}", image, style.units, {"row0": "first line scanned"})
         write_scan_image_files(path_of, f"{style.stem or quantity}_{direction}", image, geometry.scan_size_m,
                                geometry.lines / geometry.pixels_per_line, title=style.title, direction=direction,
-                               units=style.units, cmap=style.cmap, z_range=style.z_range)
+                               units=style.units, cmap=style.cmap, z_range=style.z_range, figures=figures)
 
 
 def write_scan_image_files(
@@ -493,6 +519,7 @@ def write_scan_image_files(
     units: str,
     cmap: str = "afmhot",
     z_range: tuple[float, float] | None = None,
+    figures: FigureProcess | None = None,
 ) -> None:
     """``{stem}.png`` and ``{stem}.gsf`` of one per-pixel scan image.
 
@@ -513,11 +540,14 @@ def write_scan_image_files(
         The quantity's title, the scan direction (trace, retrace) and its units.
     cmap, z_range
         As for :func:`write_image_png`.
+    figures : FigureProcess, optional
+        Draws the PNG (the command's figure process); by default this process.
     """
     top_first = np.asarray(image)[::-1]
     y_size = scan_size_m * aspect
-    write_image_png(path_of(f"{stem}.png"), top_first, scan_size_m, y_size, z_units=units,
-                    title=f"{title} ({direction})", cmap=cmap, z_range=z_range, z_label=title)
+    (figures or FigureProcess()).draw(write_image_png, path_of(f"{stem}.png"), top_first, scan_size_m, y_size,
+                                      z_units=units, title=f"{title} ({direction})", cmap=cmap, z_range=z_range,
+                                      z_label=title)
     write_gsf(path_of(f"{stem}.gsf"), top_first, scan_size_m, y_size, xy_units="m", z_units=units,
               title=f"{title} {direction}")
 
