@@ -19,8 +19,9 @@ dies).  A figure's error, or a warning it raised, comes back and is raised
 or reported by the command, as if the figure had been drawn there.
 
 Where ``fork`` is missing (Windows) or unwise (macOS), or when other threads
-already run in this process (a test runner), the figures are drawn in this
-process, as before.
+already run in this process (a notebook, a Dask worker), the figures are drawn
+in this process, as before.  (A pytest-xdist worker has only its main thread:
+the CLI tests run in process fork the helper too.)
 """
 
 from __future__ import annotations
