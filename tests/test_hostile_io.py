@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -351,10 +352,15 @@ def test_two_concurrent_runs_one_succeeds_the_other_fails_at_once(tmp_path):
     while not _lock_is_held(tmp_path / ".out.lock"):
         assert first.poll() is None and time.monotonic() < deadline
         time.sleep(0.01)
-    start = time.monotonic()
-    second = subprocess.run(_reep(long, out), cwd=REPO, capture_output=True)
-    assert time.monotonic() - start < 10
-    running = first.poll() is None
+    # held still while it holds the lock: the refusal must not depend on which process is faster
+    os.kill(first.pid, signal.SIGSTOP)
+    try:
+        start = time.monotonic()
+        second = subprocess.run(_reep(long, out), cwd=REPO, capture_output=True)
+        assert time.monotonic() - start < 10
+        running = first.poll() is None
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
     _one_line_exit_2(second, "another afmtool run")
     assert running  # the refusal came while the first run still held the folder
     assert first.wait(timeout=120) == 0
