@@ -127,3 +127,34 @@ def test_with_another_thread_running_figures_are_drawn_here(tmp_path):
     """)
     assert result.returncode == 0, result.stderr
     assert "FORKED False" in result.stdout
+
+
+def test_a_failed_run_stops_the_helper_before_its_folder_is_removed(tmp_path):
+    # the helper keeps writing into the staging folder; the run fails at once: nothing may be left
+    result = _run(tmp_path, """
+        from afmtool.report.outputs import OutputDir
+
+        def keep_writing(folder, seconds):
+            end = time.monotonic() + seconds
+            k = 0
+            while time.monotonic() < end:
+                (folder / f"partial-{k}.png").write_bytes(b"x")
+                k += 1
+
+        with FigureProcess.start() as figures:
+            try:
+                with OutputDir(out / "run") as staged, figures.stopped_on_failure():
+                    folder = staged.path("f.png").parent
+                    figures.draw(keep_writing, folder, 20.0)
+                    deadline = time.monotonic() + 20
+                    # until the helper (done with its warm-up) has written enough that removing the
+                    # folder takes a while: without the guard it then writes into it meanwhile
+                    while len(list(folder.iterdir())) < 2000 and time.monotonic() < deadline:
+                        time.sleep(0.01)
+                    raise KeyboardInterrupt
+            except KeyboardInterrupt:
+                pass
+        print("LEFT", sorted(p.name for p in out.iterdir()))
+    """)
+    assert result.returncode == 0, result.stderr
+    assert "LEFT []" in result.stdout, result.stdout

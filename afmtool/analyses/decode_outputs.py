@@ -24,7 +24,7 @@ def run_decode_command(run: CommandRun) -> dict:
     reader = run.reader
     params = run.params(DecodeParams, "decode")
     record = run.input_record()
-    with OutputDir(run.out) as staged:
+    with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
         attrs = {"afmtool_command": "decode", "sample_rate_hz": reader.info.sample_rate_hz}
         with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs, write_behind=True) as writer:
             # matplotlib, for the eye, PSD and ℓ0 figures at the end, loads while the EKF streams

@@ -50,7 +50,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
     try:
         if reep_results is not None:
             inputs.append(input_record(reep_results.path, "reep series"))
-        with OutputDir(run.out) as staged:
+        with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
             with MatrixResultWriter(staged.path("bank.h5"), units, {"afmtool_command": "kalman-bank"},
                                     write_behind=True) as writer:
                 result = run_kalman_bank(

@@ -35,7 +35,7 @@ def run_probeloss_command(run: CommandRun) -> dict:
     params = run.params(ProbeLossParams, "probeloss")
     model = given_free_air_model(params.model)
     capture_record = run.input_record()
-    with OutputDir(run.out) as staged:
+    with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
         with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"},
                           write_behind=True) as writer:
             # matplotlib, for the figures at the end, loads while the observer streams

@@ -32,7 +32,7 @@ def run_reep_command(run: CommandRun) -> dict:
     units = dict(SERIES_UNITS, amplitude=deflection_units, sigma2=f"{deflection_units}^2" if deflection_units else "")
     capture_record = run.input_record()
     model_records = model_input_records(params.model)
-    with OutputDir(run.out) as staged:
+    with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
             result = run_reep(reader, params, writer, model=model, progress=run.progress, split=run.split,
                               on_stream_start=run.figures.on_stream_start)

@@ -31,7 +31,8 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from afmtool.report.captured_warnings import add, take
@@ -110,6 +111,21 @@ class FigureProcess:
             error = error or failure
         if error is not None:
             raise error
+
+    @contextmanager
+    def stopped_on_failure(self) -> Iterator[None]:
+        """Kill the helper at once if the block fails, before the caller cleans up.
+
+        Use it inside the output folder's context (``with OutputDir(out) as
+        staged, figures.stopped_on_failure():``): a helper still drawing would
+        otherwise write a PNG into the staging folder while the failed run
+        removes it, and leave the folder behind.
+        """
+        try:
+            yield
+        except BaseException:
+            self.close(kill=True)
+            raise
 
     def close(self, *, kill: bool = False) -> None:
         """Close the pipe (the helper then leaves) and reap the helper; ``kill`` it first."""
