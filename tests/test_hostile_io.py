@@ -237,7 +237,7 @@ def test_compressed_chunks_are_each_read_once():
     assert sum(b - a for a, b in dataset.reads) == 10_000  # no sample (so no chunk) twice
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.serial
 def test_gzip_bomb_ends_within_10_s(tmp_path):
     path = tmp_path / "bomb.h5"
@@ -272,7 +272,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     return made
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.parametrize("fmt", ["hdf5", "csv", "ros1", "ros2-mcap"])
 def test_convert_never_overwrites_its_input(tmp_path, inputs, fmt):
     source = inputs[fmt]
@@ -294,7 +294,7 @@ def test_convert_never_overwrites_its_input(tmp_path, inputs, fmt):
         assert _state(source) == before
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_report_output_onto_a_capture_is_refused(tmp_path, inputs):
     out = tmp_path / "reep"
     assert run_cli("reep", inputs["hdf5"], "--out", out, "-q", "--no-input").returncode == 0
@@ -341,7 +341,7 @@ def _lock_is_held(lock: Path) -> bool:
     return False
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.serial
 def test_two_concurrent_runs_one_succeeds_the_other_fails_at_once(tmp_path):
     long = tmp_path / "long.h5"
@@ -369,7 +369,7 @@ def test_two_concurrent_runs_one_succeeds_the_other_fails_at_once(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_wait_waits_for_the_lock(tmp_path, inputs):
     import fcntl
 
@@ -384,7 +384,7 @@ def test_wait_waits_for_the_lock(tmp_path, inputs):
     assert (out / "report.json").is_file()
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_runs_in_turn_leave_only_the_second_runs_files(tmp_path):
     from tests.conftest import SAMPLE_DATA
 
@@ -472,7 +472,7 @@ def _run_in(cwd: Path, *args) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "afmtool", *map(str, args)], cwd=REPO, capture_output=True, timeout=300)
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.parametrize("command", list(FULL_DISK_RUNS))
 def test_disk_full_at_every_fill_level_is_exit_2_and_one_line(tmp_path, command):
     if os.geteuid() != 0:
@@ -540,7 +540,7 @@ def compressed(tmp_path_factory) -> Path:
     return packed
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.serial
 def test_sigterm_at_random_points_ends_every_run_within_2_s(tmp_path, compressed):
     import signal
@@ -693,7 +693,7 @@ def test_closed_stdin_and_stdout(inputs):
 # -- 6. batch resume that checks ------------------------------------------------------------------
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_batch_redoes_a_deleted_or_changed_output(tmp_path, inputs):
     from afmtool.analyses.batch import plan_batch, run_one
 

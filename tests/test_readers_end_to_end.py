@@ -269,7 +269,7 @@ def reference_runs(tmp_path_factory):
     return runs
 
 
-@pytest.mark.slow  # 13 CLI runs, about 15 s of CPU
+@pytest.mark.long  # 13 CLI runs, about 15 s of CPU
 @pytest.mark.parametrize("fmt", ["tdms", "wav", "labone", "scope-csv", "csv", "ros1", "ros2-mcap", "ibw", "jpk", "chiaro"])
 def test_reep_and_probeloss_identical_through_each_format(tmp_path, reference_runs, fmt):
     (tmp_path / "p.toml").write_text(PARAMETERS)

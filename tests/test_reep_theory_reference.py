@@ -33,7 +33,7 @@ REFERENCE_FORCES = {
 }
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.parametrize("force_set", sorted(REFERENCE_FORCES))
 def test_reep_agrees_with_averaging_theory_on_the_reference(force_set):
     cap = rs.simulate(

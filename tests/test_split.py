@@ -190,7 +190,7 @@ def dask_cluster():
     cluster.close()
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.parametrize("case", ["reep", "probeloss", "decode", "kalman-bank"])
 def test_split_on_a_two_worker_dask_cluster_equals_sequential(case, long_ltv, tmp_path, dask_cluster):
     capture_of, flags = CASES[case]
@@ -214,7 +214,7 @@ def test_cli_jobs_and_scheduler(long_ltv, tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_dask_workers_read_their_own_samples(long_ltv, tmp_path, dask_cluster, monkeypatch):
     """On a cluster the tasks carry sample indices only, and the run still equals the sequential one."""
     import afmtool.pipeline as pipeline

@@ -47,7 +47,7 @@ def _drive(q, designed):
                               for ln in design.lines))
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_fit_recovers_identifiable_force_parameters(tmp_path, name):
     q, force, designed, must = CASES[name]

@@ -171,7 +171,7 @@ def test_bad_metadata_is_exit_2_one_line_before_any_output(tmp_path):
 # --------------------------------------------------------------------------- theory compare through the registry
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_theory_compare_reads_a_csv_capture_through_the_registry(tmp_path):
     """REEP on a CSV (converted from a reference-simulator force curve) compares with theory like on HDF5.
 

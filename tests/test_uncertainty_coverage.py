@@ -92,7 +92,7 @@ def _sweep_drive(kind: int, f0: float, rng):
     return ref.LinearChirp(f0 - 8e3, f0 + 8e3, 0.2, 0.0, rng.uniform(2e-3, 4e-3)), 0.016
 
 
-@pytest.mark.slow  # ~10 s alone (60 captures of 16–60 ms, RK4 at 32×), more on a shared machine
+@pytest.mark.long  # ~10 s alone (60 captures of 16–60 ms, RK4 at 32×), more on a shared machine
 def test_sweep_route_coverage():
     estimates = []
     holds = []
