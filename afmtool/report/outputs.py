@@ -171,7 +171,7 @@ class OutputDir:
         path = self._final.parent / f".{self._key}.lock"
         wait = bool(os.environ.get(WAIT_ENV))
         while True:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            fd = _open_lock(path, self.out)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -331,6 +331,31 @@ class _EarlyFlush:
         self._thread.join()
         if self._error is not None:
             raise self._error
+
+
+def _open_lock(path: Path, out: Path) -> int:
+    """Open (creating it if need be) the lock file ``path``, never through a link planted there.
+
+    ``O_NOFOLLOW`` makes the open fail on a symbolic link, dangling or not,
+    so the file is created in ``--out``'s parent and nowhere else; a lock
+    that is not a plain file (a FIFO, a device, a folder) is refused too,
+    before anything is written or locked through it.
+    """
+    import stat
+
+    flags = os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    if os.path.islink(path):
+        raise OutputError(f"--out {out}: the lock {path} is a symbolic link; refusing to follow it (remove it)")
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP or os.path.islink(path):  # planted between the check and the open
+            raise OutputError(f"--out {out}: the lock {path} is a symbolic link; refusing to follow it (remove it)") from None
+        raise
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OutputError(f"--out {out}: the lock {path} is not a plain file; refusing to use it (remove it)")
+    return fd
 
 
 def _umask() -> int:
