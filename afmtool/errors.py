@@ -7,7 +7,7 @@ at the I/O boundary with ``raise ... from None`` so the message names the
 user's file, not a library internal.
 """
 
-__all__ = ["AfmtoolError", "InputError", "ConfigError", "SegmentsAtDifferentRates"]
+__all__ = ["AfmtoolError", "InputError", "ConfigError", "SegmentsAtDifferentRates", "one_line"]
 
 
 class AfmtoolError(Exception):
@@ -19,10 +19,11 @@ class AfmtoolError(Exception):
     """
 
     def __init__(self, message: object = "", *args: object) -> None:
-        super().__init__(_one_line(str(message)), *args)
+        super().__init__(one_line(str(message)), *args)
 
 
-def _one_line(text: str) -> str:
+def one_line(text: str) -> str:
+    """``text`` stripped, with its control characters (newlines too) written as escapes."""
     text = text.strip()
     if text.isprintable():
         return text

@@ -34,13 +34,15 @@ def _summary(out):
 def test_local_cluster_batch(tmp_path, captures):
     out = tmp_path / "batch"
     result = run_cli("batch", "reep", str(captures / "*.h5"), "--out", out, "--workers", "2", "--quiet")
-    assert result.returncode == 1  # one input failed
+    assert result.returncode == 2  # one input failed, on bad input (README: exit 2)
     rows = _summary(out)
     assert len(rows) == 6
     assert [name for name, row in rows.items() if row["status"] == "failed"] == ["corrupt.h5"]
     assert "HDF5" in rows["corrupt.h5"]["reason"]
     assert sum(row["status"] == "ok" for row in rows.values()) == 5
-    assert "corrupt.h5" in result.stderr.decode()
+    failed_lines = [line for line in result.stderr.decode().splitlines() if "corrupt.h5" in line]
+    assert len(failed_lines) == 1 and failed_lines[0].startswith("afmtool: failed: ")  # one line, however long
+    first_reason = rows["corrupt.h5"]["reason"]
     # identical to a single-file run
     single = tmp_path / "single"
     assert run_cli("reep", captures / "c3.h5", "--out", single, "--quiet").returncode == 0
@@ -51,10 +53,10 @@ def test_local_cluster_batch(tmp_path, captures):
     # a rerun processes nothing new
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("report.json")}
     again = run_cli("batch", "reep", str(captures), "--out", out, "--workers", "2", "--quiet")
-    assert again.returncode == 1
+    assert again.returncode == 2
     rows = _summary(out)
     assert sum(row["status"] == "skipped" for row in rows.values()) == 5
-    assert "unchanged since the last run" in rows["corrupt.h5"]["reason"]
+    assert rows["corrupt.h5"]["reason"] == first_reason  # the same result for the same input
     assert {p: p.stat().st_mtime_ns for p in out.rglob("report.json")} == stamps
 
 

@@ -20,7 +20,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from afmtool.errors import ConfigError, InputError
+from afmtool.errors import ConfigError, InputError, one_line
+from afmtool.report.atomic import write_text_atomic
 from afmtool.report.json_report import sha256_file
 
 __all__ = ["BatchItem", "BatchOutcome", "expand_inputs", "plan_batch", "run_one", "headline", "write_summary"]
@@ -45,6 +46,8 @@ class BatchOutcome:
     status: str
     reason: str
     headline: dict
+    #: The exit status of the input's run: 2 for bad input, 1 for an internal error, < 0 killed.
+    exit_code: int = 0
 
 
 def expand_inputs(patterns: Sequence[str]) -> list[Path]:
@@ -190,16 +193,18 @@ def headline(command: str, report: dict) -> dict:
 FAILURE_FILE = "failure.json"
 
 
-def _known_failure(item: BatchItem) -> str | None:
-    """The recorded reason if this exact input already failed in an earlier run."""
+def _known_failure(item: BatchItem) -> tuple[str, int] | None:
+    """The recorded reason and exit status if this exact input already failed in an earlier run."""
     path = Path(item.out_dir) / FAILURE_FILE
     if not path.is_file() or not Path(item.source).exists():
         return None
     try:
         record = json.loads(path.read_text())
-    except (json.JSONDecodeError, OSError):
+        if record.get("sha256") != _sha_or_none(item.source):
+            return None
+        return one_line(str(record["reason"])), int(record.get("exit_code", 2))
+    except (ValueError, OSError, KeyError, TypeError, AttributeError, RecursionError):
         return None
-    return record.get("reason") if record.get("sha256") == _sha_or_none(item.source) else None
 
 
 def _sha_or_none(source: str) -> str | None:
@@ -221,28 +226,49 @@ def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], 
         return BatchOutcome(item.source, item.out_dir, "skipped", "outputs complete", headline(name, existing))
     known = None if retry_failed else _known_failure(item)
     if known is not None:
-        return BatchOutcome(item.source, item.out_dir, "failed", f"{known} (unchanged since the last run)", {})
+        # the same line as the run that found it: a rerun reports the same result for the same input
+        return BatchOutcome(item.source, item.out_dir, "failed", known[0], {}, known[1])
     args = [sys.executable, "-m", "afmtool", *command, item.source, "--out", item.out_dir, "--quiet", *extra_args]
     _manifest_path(item).unlink(missing_ok=True)
     proc = subprocess.run(args, capture_output=True, text=True)
     if _killed(proc.returncode):
         proc = subprocess.run(args, capture_output=True, text=True)  # once more: OOM killer, a stray signal
     if proc.returncode != 0:
-        reason = (proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
-        reason = reason.removeprefix("afmtool: error: ")
-        if _killed(proc.returncode):
-            # not a verdict on the input: the next batch run tries it again
-            return BatchOutcome(item.source, item.out_dir, "failed", f"killed by a signal ({reason})", {})
-        Path(item.out_dir).mkdir(parents=True, exist_ok=True)
-        (Path(item.out_dir) / FAILURE_FILE).write_text(
-            json.dumps({"input": item.source, "sha256": _sha_or_none(item.source), "reason": reason}) + "\n"
-        )
-        return BatchOutcome(item.source, item.out_dir, "failed", reason, {})
+        return _failed(item, proc)
     folder = Path(item.out_dir)
     (folder / FAILURE_FILE).unlink(missing_ok=True)
     report = json.loads((folder / "report.json").read_text())
-    _manifest_path(item).write_text(json.dumps(_output_hashes(folder, report["outputs"])) + "\n")
+    write_text_atomic(_manifest_path(item), json.dumps(_output_hashes(folder, report["outputs"])) + "\n")
     return BatchOutcome(item.source, item.out_dir, "ok", "", headline(name, report))
+
+
+def _failed(item: BatchItem, proc: subprocess.CompletedProcess) -> BatchOutcome:
+    """The outcome of a child that did not succeed; a verdict on the input is recorded for reruns."""
+    reason = _reason(proc.stderr, proc.returncode)
+    if _killed(proc.returncode):
+        # not a verdict on the input: the next batch run tries it again
+        return BatchOutcome(item.source, item.out_dir, "failed", f"killed by a signal ({reason})", {}, proc.returncode)
+    Path(item.out_dir).mkdir(parents=True, exist_ok=True)
+    record = {"input": item.source, "sha256": _sha_or_none(item.source), "reason": reason, "exit_code": proc.returncode}
+    write_text_atomic(Path(item.out_dir) / FAILURE_FILE, json.dumps(record) + "\n")
+    return BatchOutcome(item.source, item.out_dir, "failed", reason, {}, proc.returncode)
+
+
+def _reason(stderr: str, returncode: int) -> str:
+    """The child's one error line (its ``afmtool: error:`` line, else its last line), on one line."""
+    lines = [line.strip() for line in (stderr or "").splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("afmtool: error: ")]
+    reason = (errors or lines or [f"exit status {returncode}"])[-1].removeprefix("afmtool: error: ")
+    return one_line(reason)
+
+
+def _outcome(future, item: BatchItem) -> BatchOutcome:
+    """The future's outcome; a task Dask lost (its worker killed, again and again) is a failure of this run only."""
+    try:
+        return future.result()
+    except Exception as exc:  # noqa: BLE001 - whatever ended the task, the batch goes on and reports it
+        reason = one_line(f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)
+        return BatchOutcome(item.source, item.out_dir, "failed", f"worker lost ({reason})", {}, -1)
 
 
 def _killed(returncode: int) -> bool:
@@ -257,7 +283,7 @@ def write_summary(path: Path, outcomes: Sequence[BatchOutcome]) -> None:
         writer = csv.writer(handle)
         writer.writerow(["input", "status", "reason", "output", *keys])
         for o in outcomes:
-            writer.writerow([o.source, o.status, o.reason, o.out_dir, *(o.headline.get(k, "") for k in keys)])
+            writer.writerow([o.source, o.status, one_line(o.reason), o.out_dir, *(o.headline.get(k, "") for k in keys)])
 
 
 def run_batch(
@@ -293,7 +319,7 @@ def run_batch(
         }
         outcomes: list[BatchOutcome | None] = [None] * len(items)
         for future in as_completed(futures):
-            outcome = future.result()
+            outcome = _outcome(future, items[futures[future]])
             outcomes[futures[future]] = outcome
             on_done(outcome)
         return [o for o in outcomes if o is not None]

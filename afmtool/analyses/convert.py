@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import TextIO
 
 from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES, CaptureReader, Chunk
-from afmtool.io.registry import create_writer
+from afmtool.io.registry import check_writable_rate, create_writer
 from afmtool.pipeline import run_stream
 
 __all__ = ["convert_capture"]
@@ -47,6 +47,7 @@ def convert_capture(
     empty (its reader says 0 samples) becomes an empty one of ``fmt``.
     """
     info = reader.info
+    check_writable_rate(info.sample_rate_hz, info.source)  # named after the capture, before anything is written
     writer = create_writer(target, fmt, info.sample_rate_hz, info.channels, info.metadata, compression=compression)
     n = 0
     try:

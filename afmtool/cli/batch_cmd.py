@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -41,41 +42,60 @@ def batch(
 
     Each input gets its own subfolder of --out; summary.csv has one row per input
     with its status and headline results.  Rerunning skips inputs whose outputs
-    are complete.  Exit status 1 when any input failed.  Needs 'afmtool[cluster]'.
+    are complete.  Exit status 2 when any input failed (one line each on stderr), 1 when one met an internal error.  Needs 'afmtool[cluster]'.
     """
-    from afmtool.analyses.batch import expand_inputs, plan_batch, run_batch, write_summary
-    from afmtool.cli.progress import stderr_console
+    from afmtool.analyses.batch import expand_inputs, plan_batch, write_summary
     from afmtool.errors import ConfigError
     from afmtool.report.atomic import atomic_path
+    from afmtool.report.outputs import FolderLock
 
     if command not in _COMMANDS:
         raise ConfigError(f"batch command {command!r} must be one of {', '.join(_COMMANDS)}")
     items = plan_batch(expand_inputs(inputs), out)
-    out.mkdir(parents=True, exist_ok=True)
-    console = stderr_console(quiet)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # one batch (or command) at a time on --out: two batches on one folder mixed their outputs
+    with FolderLock(Path(os.path.realpath(out)), out):
+        out.mkdir(parents=True, exist_ok=True)
+        outcomes = _run_with_progress(command, items, args or [], workers, scheduler, retry_failed, quiet)
+        with atomic_path(out / "summary.csv") as temp:
+            write_summary(temp, outcomes)
+    _report(outcomes, out, quiet)
+
+
+def _run_with_progress(command, items, args, workers, scheduler, retry_failed, quiet):
     from rich.progress import Progress
 
+    from afmtool.analyses.batch import run_batch
+    from afmtool.cli.progress import stderr_console
+
+    console = stderr_console(quiet)
     with Progress(console=console, transient=True, disable=quiet or not sys.stderr.isatty()) as progress:
         task = progress.add_task(f"batch {command}", total=len(items))
 
         def done(outcome):
             progress.advance(task)
-            if outcome.status == "failed":
-                console.print(f"[red]failed[/] {outcome.source}: {outcome.reason}", highlight=False)
 
-        outcomes = run_batch(
-            _COMMANDS[command], items, args or [], workers=workers, scheduler=scheduler, on_done=done,
+        return run_batch(
+            _COMMANDS[command], items, args, workers=workers, scheduler=scheduler, on_done=done,
             retry_failed=retry_failed,
         )
-    with atomic_path(out / "summary.csv") as temp:
-        write_summary(temp, outcomes)
+
+
+def _report(outcomes, out: Path, quiet: bool) -> None:
+    """One line per failed input, then the counts; exit status 2 when any input failed."""
     counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "skipped", "failed")}
-    console.print(f"{counts['ok']} done, {counts['skipped']} skipped (complete), {counts['failed']} failed; {out / 'summary.csv'}")
-    failed = [o for o in outcomes if o.status == "failed"]
-    if failed:
-        for o in failed:
+    for o in outcomes:
+        if o.status == "failed":
             print(f"afmtool: failed: {o.source}: {o.reason}", file=sys.stderr)
-        raise typer.Exit(1)
+    if not quiet or counts["failed"]:
+        print(
+            f"afmtool: batch: {counts['ok']} done, {counts['skipped']} skipped (complete), {counts['failed']} failed; "
+            f"{out / 'summary.csv'}",
+            file=sys.stderr,
+        )
+    if counts["failed"]:
+        # README: 2 for bad input (and a lost worker), 1 when an input met an internal error
+        raise typer.Exit(1 if any(o.exit_code == 1 for o in outcomes if o.status == "failed") else 2)
 
 
 def register(app: typer.Typer) -> None:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import codecs
 import io
 import json
+import math
 import re
 import sys
 import zipfile
@@ -360,6 +361,8 @@ class CsvWriter:
     def write(self, data: Mapping[str, np.ndarray]) -> None:
         n = len(data[self._names[0]])
         t = (self._written + np.arange(n)) / self._fs
+        if n and not math.isfinite(t[-1]):
+            raise InputError(f"sample {self._written + n - 1:,} at {self._fs!r} Hz: its time overflows the t column")
         # repr-exact float64 round trip: 17 significant digits
         table = np.column_stack([t, *(np.asarray(data[name], dtype=np.float64) for name in self._names)])
         np.savetxt(self._stream, table, delimiter=",", fmt="%.17g")

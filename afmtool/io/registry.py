@@ -6,6 +6,7 @@ Readers are chosen by suffix (a ROS2 bag is a directory holding
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -14,7 +15,7 @@ from typing import TextIO
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, CaptureWriter, ChannelSpec
 
-__all__ = ["FORMATS", "open_capture", "create_writer", "format_for_path", "input_format"]
+__all__ = ["FORMATS", "check_writable_rate", "companion_files", "open_capture", "create_writer", "format_for_path", "input_format"]
 
 #: Output format names accepted by ``--format`` and ``convert``.
 FORMATS = ("hdf5", "csv", "ros1", "ros2-mcap", "ros2-sqlite3")
@@ -112,6 +113,8 @@ def open_capture(
     from afmtool.report.input_guard import register_input
 
     register_input(path)  # so that no output of this run can overwrite it
+    for companion in companion_files(path, fmt):
+        register_input(companion)  # nor any other file of a multi-file input
     native_segment = segment if fmt in _NATIVE_SEGMENTS else None
     reader = _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, native_segment)
     try:
@@ -119,6 +122,37 @@ def open_capture(
     except BaseException:
         reader.close()
         raise
+
+
+def companion_files(path: Path | str, fmt: str) -> list[Path]:
+    """The files beside ``path`` that belong to the same capture, which no output may replace.
+
+    A LabOne CSV export is a folder of sample files (``STEM_00000.csv``, ...) and
+    header files (``STEM_header_00000.csv``, where the clockbase is); a TDMS
+    file may have its ``.tdms_index``; a ROS2 storage file (``.mcap``,
+    ``.db3``) given on its own lies in its bag folder.  Only files that
+    exist are returned; listing the folder is one pass over its names.
+    """
+    import re
+
+    if str(path) == "-":
+        return []
+    path = Path(path)
+    found: list[Path] = []
+    if fmt == "labone-csv":
+        match = re.match(r"^(?P<stem>.*)_(?:header_)?\d+\.csv$", path.name)
+        found.append(path.with_name(f"{path.stem}_header.csv"))
+        if match:
+            sibling = re.compile(re.escape(match["stem"]) + r"_(?:header_)?\d+\.csv")
+            try:
+                found += [path.with_name(e.name) for e in os.scandir(path.parent) if sibling.fullmatch(e.name)]
+            except OSError:
+                pass
+    elif fmt == "tdms":
+        found.append(path.with_name(path.name + "_index"))
+    elif fmt == "ros2" and path.is_file() and (path.parent / "metadata.yaml").is_file():
+        found.append(path.parent)
+    return [p for p in found if p != path and os.path.lexists(p)]
 
 
 def _views(reader: CaptureReader, fmt: str, channel_map: Mapping[str, str] | None, segment: str | None):
@@ -169,6 +203,27 @@ def _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, segment) -> 
     return RosbagReader(Path(path), topic_map, sample_rate_hz)
 
 
+def check_writable_rate(sample_rate_hz: float, target: Path | str) -> None:
+    """Refuse a sample rate no output can carry: not finite, not positive, or with a period
+    (1/rate, the step of a CSV ``t`` column and of bag time stamps) that overflows or is subnormal.
+
+    Every writer stores the rate or the period; an infinite one made an output
+    that nothing, afmtool included, could read back.
+    """
+    import math
+
+    try:
+        rate = float(sample_rate_hz)
+    except (TypeError, ValueError):
+        raise InputError(f"{target}: sample rate {sample_rate_hz!r} is not a number") from None
+    period = 1.0 / rate if math.isfinite(rate) and rate > 0 else math.nan
+    if not (math.isfinite(period) and period >= sys.float_info.min):
+        raise InputError(
+            f"{target}: sample rate {rate!r} Hz cannot be written (it must be finite and positive, "
+            f"with a finite, normal period 1/rate); give --sample-rate"
+        )
+
+
 def create_writer(
     target: Path | TextIO,
     fmt: str,
@@ -181,6 +236,7 @@ def create_writer(
     """A writer for ``fmt`` at ``target`` (a path, or a text stream for CSV)."""
     if fmt not in FORMATS:
         raise InputError(f"format {fmt!r} must be one of {', '.join(FORMATS)}")
+    check_writable_rate(sample_rate_hz, target if isinstance(target, Path) else "-")
     if fmt == "csv":
         from afmtool.io.csv import CsvWriter
 

@@ -69,6 +69,8 @@ _ARRAY_TYPES = {"float64": _FLOAT64_ARRAY, "float32": _FLOAT32_ARRAY}
 
 #: Time stamp of sample 0 (and of the metadata message), in ns.
 _T0_NS = 1
+#: Bag time stamps are int64 nanoseconds.
+_MAX_STAMP_NS = float(2**63 - 2**11)
 _CHANNEL_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
 
@@ -562,7 +564,10 @@ class RosbagWriter:
 
     def _stamp_ns(self, sample: int) -> int:
         """Time stamp of ``sample``: monotonic in ``sample``, 1 ns at sample 0."""
-        return _T0_NS + round(sample * 1e9 / self._fs)
+        stamp = sample * 1e9 / self._fs
+        if not stamp < _MAX_STAMP_NS:
+            raise InputError(f"sample {sample:,} at {self._fs!r} Hz lies past the last time stamp a bag can hold (int64 ns); give --sample-rate")
+        return _T0_NS + round(stamp)
 
     def _emit(self, n: int) -> None:
         """Write one message of ``n`` samples per channel."""

@@ -37,7 +37,7 @@ from afmtool.report.faults import environment_fault
 from afmtool.report.input_guard import refuse_output_over_inputs
 from afmtool.report.interrupts import signals_deferred
 
-__all__ = ["OutputDir", "WAIT_ENV"]
+__all__ = ["FolderLock", "OutputDir", "WAIT_ENV"]
 
 #: Environment variable set by ``afmtool --wait``: wait for the lock instead of failing.
 WAIT_ENV = "AFMTOOL_WAIT"
@@ -65,6 +65,14 @@ def _exchange(a: Path, b: Path) -> bool:
     if code in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOTSUP):
         return False
     raise OSError(code, os.strerror(code), str(b))
+
+
+def _key_for(name: str) -> str:
+    """The name the lock and staging folders are made from: long names are hashed, so the
+    staging prefix never exceeds NAME_MAX."""
+    if len(os.fsencode(name)) + _STAGING_EXTRA > _NAME_MAX:
+        return hashlib.sha256(os.fsencode(name)).hexdigest()[:32]
+    return name
 
 
 def _describe(exc: OSError) -> str:
@@ -107,13 +115,9 @@ class OutputDir:
             raise OutputError(f"--out {os.fspath(out)!r}: is the current folder or holds it; name a folder for the outputs")
         if len(os.fsencode(name)) > _NAME_MAX:
             raise OutputError(f"--out {self.out}: file name too long ({len(os.fsencode(name))} bytes, at most {_NAME_MAX})")
-        # Long names get a hashed staging key, so the staging prefix never exceeds NAME_MAX.
-        if len(os.fsencode(name)) + _STAGING_EXTRA > _NAME_MAX:
-            name = hashlib.sha256(os.fsencode(name)).hexdigest()[:32]
-        self._key = name
+        self._key = _key_for(name)
         self._staging: Path | None = None
-        self._lock_fd: int | None = None
-        self._lock_path: Path | None = None
+        self._folder_lock: FolderLock | None = None
         self._created: list[Path] = []
         self._names: list[str] = []
         self._flushing: list[_EarlyFlush] = []
@@ -160,36 +164,8 @@ class OutputDir:
             self._created.append(folder)
 
     def _lock(self) -> None:
-        """Hold ``.<name>.lock`` beside ``--out`` exclusively; it exists only while a run holds it.
-
-        The holder deletes the lock file before it lets go, so a waiter may
-        wake up holding a file nobody can see any more: it then tries again
-        on the new one (the file at the path must be the one it locked).
-        """
-        import fcntl
-
-        path = self._final.parent / f".{self._key}.lock"
-        wait = bool(os.environ.get(WAIT_ENV))
-        while True:
-            fd = _open_lock(path, self.out)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                os.close(fd)
-                raise OutputError(
-                    f"--out {self.out}: another afmtool run is writing this folder; wait for it, or give afmtool --wait"
-                ) from None
-            except BaseException:
-                os.close(fd)
-                raise
-            try:
-                same = os.stat(path).st_ino == os.fstat(fd).st_ino
-            except FileNotFoundError:
-                same = False
-            if same:
-                self._lock_fd, self._lock_path = fd, path
-                return
-            os.close(fd)  # the previous holder removed it while we waited
+        self._folder_lock = FolderLock(self._final, self.out, key=self._key)
+        self._folder_lock.acquire()
 
     def _remove_stale(self) -> None:
         """Under the lock: drop what killed runs left; restore a folder a kill left aside."""
@@ -261,13 +237,9 @@ class OutputDir:
             self._release(failed=not committed)
 
     def _release(self, *, failed: bool) -> None:
-        if self._lock_fd is not None:
-            try:
-                self._lock_path.unlink()  # while still holding it: see _lock
-            except OSError:
-                pass
-            os.close(self._lock_fd)  # releases the flock
-            self._lock_fd = None
+        if self._folder_lock is not None:
+            self._folder_lock.release()
+            self._folder_lock = None
         if failed:
             for folder in reversed(self._created):
                 try:
@@ -333,7 +305,67 @@ class _EarlyFlush:
             raise self._error
 
 
-def _open_lock(path: Path, out: Path) -> int:
+class FolderLock:
+    """An exclusive ``flock`` on ``.<key>.lock`` beside the folder ``final``, held by one run at a time.
+
+    The lock file exists only while a run holds it: the holder deletes it
+    before it lets go, so a waiter may wake up holding a file nobody can
+    see any more; it then tries again on the new one (the file at the path
+    must be the one it locked).  ``afmtool --wait`` waits for the holder
+    instead of failing.  ``out`` is how messages name the folder.  Used by
+    :class:`OutputDir` and by ``afmtool batch`` for its whole ``--out``.
+    """
+
+    def __init__(self, final: Path, out: Path | str, *, key: str | None = None) -> None:
+        self.path = Path(final).parent / f".{key or _key_for(Path(final).name)}.lock"
+        self._out = out
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        import fcntl
+
+        wait = bool(os.environ.get(WAIT_ENV))
+        while True:
+            fd = _open_lock(self.path, self._out)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise OutputError(
+                    f"--out {self._out}: another afmtool run is writing this folder; wait for it, or give afmtool --wait"
+                ) from None
+            except BaseException:
+                os.close(fd)
+                raise
+            try:
+                same = os.stat(self.path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                self._fd = fd
+                return
+            os.close(fd)  # the previous holder removed it while we waited
+
+    def release(self) -> None:
+        """Delete the lock file while still holding it, then let go.  Idempotent."""
+        if self._fd is None:
+            return
+        try:
+            self.path.unlink()
+        except OSError:
+            pass
+        os.close(self._fd)  # releases the flock
+        self._fd = None
+
+    def __enter__(self) -> FolderLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _open_lock(path: Path, out: Path | str) -> int:
     """Open (creating it if need be) the lock file ``path``, never through a link planted there.
 
     ``O_NOFOLLOW`` makes the open fail on a symbolic link, dangling or not,
