@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -37,6 +38,20 @@ def run_cli(*args: str, input: bytes | None = None, cwd: Path | None = None) -> 
         cwd=cwd,
         timeout=600,
     )
+
+
+def run_cli_cpu(*args: str, input: bytes | None = None) -> tuple[subprocess.CompletedProcess, float]:
+    """``run_cli`` and the CPU seconds (user + system) the command used.
+
+    A limit on a command's cost is asserted on its CPU time, not the wall clock: on a loaded
+    machine (CI's two cores shared by two xdist workers, or a developer's by several sessions)
+    a run that costs 1 s of CPU can take 10 s of wall time.  ``run_cli``'s own 600 s time-out
+    still catches a hang that spends no CPU.
+    """
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    result = run_cli(*args, input=input)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return result, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
 def load_schema(name: str) -> dict:
