@@ -108,3 +108,24 @@ def test_simulator_free_air_phase_at_resonance(scenario, hold):
     print(f"{scenario} {hold}: free-air phase at resonance {phase:.3f} deg")
     expected = -90.0 if hold == "continuous" else -90.0 - 180.0 * f0 / FS
     assert abs(phase - expected) < 1.0
+
+
+@pytest.mark.parametrize(("f0", "q", "fs"), [(70e3, 200.0, 500e3), (30e3, 20.0, 125e3), (300e3, 600.0, 2e6)])
+def test_resonance_std_is_the_first_order_propagation(f0, q, fs):
+    """resonance_std_scalar against central differences of eq. 3.48 through the covariance."""
+    from afmtool.models.discretisation import resonance_scalar, resonance_std_scalar
+
+    b1, b0 = discrete_denominator(f0, q, fs)
+    cov = np.array([[3e-10, -2e-10], [-2e-10, 2.5e-10]])
+    f0_std, q_std = resonance_std_scalar(b1, b0, cov[0, 0], cov[0, 1], cov[1, 1], 1.0 / fs)
+    step = 1e-8
+    grads = np.empty((2, 2))
+    for k in range(2):
+        delta = np.zeros(2)
+        delta[k] = step
+        plus = resonance_scalar(b1 + delta[0], b0 + delta[1], 1.0 / fs)
+        minus = resonance_scalar(b1 - delta[0], b0 - delta[1], 1.0 / fs)
+        grads[:, k] = (np.array(plus) - np.array(minus)) / (2 * step)
+    expected = np.sqrt(np.einsum("ij,jk,ik->i", grads, cov, grads))
+    np.testing.assert_allclose([f0_std, q_std], expected, rtol=1e-5)
+    assert all(math.isnan(v) for v in resonance_std_scalar(0.5, 1.2, *cov.ravel()[[0, 1, 3]], 1.0 / fs))

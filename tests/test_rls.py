@@ -25,7 +25,7 @@ from afmtool.estimators.rls import (
     reep_update,
 )
 from afmtool.models.discretisation import discrete_denominator, resonance_from_denominator
-from tests.naive_rls import naive_bcewrls, naive_reep
+from tests.naive_rls import naive_bcewrls, naive_reep, naive_reep_covariance
 
 FS_HZ = 500e3
 F0_HZ = 70e3
@@ -439,7 +439,7 @@ def test_first_two_samples_only_fill_the_past(rng):
     np.testing.assert_array_equal(block.b1[:2], 0.0)
     assert np.isnan(block.sigma2[:2]).all() and np.isfinite(block.sigma2[2:]).all()
     state = reep_update(ReepState.initial(), p[:2], g[:2], num).state
-    assert state.n_samples == 0 and state.n_past == 2 and state.p_past == (p[1], p[0])
+    assert state.n_samples == 0 and state.n_past == 2 and state.p_past == (p[1], p[0], 0.0)
 
 
 @pytest.mark.parametrize(
@@ -527,3 +527,19 @@ def test_offset_regressor_recovers_f0_q_under_a_static_offset(rng, offset_nm):
         without = reep(p, g, num)
         f0_plain, _, _ = resonance_from_denominator(without.b1[settled], without.b0[settled], FS_HZ)
         assert np.nanmedian(np.abs(f0_plain / F0_HZ - 1)) > 0.05  # the defect this regressor removes
+
+
+@pytest.mark.parametrize("static_offset", [False, True])
+@pytest.mark.parametrize("drive", [0.0, 0.14])
+def test_covariance_matches_naive_reference(rng, static_offset, drive):
+    """The kernels' per-row covariance equals the matrix form of its derivation (tests/naive_rls.py)."""
+    p, g, num = record(rng, 3000, 0.05)
+    p = p + (0.7 if static_offset else 0.0)
+    state = ReepState.initial(lam=LAM, p0=1e6, static_offset=static_offset)
+    block = reep_update(state, p, g, num, drive_cycles_per_sample=drive).block
+    ref = naive_reep_covariance(p, g, num, lam=LAM, p0=1e6, static_offset=static_offset,
+                                drive_cycles_per_sample=drive)
+    assert np.isnan(block.covariance[:2]).all()
+    settled = slice(500, None)
+    scale = np.abs(ref[settled]).max(axis=0)
+    assert np.max(np.abs(block.covariance[settled] - ref[settled]) / scale) < 1e-7

@@ -44,6 +44,8 @@ SERIES_UNITS = {
     "t": "s",
     "f0_hz": "Hz",
     "q": "",
+    "f0_std_hz": "Hz",
+    "q_std": "",
     "b1": "",
     "b0": "",
     "sigma2": "deflection units^2",
@@ -120,6 +122,7 @@ class ReepKernels:
     every: int
     bandpass: tuple[float, float, float] | None
     lead_samples: int
+    drive_cycles_per_sample: float = 0.0
 
     @property
     def alignment(self) -> int:
@@ -153,6 +156,7 @@ class ReepKernels:
             block, state = reep_update(
                 state, bandpass(p) if bandpass is not None else p, g, self.numerator,
                 bias_compensation=params.bias_compensation, use_input=params.use_input, keep_every=self.every,
+                drive_cycles_per_sample=self.drive_cycles_per_sample,
             )
             if params.use_input:
                 demod, lock_state = self.lockin.process_against(p, g, lock_state, self.every)
@@ -349,7 +353,7 @@ class ReepStage:
             p_for_rls = self.bandpass(p) if self.bandpass is not None else p
             block, self.state = reep_update(
                 self.state, p_for_rls, g, self.numerator, bias_compensation=params.bias_compensation,
-                use_input=params.use_input, keep_every=every,
+                use_input=params.use_input, keep_every=every, drive_cycles_per_sample=self.drive_hz / self.fs,
             )
         finally:
             demodulated, self.lock_state = demodulating.result()
@@ -365,7 +369,8 @@ class ReepStage:
         if lead is None:
             return None
         bandpass = self.bandpass.design if self.bandpass is not None else None
-        return ReepKernels(self.params, self.numerator, self.lockin, self.decimation.every, bandpass, lead)
+        return ReepKernels(self.params, self.numerator, self.lockin, self.decimation.every, bandpass, lead,
+                           self.drive_hz / self.fs)
 
     def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
         """Everything after the kernels, in capture order: f0′, Q′, flags, columns, summaries."""
@@ -374,12 +379,14 @@ class ReepStage:
         kept_index = self.decimation.kept_index(chunk.start, len(chunk))
         rows = reep_rows(
             block.b1, block.b0, block.c, block.sigma2, demod.amplitude, self.fs, self.levels, self.limits,
-            self.offset_drift,
+            self.offset_drift, block.covariance,
         )
         columns = {
             "t": kept_index / self.fs,
             "f0_hz": rows.f0_hz,
             "q": rows.q,
+            "f0_std_hz": rows.f0_std_hz,
+            "q_std": rows.q_std,
             "b1": block.b1,
             "b0": block.b0,
             "sigma2": block.sigma2,

@@ -21,8 +21,8 @@ __all__ = ["register"]
 def reep(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: CaptureSource) -> None:
     """Real-time equivalent f0' and Q' by bias-compensated EW-RLS (thesis ch. 3).
 
-    Writes reep.h5 (t, f0_hz, q, b1, b0, sigma2, amplitude, phase_deg, offset,
-    flag; decimated), report.json, config.toml, and with z_piezo force-curve tables and plots,
+    Writes reep.h5 (t, f0_hz, q, their standard deviations f0_std_hz and q_std,
+    b1, b0, sigma2, amplitude, phase_deg, offset, flag; decimated), report.json, config.toml, and with z_piezo force-curve tables and plots,
     with scan metadata per-pixel images (PNG and Gwyddion .gsf).  With --stream
     the decimated rows go to stdout as they are computed, e.g.
     afmtool simulate ltv -o - --format csv | afmtool reep - --stream --free-air 0:0.01 | head

@@ -41,7 +41,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.estimators._common import JIT_OPTIONS
-from afmtool.models.discretisation import resonance_scalar
+from afmtool.models.discretisation import resonance_scalar, resonance_std_scalar
 
 __all__ = [
     "FLAG_NOT_UNDERDAMPED",
@@ -219,24 +219,31 @@ def validity_flags(
 
 
 class ReepRows(NamedTuple):
-    """REEP's kept rows turned into physics, with their flags (:func:`reep_rows`)."""
+    """REEP's kept rows turned into physics, with their standard deviations and flags (:func:`reep_rows`)."""
 
     f0_hz: np.ndarray
     q: np.ndarray
     offset: np.ndarray | None
     flags: np.ndarray
+    f0_std_hz: np.ndarray | None = None
+    q_std: np.ndarray | None = None
 
 
 @njit(**JIT_OPTIONS)
 def _rows_kernel(
-    b1, b0, c, sigma2, amplitude, period, min_amplitude, max_sigma2, max_drift, drift_lam, drift_state,
-    f0_out, q_out, offset_out, flags_out,
+    b1, b0, c, sigma2, amplitude, covariance, period, min_amplitude, max_sigma2, max_drift, drift_lam, drift_state,
+    f0_out, q_out, offset_out, flags_out, f0_std_out, q_std_out,
 ):
-    """Eq. 3.48, the offset p̄ = c/(1 + b1 + b0), its EW variance and the flag bits, row by row."""
+    """Eq. 3.48 with its standard deviations, the offset p̄ = c/(1 + b1 + b0), its EW variance and the flags."""
     has_offset = c.shape[0] > 0
+    has_covariance = covariance.shape[0] > 0
     s0, s1, s2 = drift_state[0], drift_state[1], drift_state[2]
     for i in range(b1.shape[0]):
         f0, q = resonance_scalar(b1[i], b0[i], period)
+        if has_covariance:
+            f0_std_out[i], q_std_out[i] = resonance_std_scalar(
+                b1[i], b0[i], covariance[i, 0], covariance[i, 1], covariance[i, 2], period
+            )
         amp = amplitude[i]
         flag = 0
         if math.isnan(f0):
@@ -260,6 +267,7 @@ def _rows_kernel(
 def reep_rows(
     b1: np.ndarray, b0: np.ndarray, c: np.ndarray | None, sigma2: np.ndarray, amplitude: np.ndarray,
     sample_rate_hz: float, levels: FreeAirLevels, limits: ValidityLimits, drift: OffsetDrift | None = None,
+    covariance: np.ndarray | None = None,
 ) -> ReepRows:
     """f0′, Q′ (eq. 3.48), the static offset and the flag bits of REEP's kept rows, in one pass.
 
@@ -284,6 +292,9 @@ def reep_rows(
         As for :func:`validity_flags`.
     drift : OffsetDrift, optional
         Carries the EW variance of the offset across blocks (needed with ``c``).
+    covariance : numpy.ndarray, shape (K, 3), optional
+        (var b1, cov(b1, b0), var b0) of each row (:class:`~afmtool.estimators.rls.ReepBlock`):
+        gives ``f0_std_hz`` and ``q_std`` (None without it).
     """
     n = len(b1)
     signals = [np.ascontiguousarray(x, dtype=np.float64) for x in (b1, b0, sigma2, amplitude)]
@@ -297,12 +308,15 @@ def reep_rows(
     max_drift = limits.max_offset_drift if limits.max_offset_drift > 0 else math.inf
     drift_lam, drift_state = (drift._lam, drift._state) if drift is not None else (1.0, np.zeros(3))
     f0, q, offset = np.empty(n), np.empty(n), np.empty(n if c is not None else 0)
+    cov = np.ascontiguousarray(covariance, dtype=np.float64) if covariance is not None else np.empty((0, 3))
+    f0_std, q_std = np.empty(cov.shape[0]), np.empty(cov.shape[0])
     flags = np.empty(n, dtype=np.uint8)
     _rows_kernel(
-        signals[0], signals[1], offset_c, signals[2], signals[3], 1.0 / sample_rate_hz, min_amplitude, max_sigma2,
-        max_drift, drift_lam, drift_state, f0, q, offset, flags,
+        signals[0], signals[1], offset_c, signals[2], signals[3], cov, 1.0 / sample_rate_hz, min_amplitude,
+        max_sigma2, max_drift, drift_lam, drift_state, f0, q, offset, flags, f0_std, q_std,
     )
-    return ReepRows(f0, q, offset if c is not None else None, flags)
+    stds = (f0_std, q_std) if covariance is not None else (None, None)
+    return ReepRows(f0, q, offset if c is not None else None, flags, *stds)
 
 
 @dataclass

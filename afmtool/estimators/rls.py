@@ -121,7 +121,112 @@ _N_PAST = 14  # past samples held, 0…2
 # the constant regressor of the static-offset variant (``_reep_offset_kernel``); unused otherwise
 _TH_LS_C, _TH_C_C = 15, 16  # constant term c of θ̂_LS(n), θ̂_C(n)
 _P13, _P23, _P33 = 17, 18, 19  # the third row of the 3 × 3 P(n)
-_STATE_LEN = 20
+_P_3 = 20  # p(n−3): φ(n−1) of the covariance's second edge term (``_edge_covariance``)
+_STATE_LEN = 21
+
+
+
+# ---------------------------------------------------------------------------
+# The covariance of REEP's estimate, at the kept samples
+# ---------------------------------------------------------------------------
+
+
+@njit(**JIT_OPTIONS)
+def _filter_gain2(b1, b0, lam, w):
+    """|Ã(e^{jw})|² with Ã(x) = 1 + (b1/λ)x + (b0/λ²)x² (:func:`_edge_covariance_2`)."""
+    c1 = b1 / lam
+    c2 = b0 / (lam * lam)
+    re = 1.0 + c1 * math.cos(w) + c2 * math.cos(2.0 * w)
+    im = c1 * math.sin(w) + c2 * math.sin(2.0 * w)
+    return re * re + im * im
+
+
+@njit(**JIT_OPTIONS)
+def _edge_covariance_2(p11, p12, p22, phi1, phi2, prev1, prev2, b1, b0, sigma2, lam, drive_w, out, k):
+    r"""Cov(θ̂(n)) of the two-parameter REEP into ``out[k]`` = (var b1, cov(b1, b0), var b0).
+
+    Derivation (white measurement noise ϑ of variance σ², module docstring).
+    EW least squares gives θ̂(n) − θ = P(n)·Σ_k λ^{n−k} φ(k)e(k) with
+    e(k) = ϑ(k) + b1 ϑ(k−1) + b0 ϑ(k−2).  Collecting the coefficient of
+    each ϑ(j), the sum is Σ_j ϑ(j)·v(j) with
+
+    * v(n)   = φ(n),
+    * v(n−1) = λφ(n−1) + b1 φ(n),
+    * v(j)   = λ^{n−j}[φ(j) + (b1/λ)φ(j+1) + (b0/λ²)φ(j+2)], j ≤ n − 2.
+
+    For the oscillating part of φ at the drive ω the bracket of the bulk is
+    φ filtered by Ã(x) = 1 + (b1/λ)x + (b0/λ²)x², whose zeros sit at the
+    estimated poles scaled by 1/λ: near resonance |Ã(e^{jω})|² is of order
+    ((1 − r/λ)·2 sin ω)², 1e-5 at the thesis's operating point, so the two
+    newest samples dominate the variance (measured: 99.9 % of it on a
+    reference capture at 70 kHz, Q 200, 500 kHz).  With Σ_j λ^{2(n−j)}φφᵀ
+    ≈ P⁻¹(n)/(1 + λ) for the bulk,
+
+    .. math:: \mathrm{Cov}\,\hat\theta(n) \approx \hat\sigma^2(n)\Big[P v(n) v(n)^T P
+              + P v(n-1) v(n-1)^T P + \frac{|\tilde A(e^{j\omega})|^2}{1+\lambda} P\Big].
+
+    The edge vectors are formed from the measured regressors: the σ² their
+    noise adds is the quadratic (noise × noise) term of the same two
+    samples.  The bias compensation changes the estimate by
+    (I − σ̂²S_w PΛ)⁻¹, within 1e-3 of I wherever the amplitude is above the
+    validity floor, and is left out, as is the spread of σ̂².  Checked by
+    coverage on the reference simulator (``tests/test_reep_coverage.py``).
+    """
+    u1 = lam * prev1 + b1 * phi1
+    u2 = lam * prev2 + b1 * phi2
+    v11 = p11 * phi1 + p12 * phi2
+    v12 = p12 * phi1 + p22 * phi2
+    v21 = p11 * u1 + p12 * u2
+    v22 = p12 * u1 + p22 * u2
+    bulk = _filter_gain2(b1, b0, lam, drive_w) / (1.0 + lam) if drive_w > 0.0 else 0.0
+    out[k, 0] = sigma2 * (v11 * v11 + v21 * v21 + bulk * p11)
+    out[k, 1] = sigma2 * (v11 * v12 + v21 * v22 + bulk * p12)
+    out[k, 2] = sigma2 * (v12 * v12 + v22 * v22 + bulk * p22)
+
+
+@njit(**JIT_OPTIONS)
+def _edge_covariance_3(
+    p11, p12, p22, p13, p23, p33, phi1, phi2, prev1, prev2, b1, b0, c, sigma2, lam, drive_w, out, k
+):
+    r""":func:`_edge_covariance_2` for θ = [b1, b0, c]: the (b1, b0) block of the 3 × 3 covariance.
+
+    φ = [−p(n−1), −p(n−2), 1], so the edge vectors carry 1 and λ + b1 in
+    their third entry.  The bulk splits φ into its oscillation and its
+    constant part φ_dc = [−p̄, −p̄, 1] (p̄ = c/(1 + b1 + b0), the static
+    offset), filtered by Ã at the drive and at DC respectively:
+
+    .. math:: \sigma^2\Big\{|\tilde A(e^{j\omega})|^2\Big[\frac{P}{1+\lambda}
+              - \frac{P\varphi_{dc}\varphi_{dc}^T P}{1-\lambda^2}\Big]
+              + |\tilde A(1)|^2 \frac{P\varphi_{dc}\varphi_{dc}^T P}{1-\lambda^2}\Big\}.
+    """
+    u1 = lam * prev1 + b1 * phi1
+    u2 = lam * prev2 + b1 * phi2
+    u3 = lam + b1
+    v11 = p11 * phi1 + p12 * phi2 + p13
+    v12 = p12 * phi1 + p22 * phi2 + p23
+    v21 = p11 * u1 + p12 * u2 + p13 * u3
+    v22 = p12 * u1 + p22 * u2 + p23 * u3
+    c11 = v11 * v11 + v21 * v21
+    c12 = v11 * v12 + v21 * v22
+    c22 = v12 * v12 + v22 * v22
+    if drive_w > 0.0:
+        at_drive = _filter_gain2(b1, b0, lam, drive_w)
+        at_dc = 1.0 + b1 / lam + b0 / (lam * lam)
+        at_dc *= at_dc
+        offset = c / (1.0 + b1 + b0)
+        w1 = p13 - offset * (p11 + p12)
+        w2 = p23 - offset * (p12 + p22)
+        if not math.isfinite(w1 + w2):
+            w1 = 0.0
+            w2 = 0.0
+        dc = (at_dc - at_drive) / (1.0 - lam * lam)
+        bulk = at_drive / (1.0 + lam)
+        c11 += bulk * p11 + dc * w1 * w1
+        c12 += bulk * p12 + dc * w1 * w2
+        c22 += bulk * p22 + dc * w2 * w2
+    out[k, 0] = sigma2 * c11
+    out[k, 1] = sigma2 * c12
+    out[k, 2] = sigma2 * c22
 
 
 # ---------------------------------------------------------------------------
@@ -131,14 +236,17 @@ _STATE_LEN = 20
 
 @njit(**JIT_OPTIONS)
 def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
-    p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, state, out_b1, out_b0, out_sigma2
+    p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, drive_w, state, out_b1, out_b0,
+    out_sigma2, out_cov,
 ):
     """Run REEP (eq. 3.39 with θ = [b1, b0], Λ = I₂) over one chunk.
 
     ``state`` is read at entry and overwritten at exit.  ``out_*`` are
     preallocated, one value per kept sample: those whose index n in the
-    stream has (n + 1) % keep_every == 0.  Two guards, both inactive in normal
-    operation, extend eq. 3.39:
+    stream has (n + 1) % keep_every == 0; ``out_cov`` (K, 3) receives the
+    covariance (var b1, cov, var b0) of the output θ̂ (``_edge_covariance``,
+    with the drive at ``drive_w`` rad per sample; 0 leaves its bulk term out).
+    Two guards, both inactive in normal operation, extend eq. 3.39:
 
     * anti-windup: while trace P(n−1) ≥ ``trace_cap`` (= trace P(0)) this
       sample is processed with λ_n = 1 (no forgetting), so P never grows past
@@ -164,6 +272,7 @@ def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     s_w = state[_S]
     p_1 = state[_P_1]
     p_2 = state[_P_2]
+    p_3 = state[_P_3]
     g_1 = state[_G_1]
     g_2 = state[_G_2]
     n_past = state[_N_PAST]
@@ -180,6 +289,7 @@ def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
             # φ(n) needs p(n−1) and p(n−2): the first two samples of a stream
             # only fill the past buffers, like rows n ≥ 2 of arx_regressors
             n_past += 1.0
+            p_3 = p_2
             p_2 = p_1
             p_1 = p_n
             if use_input:
@@ -189,6 +299,9 @@ def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
                 out_b1[k] = c_b1 if bias_compensation else th_b1
                 out_b0[k] = c_b0 if bias_compensation else th_b0
                 out_sigma2[k] = nan
+                out_cov[k, 0] = nan
+                out_cov[k, 1] = nan
+                out_cov[k, 2] = nan
                 k += 1
                 until_keep = keep_every - 1
             else:
@@ -254,6 +367,9 @@ def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
             sigma2 = nan
             c_b1 = th_b1
             c_b0 = th_b0
+        # φ(n−1) = [−p(n−2), −p(n−3)]ᵀ, for the covariance's edge term
+        prev2 = -p_3
+        p_3 = p_2
         p_2 = p_1
         p_1 = p_n
         if until_keep == 0:
@@ -264,6 +380,9 @@ def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
                 out_b1[k] = th_b1
                 out_b0[k] = th_b0
             out_sigma2[k] = sigma2
+            _edge_covariance_2(
+                p11, p12, p22, phi1, phi2, phi2, prev2, out_b1[k], out_b0[k], sigma2, lam, drive_w, out_cov, k
+            )
             k += 1
             until_keep = keep_every - 1
         else:
@@ -281,6 +400,7 @@ def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     state[_S] = s_w
     state[_P_1] = p_1
     state[_P_2] = p_2
+    state[_P_3] = p_3
     state[_G_1] = g_1
     state[_G_2] = g_2
     state[_N_PAST] = n_past
@@ -288,8 +408,8 @@ def _reep_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
 
 @njit(**JIT_OPTIONS)
 def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
-    p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, state, out_b1, out_b0, out_sigma2,
-    out_c,
+    p, g, a2, a1, a0, use_input, lam, trace_cap, bias_compensation, keep_every, drive_w, state, out_b1, out_b0,
+    out_sigma2, out_cov, out_c,
 ):
     """REEP with a constant regressor: eq. 3.39 with θ = [b1, b0, c], Λ = diag(1, 1, 0).
 
@@ -297,7 +417,8 @@ def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     term c = (1 + b1 + b0)·p̄ of a deflection offset p̄ (see :func:`reep_update`,
     Notes).  The same recursion, guards and output rule as ``_reep_kernel``,
     with the symmetric 3 × 3 P(n) held as six scalars; ``trace_cap`` is
-    trace P(0) = 3·P0.  ``out_c`` receives c (deflection units).
+    trace P(0) = 3·P0.  ``out_c`` receives c (deflection units), ``out_cov`` the
+    (b1, b0) block of its covariance (``_edge_covariance_3``).
     """
     th_b1 = state[_TH_LS_B1]
     th_b0 = state[_TH_LS_B0]
@@ -316,6 +437,7 @@ def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     s_w = state[_S]
     p_1 = state[_P_1]
     p_2 = state[_P_2]
+    p_3 = state[_P_3]
     g_1 = state[_G_1]
     g_2 = state[_G_2]
     n_past = state[_N_PAST]
@@ -329,6 +451,7 @@ def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
         p_n = p[i]
         if n_past < 2.0:
             n_past += 1.0
+            p_3 = p_2
             p_2 = p_1
             p_1 = p_n
             if use_input:
@@ -339,6 +462,9 @@ def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
                 out_b0[k] = c_b0 if bias_compensation else th_b0
                 out_c[k] = c_c if bias_compensation else th_c
                 out_sigma2[k] = nan
+                out_cov[k, 0] = nan
+                out_cov[k, 1] = nan
+                out_cov[k, 2] = nan
                 k += 1
                 until_keep = keep_every - 1
             else:
@@ -406,6 +532,8 @@ def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
             c_b1 = th_b1
             c_b0 = th_b0
             c_c = th_c
+        prev2 = -p_3
+        p_3 = p_2
         p_2 = p_1
         p_1 = p_n
         if until_keep == 0:
@@ -418,6 +546,10 @@ def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
                 out_b0[k] = th_b0
                 out_c[k] = th_c
             out_sigma2[k] = sigma2
+            _edge_covariance_3(
+                p11, p12, p22, p13, p23, p33, phi1, phi2, phi2, prev2, out_b1[k], out_b0[k], out_c[k], sigma2, lam,
+                drive_w, out_cov, k,
+            )
             k += 1
             until_keep = keep_every - 1
         else:
@@ -440,6 +572,7 @@ def _reep_offset_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
     state[_S] = s_w
     state[_P_1] = p_1
     state[_P_2] = p_2
+    state[_P_3] = p_3
     state[_G_1] = g_1
     state[_G_2] = g_2
     state[_N_PAST] = n_past
@@ -474,8 +607,10 @@ class ReepState:
         n, regression updates so far (samples seen minus the first two).
     inv_weight : float
         1/w_n = (1 − λⁿ)/(1 − λ).
-    p_past, g_past : tuple of float
-        (p(n−1), p(n−2)) and (g(n−1), g(n−2)).
+    p_past : tuple of float
+        (p(n−1), p(n−2), p(n−3)).
+    g_past : tuple of float
+        (g(n−1), g(n−2)).
     n_past : int
         How many of those past samples are real (0, 1 or 2): the first two
         samples of a stream only fill them.
@@ -496,7 +631,7 @@ class ReepState:
     cost: float
     n_samples: int
     inv_weight: float
-    p_past: tuple[float, float]
+    p_past: tuple[float, float, float]
     g_past: tuple[float, float]
     n_past: int
     static_offset: bool = False
@@ -544,7 +679,7 @@ class ReepState:
             cost=0.0,
             n_samples=0,
             inv_weight=0.0,
-            p_past=(0.0, 0.0),
+            p_past=(0.0, 0.0, 0.0),
             g_past=(0.0, 0.0),
             n_past=0,
             static_offset=bool(static_offset),
@@ -559,7 +694,7 @@ class ReepState:
         out[_J] = self.cost
         out[_N] = self.n_samples
         out[_S] = self.inv_weight
-        out[_P_1], out[_P_2] = self.p_past
+        out[_P_1], out[_P_2], out[_P_3] = self.p_past
         out[_G_1], out[_G_2] = self.g_past
         out[_N_PAST] = self.n_past
         out[_TH_LS_C] = self.offset_ls
@@ -578,7 +713,7 @@ class ReepState:
             cost=v[_J],
             n_samples=int(v[_N]),
             inv_weight=v[_S],
-            p_past=(v[_P_1], v[_P_2]),
+            p_past=(v[_P_1], v[_P_2], v[_P_3]),
             g_past=(v[_G_1], v[_G_2]),
             n_past=int(v[_N_PAST]),
             static_offset=self.static_offset,
@@ -603,12 +738,16 @@ class ReepBlock(NamedTuple):
         The constant term c(n) (deflection units) when the state has
         ``static_offset``, else None.  The static offset is
         p̄ = c / (1 + b1 + b0).
+    covariance : numpy.ndarray of float64, shape (K, 3), or None
+        (var b1, cov(b1, b0), var b0) of the output θ̂ at each kept sample
+        (``_edge_covariance_2``); NaN where σ̂² is.
     """
 
     b1: np.ndarray
     b0: np.ndarray
     sigma2: np.ndarray
     c: np.ndarray | None = None
+    covariance: np.ndarray | None = None
 
 
 class ReepStep(NamedTuple):
@@ -635,8 +774,16 @@ def _reep_inputs(state, deflection, dither, numerator, use_input: bool, keep_eve
     return p, g, check_numerator(numerator)
 
 
+def _drive_radians(cycles_per_sample: float) -> float:
+    """ω·T of the drive line (rad per sample) from f/fs, checked to lie in [0, π)."""
+    if not 0.0 <= cycles_per_sample < 0.5:
+        raise ConfigError(f"drive_cycles_per_sample={cycles_per_sample!r} must be in [0, 1/2)")
+    return 2.0 * math.pi * float(cycles_per_sample)
+
+
 def reep_update(state: ReepState, deflection, dither=None, numerator: Sequence[float] | None = None, *,
-                bias_compensation: bool = True, use_input: bool = True, keep_every: int = 1) -> ReepStep:
+                bias_compensation: bool = True, use_input: bool = True, keep_every: int = 1,
+                drive_cycles_per_sample: float = 0.0) -> ReepStep:
     """Advance REEP over one chunk of samples (§3.3.3, eq. 3.39).
 
     Parameters
@@ -661,13 +808,16 @@ def reep_update(state: ReepState, deflection, dither=None, numerator: Sequence[f
         the stream's first sample, across chunks) has
         (n + 1) % keep_every == 0.  Every sample still updates the
         estimate; 1 (default) outputs them all.
+    drive_cycles_per_sample : float, optional
+        The drive's main line over the sample rate, in [0, 1/2), for the bulk term
+        of the covariance (``_edge_covariance_2``); 0 (default) leaves it out.
 
     Returns
     -------
     ReepStep
-        ``(block, state)``: the :class:`ReepBlock` of the kept samples and
-        the state to pass with the next chunk.  Splitting a record into
-        chunks of any sizes gives bit-for-bit the output of one call.
+        ``(block, state)``: the :class:`ReepBlock` of the kept samples (with the
+        covariance of θ̂) and the state to pass with the next chunk.  Chunks of
+        any sizes give bit-for-bit the output of one call.
 
     Raises
     ------
@@ -693,23 +843,24 @@ def reep_update(state: ReepState, deflection, dither=None, numerator: Sequence[f
     Eq. 3.43 of the thesis is a garbled copy of this and is not used.
 
     The static-offset variant (``state.static_offset``) and the two guards
-    that extend eq. 3.39 at start-up and without excitation are described in
-    the module docstring.
-
-    A NaN sample makes every later output NaN: split records at gaps and
-    start again from :meth:`ReepState.initial`.
+    that extend eq. 3.39 are in the module docstring.  A NaN sample makes
+    every later output NaN: split records at gaps.
     """
     p, g, (a2, a1, a0) = _reep_inputs(state, deflection, dither, numerator, use_input, keep_every)
     carried = state._to_array()
     n_kept = Decimation(int(keep_every)).count(state.n_samples + state.n_past, p.shape[0])
     b1, b0, sigma2 = (np.empty(n_kept, dtype=np.float64) for _ in range(3))
+    covariance = np.empty((n_kept, 3), dtype=np.float64)
+    drive_w = _drive_radians(drive_cycles_per_sample)
     signals = (p, g, a2, a1, a0, bool(use_input), state.lam)
     if state.static_offset:  # trace P(0) = 3·P0 for the 3 × 3 P
         c = np.empty(n_kept, dtype=np.float64)
-        _reep_offset_kernel(*signals, 3.0 * state.p0, bool(bias_compensation), int(keep_every), carried, b1, b0, sigma2, c)
-        return ReepStep(ReepBlock(b1, b0, sigma2, c), state._from_array(carried))
-    _reep_kernel(*signals, 2.0 * state.p0, bool(bias_compensation), int(keep_every), carried, b1, b0, sigma2)
-    return ReepStep(ReepBlock(b1, b0, sigma2), state._from_array(carried))
+        _reep_offset_kernel(*signals, 3.0 * state.p0, bool(bias_compensation), int(keep_every), drive_w, carried, b1,
+                            b0, sigma2, covariance, c)
+        return ReepStep(ReepBlock(b1, b0, sigma2, c, covariance), state._from_array(carried))
+    _reep_kernel(*signals, 2.0 * state.p0, bool(bias_compensation), int(keep_every), drive_w, carried, b1, b0, sigma2,
+                 covariance)
+    return ReepStep(ReepBlock(b1, b0, sigma2, None, covariance), state._from_array(carried))
 
 
 def reep(

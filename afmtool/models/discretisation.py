@@ -88,6 +88,7 @@ __all__ = [
     "sampled_response",
     "is_underdamped",
     "resonance_scalar",
+    "resonance_std_scalar",
     "DiscreteDenominator",
     "DiscreteNumerator",
     "ResonanceFromDenominator",
@@ -240,6 +241,42 @@ def resonance_scalar(b1, b0, period):
         f0 = math.sqrt(decay * decay + damped * damped) / (2.0 * math.pi)
         return f0, math.pi * f0 / decay
     return np.nan, np.nan
+
+
+@njit(**JIT_OPTIONS)
+def resonance_std_scalar(b1, b0, var_b1, cov_b1b0, var_b0, period):
+    """Standard deviations of eq. 3.48's (f0 in Hz, Q) from the covariance of (b1, b0), to first order.
+
+    With p = −ln(b0)/(2T), u = −b1/(2√b0), q = arccos(u)/T, ω0 = √(p² + q²),
+    f0 = ω0/(2π) and Q = ω0/(2p), the gradients are
+
+    * ∂p/∂b1 = 0, ∂p/∂b0 = −1/(2T·b0);
+    * ∂q/∂b1 = 1/(2T√b0·√(1 − u²)), ∂q/∂b0 = −b1/(4T·b0^{3/2}·√(1 − u²));
+    * ∂ω0 = (p ∂p + q ∂q)/ω0, ∂f0 = ∂ω0/(2π), ∂Q = ∂ω0/(2p) − ω0 ∂p/(2p²);
+
+    and Var x = ∇xᵀ C ∇x.  (NaN, NaN) where (b1, b0) is not under-damped
+    or the covariance is not finite.
+    """
+    if not (b0 > 0.0 and b0 < 1.0 and b1 * b1 < 4.0 * b0):
+        return np.nan, np.nan
+    root_b0 = math.sqrt(b0)
+    ratio = -b1 / (2.0 * root_b0)
+    sine = math.sqrt(max(1.0 - ratio * ratio, 0.0))
+    decay = -math.log(b0) / (2.0 * period)
+    damped = math.acos(min(max(ratio, -1.0), 1.0)) / period
+    omega = math.sqrt(decay * decay + damped * damped)
+    dp0 = -1.0 / (2.0 * period * b0)
+    dq1 = 1.0 / (2.0 * period * root_b0 * sine)
+    dq0 = -b1 / (4.0 * period * b0 * root_b0 * sine)
+    dw1 = damped * dq1 / omega
+    dw0 = (decay * dp0 + damped * dq0) / omega
+    var_w = dw1 * dw1 * var_b1 + 2.0 * dw1 * dw0 * cov_b1b0 + dw0 * dw0 * var_b0
+    dq_1 = dw1 / (2.0 * decay)
+    dq_0 = dw0 / (2.0 * decay) - omega * dp0 / (2.0 * decay * decay)
+    var_q = dq_1 * dq_1 * var_b1 + 2.0 * dq_1 * dq_0 * cov_b1b0 + dq_0 * dq_0 * var_b0
+    if not (var_w >= 0.0 and var_q >= 0.0):  # NaN or a covariance that is not positive semi-definite
+        return np.nan, np.nan
+    return math.sqrt(var_w) / (2.0 * math.pi), math.sqrt(var_q)
 
 
 @njit(**JIT_OPTIONS)
