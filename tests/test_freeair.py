@@ -87,5 +87,5 @@ def test_bad_psd_file(tmp_path):
     psd.write_text("frequency_hz,asd\n1,2\n")
     result = run_cli("identify", "freeair", "--psd", psd, "--out", tmp_path / "o")
     assert result.returncode == 2
-    assert "missing column" in result.stderr.decode()
+    assert "has no units" in result.stderr.decode()
     assert not (tmp_path / "o").exists()

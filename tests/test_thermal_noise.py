@@ -87,17 +87,19 @@ def test_explicit_band(rng):
     assert fit.f0_hz == pytest.approx(F0, rel=1e-3)
 
 
-def test_log_bias_correction_for_few_averages(rng):
-    # M = 2: E[ln χ²_4/4] = ψ(2) − ln 2 ≈ −0.27, so an uncorrected log fit puts
-    # A and W 24 % low; f0 and Q are unaffected by the constant factor
+def test_ml_fit_has_no_log_bias_for_few_averages(rng):
+    # M = 2: a least-squares fit of ln P puts A and W low by e^(ψ(2) − ln 2) ≈ 0.76 (E[ln χ²_4/4]);
+    # the Gamma likelihood (eq. T.2) is maximised by the same S whatever M, with no bias
     f = np.arange(100e3, 260e3, DF)
     f, asd = _noisy_spectrum(rng, averages=2, f=f)
     plain = fit_thermal_spectrum(f, asd, band=(100e3, 260e3))
-    corrected = fit_thermal_spectrum(f, asd, band=(100e3, 260e3), n_averages=2)
-    assert (plain.floor_asd_m_per_sqrt_hz / FLOOR_ASD) ** 2 < 0.85
-    assert (corrected.floor_asd_m_per_sqrt_hz / FLOOR_ASD) ** 2 == pytest.approx(1.0, abs=0.06)
-    assert corrected.q == plain.q and corrected.f0_hz == plain.f0_hz
+    told = fit_thermal_spectrum(f, asd, band=(100e3, 260e3), n_averages=2)
+    assert (plain.floor_asd_m_per_sqrt_hz / FLOOR_ASD) ** 2 == pytest.approx(1.0, abs=0.06)
+    assert told.q == plain.q and told.f0_hz == plain.f0_hz and told.floor_asd_m_per_sqrt_hz == plain.floor_asd_m_per_sqrt_hz
     assert plain.f0_hz == pytest.approx(F0, rel=1e-3)
+    # M estimated from the scatter when not given: Var(P/S) = 1/M
+    assert plain.n_averages_estimated and plain.n_averages == pytest.approx(2.0, rel=0.15)
+    assert not told.n_averages_estimated and told.n_averages == 2 and 0.001 < told.p_value <= 1.0
 
 
 def test_free_air_from_thermal_has_unit_gain(rng):
@@ -153,7 +155,7 @@ def real_spectrum():
 
 
 def test_real_thermal_tune(real_spectrum):
-    f, asd = real_spectrum
+    f, asd = real_spectrum[:2]
     fit = fit_thermal_spectrum(f, asd, temperature_k=295.0, n_averages=1000)
     print(
         f"\nthermal_tune_acl_a: f0 = {fit.f0_hz:.1f} ± {fit.f0_std_hz:.1f} Hz, Q = {fit.q:.1f} ± {fit.q_std:.1f}, "
@@ -187,13 +189,13 @@ def _write(tmp_path, text, name="psd.csv"):
 
 def test_read_psd_csv(tmp_path):
     path = _write(tmp_path, "# thermal tune\nasd_m_per_sqrt_hz, frequency_hz ,note\n1e-13,0,a\n2e-13,38.1,b\n\n")
-    f, asd = read_psd_csv(path)
+    f, asd = read_psd_csv(path)[:2]
     np.testing.assert_array_equal(f, [0.0, 38.1])
     np.testing.assert_array_equal(asd, [1e-13, 2e-13])
 
 
 def test_read_real_psd_csv(real_spectrum):
-    f, asd = real_spectrum
+    f, asd = real_spectrum[:2]
     assert f.size == 8369 and f[0] == 0.0 and f[1] == pytest.approx(38.147)
     assert np.all(np.diff(f) > 0) and np.all(asd >= 0)
 
@@ -203,7 +205,8 @@ def test_read_real_psd_csv(real_spectrum):
     [
         ("", "empty file"),
         ("frequency_hz,asd_m_per_sqrt_hz\n", "no data rows"),
-        ("frequency_hz,asd\n1,2\n", "missing column(s) asd_m_per_sqrt_hz"),
+        ("frequency_hz,asd\n1,2\n", "column 'asd' has no units"),
+        ("frequency_hz,note\n1,2\n", "missing a spectral density column"),
         ("frequency_hz,asd_m_per_sqrt_hz\n1,abc\n", "line 2: asd_m_per_sqrt_hz='abc' is not a number"),
         ("frequency_hz,asd_m_per_sqrt_hz\n1,nan\n", "must be a finite number >= 0"),
         ("frequency_hz,asd_m_per_sqrt_hz\n1,-2\n", "must be a finite number >= 0"),

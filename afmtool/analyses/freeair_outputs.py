@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -208,16 +209,52 @@ def write_thermal_fit_png(path: Path, frequency_hz: np.ndarray, asd: np.ndarray,
                           title="Thermal-noise spectrum and its simple-harmonic-oscillator fit")
 
 
-def _thermal_route(
-    psd: Path, params: FreeAirParams, spring: SpringConstantParams
-) -> tuple[FreeAirModel, dict, Callable[[Path], None]]:
-    from afmtool.estimators.thermal_noise import fit_thermal_spectrum
+def _psd_spectrum(psd: Path, params: FreeAirParams, invols_nm_per_v: float | None):
+    """The ``--psd`` table as a :class:`~afmtool.estimators.thermal_record.ThermalSpectrum` (m/√Hz)."""
+    from afmtool.estimators.thermal_record import ThermalSpectrum
     from afmtool.io.psd import read_psd_csv
 
-    frequency, asd = read_psd_csv(psd)
-    fit = fit_thermal_spectrum(frequency, asd, temperature_k=params.temperature_k)
-    model = fit.free_air_model()
+    table = read_psd_csv(psd, invols_nm_per_v)
+    averages = params.averages or table.n_averages
+    details = {"columns": list(table.columns), "spectrum": f"{table.source_kind.upper()} in {table.source_unit}",
+               "n_averages_from": "--averages" if params.averages else ("the file" if table.n_averages else
+                                                                         "estimated from the scatter")}
+    if invols_nm_per_v and table.source_unit and "V" in table.source_unit:
+        details["invols_nm_per_v"] = invols_nm_per_v
+    return ThermalSpectrum(table.frequency_hz, table.asd_m_per_sqrt_hz, averages, details)
+
+
+def _record_spectrum(reader: CaptureReader, params: FreeAirParams, progress):
+    """The Welch spectrum of a thermal-noise time record's deflection (streamed, flat memory)."""
+    from afmtool.estimators.thermal_record import WelchPsdStage
+
+    if "deflection" not in reader.info.channel_names:
+        raise ConfigError("--thermal: the capture has no deflection channel (map one with --channel deflection=...)")
+    stage = WelchPsdStage("deflection", resolution_hz=params.resolution_hz)
+    (spectrum,) = run_stream(reader, [stage], channels=("deflection",), chunk_samples=_CHUNK_SAMPLES,
+                             progress=progress)
+    return spectrum
+
+
+def _thermal_route(spectrum, params: FreeAirParams, spring: SpringConstantParams):
+    """(model with k, details, plot, warnings) of the ML fit of a thermal spectrum."""
+    from afmtool.config.params import parse_band
+    from afmtool.estimators.thermal_noise import fit_thermal_spectrum
+
+    frequency, asd = spectrum.frequency_hz, spectrum.asd_m_per_sqrt_hz
+    fit = fit_thermal_spectrum(frequency, asd, band=parse_band(params.band), temperature_k=params.temperature_k,
+                               n_averages=spectrum.n_averages)
+    springs = _spring_constants(fit, spring)
+    warnings = fit.warnings() + _spring_constant_warnings(springs)
+    model = dataclasses.replace(fit.free_air_model(), **_model_spring_constant(springs))
+    resolution = float(np.median(np.diff(frequency)))
+    if resolution > fit.f0_hz / (2 * fit.q) / 3:
+        warnings.append(f"the spectrum's resolution {resolution:.3g} Hz is coarse against the peak's half-width "
+                        f"{fit.f0_hz / (2 * fit.q):.3g} Hz: Q is biased low by the window (record longer, or "
+                        "give --resolution)")
     details = {
+        "spectrum": spectrum.details,
+        "fit": _thermal_fit_record(fit),
         "floor_asd_m_per_sqrt_hz": fit.floor_asd_m_per_sqrt_hz,
         "peak_asd_m_per_sqrt_hz": fit.peak_asd_m_per_sqrt_hz,
         "band_hz": list(fit.band_hz),
@@ -226,9 +263,57 @@ def _thermal_route(
         "spring_constant_n_per_m": fit.spring_constant_n_per_m,
         "spring_constant_note": "equipartition, assuming the ASD is calibrated tip displacement (m/sqrt(Hz))",
         "temperature_k": params.temperature_k,
-        "spring_constant": _spring_constants(fit, spring),
+        "spring_constant": springs,
     }
-    return model, details, lambda path: write_thermal_fit_png(path, frequency, asd, fit)
+    return model, details, lambda path: write_thermal_fit_png(path, frequency, asd, fit), warnings
+
+
+def _thermal_fit_record(fit) -> dict:
+    """The ML fit's goodness of fit and its spread over bands and weightings, for report.json."""
+    return {
+        "estimator": "maximum likelihood, each bin Gamma(M) distributed (averaged periodogram)",
+        "n_averages": fit.n_averages,
+        "n_averages_estimated": fit.n_averages_estimated,
+        "deviance": fit.deviance,
+        "dof": fit.dof,
+        "p_value": fit.p_value,
+        "dispersion": fit.dispersion,
+        "bin_correlation": fit.bin_correlation,
+        "f0_hz": {"value": fit.f0_hz, "std": fit.f0_std_hz, "systematic": fit.f0_systematic_hz,
+                  "spread": fit.f0_spread_hz},
+        "q": {"value": fit.q, "std": fit.q_std, "systematic": fit.q_systematic, "spread": fit.q_spread},
+        "variants": [{"band_hz": list(v.band_hz), "weighting": v.weighting, "f0_hz": v.f0_hz, "q": v.q,
+                      "mean_square_m2": v.mean_square_m2} for v in fit.variants],
+    }
+
+
+def _model_spring_constant(springs: dict) -> dict:
+    """The free_air.json fields of k: the thermal value (statistical and systematic std combined), else Sader's."""
+    thermal, sader = springs["thermal"], springs["sader"]
+    if thermal["value_n_per_m"] is not None:
+        std = math.hypot(thermal["std_n_per_m"] or 0.0, thermal["systematic_n_per_m"] or 0.0)
+        source = f"thermal: equipartition, {thermal['detection']} factor {thermal['factor']:.4g}"
+        return {"spring_constant_n_per_m": thermal["value_n_per_m"], "spring_constant_std_n_per_m": std,
+                "spring_constant_source": source}
+    if sader is not None:
+        return {"spring_constant_n_per_m": sader["value_n_per_m"], "spring_constant_std_n_per_m": sader["std_n_per_m"],
+                "spring_constant_source": "Sader (plan-view length and width, f0 and Q in the fluid)"}
+    return {}
+
+
+def _spring_constant_warnings(springs: dict) -> list[str]:
+    """A warning when the thermal and Sader k differ by more than twice their combined standard uncertainty."""
+    thermal, sader = springs["thermal"], springs["sader"]
+    if sader is None or thermal["value_n_per_m"] is None:
+        return []
+    combined = math.sqrt((thermal["std_n_per_m"] or 0.0) ** 2 + (thermal["systematic_n_per_m"] or 0.0) ** 2
+                         + (sader["std_n_per_m"] or 0.0) ** 2)
+    difference = abs(thermal["value_n_per_m"] - sader["value_n_per_m"])
+    if difference <= 2.0 * combined:
+        return []
+    return [f"the thermal spring constant {thermal['value_n_per_m']:.4g} N/m and the Sader one "
+            f"{sader['value_n_per_m']:.4g} N/m differ by {difference:.3g} N/m, more than twice their combined "
+            f"uncertainty {combined:.2g} N/m: check the InvOLS, the detection factor, and the length and width"]
 
 
 def _spring_constants(fit, spring: SpringConstantParams) -> dict:
@@ -245,14 +330,18 @@ def _spring_constants(fit, spring: SpringConstantParams) -> dict:
         "temperature_k": fit.temperature_k,
         "value_n_per_m": None if fit.spring_constant_n_per_m is None else factor * fit.spring_constant_n_per_m,
         "std_n_per_m": None if fit.spring_constant_std is None else factor * fit.spring_constant_std,
+        "systematic_n_per_m": None if fit.spring_constant_systematic is None
+        else factor * fit.spring_constant_systematic,
     }
     result = {"thermal": thermal, "sader": None, "parameters": dataclasses.asdict(spring)}
     if spring.length_um > 0 and spring.width_um > 0:
         density = spring.fluid_density_kg_per_m3 or FLUIDS[spring.fluid][0]
         viscosity = spring.fluid_viscosity_pa_s or FLUIDS[spring.fluid][1]
+        # Sader's k is proportional to Q: its std carries Q's systematic spread too
         sader = sader_spring_constant(
             fit.f0_hz, fit.q, spring.length_um * 1e-6, spring.width_um * 1e-6, fluid=spring.fluid,
-            density_kg_per_m3=density, viscosity_pa_s=viscosity, f0_std_hz=fit.f0_std_hz, q_std=fit.q_std,
+            density_kg_per_m3=density, viscosity_pa_s=viscosity,
+            f0_std_hz=math.hypot(fit.f0_std_hz, fit.f0_systematic_hz), q_std=math.hypot(fit.q_std, fit.q_systematic),
         )
         result["sader"] = {
             "method": "Sader, Chon & Mulvaney, Rev. Sci. Instrum. 70, 3967 (1999): "
@@ -278,17 +367,28 @@ def run_freeair_command(
     flags: Mapping,
     progress: Callable[[int], None],
 ) -> dict:
-    """Identify the free-air model by the chosen route and write free_air.json + report."""
+    """Identify the free-air model by the chosen route and write free_air.json + report.
+
+    The thermal route reads a spectrum table (``--psd``, ``reader`` None) or
+    computes the spectrum of a thermal-noise time record (``--thermal``,
+    ``reader`` open on it).
+    """
     user_config = load_toml(config) if config else None
     params = resolve_from(
-        FreeAirParams, "identify.freeair", user_config, {k: v for k, v in flags.items() if k != "spring"}
+        FreeAirParams, "identify.freeair", user_config,
+        {k: v for k, v in flags.items() if k not in ("spring", "invols_nm_per_v")},
     )
     plot = None
     warnings: list[str] = []
     if params.route == "thermal":
         spring = resolve_from(SpringConstantParams, "identify.spring_constant", user_config, flags.get("spring", {}))
-        model, details, plot = _thermal_route(Path(source), params, spring)
-        inputs = [input_record(source, "psd")]
+        if reader is None:
+            spectrum = _psd_spectrum(Path(source), params, flags.get("invols_nm_per_v"))
+            inputs = [input_record(source, "psd")]
+        else:
+            spectrum = _record_spectrum(reader, params, progress)
+            inputs = [{**input_record(source, "thermal record"), **calibration_record(reader)}]
+        model, details, plot, warnings = _thermal_route(spectrum, params, spring)
     elif params.route == "sweep":
         model, details, warnings, plot = _sweep_route(reader, params, progress)
         inputs = [{**input_record(source), **calibration_record(reader)}]

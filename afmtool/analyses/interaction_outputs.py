@@ -47,14 +47,17 @@ def _free_reference(f: ResultFile, results: Mapping) -> tuple[float, float, str]
 
 
 def add_interaction_series(path: Path, results: Mapping, metadata: CaptureMetadata, amplitude_units: str,
-                           spring_constant_n_per_m: float = 0.0) -> dict:
+                           spring_constant_n_per_m: float = 0.0,
+                           spring_constant_source: str = "--spring-constant") -> dict:
     """Write ``/interaction/...`` into the reep.h5 at ``path``; return the report section.
 
-    ``spring_constant_n_per_m`` (``--spring-constant``) overrides the metadata's k; 0 uses it.
+    ``spring_constant_n_per_m`` (``--spring-constant``, or the ``--model``'s
+    k, named by ``spring_constant_source``) overrides the metadata's k; 0 uses it.
     """
     from afmtool.models.interaction import InteractionQuantities, interaction_quantities
 
     k = spring_constant_n_per_m or metadata.cantilever.spring_constant_n_per_m
+    k_source = spring_constant_source if spring_constant_n_per_m else "capture metadata cantilever.spring_constant_n_per_m"
     if not k:
         return {"written": False, "reason": "no spring constant (--spring-constant or metadata "
                                               "cantilever.spring_constant_n_per_m): k_e, the force gradient, damping, "
@@ -79,5 +82,5 @@ def add_interaction_series(path: Path, results: Mapping, metadata: CaptureMetada
             )
             for name, ds in datasets.items():
                 ds[start:stop] = getattr(out, name)
-    return {"written": True, "spring_constant_n_per_m": float(k), "free_f0_hz": free_f0, "free_q": free_q,
+    return {"written": True, "spring_constant_n_per_m": float(k), "spring_constant_source": k_source, "free_f0_hz": free_f0, "free_q": free_q,
             "free_reference": source, "series": {name: units[name] for name in units}}

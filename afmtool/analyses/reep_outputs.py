@@ -44,7 +44,7 @@ def run_reep_command(run: CommandRun) -> dict:
         from afmtool.analyses.interaction_outputs import add_interaction_series
 
         results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.capture_metadata,
-                                                        deflection_units, params.spring_constant_n_per_m)
+                                                        deflection_units, *_given_spring_constant(params, model))
         if results["interaction"].get("written"):
             _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz, run.figures)
         if result.force_curves:
@@ -60,6 +60,20 @@ def run_reep_command(run: CommandRun) -> dict:
         inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_records]
         run.figures.wait()
         return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
+
+
+def _given_spring_constant(params: ReepParams, model) -> tuple[float, str]:
+    """k (N/m) and where it came from: ``--spring-constant``, else the ``--model``'s k; (0, "") for neither.
+
+    A ``free_air.json`` from ``identify freeair --psd`` carries the thermal (or
+    Sader) k, so it need not be copied into ``--spring-constant`` by hand.
+    """
+    if params.spring_constant_n_per_m:
+        return params.spring_constant_n_per_m, "--spring-constant"
+    if model is not None and model.spring_constant_n_per_m:
+        source = model.spring_constant_source or model.source
+        return float(model.spring_constant_n_per_m), f"--model {params.model} ({source})"
+    return 0.0, ""
 
 
 def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, fmt: str) -> None:

@@ -49,41 +49,62 @@ def identify_freeair(
         bool, typer.Option("--stepped", help="Sweep route: same as --sweep-method stepped (lock-in per step).")
     ] = False,
     psd: Annotated[
-        Optional[Path], typer.Option("--psd", help="Thermal route: CSV with frequency_hz, asd_m_per_sqrt_hz.")
+        Optional[Path],
+        typer.Option("--psd", help="Thermal route: a spectrum table (CSV): ASD or PSD, in m, nm or V (with --invols), "
+                     "per sqrt(Hz) or per Hz; columns found by name and units."),
+    ] = None,
+    thermal: Annotated[
+        Optional[str],
+        typer.Option("--thermal", help="Thermal route: a thermal-noise time record (deflection, no drive); its "
+                     "Welch spectrum is fitted."),
     ] = None,
     *, flags: dict, spring: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
-    """Identify the free-air model: f0, Q, gain and their uncertainties.
+    """Identify the free-air model: f0, Q, gain, the spring constant, and their uncertainties.
 
     Three routes: an off-sample segment of a capture (ARX fit, bias compensated),
     a frequency sweep (--sweep: by default the second-order model with delay
     fitted to the whole record's spectra with a transient term, exact for fast
-    or slow chirps and stepped sines), or a thermal-noise spectrum
-    (--psd FILE.csv).  Writes free_air.json for --model; the sweep route also
-    writes sweep_frf.csv and sweep_bode.png (the data with the fitted transient
-    removed, beside the model); the thermal route also
-    reports the spring constant by equipartition with the Butt-Jaschke
-    optical-lever factor, and with --length/--width by the Sader method, and
-    plots the spectrum and its fit (thermal_fit.png).
+    or slow chirps and stepped sines), or thermal noise: a spectrum table
+    (--psd FILE.csv) or a time record (--thermal CAPTURE, Welch spectrum).
+    Writes free_air.json for --model; the sweep route also writes
+    sweep_frf.csv and sweep_bode.png (the data with the fitted transient
+    removed, beside the model).  The thermal route fits the spectrum by
+    maximum likelihood (each bin of an averaged periodogram is Gamma
+    distributed), gives its goodness of fit, refits in half and double the
+    band (--band LOW:HIGH sets it) and with linear weighting and reports
+    their spread as a systematic uncertainty where it exceeds the noise;
+    k by equipartition with the Butt-Jaschke optical-lever factor, and with
+    --length/--width by the Sader method (warned when the two disagree); k
+    goes into free_air.json, where 'reep --model' finds it.
+
+    Examples: afmtool identify freeair --psd tune.csv --band 170e3:190e3 --out fa;
+    afmtool identify freeair --psd tune_volts.csv --invols 52.3 --out fa;
+    afmtool identify freeair --thermal record.h5 --temperature 298 --out fa
     """
     from afmtool.analyses.freeair_outputs import run_freeair_command
     from afmtool.errors import ConfigError
 
-    route = "thermal" if psd else ("sweep" if sweep else "segment")
+    if psd and thermal:
+        raise ConfigError("give one thermal input: --psd FILE.csv or --thermal CAPTURE")
+    route = "thermal" if (psd or thermal) else ("sweep" if sweep else "segment")
+    if thermal and capture is not None:
+        raise ConfigError("--thermal CAPTURE takes the record itself: give no other CAPTURE")
     if route != "thermal" and capture is None:
-        raise ConfigError("give a CAPTURE (segment or --sweep route) or --psd FILE.csv (thermal route)")
+        raise ConfigError("give a CAPTURE (segment or --sweep route), --psd FILE.csv or --thermal CAPTURE (thermal)")
     if stepped and flags["sweep_method"] not in (None, "stepped"):
         raise ConfigError(f"--stepped contradicts --sweep-method {flags['sweep_method']}")
-    flags = {**flags, "route": route, "spring": spring}
+    flags = {**flags, "route": route, "spring": spring, "invols_nm_per_v": source.invols}
     if stepped:
         flags["sweep_method"] = "stepped"
     out, config = output.out, output.config
-    if route == "thermal":
+    if psd:
         report = run_freeair_command(None, psd, out, config, flags, lambda done: None)
     else:
-        with source.open(capture, source.calibration(flags["free_air"], accepts_drive=True)) as reader:
+        path = thermal or capture
+        with source.open(path, source.calibration(flags["free_air"], accepts_drive=not thermal)) as reader:
             with progress_bar("identify", reader.info.n_samples, output.quiet) as update:
-                report = run_freeair_command(reader, capture, out, config, flags, update)
+                report = run_freeair_command(reader, path, out, config, flags, update)
     finish_command(report, out, output.json_output, output.quiet)
 
 

@@ -30,6 +30,7 @@ __all__ = [
     "ThermalParams",
     "ElectrostaticFitParams",
     "parse_interval",
+    "parse_band",
     "DecodeParams",
     "parse_bracket_nm",
     "InvolsParams",
@@ -49,6 +50,20 @@ def parse_interval(text: str, option: str) -> tuple[float, float] | None:
     if not sep or not (math.isfinite(interval[0]) and math.isfinite(interval[1])) or not 0 <= interval[0] < interval[1]:
         raise ConfigError(f"{option}={text!r} must look like START:END with 0 <= START < END (s)")
     return interval
+
+
+def parse_band(text: str, option: str = "--band") -> tuple[float, float] | None:
+    """``"170e3:190e3"`` -> (170000.0, 190000.0) Hz; ``""`` -> None."""
+    if not text:
+        return None
+    low, sep, high = text.partition(":")
+    try:
+        band = (float(low), float(high))
+    except ValueError:
+        raise ConfigError(f"{option}={text!r} must look like LOW:HIGH in Hz") from None
+    if not sep or not (math.isfinite(band[0]) and math.isfinite(band[1])) or not 0 <= band[0] < band[1]:
+        raise ConfigError(f"{option}={text!r} must look like LOW:HIGH with 0 <= LOW < HIGH (Hz)")
+    return band
 
 
 # ----------------------------------------------------------------------------- shared declarations
@@ -140,10 +155,32 @@ class FreeAirParams:
         bounds="> 0",
         flag="--temperature",
     )
+    band: str = field(
+        "", "Thermal route: the band LOW:HIGH to fit; empty = where the peak stands above the floor", "Hz",
+        flag="--band",
+    )
+    averages: int = field(
+        0,
+        "Thermal route (--psd): periodograms averaged in the spectrum; 0 = the file's '# averages:' comment, "
+        "else estimated from its scatter",
+        bounds=">= 1",
+        automatic=0,
+        flag="--averages",
+    )
+    resolution_hz: float = field(
+        0.0,
+        "Thermal route (--thermal): Welch resolution fs/nperseg; 0 = the finest that still averages 64 "
+        "half-overlapped segments",
+        "Hz",
+        bounds="> 0",
+        automatic=0.0,
+        flag="--resolution",
+    )
 
     def validate(self) -> None:
         """Cross-field and format checks; the bounds are checked from the declarations."""
         parse_interval(self.free_air, "free_air")
+        parse_band(self.band)
 
 
 def _check_f0_q(f0_hz: float, q: float) -> None:

@@ -20,6 +20,8 @@ from afmtool.errors import InputError
 
 __all__ = ["FreeAirModel", "load_free_air_model"]
 
+_SPRING_FIELDS = ("spring_constant_n_per_m", "spring_constant_std_n_per_m", "spring_constant_source")
+
 
 @dataclass(frozen=True)
 class FreeAirModel:
@@ -42,6 +44,13 @@ class FreeAirModel:
         (b1, b0) of eq. 3.40, from a discrete fit.
     delay_s : float
         Pure delay of the drive path, s (sweep route).
+    spring_constant_n_per_m, spring_constant_std_n_per_m : float or None
+        The cantilever's spring constant k and its one-standard-deviation
+        uncertainty, N/m, where the route measured it (the thermal route:
+        equipartition, or Sader).  ``reep --model`` uses it for the
+        interaction quantities unless ``--spring-constant`` is given.
+    spring_constant_source : str or None
+        How k was obtained, e.g. ``"thermal (equipartition, optical-lever factor 0.817)"``.
     """
 
     f0_hz: float
@@ -55,6 +64,9 @@ class FreeAirModel:
     numerator: tuple[float, float, float] | None = None
     denominator: tuple[float, float] | None = None
     delay_s: float = 0.0
+    spring_constant_n_per_m: float | None = None
+    spring_constant_std_n_per_m: float | None = None
+    spring_constant_source: str | None = None
 
     def numerator_at(
         self, sample_rate_hz: float, hold: str = "zoh", match_hz: float | None = None
@@ -88,7 +100,12 @@ class FreeAirModel:
         return (float(denominator.b1), float(denominator.b0))
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The fields as a JSON-ready dict; the spring-constant keys only where k is known."""
+        data = dataclasses.asdict(self)
+        if self.spring_constant_n_per_m is None:
+            for name in _SPRING_FIELDS:
+                data.pop(name)
+        return data
 
     def save(self, path: Path) -> None:
         from afmtool.report.atomic import write_text_atomic
@@ -109,6 +126,9 @@ class FreeAirModel:
             value = getattr(model, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InputError(f"{where}: {name}={value!r} must be a number > 0")
+        k = model.spring_constant_n_per_m
+        if k is not None and not (isinstance(k, (int, float)) and not isinstance(k, bool) and math.isfinite(k) and k > 0):
+            raise InputError(f"{where}: spring_constant_n_per_m={k!r} must be a number > 0 (N/m)")
         return model
 
 
