@@ -27,6 +27,19 @@ The hold (``--drive-hold auto``, the default) is classified on the same
 segment by :func:`~afmtool.models.discretisation.classify_hold` and recorded
 with its reason; without a segment it cannot be measured and
 ``continuous`` is assumed.
+
+The phase misfit (issue 28)
+---------------------------
+The measured excess phase at the drive, arg(H/G(jω_d)), is explained by a
+hold (0 for ``continuous``, ≈ −180°·f_d/fs for ``zoh``) and a causal
+drive-path delay of up to one sample (−360°·f_d/fs), within
+``PHASE_TOLERANCE_DEG``.  Beyond that the drive is off the model's
+resonance, or f0/Q (or the drive frequency) is wrong: the route refuses
+with the numbers, rather than fit a delay of half a period and call the
+drive continuous.  What the chosen hold leaves unexplained,
+``phase_misfit_deg`` = excess − the hold's own excess, is reported; above
+``HEADLINE_PHASE_MISFIT_DEG`` the headlines show it instead of scores
+(:mod:`afmtool.report.headline`).
 """
 
 from __future__ import annotations
@@ -49,7 +62,8 @@ from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.metadata import CaptureMetadata
 from afmtool.models.free_air import FreeAirModel
 
-__all__ = ["DRIVE_HOLD_CHOICES", "FreeAirRoute", "line_response", "resolve_free_air"]
+__all__ = ["DRIVE_HOLD_CHOICES", "HEADLINE_PHASE_MISFIT_DEG", "PHASE_TOLERANCE_DEG", "FreeAirRoute", "line_response",
+           "resolve_free_air"]
 
 #: ``--drive-hold`` values.
 DRIVE_HOLD_CHOICES = ("auto", "zoh", "continuous")
@@ -57,6 +71,10 @@ DRIVE_HOLD_CHOICES = ("auto", "zoh", "continuous")
 _LINE_FIT_SAMPLES = 1 << 18
 #: A measured excess phase farther than this from both holds' predictions is reported (degrees).
 _HOLD_MISMATCH_DEG = 5.0
+#: Slack on the explained range of the phase misfit (f0/Q uncertainty, the line fit), degrees.
+PHASE_TOLERANCE_DEG = 5.0
+#: A phase misfit above this (in magnitude) is the run's headline state, not its scores, degrees.
+HEADLINE_PHASE_MISFIT_DEG = 30.0
 
 
 class FreeAirRoute(NamedTuple):
@@ -222,6 +240,27 @@ def _hold_warning(report: dict) -> list[str]:
     ]
 
 
+def _check_phase_misfit(report: dict, drive_hz: float, fs: float) -> dict:
+    """Add ``phase_misfit_deg`` to a route's report; refuse a phase no hold and delay explain (module docstring)."""
+    excess, zoh = report.get("measured_excess_phase_deg"), report.get("zoh_excess_phase_deg")
+    if excess is None or zoh is None:
+        return report
+    misfit = float(excess - (zoh if report["drive_hold"] == "zoh" else 0.0))
+    one_sample = 360.0 * drive_hz / fs
+    # a continuous drive or a zero-order hold, then up to one sample of causal delay
+    explained = (min(0.0, zoh) - one_sample, 0.0)
+    report = {**report, "phase_misfit_deg": misfit, "phase_explained_deg": list(explained)}
+    if explained[0] - PHASE_TOLERANCE_DEG <= excess <= explained[1] + PHASE_TOLERANCE_DEG:
+        return report
+    f0_q = report.get("drive_hold_reason", "").partition("(")[2].partition(")")[0]
+    raise InputError(
+        f"the free-air phase at the {drive_hz:g} Hz drive is {excess:+.1f} deg from the continuous model ({f0_q}); "
+        f"a hold and up to one sample of drive delay explain {explained[0]:.1f} to 0 deg: the drive is off the "
+        "model's resonance or f0/Q is wrong; give the lever's --f0/--q, --drive-frequency, or --model "
+        "(afmtool identify freeair)"
+    )
+
+
 def resolve_free_air(
     reader: CaptureReader,
     chunks: Iterator[Chunk],
@@ -310,6 +349,7 @@ def _f0_q_route(reader: CaptureReader, source, segment, drive_hold: str, drive_f
     drive_hz = drive_frequency(reader, drive_frequency_hz, FreeAirModel(f0_use, q_use))
     model, report = _fit_f0_q(f0_use, q_use, segment, fs, drive_hz, _drive_lines(metadata, drive_hz),
                               drive_hold, origin)
+    report = _check_phase_misfit(report, drive_hz, fs)
     return FreeAirRoute(model, "f0-q", segment, drive_hz, report, tuple(_hold_warning(report)))
 
 
@@ -338,6 +378,7 @@ def _model_route(
             drive_hz = drive_frequency(reader, drive_frequency_hz, FreeAirModel(*meta))
             model, report = _fit_f0_q(*meta, segment, fs, drive_hz, _drive_lines(metadata, drive_hz), drive_hold,
                                       "metadata")
+            report = _check_phase_misfit(report, drive_hz, fs)
             return FreeAirRoute(model, "f0-q", segment, drive_hz, report, tuple(warnings))
     drive_hz = drive_frequency(reader, drive_frequency_hz, model)
     report = {"route": route, "f0_q_from": None,
@@ -350,5 +391,6 @@ def _model_route(
         model = FreeAirModel(
             **{**model.to_dict(), "sample_rate_hz": fs, "numerator": numerator, "denominator": model.denominator_at(fs)}
         )
+        report = _check_phase_misfit(report, drive_hz, fs)
     warnings += _hold_warning(report)
     return FreeAirRoute(model, route, segment, drive_hz, report, tuple(warnings))

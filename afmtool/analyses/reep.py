@@ -427,9 +427,15 @@ class ReepStage:
         force_curves = self.curve_acc.tables() if self.curve_acc is not None else {}
         images = self.image_acc.images() if self.image_acc is not None else {}
         z_units = self.reader.info.units("z_piezo") if self.z_mode else ""
-        return ReepResult(
-            self._results(), tuple(self.warnings), images, self.geometry, force_curves, z_units, self.plot_rows.result()
-        )
+        results = self._results()
+        check = _free_air_check(results["segments"].get("free_air"), self.model,
+                                self.reader.info.capture_metadata.cantilever.f0_hz)
+        if check is not None:
+            results["free_air_check"] = check.as_dict()
+            if not check.consistent:  # the run's premise is broken: first among the warnings
+                self.warnings.insert(0, check.message())
+        return ReepResult(results, tuple(self.warnings), images, self.geometry, force_curves, z_units,
+                          self.plot_rows.result())
 
     def _results(self) -> dict:
         params, fs, model, n_total = self.params, self.fs, self.model, self.n_total
@@ -465,6 +471,21 @@ class ReepStage:
             "summary": {name: _summary_dict(s) for name, s in self.summaries.items()},
             "segments": self.segment_moments.as_dict(),
         }
+
+
+def _free_air_check(segment: dict | None, model: FreeAirModel | None, metadata_f0_hz: float | None):
+    """REEP's free-air f0′ against the model's f0 and the metadata's (:mod:`afmtool.estimators.free_air_consistency`)."""
+    from afmtool.estimators.free_air_consistency import F0Reference, free_air_f0_check
+
+    if segment is None or (segment["f0_hz"].get("count") or 0) < 10:  # too few rows for a scatter
+        return None
+    references = []
+    if model is not None:
+        references.append(F0Reference("model", float(model.f0_hz), float(model.f0_std_hz or 0.0)))
+    if metadata_f0_hz and (model is None or metadata_f0_hz != model.f0_hz):
+        references.append(F0Reference("metadata", float(metadata_f0_hz)))
+    stats = segment["f0_hz"]
+    return free_air_f0_check(float(stats["mean"]), float(stats.get("std") or 0.0), references)
 
 
 def _drive_frequency(params: ReepParams, drive: DriveMetadata, model: FreeAirModel | None, first_deflection, fs: float) -> float:

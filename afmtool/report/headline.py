@@ -8,6 +8,21 @@ tracking error against the truth, the probe-loss fraction with precision
 and recall, the BER with its 95 % bound.  ``report.json``, ``--json`` and
 the HTML page carry the same block; nothing here is computed anew, every
 entry is read from ``results`` at the path it names (``source``).
+
+A headline never contradicts the run (issue 28).  Where the results say
+that the run's premise failed, the headline opens with that state, a text
+entry named ``"warning"`` whose ``source`` is the number that says so, and
+the scores it undermines are left out:
+
+* a free-air phase misfit above 30° (``free_air_route.phase_misfit_deg``):
+  the model the observer runs on does not fit the capture; probeloss shows
+  no precision, recall or latency;
+* probeloss: the switch reading loss more than half the time; a capture
+  predicted beyond the detection limit (``detectability``); event precision
+  and recall against ``/truth`` that disagree with the time-weighted
+  precision (more than 0.1 apart) are left out, with the reason;
+* reep: a free-air f0′ more than 5 of its standard deviations from the
+  lever's f0 (``free_air_check``) comes first.
 """
 
 from __future__ import annotations
@@ -15,12 +30,21 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
-__all__ = ["HEADLINE_FIELDS", "headline", "lookup"]
+__all__ = ["HEADLINE_FIELDS", "STATE_NAME", "headline", "lookup"]
 
 #: Keys of one headline entry (``schemas/report.schema.json``, ``headline.items``).
 HEADLINE_FIELDS = ("name", "value", "std", "units", "source", "std_source")
 
 _MISSING = object()
+
+#: ``name`` of a headline entry that states the run's state instead of a number.
+STATE_NAME = "warning"
+#: Above this free-air phase misfit (degrees) the headline shows the misfit, not scores.
+_PHASE_MISFIT_DEG = 30.0
+#: Above this loss fraction probeloss's headline shows the state, not scores.
+_MOSTLY_LOSS = 0.5
+#: Event and time-weighted precision farther apart than this disagree.
+_SCORE_AGREEMENT = 0.1
 
 
 def lookup(results: Mapping, path: str) -> Any:
@@ -42,6 +66,7 @@ class _Block:
     def __init__(self, results: Mapping) -> None:
         self.results = results
         self.entries: list[dict] = []
+        self.states: list[dict] = []
 
     def add(self, name: str, source: str, units: str, std_source: str | None = None, *, text: bool = False) -> None:
         value = lookup(self.results, source)
@@ -54,6 +79,27 @@ class _Block:
             {"name": name, "value": value, "std": std, "units": units, "source": source, "std_source": std_source}
         )
 
+    def state(self, text: str, source: str) -> None:
+        """A text entry stating the run's state (issue 28): it goes before every number."""
+        self.states.append(
+            {"name": STATE_NAME, "value": text, "std": None, "units": "", "source": source, "std_source": None}
+        )
+
+
+def _number(results: Mapping, path: str) -> float | None:
+    value = lookup(results, path)
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def _phase_state(block: _Block) -> bool:
+    """The free-air phase misfit as the run's state when it exceeds 30°; True if it does."""
+    misfit = _number(block.results, "free_air_route.phase_misfit_deg")
+    if misfit is None or abs(misfit) <= _PHASE_MISFIT_DEG:
+        return False
+    block.state(f"the free-air model misses the capture's phase at the drive by {misfit:+.0f} deg (> 30): "
+                "scores against it are not shown", "free_air_route.phase_misfit_deg")
+    return True
+
 
 def _free_air_model(block: _Block, prefix: str = "free_air_model") -> None:
     block.add("f0 (free air)", f"{prefix}.f0_hz", "Hz", f"{prefix}.f0_std_hz")
@@ -61,6 +107,13 @@ def _free_air_model(block: _Block, prefix: str = "free_air_model") -> None:
 
 
 def _reep(block: _Block) -> None:
+    _phase_state(block)
+    check = block.results.get("free_air_check") or {}
+    if check.get("consistent") is False:
+        block.state(
+            f"REEP's free-air f0' {check['f0_hz']:.1f} Hz is {check['deviation_std']:.0f} std from "
+            f"{'the lever' if check['reference'] == 'metadata' else 'the model'}'s f0 {check['reference_f0_hz']:.1f} Hz: "
+            "the drive may be far off resonance or the model wrong", "free_air_check.deviation_std")
     segments = block.results.get("segments") or {}
     labels = {"free_air": "in the free-air segment", "after_free_air": "after the free-air segment",
               "settled": "after the warm-up"}
@@ -75,12 +128,39 @@ def _reep(block: _Block) -> None:
     block.add("flagged output samples", "flagged_samples", "samples")
 
 
+def _probeloss_states(block: _Block) -> bool:
+    """The states that replace probeloss's scores; True if any holds."""
+    results = block.results
+    held = _phase_state(block)
+    detectability = results.get("detectability") or {}
+    if detectability.get("beyond_limit"):
+        block.state(detectability.get("statement") or "beyond the detection limit", "detectability.beyond_limit")
+    loss = _number(results, "loss_fraction")
+    if loss is not None and loss > _MOSTLY_LOSS:
+        block.state(f"the switch reads probe loss {100 * loss:.0f} % of the time: off the sample that long, or the "
+                    "index has no contrast on the sample; scores are not shown", "loss_fraction")
+        held = True
+    return held
+
+
+def _scores_agree(block: _Block) -> bool:
+    """Event precision vs /truth agrees with the time-weighted one (else a state says why)."""
+    event, timed = _number(block.results, "truth.index.precision"), _number(block.results, "truth.index.time_precision")
+    if event is None or timed is None or abs(event - timed) <= _SCORE_AGREEMENT:
+        return True
+    block.state(f"event precision {event:.2f} disagrees with the time-weighted precision {timed:.2f}: event "
+                "precision and recall are not shown", "truth.index.time_precision")
+    return False
+
+
 def _probeloss(block: _Block) -> None:
+    scores = not _probeloss_states(block) and _scores_agree(block)
     block.add("probe-loss fraction (index)", "loss_fraction", "of time")
     block.add("probe-loss fraction (truth)", "truth.loss_fraction", "of time")
-    block.add("precision (index)", "truth.index.precision", "")
-    block.add("recall (index)", "truth.index.recall", "")
-    block.add("median latency (index)", "truth.index.median_latency_periods", "drive periods")
+    if scores:
+        block.add("precision (index)", "truth.index.precision", "")
+        block.add("recall (index)", "truth.index.recall", "")
+        block.add("median latency (index)", "truth.index.median_latency_periods", "drive periods")
     block.add("probe-loss fraction (amplitude baseline)", "amplitude_baseline.loss_fraction", "of time")
     block.add("precision (amplitude baseline)", "truth.amplitude.precision", "")
     block.add("recall (amplitude baseline)", "truth.amplitude.recall", "")
@@ -98,6 +178,7 @@ def _decode(block: _Block) -> None:
 
 
 def _kalman_bank(block: _Block) -> None:
+    _phase_state(block)
     block.add("verdict: pass", "verdict.pass", "", text=True)
     block.add("adaptive observer has the least RMS", "adaptive.fraction_lowest", "of time")
     block.add("filters in the bank", "design.n_filters", "filters")
@@ -150,10 +231,12 @@ def headline(command: str, results: Mapping) -> list[dict]:
     ``value`` is ``results`` at the dotted path ``source`` and ``std`` (its
     standard deviation, or None) at ``std_source``; ``units`` is ``""`` for a
     dimensionless number.  A command without a headline of its own gets an
-    empty list, and so does a run whose results lack every source.
+    empty list, and so does a run whose results lack every source.  Entries
+    named ``STATE_NAME`` (text) come first: the run's state where it
+    undermines its own numbers (module docstring).
     """
     block = _Block(results)
     fill = _BY_COMMAND.get(command)
     if fill is not None:
         fill(block)
-    return block.entries
+    return block.states + block.entries
