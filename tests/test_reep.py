@@ -149,6 +149,7 @@ def test_reep_command_writes_outputs(tmp_path, ltv_constant):
             assert results["segments"][segment][name]["count"] == stats[name]["count"] > 0
             assert results["segments"][segment][name]["mean"] == pytest.approx(stats[name]["mean"], rel=1e-12)
             assert results["segments"][segment][name]["std"] == pytest.approx(stats[name]["std"], rel=1e-9)
+        assert results["segments"][segment]["f0_row_std_hz"] == pytest.approx(stats["f0_row_std_hz"], rel=1e-12)
 
 
 def test_single_sine_warns_not_persistently_exciting():

@@ -409,7 +409,7 @@ class ReepStage:
         # reep.h5 keeps the fitted values; everything else leaves out f0′ and Q′ where the fit is flagged
         for name, summary in self.summaries.items():
             summary.add(columns[name], flags if name in ("f0_hz", "q") else None, start=first_settled)
-        self.segment_moments.add(columns["t"], columns["f0_hz"], columns["q"], flags)
+        self.segment_moments.add(columns["t"], columns["f0_hz"], columns["q"], flags, columns.get("f0_std_hz"))
         self.plot_rows.add(columns["t"], columns, flags)
         if self.image_acc is None and self.curve_acc is None:
             return
@@ -485,7 +485,9 @@ def _free_air_check(segment: dict | None, model: FreeAirModel | None, metadata_f
     if metadata_f0_hz and (model is None or metadata_f0_hz != model.f0_hz):
         references.append(F0Reference("metadata", float(metadata_f0_hz)))
     stats = segment["f0_hz"]
-    return free_air_f0_check(float(stats["mean"]), float(stats.get("std") or 0.0), references)
+    # REEP's own per-row standard deviation of f0' where it has one, else the rows' spread over the segment
+    std = segment.get("f0_row_std_hz") or stats.get("std") or 0.0
+    return free_air_f0_check(float(stats["mean"]), float(std), references)
 
 
 def _drive_frequency(params: ReepParams, drive: DriveMetadata, model: FreeAirModel | None, first_deflection, fs: float) -> float:

@@ -82,14 +82,22 @@ class SegmentMoments:
         from afmtool.estimators.moments import RunningMoments
 
         self.moments = {seg: {"f0_hz": RunningMoments(), "q": RunningMoments()} for seg in self.bounds}
+        # the mean of REEP's per-row standard deviation of f0' (its own uncertainty, not the rows' spread)
+        self.row_std = {seg: RunningMoments() for seg in self.bounds}
         self.last_t: float | None = None
 
-    def add(self, t: np.ndarray, f0_hz: np.ndarray, q: np.ndarray, flags: np.ndarray | None = None) -> None:
-        """Rows at times ``t`` (s, ascending); a row is left out where NaN or (with ``flags``) flagged."""
+    def add(self, t: np.ndarray, f0_hz: np.ndarray, q: np.ndarray, flags: np.ndarray | None = None,
+            f0_std_hz: np.ndarray | None = None) -> None:
+        """Rows at times ``t`` (s, ascending); a row is left out where NaN or (with ``flags``) flagged.
+
+        ``f0_std_hz``, REEP's per-row standard deviation of f0', is averaged alike when given.
+        """
         for seg, (t0, t1) in self.bounds.items():
             start, stop = np.searchsorted(t, (t0, t1), side="left")
             self.moments[seg]["f0_hz"].add(f0_hz, flags, start, stop)
             self.moments[seg]["q"].add(q, flags, start, stop)
+            if f0_std_hz is not None:
+                self.row_std[seg].add(f0_std_hz, flags, start, stop)
         if len(t):
             self.last_t = float(t[-1])
 
@@ -101,6 +109,8 @@ class SegmentMoments:
                 continue
             end = self.last_t if math.isinf(t1) else t1
             out[seg] = {"t_s": [t0, end], **{name: _moments_dict(m) for name, m in self.moments[seg].items()}}
+            if self.row_std[seg].count:
+                out[seg]["f0_row_std_hz"] = self.row_std[seg].mean
         return out
 
 
@@ -135,7 +145,8 @@ def segment_statistics(
     with _open(reep_h5) as reep:
         for start_row, t in reep.blocks("t"):
             rows = slice(start_row, start_row + len(t))
-            moments.add(t, reep.trusted("f0_hz", rows), reep.trusted("q", rows))
+            row_std = reep.trusted("f0_std_hz", rows) if "f0_std_hz" in reep else None
+            moments.add(t, reep.trusted("f0_hz", rows), reep.trusted("q", rows), f0_std_hz=row_std)
     return moments.as_dict()
 
 

@@ -11,7 +11,8 @@ The deviation is counted in standard deviations of a single f0′ row::
 
     n_std = |mean(f0′) − f0_ref| / √(s_f0′² + s_ref²)
 
-with s_f0′ the rows' own standard deviation over the segment (their scatter)
+with s_f0′ REEP's own standard deviation of a row (the mean over the
+segment of the per-row ``f0_std_hz``; the rows' scatter where there is none)
 and s_ref the reference's stated uncertainty (an ARX fit's ``f0_std_hz``; 0
 for metadata or flags).  References: the model REEP runs on, and the
 capture metadata's ``cantilever.f0_hz`` when it differs from the model's.
