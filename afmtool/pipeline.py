@@ -174,21 +174,25 @@ class Split:
     scheduler : str or None
         A Dask scheduler address (``tcp://host:8786``): the kernels run on
         its workers instead of local threads.
+    scheduler_timeout_s : float
+        Seconds the scheduler has to accept the connection and answer it
+        (:func:`afmtool.io.scheduler.probe_scheduler`).
     """
 
     jobs: int = 1
     scheduler: str | None = None
+    scheduler_timeout_s: float = 10.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.jobs, int) and self.jobs >= 1):
             raise ValueError(f"jobs={self.jobs!r} must be an integer >= 1")
 
     @classmethod
-    def of(cls, jobs: int | None, scheduler: str | None = None) -> Split:
-        """``--jobs`` (None: every core this process may use) and ``--scheduler``."""
+    def of(cls, jobs: int | None, scheduler: str | None = None, scheduler_timeout_s: float = 10.0) -> Split:
+        """``--jobs`` (None: every core this process may use), ``--scheduler`` and ``--scheduler-timeout``."""
         if jobs is None:
             jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        return cls(int(jobs), scheduler or None)
+        return cls(int(jobs), scheduler or None, float(scheduler_timeout_s))
 
     @property
     def parallel(self) -> bool:
@@ -442,14 +446,9 @@ def _executor(split: Split):
     if split.scheduler is None:
         pool = ThreadPoolExecutor(max_workers=split.jobs, thread_name_prefix="afmtool-split")
         return pool.submit, lambda: pool.shutdown(wait=True, cancel_futures=True)
-    try:
-        from distributed import Client
-    except ImportError:
-        raise InputError("--scheduler needs Dask: pip install 'afmtool[cluster]'") from None
-    try:
-        client = Client(split.scheduler, timeout="10s")
-    except (OSError, TimeoutError) as exc:
-        raise InputError(f"cannot reach the Dask scheduler {split.scheduler} ({exc})") from None
+    from afmtool.io.scheduler import connect_client
+
+    client = connect_client(split.scheduler, split.scheduler_timeout_s)
 
     def submit(fn: Callable[..., Any], /, *args: Any) -> Any:
         return client.submit(fn, *args, pure=False)

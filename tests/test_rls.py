@@ -467,8 +467,10 @@ def test_bad_arrays_and_numerator():
         reep(np.zeros(10))
     with pytest.raises(ConfigError, match="method"):
         identify_arx(np.zeros(100), np.zeros(100), method="svd")
-    with pytest.raises(InputError, match="rank deficient"):
+    with pytest.raises(InputError, match="deflection is all zeros"):
         identify_arx(np.zeros(100), np.zeros(100))
+    with pytest.raises(InputError, match="rank deficient"):
+        identify_arx(np.sin(np.arange(100.0)), np.ones(100))
 
 
 # ---------------------------------------------------------------------------

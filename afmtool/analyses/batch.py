@@ -295,6 +295,7 @@ def run_batch(
     scheduler: str | None,
     on_done: Callable[[BatchOutcome], None],
     retry_failed: bool = False,
+    scheduler_timeout_s: float = 10.0,
 ) -> list[BatchOutcome]:
     """Submit every item to Dask (a local cluster, or ``scheduler``) and gather outcomes in input order."""
     try:
@@ -303,10 +304,9 @@ def run_batch(
         raise ConfigError("afmtool batch needs Dask: pip install 'afmtool[cluster]'") from None
     cluster = None
     if scheduler:
-        try:
-            client = Client(scheduler, timeout="10s")
-        except OSError as exc:
-            raise InputError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+        from afmtool.io.scheduler import connect_client
+
+        client = connect_client(scheduler, scheduler_timeout_s)
     else:
         cluster = LocalCluster(
             n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=50

@@ -56,6 +56,7 @@ from typing import NamedTuple
 import numpy as np
 
 from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.estimators.probeloss_events import Events, truth_loss_events
 from afmtool.sim.raster import CONTROLLERS, RasterParams, RasterRun, run_raster
@@ -134,7 +135,7 @@ class Ch2Row(NamedTuple):
 
 
 def _scan_start(run: RasterRun) -> int:
-    return int(round(run.params.scan_start_s * run.params.sample_rate_hz))
+    return sample_count(run.params.scan_start_s, run.params.sample_rate_hz, "scan_start_s")
 
 
 class LossEvents(NamedTuple):

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from afmtool.config.params import DecodeParams, parse_bracket_nm, parse_interval
+from afmtool.config.samples import interval_samples, sample_count
 from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.metadata import CantileverMetadata, ElectrostaticMetadata
@@ -386,7 +387,7 @@ class _BitStage:
         self.params = params
         self.rate_max = params.bit_rate_max_hz or actuation_hz
         self.delays = (delay_primary, delay_aux)
-        self.window = max(1, int(round(params.clock_window_s * fs)))
+        self.window = sample_count(params.clock_window_s, fs, "clock_window_s", minimum=1)
         self.pending: list[tuple[np.ndarray, np.ndarray]] = []
         self.pending_n = 0
         self.config = None
@@ -709,7 +710,8 @@ class _DecodeStage:
         """Read the nominal segment ahead (when there is one); hand the whole stream on."""
         if self.nominal is not None:
             fs, alpha_r = self.fs, self.setup.electrostatic.alpha_r
-            held, chunks = read_segment(chunks, self.channels, round(self.nominal[0] * fs), round(self.nominal[1] * fs))
+            start, end = interval_samples(self.nominal, fs, "nominal segment", self.info.n_samples)
+            held, chunks = read_segment(chunks, self.channels, start, end)
             self.segment = (held["deflection"], _voltage(held, self.params, alpha_r))
             del held
         return chunks
@@ -725,8 +727,8 @@ class _DecodeStage:
             raise InputError(
                 f"actuation frequency {self.actuation_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz"
             )
-        self.mean_window = params.mean_window or max(1, int(round(fs / self.actuation_hz)))
-        warmup = int(round(params.warmup_s * fs))
+        self.mean_window = params.mean_window or sample_count(1.0 / self.actuation_hz, fs, "actuation period", minimum=1)
+        warmup = sample_count(params.warmup_s, fs, "warmup_s")
         if segment is not None and warmup >= len(segment[0]) // 2:
             raise ConfigError(
                 f"warmup_s={params.warmup_s!r} leaves too little of the {len(segment[0])}-sample nominal segment"
@@ -735,13 +737,13 @@ class _DecodeStage:
         self.segment = None
         self.design = discretise(self.tuning.model, fs, self.mean_window)
         if params.bits_from_s >= 0:
-            self.bits_start = int(round(params.bits_from_s * fs))
+            self.bits_start = sample_count(params.bits_from_s, fs, "bits_from_s")
         else:
-            self.bits_start = round(nominal[1] * fs) if nominal is not None else 0
+            self.bits_start = sample_count(nominal[1], fs, "nominal segment END") if nominal is not None else 0
         self.baseline = _Baseline.create(params, fs, self.actuation_hz, self.mean_window)
         self.bits = _BitStage(fs, self.bits_start, params, self.actuation_hz, self.baseline.delay_primary,
                               self.baseline.delay_aux)
-        self.psd = _PsdBuffer(self.bits_start, int(round(params.psd_window_s * fs)))
+        self.psd = _PsdBuffer(self.bits_start, sample_count(params.psd_window_s, fs, "psd_window_s"))
         self.ekf_state = EkfState.initial(self.design, stats_from=self.bits_start)  # sums ε² over the bit stream
         self.lock_state = self.baseline.lockin.initial_state(1)
         self.held = _Hold(self.baseline.keep)

@@ -11,6 +11,7 @@ import numpy as np
 
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import FreeAirParams, SpringConstantParams, parse_interval
+from afmtool.config.samples import interval_samples
 from afmtool.errors import ConfigError
 from afmtool.estimators.free_air_fit import free_air_from_segment
 from afmtool.estimators.stages import ChannelMeans, RecordStage, ResponseStage, SegmentStage
@@ -36,7 +37,7 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tu
     if interval is None:
         raise ConfigError("give --free-air START:END (s) or a capture with metadata free_air")
     fs = reader.info.sample_rate_hz
-    start, end = round(interval[0] * fs), round(interval[1] * fs)
+    start, end = interval_samples(interval, fs, "free-air segment", reader.info.n_samples)
     stage = SegmentStage(("deflection", "dither"), start, end)
     # the capture is read only up to the segment's end
     (segment,) = run_stream(reader, [stage], channels=("deflection", "dither"), chunk_samples=_CHUNK_SAMPLES,

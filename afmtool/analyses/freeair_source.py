@@ -16,6 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from afmtool.config.params import parse_interval
+from afmtool.config.samples import interval_samples
 from afmtool.errors import InputError
 from afmtool.estimators.free_air_fit import free_air_from_segment
 from afmtool.io.capture import CaptureReader, Chunk
@@ -56,8 +57,7 @@ def read_free_air(
     reader: CaptureReader, chunks: Iterator[Chunk], interval: tuple[float, float], names: tuple[str, ...]
 ) -> tuple[FreeAirSegment, Iterator[Chunk]]:
     """Read the segment ahead; return it and an iterator over every chunk (read-ahead ones first)."""
-    fs = reader.info.sample_rate_hz
-    start, end = round(interval[0] * fs), round(interval[1] * fs)
+    start, end = interval_samples(interval, reader.info.sample_rate_hz, "free-air segment", reader.info.n_samples)
     data, chunks = read_segment(chunks, names, start, end)
     return FreeAirSegment(interval, start, data), chunks
 

@@ -71,6 +71,7 @@ from afmtool.analyses.kalman_bank_reep import (
     warmup_samples,
 )
 from afmtool.config.params import KalmanBankParams
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.kalman_bank_verdict import (
     BankVerdict,
@@ -271,7 +272,7 @@ def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: 
 def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
     fs = reader.info.sample_rate_hz
     drive_hz = drive_frequency(reader, params.drive_frequency_hz, model)
-    window = max(1, round(params.rms_window_periods * fs / drive_hz))
+    window = sample_count(params.rms_window_periods, fs / drive_hz, "rms_window_periods", minimum=1)
     points = _design_points(params, tables, model)
     designs = build_bank(
         points, model.numerator_at(fs), fs, noise_ratio=params.noise_ratio, input_gain=model.gain,
@@ -279,7 +280,7 @@ def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
     )
     radius = float(np.mean([np.abs(d.error_poles).mean() for d in designs]))
     return BankSetup(
-        model, segment_s, lam, drive_hz, window, params.decimate or max(1, round(fs / drive_hz)),
+        model, segment_s, lam, drive_hz, window, params.decimate or sample_count(1.0, fs / drive_hz, "the drive period", minimum=1),
         warmup_samples(params, lam) + window, points, designs, radius,
     )
 

@@ -19,7 +19,9 @@ import numpy as np
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
 from afmtool.analyses.reep_timeseries import PLOTTED, SegmentMoments, Thinned, ThinnedRows
 from afmtool.config.params import ReepParams
+from afmtool.config.samples import sample_count
 from afmtool.errors import InputError
+from afmtool.estimators._common import check_resolvable
 from afmtool.estimators.drive_lines import excitation_lines
 from afmtool.estimators.moments import RunningMoments
 from afmtool.estimators.reep_validity import (
@@ -275,10 +277,11 @@ class ReepStage:
         if not self._resolved:
             raise RuntimeError("ReepStage runs with prologue=stage.free_air_prologue (the free-air route)")
         params, fs = self.params, self.fs
+        check_resolvable("deflection", head.first.data["deflection"], "REEP's regression")
         drive = head.info.capture_metadata.drive
         self.drive_hz = _drive_frequency(params, drive, self.model, head.first.data["deflection"], fs)
         self.lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(self.drive_hz, drive.sideband_offset_hz)
-        self.decimation = Decimation(params.decimate or max(1, round(fs / self.drive_hz)))
+        self.decimation = Decimation(params.decimate or sample_count(1.0, fs / self.drive_hz, "the drive period", minimum=1))
         self.numerator = self.model.numerator_at(fs) if (self.model is not None and params.use_input) else None
         self.lines = self._input_checks(head.first.data.get("dither"))
         self.bandpass = self._make_bandpass()

@@ -25,6 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from afmtool.config.samples import interval_samples
 from afmtool.errors import InputError
 from afmtool.estimators.drive_lines import DriveLine, DrivePhaseFit, fit_drive_phases, synthesize_drive
 from afmtool.io.capture import CaptureReader, ChannelSpec, Chunk, ReaderBase
@@ -124,7 +125,7 @@ class SyntheticDriveReader(ReaderBase):
         if self._interval is None:
             end = DEFAULT_FIT_SAMPLES if self.info.n_samples is None else min(DEFAULT_FIT_SAMPLES, self.info.n_samples)
             return 0, end
-        return round(self._interval[0] * fs), round(self._interval[1] * fs)
+        return interval_samples(self._interval, fs, "free-air segment", self.info.n_samples)
 
     def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
         if "dither" not in channels:

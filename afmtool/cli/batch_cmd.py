@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from afmtool.cli.options import QuietOpt
+from afmtool.cli.options import QuietOpt, SchedulerTimeoutOpt
 
 __all__ = ["register"]
 
@@ -32,6 +32,7 @@ def batch(
     scheduler: Annotated[
         Optional[str], typer.Option("--scheduler", help="Use an existing Dask cluster, e.g. tcp://host:8786.")
     ] = None,
+    scheduler_timeout: SchedulerTimeoutOpt = 10.0,
     args: Annotated[
         Optional[list[str]], typer.Option("--arg", help="Extra argument for every run (repeatable), e.g. --arg=--lambda --arg=0.99.")
     ] = None,
@@ -52,17 +53,21 @@ def batch(
     if command not in _COMMANDS:
         raise ConfigError(f"batch command {command!r} must be one of {', '.join(_COMMANDS)}")
     items = plan_batch(expand_inputs(inputs), out)
+    if scheduler:  # before anything is created: a peer that refuses, hangs or answers garbage is one line
+        from afmtool.io.scheduler import probe_scheduler
+
+        probe_scheduler(scheduler, scheduler_timeout)
     out.parent.mkdir(parents=True, exist_ok=True)
     # one batch (or command) at a time on --out: two batches on one folder mixed their outputs
     with FolderLock(Path(os.path.realpath(out)), out):
         out.mkdir(parents=True, exist_ok=True)
-        outcomes = _run_with_progress(command, items, args or [], workers, scheduler, retry_failed, quiet)
+        outcomes = _run_with_progress(command, items, args or [], workers, (scheduler, scheduler_timeout), retry_failed, quiet)
         with atomic_path(out / "summary.csv") as temp:
             write_summary(temp, outcomes)
     _report(outcomes, out, quiet)
 
 
-def _run_with_progress(command, items, args, workers, scheduler, retry_failed, quiet):
+def _run_with_progress(command, items, args, workers, scheduler: tuple, retry_failed, quiet):
     from rich.progress import Progress
 
     from afmtool.analyses.batch import run_batch
@@ -76,8 +81,8 @@ def _run_with_progress(command, items, args, workers, scheduler, retry_failed, q
             progress.advance(task)
 
         return run_batch(
-            _COMMANDS[command], items, args, workers=workers, scheduler=scheduler, on_done=done,
-            retry_failed=retry_failed,
+            _COMMANDS[command], items, args, workers=workers, scheduler=scheduler[0], on_done=done,
+            retry_failed=retry_failed, scheduler_timeout_s=scheduler[1],
         )
 
 

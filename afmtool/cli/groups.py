@@ -34,6 +34,7 @@ from afmtool.cli.options import (
     QuietOpt,
     SampleRateOpt,
     SchedulerOpt,
+    SchedulerTimeoutOpt,
     SegmentOpt,
     StreamFormatOpt,
     StreamOpt,
@@ -182,15 +183,24 @@ class CommandOutput(NamedTuple):
     no_hash: bool = False
     jobs: int | None = None
     scheduler: str | None = None
+    scheduler_timeout: float = 10.0
 
     def split(self):
-        """The :class:`afmtool.pipeline.Split` of ``--jobs`` and ``--scheduler``."""
+        """The :class:`afmtool.pipeline.Split` of ``--jobs`` and ``--scheduler``; a scheduler is probed now.
+
+        A scheduler that refuses, stays silent or answers garbage is refused
+        here, within ``--scheduler-timeout``, before any output is staged.
+        """
         from afmtool.errors import ConfigError
         from afmtool.pipeline import Split
 
         if self.jobs is not None and self.jobs < 1:
             raise ConfigError(f"--jobs {self.jobs} must be at least 1")
-        return Split.of(self.jobs, self.scheduler)
+        if self.scheduler:
+            from afmtool.io.scheduler import probe_scheduler
+
+            probe_scheduler(self.scheduler, self.scheduler_timeout)
+        return Split.of(self.jobs, self.scheduler, self.scheduler_timeout)
 
     @property
     def stream_mode(self) -> tuple[bool, str]:
@@ -211,7 +221,7 @@ def output_options(
         parameters += [option("stream", StreamOpt, False), option("stream_format", StreamFormatOpt, "csv")]
     if capture_run:
         parameters += [option("no_hash", NoHashOpt, False), option("jobs", JobsOpt, None),
-                       option("scheduler", SchedulerOpt, None)]
+                       option("scheduler", SchedulerOpt, None), option("scheduler_timeout", SchedulerTimeoutOpt, 10.0)]
     if json:
         parameters.append(option("json_output", JsonOpt, False))
     parameters += [option("config", ConfigOpt, None), option("quiet", QuietOpt, False)]

@@ -90,6 +90,13 @@ SchedulerOpt = Annotated[
 ]
 
 
+SchedulerTimeoutOpt = Annotated[
+    float,
+    typer.Option("--scheduler-timeout", metavar="S", help="Seconds the --scheduler has to accept and answer "
+                 "(one line and exit 2 after that)."),
+]
+
+
 def check_stream_format(stream_format: str) -> None:
     if stream_format not in ("csv", "jsonl"):
         raise ConfigError(f"--stream-format {stream_format!r} must be csv or jsonl")

@@ -40,6 +40,44 @@ def as_signal(name: str, x) -> np.ndarray:
     return a
 
 
+#: A channel whose RMS is below this cannot be regressed on: its squares (about 1e-300) come
+#: within a few digits of the smallest normal double, 2.2e-308, and sums of products of
+#: such values lose their digits or underflow to zero (a singular regression).
+RESOLVABLE_RMS = 1e-150
+
+
+def channel_rms(values: np.ndarray) -> float:
+    """RMS of finite ``values``, computed without squaring them (so tiny values do not underflow)."""
+    a = np.asarray(values, dtype=np.float64)
+    if a.size == 0:
+        return 0.0
+    peak = float(np.max(np.abs(a)))
+    if not (peak > 0 and math.isfinite(peak)):
+        return peak
+    scaled = a / peak
+    return peak * math.sqrt(float(np.mean(scaled * scaled)))
+
+
+def check_resolvable(name: str, values: np.ndarray, what: str) -> float:
+    """Refuse a channel too small for ``what`` (a regression) to resolve; return its RMS.
+
+    Raises
+    ------
+    InputError
+        Its RMS is below :data:`RESOLVABLE_RMS` (or it is all zeros): named
+        with its scale, the cause, and the way out (its units).
+    """
+    rms = channel_rms(values)
+    if rms == 0:
+        raise InputError(f"{name} is all zeros; {what} needs a signal")
+    if not rms >= RESOLVABLE_RMS:
+        raise InputError(
+            f"{name}: RMS {rms:.3g} (in the units afmtool works in) is below {RESOLVABLE_RMS:g}: its squares underflow "
+            f"double precision, so {what} is singular; check the channel's units (--units {name}=UNIT)"
+        )
+    return rms
+
+
 def check_numerator(numerator) -> tuple[float, float, float]:
     try:
         a2, a1, a0 = (float(v) for v in numerator)

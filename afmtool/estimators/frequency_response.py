@@ -45,6 +45,7 @@ import scipy.optimize
 import scipy.signal
 from numpy.lib.stride_tricks import sliding_window_view
 
+from afmtool.config.samples import MAX_SAMPLES
 from afmtool.errors import ConfigError, InputError
 from afmtool.models.free_air import FreeAirModel
 
@@ -585,6 +586,8 @@ def _step_windows(steps: Sequence[SineSegment], fs: float, settle_fraction: floa
     for k, (start, end, freq) in enumerate(steps):
         if freq >= fs / 2:
             raise InputError(f"segments[{k}].frequency_hz={freq!r} is not below the Nyquist frequency {fs / 2:g} Hz")
+        if not (math.isfinite(start) and math.isfinite(end) and 0 <= start < end and end * fs <= MAX_SAMPLES):
+            raise InputError(f"segments[{k}]: {start!r}..{end!r} s must be finite, 0 <= start < end, within {MAX_SAMPLES:.0e} samples")
         stop = int(math.floor(end * fs + 1e-9))
         steady_s = (1.0 - settle_fraction) * (end - start)
         periods = int(math.floor(steady_s * freq + 1e-9))

@@ -96,6 +96,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators._common import JIT_OPTIONS, as_signal
 from afmtool.estimators.decimation import Decimation
@@ -198,7 +199,7 @@ def index_window(sample_rate_hz: float, drive_frequency_hz: float, periods: floa
     one = drive_period_window(sample_rate_hz, drive_frequency_hz)  # validates fs and f
     if periods == 1:
         return one
-    return max(1, round(periods * sample_rate_hz / drive_frequency_hz))
+    return sample_count(periods, sample_rate_hz / drive_frequency_hz, "periods", minimum=1)
 
 
 def settle_samples(design: ObserverDesign, window_samples: int, residual: float = 1e-6) -> int:

@@ -75,7 +75,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators._common import JIT_OPTIONS, as_signal, check_numerator
+from afmtool.estimators._common import JIT_OPTIONS, as_signal, channel_rms, check_numerator, check_resolvable
 from afmtool.estimators.decimation import Decimation
 
 __all__ = [
@@ -1234,6 +1234,8 @@ def identify_arx(deflection, dither, *, method: Literal["bcls", "ls", "bcewrls"]
         raise ConfigError(f"rtol={rtol!r} must be > 0")
     if not (isinstance(max_iter, int) and max_iter >= 1):
         raise ConfigError(f"max_iter={max_iter!r} must be an integer >= 1")
+    check_resolvable("deflection", as_signal("deflection", deflection), "the free-air ARX regression")
+    check_resolvable("dither", as_signal("dither", dither), "the free-air ARX regression")
     phi, y = arx_regressors(deflection, dither)
     r_inv = _arx_normal_solver(phi, y)
     lam_diag = _ARX_BIAS_MASK
@@ -1276,7 +1278,10 @@ def _arx_normal_solver(phi: np.ndarray, y: np.ndarray):
     # Φ = Q U (economic QR), so R = ΦᵀΦ/N = UᵀU/N and R⁻¹ v = N·U⁻¹U⁻ᵀ v.
     upper = np.linalg.qr(phi, mode="r")
     if np.min(np.abs(np.diag(upper))) <= np.max(np.abs(np.diag(upper))) * 1e-13:
-        raise InputError("the regressors are rank deficient: the dither must hold at least three sines")
+        raise InputError(
+            f"the regressors are rank deficient (deflection RMS {channel_rms(y):.3g}, dither RMS {channel_rms(phi[:, 2]):.3g}): "
+            "the dither must hold at least three sines, on a scale the deflection's can be compared with (check the units)"
+        )
 
     def r_inv(v: np.ndarray) -> np.ndarray:
         # U is 5 × 5: a general solve costs nothing here, and numpy spares the scipy.linalg import

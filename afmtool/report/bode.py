@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
+from afmtool.report.figure_process import NothingToDraw, skipped_when_empty
 from afmtool.report.images import _STYLE_KEYS, _check_png_path, _png_figure
 
 __all__ = ["BodeCurve", "write_bode_png"]
@@ -57,8 +58,10 @@ def _band_db(h: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _checked(curve: BodeCurve, name: str) -> tuple[np.ndarray, np.ndarray, str, dict, np.ndarray | None]:
     f = np.asarray(curve.frequency_hz, dtype=np.float64)
     h = np.asarray(curve.response, dtype=np.complex128)
-    if f.ndim != 1 or f.shape != h.shape or f.size == 0:
+    if f.ndim != 1 or f.shape != h.shape:
         raise ValueError(f"{name}: frequency_hz and response must be non-empty 1-D arrays of one length")
+    if f.size == 0:
+        raise NothingToDraw(f"{name}: no frequencies")
     style = dict(curve.style or {})
     unknown = sorted(set(style) - _STYLE_KEYS)
     if unknown:
@@ -74,6 +77,7 @@ def _checked(curve: BodeCurve, name: str) -> tuple[np.ndarray, np.ndarray, str, 
     return f, h, str(curve.label), style, std
 
 
+@skipped_when_empty
 def write_bode_png(
     path: Path,
     curves: Sequence[BodeCurve],
@@ -102,7 +106,7 @@ def write_bode_png(
     """
     path = _check_png_path(path)
     if len(curves) == 0:
-        raise ValueError("curves must hold at least one response")
+        raise NothingToDraw("curves must hold at least one response")
     checked = [_checked(BodeCurve(*c), f"curves[{i}]") for i, c in enumerate(curves)]
     with _png_figure(path, 7.0, 5.6) as fig:
         ax_mag, ax_ph = fig.subplots(2, 1, sharex=True)

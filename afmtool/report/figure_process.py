@@ -37,7 +37,44 @@ from typing import Any
 
 from afmtool.report.captured_warnings import add, take
 
-__all__ = ["FigureProcess"]
+__all__ = ["FigureProcess", "FigureSkippedWarning", "NothingToDraw", "draw_or_skip", "skipped_when_empty"]
+
+
+class NothingToDraw(ValueError):
+    """A figure whose data are empty (no rows after decimation, no bins, no curve): it is skipped, not an error."""
+
+
+class FigureSkippedWarning(UserWarning):
+    """A figure was not drawn because it had nothing to draw; the run's other outputs stand."""
+
+
+def draw_or_skip(function: Callable[..., None], args: tuple, kwargs: dict) -> None:
+    """``function(*args, **kwargs)``; a figure with nothing to draw becomes a warning, and no file.
+
+    A capture decimated to no rows (``--decimate`` past its length), or
+    sampled so fast that no drive period fits, left an empty figure that
+    failed the whole run at its end.  The figure's path is its first
+    argument, by convention of every figure writer.
+    """
+    import warnings
+
+    try:
+        function(*args, **kwargs)
+    except NothingToDraw as empty:
+        target = args[0] if args else kwargs.get("path")
+        name = os.path.basename(os.fspath(target)) if isinstance(target, (str, os.PathLike)) else function.__name__
+        warnings.warn(f"{name} not drawn: nothing to draw ({empty})", FigureSkippedWarning, stacklevel=2)
+
+
+def skipped_when_empty(function: Callable[..., None]) -> Callable[..., None]:
+    """A figure writer that skips, with a :class:`FigureSkippedWarning`, a figure with nothing to draw."""
+    import functools
+
+    @functools.wraps(function)
+    def writer(*args: Any, **kwargs: Any) -> None:
+        draw_or_skip(function, args, kwargs)
+
+    return writer
 
 
 class FigureProcess:
@@ -92,7 +129,7 @@ class FigureProcess:
     def draw(self, function: Callable[..., None], /, *args: Any, **kwargs: Any) -> None:
         """``function(*args, **kwargs)``, by the helper (it must pickle: a module-level function)."""
         if not self.forked:
-            function(*args, **kwargs)
+            draw_or_skip(function, args, kwargs)
             return
         self._connection.send((function, args, kwargs))
         self._pending += 1
@@ -174,7 +211,7 @@ def _serve(connection) -> None:
             return
         failure = None
         try:
-            function(*args, **kwargs)
+            draw_or_skip(function, args, kwargs)
         except Exception as exc:  # noqa: BLE001 - sent back and raised by the command
             failure = exc
         seen = take()

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 
 from afmtool.errors import InputError
 from afmtool.report.atomic import OutputError, atomic_path
-from afmtool.report.figure_process import FigureProcess
+from afmtool.report.figure_process import FigureProcess, NothingToDraw, skipped_when_empty
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -84,8 +84,10 @@ _SI_PREFIXES = {-18: "a", -15: "f", -12: "p", -9: "n", -6: "µ", -3: "m", 0: "",
 def _as_image(image: ArrayLike, name: str = "image") -> np.ndarray:
     """``image`` as a 2-D real array (not copied when it already is one)."""
     arr = np.asarray(image)
-    if arr.ndim != 2 or arr.size == 0:
+    if arr.ndim != 2:
         raise ValueError(f"{name} must be a non-empty 2-D array, got shape {arr.shape}")
+    if arr.size == 0:
+        raise NothingToDraw(f"{name} must be a non-empty 2-D array, got shape {arr.shape}")
     if arr.dtype.kind not in "biuf":
         raise ValueError(f"{name} must be real numbers, got dtype {arr.dtype}")
     return arr
@@ -552,6 +554,7 @@ def write_scan_image_files(
               title=f"{title} {direction}")
 
 
+@skipped_when_empty
 def write_image_png(
     path: Path,
     image: ArrayLike,
@@ -608,6 +611,7 @@ def write_image_png(
         _draw_colorbar(fig, ax, im, _colorbar_label(z_label, zs.units), zs.extend)
 
 
+@skipped_when_empty
 def write_side_by_side_png(
     path: Path,
     images: Sequence[tuple[ArrayLike, str]],
@@ -637,7 +641,7 @@ def write_side_by_side_png(
     """
     path = _check_png_path(path)
     if len(images) == 0:
-        raise ValueError("images must hold at least one (array, title) pair")
+        raise NothingToDraw("images must hold at least one (array, title) pair")
     arrays, titles = [], []
     for i, item in enumerate(images):
         arr, panel_title = item
@@ -697,8 +701,10 @@ def _as_series(item: Series | tuple, name: str) -> tuple[np.ndarray, np.ndarray,
         raise ValueError(f"{name} must be (x, y, label) or (x, y, label, style), got {len(item)} items")
     s = Series(*item)
     x, y = np.asarray(s.x), np.asarray(s.y)
-    if x.ndim != 1 or y.ndim != 1 or len(x) != len(y) or len(x) == 0:
+    if x.ndim != 1 or y.ndim != 1 or len(x) != len(y):
         raise ValueError(f"{name}: x and y must be non-empty 1-D arrays of one length, got {x.shape} and {y.shape}")
+    if len(x) == 0:
+        raise NothingToDraw(f"{name}: no points")
     for axis, arr in (("x", x), ("y", y)):
         if arr.dtype.kind not in "biuf":
             raise ValueError(f"{name}: {axis} must be real numbers, got dtype {arr.dtype}")
@@ -801,14 +807,14 @@ def _draw_spans(ax: Axes, spans: Sequence[tuple[float, float, str]], *, labelled
 def _check_panels(panels: Sequence[PanelSpec]) -> list[tuple[list, str, str]]:
     """``(series, y label, title)`` of each panel of :func:`write_multi_panel_png`, checked."""
     if len(panels) == 0:
-        raise ValueError("panels must hold at least one panel")
+        raise NothingToDraw("panels must hold at least one panel")
     checked = []
     for p, panel in enumerate(panels):
         unknown = sorted(set(panel) - _PANEL_KEYS)
         if unknown:
             raise ValueError(f"panels[{p}]: unknown keys {unknown}; allowed: {sorted(_PANEL_KEYS)}")
         if not panel.get("series"):
-            raise ValueError(f"panels[{p}] must hold a non-empty 'series'")
+            raise NothingToDraw(f"panels[{p}] must hold a non-empty 'series'")
         lines = [_as_series(item, f"panels[{p}]['series'][{i}]") for i, item in enumerate(panel["series"])]
         if panel.get("y_scale", "linear") not in ("linear", "log"):
             raise ValueError(f"panels[{p}]['y_scale']={panel['y_scale']!r} must be 'linear' or 'log'")
@@ -840,7 +846,7 @@ def _draw_twin(ax: Axes, twin: Mapping[str, Any], p: int) -> None:
     """Lines of ``twin`` on a second y axis at the right of ``ax``, greyed so that the panel's own lines lead."""
     lines = [_as_series(item, f"panels[{p}]['twin']['series'][{i}]") for i, item in enumerate(twin.get("series", ()))]
     if not lines:
-        raise ValueError(f"panels[{p}]['twin'] must hold a non-empty 'series'")
+        raise NothingToDraw(f"panels[{p}]['twin'] must hold a non-empty 'series'")
     right = ax.twinx()
     for x, y, label, style in lines:
         _plot(right, x, y, label, {"color": "0.45", "linewidth": 1.0, **style})
@@ -849,6 +855,7 @@ def _draw_twin(ax: Axes, twin: Mapping[str, Any], p: int) -> None:
         right.legend(fontsize="small", loc="lower right")
 
 
+@skipped_when_empty
 def write_line_plot_png(
     path: Path,
     series: Sequence[Series | tuple],
@@ -877,7 +884,7 @@ def write_line_plot_png(
     """
     path = _check_png_path(path)
     if len(series) == 0:
-        raise ValueError("series must hold at least one line")
+        raise NothingToDraw("series must hold at least one line")
     lines = [_as_series(item, f"series[{i}]") for i, item in enumerate(series)]
     marks = _check_markers(markers)
 
@@ -891,6 +898,7 @@ def write_line_plot_png(
         ax.set_title(title)
 
 
+@skipped_when_empty
 def write_multi_panel_png(
     path: Path,
     panels: Sequence[PanelSpec],

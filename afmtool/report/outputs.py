@@ -194,7 +194,10 @@ class OutputDir:
 
     @property
     def names(self) -> tuple[str, ...]:
-        return tuple(self._names)
+        """The outputs named so far that exist (a figure skipped for want of data is not one)."""
+        if self._staging is None:
+            return tuple(self._names)
+        return tuple(name for name in self._names if os.path.lexists(self._staging / name))
 
     def flush_early(self, name: str) -> None:
         """Start flushing the finished output ``name`` to disk now, beside the rest of the run.

@@ -25,11 +25,11 @@ a bit's time is the centre of its cell), ``l0_nm`` (ℓ0, constant) and
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
@@ -174,10 +174,10 @@ def simulate_bits(params: BitsParams, seed: int) -> SimulatedCapture:
         ``drive``, ``nominal`` (the bit-free segment) and ``bits``.
     """
     fs = params.sample_rate_hz
-    n = int(round(params.duration_s * fs))
+    n = sample_count(params.duration_s, fs, "duration_s")
     cantilever = params.cantilever()
     es = params.electrostatic()
-    n_cells = int(math.ceil((params.duration_s - params.nominal_s) * params.bit_rate_hz))
+    n_cells = sample_count(params.duration_s - params.nominal_s, params.bit_rate_hz, "bit cells", ceil=True)
     rng = np.random.default_rng(seed)
     pattern = BitPattern(
         rng.integers(0, 2, n_cells).astype(np.uint8), params.nominal_s, params.bit_rate_hz,

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.models.cantilever import Cantilever
@@ -196,7 +197,7 @@ def simulate_plant(
     fs = sample_rate_hz
     per_sample = 2 * substeps
     half_step_s = 1.0 / (per_sample * fs)
-    n_pre = int(math.ceil(settle_s * fs))
+    n_pre = sample_count(settle_s, fs, "settle_s", ceil=True)
     n = accel_noise.shape[0]
     noise = np.concatenate((np.zeros(n_pre), np.asarray(accel_noise, dtype=np.float64)))
     out = np.empty(n)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.thermal_sensor import steady_state
@@ -76,7 +77,7 @@ def simulate_es_approach(params: EsApproachParams, seed: int) -> SimulatedCaptur
     SimulatedCapture
     """
     fs = params.sample_rate_hz
-    n = int(round(params.duration_s * fs))
+    n = sample_count(params.duration_s, fs, "duration_s")
     es = params.electrostatic()
     force = params.tip_sample_force()
     v_sub = triangle(n, params.v_sub_max_v)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.thermal_sensor import steady_state
@@ -110,7 +111,7 @@ def simulate_iv_ramp(params: IvRampParams, seed: int) -> SimulatedCapture:
     SimulatedCapture
     """
     fs = params.sample_rate_hz
-    n = int(round(params.duration_s * fs))
+    n = sample_count(params.duration_s, fs, "duration_s")
     clean, state_in, ramp_meta = (_v_r_ramp if params.ramp == "v_r" else _z_ramp)(params, n)
     state = steady_state(params.thermal_sensor(), state_in["v_r"], state_in["ts"])
     rng = np.random.default_rng(seed)

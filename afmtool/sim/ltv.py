@@ -44,6 +44,7 @@ import numpy as np
 from numba import njit
 from scipy import signal
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.io.capture import ChannelSpec
@@ -273,7 +274,7 @@ def simulate_ltv(params: LtvParams, seed: int) -> SimulatedCapture:
         ``deflection_clean``.
     """
     fs = params.sample_rate_hz
-    n = int(round(params.duration_s * fs))
+    n = sample_count(params.duration_s, fs, "duration_s")
     t = np.arange(n) / fs
     excitation, center_hz, amplitude_v = params.dither()
     rng = np.random.default_rng(seed)

@@ -133,6 +133,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.estimators.observer import (
@@ -681,8 +682,8 @@ class _Loop:
         self.params = params
         fs = params.sample_rate_hz
         self.fs = fs
-        self.n_total = int(round(params.capture_s * fs))
-        self.n_free = int(round(params.free_air_s * fs))
+        self.n_total = sample_count(params.capture_s, fs, "capture_s")
+        self.n_free = sample_count(params.free_air_s, fs, "free_air_s")
         rng = np.random.default_rng(seed)
         cantilever = params.cantilever()
         self.eta = thermal_accel_rms(cantilever, params.temperature_k, fs) * rng.standard_normal(self.n_total)
@@ -799,7 +800,7 @@ def run_raster(params: RasterParams, seed: int, *, chunk_samples: int = _DEFAULT
     n_free = min(loop.n_free, loop.n_total)
     loop.run(0, n_free, chunk_samples)
     calibration = loop.calibrate() if n_free == loop.n_free else None
-    n_scan = min(int(round(params.scan_start_s * params.sample_rate_hz)), loop.n_total)
+    n_scan = min(sample_count(params.scan_start_s, params.sample_rate_hz, "scan_start_s"), loop.n_total)
     loop.run(n_free, n_scan, chunk_samples)
     if n_scan < loop.n_total and not loop.carried[3]:
         raise ConfigError(

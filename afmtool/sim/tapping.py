@@ -38,6 +38,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.io.capture import ChannelSpec
@@ -496,7 +497,7 @@ def simulate_tapping(params: TappingParams, seed: int, *, chunk_samples: int = _
         raise ConfigError(f"chunk_samples={chunk_samples!r} must be an integer >= 1")
     fs = params.sample_rate_hz
     nsub = params.substeps
-    n = int(round(params.duration_s * fs))
+    n = sample_count(params.duration_s, fs, "duration_s")
     cantilever = params.cantilever()
     force = params.force()
     gain = params.dither_gain_nm_per_v

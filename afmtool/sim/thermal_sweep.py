@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.electrostatic import ActuationSmallSignal, linearise_actuation
@@ -347,7 +348,7 @@ def simulate_thermal_sweep(params: ThermalSweepParams, seed: int) -> SimulatedCa
         ``store_truth`` is false.
     """
     fs = params.sample_rate_hz
-    n = int(round(params.duration_s * fs))
+    n = sample_count(params.duration_s, fs, "duration_s")
     os_ = params.oversample
     fine_rate = fs * os_
     model = params.model()

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.io.capture import ChannelSpec
 from afmtool.models.cantilever import Cantilever
@@ -118,7 +119,7 @@ def simulate_vphi(params: VphiParams, seed: int) -> SimulatedCapture:
         ``deflection`` (nm); truth ``v_phi_v`` and ``deflection_clean``.
     """
     fs = params.sample_rate_hz
-    n = int(round(params.duration_s * fs))
+    n = sample_count(params.duration_s, fs, "duration_s")
     cantilever = params.cantilever()
     es = params.electrostatic()
     rng = np.random.default_rng(seed)
