@@ -216,8 +216,10 @@ def test_bounds_have_open_and_closed_ends_and_an_automatic_value():
     with pytest.raises(ConfigError, match=r"must be in \(0, 1\]"):
         check_value(KalmanBankParams, "adaptive_fraction", 0.0)
     assert check_value(ReepParams, "decimate", 0) == 0  # 0 = one per drive period
-    with pytest.raises(ConfigError, match=r"decimate=-1 must be >= 1, or 0"):
+    with pytest.raises(ConfigError, match=r"decimate=-1 must be in \[1, 1000000000000000\], or 0"):
         check_value(ReepParams, "decimate", -1)
+    with pytest.raises(ConfigError, match=r"decimate=99999999999999999999999 must be in \[1, "):  # past int64 (issue 34)
+        check_value(ReepParams, "decimate", 99999999999999999999999)
     with pytest.raises(ConfigError, match=r"must be of type int"):
         check_value(ReepParams, "decimate", 2.5)
 

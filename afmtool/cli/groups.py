@@ -36,6 +36,7 @@ from afmtool.cli.options import (
     SchedulerOpt,
     SchedulerTimeoutOpt,
     SegmentOpt,
+    StdinTimeoutOpt,
     StreamFormatOpt,
     StreamOpt,
     StreamOutOpt,
@@ -117,6 +118,7 @@ class CaptureSource(NamedTuple):
     z_sensitivity: float | None = None
     drive: str | None = None
     segment: str | None = None
+    stdin_timeout: float | None = None
 
     def calibration(
         self, free_air: str | None = None, *, accepts_drive: bool = False, raw_deflection: bool = False
@@ -148,6 +150,7 @@ _CAPTURE_OPTIONS = (
     ("z_sensitivity", ZSensitivityOpt),
     ("drive", DriveOpt),
     ("segment", SegmentOpt),
+    ("stdin_timeout", StdinTimeoutOpt),
 )
 
 
@@ -164,7 +167,16 @@ def capture_options(
                 (("invols", invols), ("z_sensitivity", z_sensitivity), ("drive", drive), ("segment", segment))
                 if not wanted}
     parameters = tuple(option(name, annotation) for name, annotation in _CAPTURE_OPTIONS if name not in left_out)
-    return OptionGroup(keyword, parameters, lambda values: CaptureSource(**values))
+    return OptionGroup(keyword, parameters, _capture_source)
+
+
+def _capture_source(values: dict) -> CaptureSource:
+    """The options as a :class:`CaptureSource`; ``--stdin-timeout`` is set for the reading of ``-``."""
+    if values.get("stdin_timeout") is not None:
+        from afmtool.io.stdin_watch import set_stdin_timeout
+
+        set_stdin_timeout(values["stdin_timeout"])
+    return CaptureSource(**values)
 
 
 class CommandOutput(NamedTuple):

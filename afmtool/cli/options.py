@@ -62,6 +62,11 @@ SegmentOpt = Annotated[
     Optional[str],
     typer.Option("--segment", help="Read one segment of a segmented file (force curve): its name or number from 0."),
 ]
+StdinTimeoutOpt = Annotated[
+    Optional[float],
+    typer.Option("--stdin-timeout", metavar="S", help="With - (CSV on stdin): end the run (exit 2) when stdin gives "
+                 "no complete chunk for S s; it says 'waiting for input on stdin' after 5 s either way."),
+]
 ChunkOpt = Annotated[
     int, typer.Option("--chunk-samples", help="Samples per streamed chunk (memory vs overhead).", min=1)
 ]

@@ -112,7 +112,7 @@ def _drive_hold_field():
 
 def _decimation_field(flag: str | None = "--decimate"):
     """``decimate``: one output sample kept in N."""
-    return field(0, "Keep one output sample in N; 0 = one per drive period", bounds=">= 1", automatic=0, flag=flag)
+    return field(0, "Keep one output sample in N; 0 = one per drive period", bounds="[1, 1000000000000000]", automatic=0, flag=flag)
 
 
 def _lockin_frequency_field(help_text: str):

@@ -6,6 +6,7 @@ Readers are chosen by suffix (a ROS2 bag is a directory holding
 
 from __future__ import annotations
 
+import io
 import os
 import sys
 from collections.abc import Mapping, Sequence
@@ -116,12 +117,36 @@ def open_capture(
     for companion in companion_files(path, fmt):
         register_input(companion)  # nor any other file of a multi-file input
     native_segment = segment if fmt in _NATIVE_SEGMENTS else None
-    reader = _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, native_segment)
+    watch = _stdin_watch() if str(path) == "-" else None
+    if watch is not None:
+        from afmtool.io.csv import CsvReader, _text_stream
+
+        if topic_map:
+            raise InputError(f"{path}: --topic maps bag topics; CSV columns are channels")
+        reader = CsvReader(path, sample_rate_hz, stream=_text_stream(io.BufferedReader(watch, buffer_size=1 << 16)))
+    else:
+        reader = _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, native_segment)
     try:
-        return _views(reader, fmt, channel_map, segment if native_segment is None else None)
+        reader = _views(reader, fmt, channel_map, segment if native_segment is None else None)
     except BaseException:
         reader.close()
         raise
+    if watch is not None:
+        from afmtool.io.stdin_watch import WatchedReader
+
+        reader = WatchedReader(reader, watch)
+    return reader
+
+
+def _stdin_watch():
+    """stdin as a :class:`~afmtool.io.stdin_watch.WatchedStdin` (None where it has no descriptor to watch)."""
+    from afmtool.io.stdin_watch import WatchedStdin, stdin_timeout
+
+    try:
+        fd = sys.stdin.fileno()
+    except (AttributeError, OSError, ValueError):
+        return None
+    return WatchedStdin(fd, stdin_timeout())
 
 
 def companion_files(path: Path | str, fmt: str) -> list[Path]:
