@@ -203,8 +203,7 @@ def test_theory_compare_reads_a_csv_capture_through_the_registry(tmp_path):
     validate_report(report)
     results = report["results"]
     contact_error = results["separation"]["contact_z"] + start_nm
-    print(f"CSV capture: contact point error {contact_error:+.3f} nm (tol 1); f0, Q error fractions "
-          f"{results['f0_error_fraction_of_change']:.3f}, {results['q_error_fraction_of_change']:.3f} (tol 0.25)")
+    print(f"CSV capture: contact point error {contact_error:+.3f} nm (tol 1); {results['verdict']}")
     assert results["force_set"] == "metadata"  # the force law of the CSV's metadata
     assert results["separation"]["source"] == "z-piezo"
     assert abs(contact_error) <= 1.0
@@ -345,16 +344,25 @@ def test_result_records_are_frozen_and_write_their_report_section():
 def test_theory_compare_result_is_the_report_section():
     import dataclasses
 
-    from afmtool.analyses.theory import TheoryComparison
+    from afmtool.analyses.theory import ComparisonBins, TheoryComparison
     from afmtool.analyses.theory_outputs import TheoryCompareResult
 
-    comparison = TheoryComparison(np.array([True, False, True]), np.zeros(3), np.zeros(3), 2.0, 3.0, 40.0, 60.0, 1)
+    one = np.ones(1)
+    bins = ComparisonBins(np.zeros(1, dtype=int), 10.5 * one, 40 * one, -98.0 * one, -100.0 * one, 1.0 * one,
+                          0.5 * one, 0.2 * one, -3.0 * one, -3.1 * one, 0.1 * one, 0.05 * one, 0.1 * one,
+                          np.ones(1, dtype=bool), ("",))
+    comparison = TheoryComparison(np.array([True, False, True]), np.zeros(3), np.zeros(3), bins, 7e4, 200.0,
+                                  "REEP's median", "REEP's per-row f0_std_hz, q_std", 0.03, 0.1, True, "agree",
+                                  0.0, 0.025, 6.9, 1)
     result = TheoryCompareResult("attractive", 20.0, {"source": "truth"}, comparison, True)
     section = result.to_json()
-    assert section == {"force_set": "attractive", "free_amplitude_nm": 20.0, "separation": {"source": "truth"},
-                       "compared_samples": 2, "excluded_near_jumps": 1, "f0_theory_change_hz": 40.0,
-                       "f0_error_max_hz": 2.0, "f0_error_fraction_of_change": 0.05, "q_theory_change": 60.0,
-                       "q_error_max": 3.0, "q_error_fraction_of_change": 0.05, "pass": True}
+    assert section["force_set"] == "attractive" and section["separation"] == {"source": "truth"}
+    assert section["pass"] is True and section["verdict"] == "agree" and section["compared_rows"] == 2
+    assert section["bins"] == 1 and section["bins_compared"] == 1 and section["excluded_near_jumps"] == 1
+    assert section["worst_bins"] == [{"leg": "approach", "separation_nm": 10.5, "f0_shift_reep_hz": -98.0,
+                                      "f0_shift_theory_hz": -100.0, "f0_z": 0.2, "q_shift_reep": -3.0,
+                                      "q_shift_theory": -3.1, "q_z": 0.1}]
+    json.dumps(section, allow_nan=False)
     with pytest.raises(dataclasses.FrozenInstanceError):
         result.passed = False  # type: ignore[misc]
 

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import json
+import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
+from typing import NamedTuple
 
 import numpy as np
 
-from afmtool.analyses.theory import TheoryComparison, compare_with_theory
+from afmtool.analyses.theory import ReepRows, TheoryComparison, beat_modulation, compare_binned
 from afmtool.analyses.theory_q_overlay import parse_q_values, write_q_overlay
 from afmtool.config import load_toml, resolve_from
 from afmtool.config.params import AveragingParams, TheoryCompareParams
@@ -24,7 +27,8 @@ from afmtool.report.json_report import input_record, to_jsonable
 from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
 
-__all__ = ["TheoryCompareResult", "chosen_force", "run_averaging_command", "run_compare_command"]
+__all__ = ["FittedForce", "TheoryCompareResult", "capture_drive_lines", "chosen_force", "load_fitted_force",
+           "run_averaging_command", "run_compare_command"]
 
 
 @dataclass(frozen=True)
@@ -34,16 +38,20 @@ class TheoryCompareResult:
     Attributes
     ----------
     force_set : str
-        The force law compared with: a thesis set's name, "custom" or "metadata".
+        The force law compared with: a thesis set's name, "custom", "metadata" or "fit".
     free_amplitude_nm : float
         The free-air amplitude A0 the theory is evaluated for, nm.
     separation : Mapping
-        Where the separation axis came from (``source``: "truth" or
-        "z-piezo", and for z-piezo its units, scale and contact point).
+        Where the separation axis came from (``source``: "truth", "z-piezo"
+        or "fit", and for z its units, scale and contact point).
     comparison : TheoryComparison
-        REEP against averaging theory (eqs. 4.9-4.10) along the curve.
+        REEP against averaging theory (eqs. 4.9-4.10) in separation bins.
     passed : bool
-        Both error fractions within ``--tolerance``.
+        The verdict (:mod:`afmtool.analyses.theory`).
+    force : Mapping
+        The force's parameters and where they came from.
+    beat : Mapping
+        The drive's envelope beat m and where its lines came from.
     """
 
     force_set: str
@@ -51,11 +59,14 @@ class TheoryCompareResult:
     separation: Mapping
     comparison: TheoryComparison
     passed: bool
+    force: Mapping = field(default_factory=lambda: MappingProxyType({}))
+    beat: Mapping = field(default_factory=lambda: MappingProxyType({}))
 
     def to_json(self) -> dict:
         """The ``results`` section of report.json."""
-        return to_jsonable({"force_set": self.force_set, "free_amplitude_nm": self.free_amplitude_nm,
-                            "separation": dict(self.separation), **self.comparison.summary(), "pass": self.passed})
+        return to_jsonable({"force_set": self.force_set, "force": dict(self.force),
+                            "free_amplitude_nm": self.free_amplitude_nm, "separation": dict(self.separation),
+                            "beat": dict(self.beat), **self.comparison.summary(), "pass": self.passed})
 
 
 def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dict:
@@ -127,52 +138,213 @@ def chosen_force(spec: str, force_set: str) -> tuple[PiecewiseLinearForce, str]:
     return THESIS_FORCE_SETS[force_set], force_set
 
 
+_NO_FORCE = ("the capture has no force metadata (a real capture never has): give --fit FIT_DIR, the output of "
+             "'afmtool theory fit' on this REEP run, or a force law with --force d=...,wa2=...,wb2=...,ca=...,cb=... "
+             "or --force-set NAME")
+
+
 def _force_from(metadata: CaptureMetadata, force_set: str, spec: str = "") -> tuple[PiecewiseLinearForce, str]:
     if spec or force_set:
         return chosen_force(spec, force_set)
     meta = metadata.force
     if meta is None:
-        raise InputError("the capture has no force metadata; give --force-set")
+        raise InputError(_NO_FORCE)
     force = PiecewiseLinearForce(meta.d_nm, meta.omega_a2_per_s2, meta.omega_b2_per_s2, meta.c_a_per_s, meta.c_b_per_s)
     return force, meta.set or "metadata"
 
 
+class FittedForce(NamedTuple):
+    """``theory fit``'s result as ``theory compare --fit`` uses it: the force, the contact point and the z scale."""
+
+    force: PiecewiseLinearForce
+    contact_z: float
+    contact_z_std: float
+    nm_per_unit: float
+    record: dict
+
+
+def load_fitted_force(fit_dir: Path) -> FittedForce:
+    """Read fit.json of a ``theory fit`` output folder (or the file itself).
+
+    Raises
+    ------
+    InputError
+        If the folder holds no fit.json or it is not one ``theory fit`` wrote.
+    """
+    path = Path(fit_dir)
+    path = path / "fit.json" if path.is_dir() else path
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        values = {name: float(data["parameters"][name]["value"]) for name in
+                  ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b", "contact_z")}
+        contact_std = float(data["parameters"]["contact_z"].get("std") or 0.0)
+        nm_per_unit = float(data["nm_per_unit"])
+    except FileNotFoundError:
+        raise InputError(f"--fit {fit_dir}: no fit.json there (the output folder of 'afmtool theory fit')") from None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise InputError(f"--fit {path}: not a fit.json of 'afmtool theory fit' ({type(exc).__name__}: {exc})") from None
+    record = {"source": "fit", "fit": str(path)}
+    identified = set(data.get("identified") or ())
+    if not identified & {"omega_b2", "c_b"}:
+        # the curve did not reach a wall the fit could see: its ω_b², c_b (and so where the wall
+        # would be) are arbitrary, and only the attraction is compared
+        values["omega_b2"] = values["c_b"] = 0.0
+        record["note"] = "omega_b2 and c_b not identified by the fit: the theory has no repulsive wall"
+        # the attraction sees only d − l = (d + s·z_c) − s·z: the separation is as certain as the onset
+        onset = data.get("onset_d_plus_s_contact_z_nm") or {}
+        contact_std = float(onset.get("std") or contact_std) / abs(nm_per_unit)
+    force = PiecewiseLinearForce(*(max(0.0, values[k]) for k in ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b")))
+    record.update({k: values[k] for k in ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b")})
+    return FittedForce(force, values["contact_z"], contact_std if math.isfinite(contact_std) else 0.0, nm_per_unit,
+                       record)
+
+
 def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: Mapping) -> dict:
-    """Put a REEP run beside averaging theory along its (simulated) force curve."""
+    """Put a REEP run beside averaging theory along its force curve, binned, with a verdict (§3.4.3)."""
     params = resolve_from(TheoryCompareParams, "theory.compare", load_toml(config) if config else None, flags)
-    with open_reep_run(reep_dir) as reep:
-        series = reep_series(reep, ("t", "f0_hz", "q", "amplitude"))
-        # samples REEP flagged as untrustworthy are left out, as in its own summaries
-        series["f0_hz"], series["q"] = reep.file.trusted("f0_hz", slice(None)), reep.file.trusted("q", slice(None))
-        z_series = (reep.series["z"][()], reep.z_units) if "z" in reep.series else None
-        reep_results, report_path, series_path = reep.report, reep_dir / "report.json", reep.path
-        capture = reep_capture_path(reep)
-    metadata, fs, truth_separation = capture_side(capture, reep_results)
-    force, force_name = _force_from(metadata, params.force_set, params.force)
-    cantilever = capture_cantilever(metadata, reep_results)
+    fitted = load_fitted_force(Path(params.fit)) if params.fit else None
+    data = _load_compare_inputs(Path(reep_dir))
+    metadata, fs, truth_separation = capture_side(data.capture, data.reep_results)
+    if fitted is not None:
+        force, force_name, force_record = fitted.force, "fit", fitted.record
+    else:
+        force, force_name = _force_from(metadata, params.force_set, params.force)
+        force_record = {"source": force_name, "spec": format_force_spec(force)}
+    cantilever = capture_cantilever(metadata, data.reep_results)
+    series = data.series
     free_amplitude = metadata.drive.free_amplitude_nm or float(
         np.nanmedian(series["amplitude"][: max(1, len(series["t"]) // 20)])
     )
-    separation, separation_record = _separation(params, truth_separation, z_series, series, fs, reep_results,
-                                                cantilever, force, free_amplitude)
-    decimate = reep_results["decimate"]
-    comparison = compare_with_theory(
-        series["t"], series["f0_hz"], series["q"], series["amplitude"], separation,
-        drive_frequency_hz=reep_results["drive_frequency_hz"], cantilever=cantilever, force=force,
-        forgetting_factor=reep_results["forgetting_factor"] ** decimate,
-        free_amplitude_nm=free_amplitude, amplitude_fraction=params.amplitude_fraction,
-    )
-    passed = comparison.f0_error_fraction <= params.tolerance and comparison.q_error_fraction <= params.tolerance
+    separation, separation_record, separation_std = _separation(
+        params, truth_separation, data.z_series, series, fs, data.reep_results, cantilever, force, free_amplitude,
+        fitted)
+    drive_hz = float(data.reep_results["drive_frequency_hz"])
+    lines, lines_source = capture_drive_lines(data.capture, metadata, drive_hz, cantilever.f0_hz)
+    beat = beat_modulation(lines, drive_hz, cantilever)
+    try:
+        comparison = compare_binned(
+            series["t"], ReepRows(series["f0_hz"], series["q"], series.get("f0_std_hz"), series.get("q_std")),
+            series["amplitude"], separation, drive_frequency_hz=drive_hz, cantilever=cantilever, force=force,
+            row_lambda=data.reep_results["forgetting_factor"] ** data.reep_results["decimate"],
+            free_amplitude_nm=free_amplitude, beat=beat, separation_std_nm=separation_std,
+            amplitude_fraction=params.amplitude_fraction, bin_nm=params.bin_nm, tolerance=params.tolerance,
+            flag=series.get("flag"),
+        )
+    except ValueError as exc:
+        raise InputError(f"{reep_dir}: {exc}") from None
     result = TheoryCompareResult(force_name, float(free_amplitude), MappingProxyType(separation_record), comparison,
-                                 passed)
-    warnings = [] if passed else [
-        f"REEP and averaging theory differ by more than {params.tolerance:.0%} of the theory's change"
-    ]
+                                 comparison.passed, MappingProxyType(force_record),
+                                 MappingProxyType({"modulation": beat, "lines": [list(x) for x in lines],
+                                                   "lines_from": lines_source}))
     with OutputDir(out) as staged:
-        _plot_comparison(staged.path("compare.png"), series, separation, comparison)
-        inputs = [input_record(report_path, "reep report"), input_record(series_path, "reep series")]
-        inputs += [input_record(capture)] if capture is not None and capture.is_file() else []
-        return finish_run(staged, "theory compare", inputs, "theory.compare", params, result.to_json(), warnings)
+        from afmtool.analyses.theory_compare_figure import write_compare_png, write_compare_table
+
+        write_compare_png(staged.path("compare.png"), series, separation, comparison)
+        write_compare_table(staged.path("compare_bins.csv"), comparison)
+        inputs = [input_record(data.report_path, "reep report"), input_record(data.series_path, "reep series")]
+        inputs += [input_record(data.capture)] if data.capture is not None and data.capture.is_file() else []
+        inputs += [input_record(Path(fitted.record["fit"]), "theory fit")] if fitted is not None else []
+        return finish_run(staged, "theory compare", inputs, "theory.compare", params, result.to_json(),
+                          _compare_warnings(comparison, lines_source))
+
+
+def _compare_warnings(comparison: TheoryComparison, lines_source: str) -> list[str]:
+    """The verdict when it is not a pass, the bins left out and why, and an unknown drive."""
+    warnings = [] if comparison.passed else [f"REEP and averaging theory: {comparison.verdict}"]
+    summary = comparison.summary()
+    for reason, count in summary["ill_conditioned_reasons"].items():
+        warnings.append(f"{count} of {summary['bins']} separation bins left out of the verdict: {reason}")
+    if lines_source == "unknown":
+        warnings.append("the drive's lines are not known (no metadata, no dither channel): the envelope's beat is "
+                        "taken as 0, so a multi-line drive's effect on the theory is not in its uncertainty")
+    return warnings
+
+
+class _CompareInputs(NamedTuple):
+    """What ``theory compare`` reads from a REEP output folder."""
+
+    series: dict
+    z_series: tuple | None
+    reep_results: Mapping
+    report_path: Path
+    series_path: Path
+    capture: Path | None
+
+
+def _load_compare_inputs(reep_dir: Path) -> _CompareInputs:
+    with open_reep_run(reep_dir) as reep:
+        series = reep_series(reep, ("t", "f0_hz", "q", "amplitude"))
+        for name in ("f0_std_hz", "q_std", "flag"):
+            if name in reep.series:
+                series[name] = reep.series[name][()]
+        z_series = (reep.series["z"][()], reep.z_units) if "z" in reep.series else None
+        return _CompareInputs(series, z_series, reep.report, reep_dir / "report.json", reep.path,
+                              reep_capture_path(reep))
+
+
+def capture_drive_lines(capture: Path | None, metadata: CaptureMetadata, drive_hz: float,
+                        f0_hz: float) -> tuple[list[tuple[float, float]], str]:
+    """The drive's lines (Hz, V) and where they came from: the metadata, else the capture's dither, else none.
+
+    The dither is read only over its first 65,536 samples (the lines'
+    amplitudes by least squares at the frequencies found there).
+    """
+    drive = metadata.drive
+    if drive.lines:
+        return [(line.frequency_hz, line.amplitude_v) for line in drive.lines], "metadata drive.lines"
+    raw = _raw_drive_metadata(capture)
+    if raw.get("lines_hz") and raw.get("lines_v") and len(raw["lines_hz"]) == len(raw["lines_v"]):
+        return [(float(f), float(a)) for f, a in zip(raw["lines_hz"], raw["lines_v"])], "metadata drive.lines_hz"
+    offset, scale = drive.sideband_offset_hz, raw.get("sideband_scale")
+    if offset is not None and isinstance(scale, (int, float)):
+        if offset == 0:
+            return [(drive_hz, 1.0)], "metadata: a single line"
+        return ([(drive_hz, 1.0), (drive_hz - offset, float(scale)), (drive_hz + offset, float(scale))],
+                "metadata sideband_offset_hz and sideband_scale")
+    measured = _dither_lines(capture, f0_hz)
+    return (measured, "the capture's dither") if measured else ([], "unknown")
+
+
+def _raw_drive_metadata(capture: Path | None) -> dict:
+    if capture is None or not capture.exists():
+        return {}
+    from afmtool.io.registry import open_capture
+
+    reader = open_capture(capture)
+    try:
+        drive = reader.info.metadata.get("drive")
+        return dict(drive) if isinstance(drive, Mapping) else {}
+    finally:
+        reader.close()
+
+
+def _dither_lines(capture: Path | None, f0_hz: float) -> list[tuple[float, float]]:
+    """The dither's lines near f0 (Hz) and their amplitudes (V), from its first 65,536 samples; [] without one."""
+    from afmtool.estimators.drive_lines import excitation_lines
+    from afmtool.estimators.stages import SegmentStage
+    from afmtool.io.registry import open_capture
+    from afmtool.pipeline import run_stream
+
+    if capture is None or not capture.exists():
+        return []
+    reader = open_capture(capture)
+    try:
+        if "dither" not in reader.info.channel_names:
+            return []
+        n = min(1 << 16, reader.info.n_samples or 1 << 16)
+        stage = SegmentStage(("dither",), 0, n)
+        (segment,) = run_stream(reader, [stage], channels=("dither",), chunk_samples=n, prologue=stage.until_end)
+        fs = reader.info.sample_rate_hz
+    finally:
+        reader.close()
+    dither = segment["dither"]
+    frequencies = excitation_lines(dither, fs, f0_hz)
+    if not frequencies:
+        return []
+    t = np.arange(dither.size) / fs
+    basis = np.column_stack([f(2 * np.pi * fr * t) for fr in frequencies for f in (np.cos, np.sin)])
+    coef, *_ = np.linalg.lstsq(basis, dither - dither.mean(), rcond=None)
+    return [(fr, float(np.hypot(coef[2 * i], coef[2 * i + 1]))) for i, fr in enumerate(frequencies)]
 
 
 def open_reep_run(reep_dir: Path) -> ReepResults:
@@ -232,16 +404,24 @@ def capture_cantilever(metadata: CaptureMetadata, reep_results: Mapping) -> Cant
     return Cantilever(float(model["f0_hz"]), float(model["q"]))
 
 
-def _separation(params, truth, z_series, series, fs, reep_results, cantilever, force, free_amplitude):
-    """The separation per REEP sample and a record of where it came from."""
+def _separation(params, truth, z_series, series, fs, reep_results, cantilever, force, free_amplitude, fitted=None):
+    """The separation per REEP row, a record of where it came from, and its uncertainty σ_l (nm)."""
     from afmtool.analyses.theory_separation import separation_from_z, z_sensitivity_nm
 
+    if fitted is not None and params.separation != "truth":
+        if z_series is None:
+            raise InputError("--fit: reep.h5 has no z series, so the fitted contact point cannot place the rows")
+        z, units = z_series
+        std = abs(fitted.nm_per_unit) * fitted.contact_z_std
+        return fitted.nm_per_unit * (z - fitted.contact_z), {
+            "source": "fit", "z_units": units, "nm_per_unit": fitted.nm_per_unit, "contact_z": fitted.contact_z,
+            "contact_method": "fitted by theory fit", "separation_std_nm": std}, std
     use_truth = params.separation == "truth" or (params.separation == "auto" and truth is not None)
     if use_truth:
         if truth is None:
             raise InputError("--separation truth: the REEP input has no /truth/separation_nm")
         index = np.round(series["t"] * fs).astype(int)
-        return truth[index], {"source": "truth"}
+        return truth[index], {"source": "truth"}, 0.0
     if z_series is None:
         raise InputError("no /truth separation and no z_piezo in reep.h5: the force curve has no separation axis")
     z, units = z_series
@@ -250,21 +430,10 @@ def _separation(params, truth, z_series, series, fs, reep_results, cantilever, f
         drive_frequency_hz=reep_results["drive_frequency_hz"], cantilever=cantilever, force=force,
         free_amplitude_nm=free_amplitude, contact_z=float(params.contact_z) if params.contact_z else None,
     )
+    std = abs(estimate.nm_per_unit) * estimate.contact_z_std if math.isfinite(estimate.contact_z_std) else 0.0
     return estimate.separation_nm, {
         "source": "z-piezo", "z_units": units, "nm_per_unit": estimate.nm_per_unit,
         "contact_z": estimate.contact_z, "contact_method": estimate.method,
-        "amplitude_rms_residual_nm": estimate.amplitude_rms_residual_nm,
-    }
-
-
-def _plot_comparison(path: Path, series, separation, comparison) -> None:
-    from afmtool.report.images import write_multi_panel_png
-
-    m = comparison.mask
-    panels = [
-        {"y_label": "f0' (Hz)", "series": [(separation[m], series["f0_hz"][m], "REEP", {"color": "C0", "linestyle": "none", "marker": ","}),
-                                          (separation[m], comparison.f0_theory_hz[m], "averaging theory", {"color": "C3", "linestyle": "none", "marker": ","})]},
-        {"y_label": "Q' (dimensionless)", "series": [(separation[m], series["q"][m], "REEP", {"color": "C0", "linestyle": "none", "marker": ","}),
-                                    (separation[m], comparison.q_theory[m], "averaging theory", {"color": "C3", "linestyle": "none", "marker": ","})]},
-    ]
-    write_multi_panel_png(path, panels, x_label="separation l (nm)", title="REEP vs averaging theory (thesis Figs. 3.11-3.14)")
+        "amplitude_rms_residual_nm": estimate.amplitude_rms_residual_nm, "contact_z_std": estimate.contact_z_std,
+        "separation_std_nm": std,
+    }, std

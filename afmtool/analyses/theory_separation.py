@@ -49,6 +49,7 @@ class SeparationEstimate:
     nm_per_unit: float
     method: str
     amplitude_rms_residual_nm: float | None
+    contact_z_std: float = 0.0
 
 
 def z_sensitivity_nm(units: str, given_nm_per_unit: float) -> float:
@@ -123,10 +124,12 @@ def separation_from_z(
     z_app, a_app = z[idx], amplitude[idx]
     z_turn = float(z_app[np.argmin(z_app * np.sign(nm_per_unit))])
 
-    def cost(z_c: float) -> float:
+    def residual(z_c: float) -> np.ndarray:
         l_app = nm_per_unit * (z_app - z_c)
-        model = np.interp(l_app, l_up, a_up, left=a_up[0], right=free_amplitude_nm)
-        return float(np.mean((a_app - model) ** 2))
+        return a_app - np.interp(l_app, l_up, a_up, left=a_up[0], right=free_amplitude_nm)
+
+    def cost(z_c: float) -> float:
+        return float(np.mean(residual(z_c) ** 2))
 
     # the turn's separation nm_per_unit·(z_turn − z_c) ranges over [0, onset]
     candidates = z_turn - np.linspace(0.0, onset_nm, 401) / nm_per_unit
@@ -141,4 +144,29 @@ def separation_from_z(
             "the approach's amplitude hardly changes: no contact point to align on; give --contact-z"
         )
     return SeparationEstimate(nm_per_unit * (z - z_c), z_c, nm_per_unit, "aligned on the approach amplitude",
-                              math.sqrt(cost(z_c)))
+                              math.sqrt(cost(z_c)), _contact_std(residual, z_c, 0.05 / abs(nm_per_unit)))
+
+
+def _contact_std(residual, z_c: float, step: float) -> float:
+    """Standard error of the aligned z_c (z units): s²/Σ(∂r/∂z_c)², the rows counted as independent runs.
+
+    Linearised least squares: Var(z_c) = s²·τ/Σ g_i², g = ∂r/∂z_c by central
+    differences (``step``), s² the residuals' variance and τ = 1 + 2Σρ_k their
+    integrated autocorrelation (summed while ρ_k > 0), which counts a run of
+    correlated residuals (REEP's window, the beat, a misfit) once.
+    """
+    r = residual(z_c)
+    g = (residual(z_c + step) - residual(z_c - step)) / (2 * step)
+    information = float(g @ g)
+    if r.size < 8 or information <= 0:
+        return math.inf
+    centred = r - r.mean()
+    denominator = float(centred @ centred)
+    tau = 1.0
+    for k in range(1, r.size // 4):
+        rho = float(centred[:-k] @ centred[k:]) / max(denominator, 1e-300)
+        if rho <= 0:
+            break
+        tau += 2 * rho
+    return math.sqrt(float(np.mean(r * r)) * tau / information)
+

@@ -64,12 +64,24 @@ def compare(
     reep_dir: Annotated[Path, typer.Argument(help="Output folder of 'afmtool reep' on a force curve.")],
     *, flags: dict, output: CommandOutput
 ) -> None:
-    """Put REEP's f0' and Q' beside averaging theory along a force curve (§3.4.3).
+    """Put REEP's f0' and Q' beside averaging theory along a force curve (§3.4.3), with a verdict.
 
-    The theory uses REEP's measured amplitude and the separation: the true one
-    (/truth) on a simulation, else l = s·(z_piezo − z_c) with the contact point
-    z_c aligned on the approach's amplitude curve (or --contact-z).  The report
-    says how far apart they are and whether that is within tolerance.
+    The force comes from --fit FIT_DIR (the output of 'afmtool theory fit' on
+    this REEP run: a real capture has no force metadata), --force, --force-set
+    or a simulation's metadata; the separation from /truth (a simulation), the
+    fitted contact point (--fit), or z_piezo with the contact point aligned on
+    the approach's amplitude (or --contact-z).  The theory is windowed as REEP
+    is, and the shifts from free air are compared as medians in separation
+    bins (--bin nm), with REEP's per-row uncertainty, the theory's sensitivity
+    to the amplitude's beat and the separation, and a model floor (--tolerance
+    of the theory's shift).  Bins where the tip reaches the repulsive wall, or
+    the theory changes more than REEP resolves (attraction onset, low Q), are
+    marked ill-conditioned and left out of the verdict, and the report says so.
+    Writes compare.png, compare_bins.csv and report.json.
+
+    Examples: afmtool theory fit reep_out --out fit; afmtool theory compare
+    reep_out --fit fit --out cmp; afmtool theory compare sim_reep --force-set
+    attractive --out cmp
     """
     from afmtool.analyses.theory_outputs import run_compare_command
 

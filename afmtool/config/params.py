@@ -389,15 +389,22 @@ class TheoryCompareParams:
     force: str = field(
         "", "Custom force d=...,wa2=...,wb2=...,ca=...,cb=... (nm, 1/s^2, 1/s); overrides force_set", flag="--force"
     )
+    fit: str = field(
+        "", "The output folder of 'theory fit' on this REEP run: its fitted force and contact point", flag="--fit"
+    )
     amplitude_fraction: float = field(
-        0.6, "Compare where the amplitude is above this share of the free amplitude", bounds="(0, 1)"
+        0.3, "Compare where the amplitude is above this share of the free amplitude", bounds="(0, 1)"
     )
     tolerance: float = field(
-        0.25, "Pass when the worst error is within this share of the theory's change", bounds="> 0"
+        0.1,
+        "Model floor: averaging theory is expected to hold to this share of its own shift from free air (eq. C.1)",
+        bounds="> 0",
     )
+    bin_nm: float = field(1.0, "Width of the separation bins whose medians are compared", "nm", bounds="> 0",
+                          flag="--bin")
     separation: str = field(
         "auto",
-        "Separation from /truth or from z_piezo; auto = /truth when present",
+        "Separation from /truth, from z_piezo, or (with --fit) the fitted contact point; auto = /truth when present",
         choices=("auto", "truth", "z-piezo"),
         flag="--separation",
     )
