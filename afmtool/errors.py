@@ -7,7 +7,7 @@ at the I/O boundary with ``raise ... from None`` so the message names the
 user's file, not a library internal.
 """
 
-__all__ = ["AfmtoolError", "InputError", "ConfigError", "SegmentsAtDifferentRates", "one_line"]
+__all__ = ["AfmtoolError", "InputError", "ConfigError", "SegmentsAtDifferentRates", "SampleShareWarning", "one_line"]
 
 
 class AfmtoolError(Exception):
@@ -48,3 +48,21 @@ class SegmentsAtDifferentRates(InputError):
     def __init__(self, message: object, segments: tuple = ()) -> None:
         super().__init__(message)
         self.segments = tuple(segments)
+
+
+class SampleShareWarning(str):
+    """A warning about some of a run's samples, that knows their share.
+
+    It is the warning's text (a ``str`` everywhere warnings go), with
+    ``share`` = ``count / total`` beside it: ``report.json`` records the
+    share (``warning_shares``) and the HTML page sets the warning's
+    severity by it, so that 1 flagged sample in 14,777 is not shown as
+    loudly as a run whose every sample is in doubt.
+    """
+
+    share: float
+
+    def __new__(cls, text: str, count: int, total: int) -> "SampleShareWarning":
+        warning = super().__new__(cls, text)
+        warning.share = count / total if total > 0 else 1.0
+        return warning

@@ -49,7 +49,7 @@ def test_local_cluster_batch(tmp_path, captures):
     batch_report = json.loads((out / "c3_h5" / "report.json").read_text())
     single_report = json.loads((single / "report.json").read_text())
     assert batch_report["results"] == single_report["results"]
-    assert float(rows["c3.h5"]["f0_hz_mean"]) == single_report["results"]["summary"]["f0_hz"]["mean"]
+    assert float(rows["c3.h5"]["segments.free_air.f0_hz.mean"]) == single_report["results"]["segments"]["free_air"]["f0_hz"]["mean"]
     # a rerun processes nothing new
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("report.json")}
     again = run_cli("batch", "reep", str(captures), "--out", out, "--workers", "2", "--quiet")
@@ -105,7 +105,7 @@ def test_existing_scheduler(tmp_path, captures):
     ("command", "capture", "extra", "column"),
     [
         ("probeloss", "raster_grating.h5", [], "loss_fraction"),
-        ("decode", "bits_30khz.h5", ["--arg=--bit-rate", "--arg=30000"], "ber"),
+        ("decode", "bits_30khz.h5", ["--arg=--bit-rate", "--arg=30000"], "bits.count"),
     ],
 )
 def test_batch_runs_the_other_analyses(tmp_path, command, capture, extra, column):

@@ -156,38 +156,11 @@ def _input_unchanged(source: str, recorded) -> bool:
         return False
 
 
-def headline(command: str, report: dict) -> dict:
-    """A few headline numbers of a report, for summary.csv."""
-    results = report.get("results", {})
-    if command == "reep":
-        summary = results.get("summary", {})
-        return {
-            "f0_hz_mean": summary.get("f0_hz", {}).get("mean"),
-            "q_mean": summary.get("q", {}).get("mean"),
-            "amplitude_mean": summary.get("amplitude", {}).get("mean"),
-            "flagged_samples": results.get("flagged_samples"),
-        }
-    if command == "probeloss":
-        return {
-            "loss_fraction": results.get("loss_fraction"),
-            "events": results.get("events_total"),
-            "median_amplitude_lead_s": results.get("median_amplitude_lead_s"),
-        }
-    if command == "decode":
-        truth = results.get("truth") or {}
-        return {
-            "bits": results.get("bits", {}).get("count"),
-            "l0_nm": results.get("l0", {}).get("estimate_nm"),
-            "ber": (truth.get("decoder") or {}).get("ber"),
-        }
-    if command == "kalman-bank":
-        return {
-            "verdict_pass": results.get("verdict", {}).get("pass"),
-            "adaptive_fraction_lowest": results.get("adaptive", {}).get("fraction_lowest"),
-        }
-    if "free_air_model" in results and results["free_air_model"]:
-        return {"f0_hz": results["free_air_model"]["f0_hz"], "q": results["free_air_model"]["q"]}
-    return {k: v for k, v in results.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+def headline(report: dict) -> dict:
+    """summary.csv's headline columns of one run: report.json's headline (:func:`afmtool.report.headline.summary_columns`)."""
+    from afmtool.report.headline import summary_columns
+
+    return summary_columns(report)
 
 
 FAILURE_FILE = "failure.json"
@@ -221,9 +194,8 @@ def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], 
     bytes is reported failed again without rerunning unless ``retry_failed``.
     """
     existing = _complete(item)
-    name = " ".join(command)
     if existing is not None:
-        return BatchOutcome(item.source, item.out_dir, "skipped", "outputs complete", headline(name, existing))
+        return BatchOutcome(item.source, item.out_dir, "skipped", "outputs complete", headline(existing))
     known = None if retry_failed else _known_failure(item)
     if known is not None:
         # the same line as the run that found it: a rerun reports the same result for the same input
@@ -239,7 +211,7 @@ def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], 
     (folder / FAILURE_FILE).unlink(missing_ok=True)
     report = json.loads((folder / "report.json").read_text())
     write_text_atomic(_manifest_path(item), json.dumps(_output_hashes(folder, report["outputs"])) + "\n")
-    return BatchOutcome(item.source, item.out_dir, "ok", "", headline(name, report))
+    return BatchOutcome(item.source, item.out_dir, "ok", "", headline(report))
 
 
 def _failed(item: BatchItem, proc: subprocess.CompletedProcess) -> BatchOutcome:

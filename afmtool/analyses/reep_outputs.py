@@ -45,10 +45,12 @@ def run_reep_command(run: CommandRun) -> dict:
 
         results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.capture_metadata,
                                                         deflection_units, *_given_spring_constant(params, model))
+        interaction_extremes = {}
         if results["interaction"].get("written"):
-            _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz, run.figures)
+            interaction_extremes = _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz,
+                                                           run.figures)
         if result.force_curves:
-            results["force_curve"] = _curve_summary(result)
+            results["force_curve"] = _curve_summary(result, _free_f0_hz(results), interaction_extremes)
         if result.geometry is not None:
             results["images"] = {
                 name: {"mean": _finite_mean(image)} for name, image in sorted(result.images.items())
@@ -117,9 +119,41 @@ def _finite_mean(values: np.ndarray) -> float | None:
     return float(finite.mean()) if finite.size else None
 
 
-def _curve_summary(result: ReepResult) -> dict:
+def _free_f0_hz(results: Mapping) -> float | None:
+    """The free-air f0' a force curve's shift is taken from: REEP's own in the free-air segment, else the model's."""
+    segment = (results.get("segments") or {}).get("free_air") or {}
+    mean = (segment.get("f0_hz") or {}).get("mean")
+    if mean is not None and np.isfinite(mean):
+        return float(mean)
+    model = results.get("free_air_model") or {}
+    return model.get("f0_hz")
+
+
+def _extreme(z: np.ndarray, values: np.ndarray, how: str) -> tuple[float | None, float | None]:
+    """(value, z) of the largest (``max``), smallest (``min``) or largest-magnitude (``abs``) finite bin."""
+    finite = np.isfinite(values) & np.isfinite(z)
+    if not finite.any():
+        return None, None
+    index = np.flatnonzero(finite)
+    pick = {"max": np.argmax, "min": np.argmin, "abs": lambda v: np.argmax(np.abs(v))}[how](values[index])
+    return float(values[index[pick]]), float(z[index[pick]])
+
+
+def _curve_summary(result: ReepResult, free_f0_hz: float | None, interaction: Mapping) -> dict:
+    """Per leg: ranges, sensitivities and the extremes a reader looks for, with the z where they occur.
+
+    ``largest_df0_hz`` is the bin mean of f0' farthest from the free-air f0'
+    (signed), ``smallest_q`` the lowest bin mean of Q'; ``interaction``
+    adds the largest dissipated energy per cycle and force gradient.
+    """
     summary = {}
     for leg, table in result.force_curves.items():
+        extremes: dict = {}
+        if free_f0_hz is not None:
+            shift, where = _extreme(table.z, table.means["f0_hz"] - free_f0_hz, "abs")
+            extremes.update(largest_df0_hz=shift, largest_df0_z=where)
+        low_q, where = _extreme(table.z, table.means["q"], "min")
+        extremes.update(smallest_q=low_q, smallest_q_z=where, **interaction.get(leg, {}))
         summary[leg] = {
             "bins": int(len(table.z)),
             "z_range": [float(table.z.min()), float(table.z.max())],
@@ -129,6 +163,7 @@ def _curve_summary(result: ReepResult) -> dict:
             "max_abs_df0_dz": float(np.nanmax(np.abs(table.sensitivities["f0_hz"]))) if len(table.z) > 1 else None,
             "max_abs_dq_dz": float(np.nanmax(np.abs(table.sensitivities["q"]))) if len(table.z) > 1 else None,
             "max_abs_da_dz": float(np.nanmax(np.abs(table.sensitivities["amplitude"]))) if len(table.z) > 1 else None,
+            **extremes,
         }
     return summary
 
@@ -193,11 +228,13 @@ _INTERACTION_TITLES = {
 
 
 def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepParams, sample_rate_hz: float,
-                            figures: FigureProcess) -> None:
+                            figures: FigureProcess) -> dict:
     """The /interaction series binned as f0', Q' are: force-curve tables, images, PNG and .gsf.
 
-    The report's ``interaction`` section is left as it was (the golden reports pin it); the
-    binned quantities are in reep.h5 beside f0', Q', with their units.
+    The binned quantities are in reep.h5 beside f0', Q', with their units; the
+    force-curve panels are drawn in ``force_curve_interaction.png``.  Returns,
+    per leg, the largest dissipated energy per cycle and the force gradient of
+    largest magnitude, with the z of each (for the report's ``force_curve``).
     """
     from afmtool.analyses.interaction_maps import bin_interaction_series
     from afmtool.io.result_files import open_result_file
@@ -208,7 +245,7 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
         z_bin=params.z_bin if result.force_curves else None, geometry=result.geometry,
     )
     if binned is None:
-        return
+        return {}
     with open_result_file(path, mode="r+", what="reep output") as f:
         for leg, table in binned.force_curves.items():
             for name, values in table.means.items():
@@ -221,3 +258,41 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
         write_scan_images(staged.path, binned.images, result.geometry,
                           lambda quantity: ImageStyle(_INTERACTION_TITLES.get(quantity, quantity), binned.units[quantity]),
                           figures=figures)
+    if binned.force_curves:
+        _draw_interaction_curves(staged, binned, result.z_units, figures)
+    return {leg: _interaction_extremes(table) for leg, table in binned.force_curves.items()}
+
+
+def _interaction_extremes(table) -> dict:
+    """The largest energy per cycle and the force gradient of largest magnitude of one leg, with their z."""
+    out: dict = {}
+    for name, how, key in (("energy_per_cycle_ev", "max", "largest_energy_per_cycle"),
+                           ("force_gradient_n_per_m", "abs", "largest_force_gradient")):
+        if name in table.means:
+            value, where = _extreme(table.z, table.means[name], how)
+            units = name.split("_per_cycle_")[-1] if "per_cycle" in name else "n_per_m"
+            out[f"{key}_{units}"], out[f"{key}_z"] = value, where
+    return out
+
+
+#: The interaction quantities drawn against z, with their labels.
+_INTERACTION_PANELS = (
+    ("force_gradient_n_per_m", "force gradient k_e − k"), ("damping_ts_n_s_per_m", "tip–sample damping c_ts"),
+    ("phi_c_n", "Φ_c (conservative)"), ("energy_per_cycle_ev", "E_ts per cycle"),
+)
+
+
+def _draw_interaction_curves(staged: OutputDir, binned, z_units: str, figures: FigureProcess) -> None:
+    """``force_curve_interaction.png``: force gradient, damping, Φ_c and energy per cycle against z."""
+    from afmtool.report.images import APPROACH_STYLE, RETRACT_STYLE, write_multi_panel_png
+
+    styles = {"approach": dict(APPROACH_STYLE), "retract": dict(RETRACT_STYLE)}
+    panels = []
+    for name, label in _INTERACTION_PANELS:
+        series = [(table.z, table.means[name], leg, styles[leg]) for leg, table in binned.force_curves.items()
+                  if name in table.means]
+        if series:
+            panels.append({"y_label": f"{label} ({binned.units[name]})", "series": series})
+    if panels:
+        figures.draw(write_multi_panel_png, staged.path("force_curve_interaction.png"), panels,
+                     x_label=f"z_piezo ({z_units})" if z_units else "z_piezo", title="Tip–sample interaction from REEP")

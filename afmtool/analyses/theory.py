@@ -42,11 +42,11 @@ constant REEP bias cancels), and likewise z_Q for Q′.
 (a(1 + m) > l in any row of the bin), averaging theory at the mean
 amplitude is ill-conditioned: f0,e moves by hundreds of Hz for sub-nm
 changes of the amplitude, and the reference curves show REEP 30-45 % off it
-there (NOTES.md: treat the repulsive regime qualitatively).  Where σ_T
+there (docs/conventions.md: treat the repulsive regime qualitatively).  Where σ_T
 exceeds both σ_R and a quarter of the theory's shift, the theory cannot say
 what REEP should read either: at the onset of the attraction (γ of eq. 4.8
 has an unbounded second derivative where the tip just reaches d), and at
-low Q, where the side lines beat the envelope by ±17 % (NOTES.md).  Such
+low Q, where the side lines beat the envelope by ±17 % (docs/conventions.md).  Such
 bins are marked, left out of the verdict, and counted with their reason in
 the report; rows next to a branch jump (:func:`jump_neighbourhood`) are left
 out too.
@@ -206,7 +206,7 @@ def jump_neighbourhood(amplitude: np.ndarray, sample_rate_hz: float, *, jump_nm:
 
     At a jump between the attractive and repulsive branches the theory
     switches instantly while any estimator needs a window to follow, and
-    averaging theory is ill-conditioned there (NOTES.md); these samples are
+    averaging theory is ill-conditioned there (docs/conventions.md); these samples are
     compared qualitatively only.
     """
     step = max(1, round(over_s * sample_rate_hz))
@@ -342,7 +342,7 @@ def _bin_condition(record, touching: bool) -> str:
     """Why a bin is left out of the verdict ("" if it is not): the repulsive wall, or a theory REEP cannot test."""
     if touching:
         return ("the tip reaches the repulsive wall: averaging theory at the mean amplitude is ill-conditioned "
-                "there (NOTES.md)")
+                "there (docs/conventions.md)")
     if record[0][5] or record[1][5]:
         return ("the theory changes by more than REEP resolves within the amplitude's beat or the separation's "
                 "uncertainty (attraction onset, low Q)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Callable
 from contextlib import contextmanager
@@ -13,7 +14,7 @@ from afmtool.cli.progress import progress_bar, stderr_console
 
 __all__ = [
     "open_input", "open_calibrated", "output_target", "stdout_pipe", "finish_command", "run_capture_analysis",
-    "run_streaming_command", "figure_process",
+    "run_streaming_command", "figure_process", "print_stderr_lines",
 ]
 
 
@@ -97,17 +98,38 @@ def output_target(output: str, fmt: str) -> Iterator[Path | object]:
 
 
 def finish_command(report: dict, out: Path, json_output: bool, quiet: bool) -> None:
-    """Print the report (``--json``), its warnings and where the outputs went."""
+    """The run's answer, once its outputs are committed: the headline on stderr, or the report on stdout.
+
+    Without ``--json``: the headline lines (:func:`afmtool.report.headline.terminal_lines`:
+    the numbers with units and uncertainties, the warnings, where the files
+    went) on stderr, whole lines however narrow the terminal or wherever
+    stderr goes.  With ``--json`` the report goes to stdout and its warnings
+    to stderr, as before.  ``--quiet`` prints nothing on stderr.
+    """
     import typer
 
     from afmtool.report.json_report import dumps
 
     if json_output:
         typer.echo(dumps(report), nl=False)
-    for warning in report["warnings"]:
-        stderr_console(quiet).print(f"[yellow]warning:[/] {warning}", highlight=False)
-    if not json_output:
-        stderr_console(quiet).print(f"wrote {', '.join(report['outputs'])} to {out}", highlight=False)
+        for warning in report["warnings"]:
+            stderr_console(quiet).print(f"[yellow]warning:[/] {warning}", highlight=False, markup=True)
+        return
+    if quiet:
+        return
+    from afmtool.report.headline import terminal_lines
+
+    print_stderr_lines(terminal_lines(report, str(out)))
+
+
+def print_stderr_lines(lines: list[str]) -> None:
+    """Lines on stderr as they are (no wrapping, no markup); "warning:" in yellow on a terminal."""
+    colour = sys.stderr.isatty() and not os.environ.get("NO_COLOR")
+    for line in lines:
+        if colour and line.startswith("warning:"):
+            line = "\x1b[33mwarning:\x1b[0m" + line[len("warning:"):]
+        sys.stderr.write(line + "\n")
+    sys.stderr.flush()
 
 
 def run_capture_analysis(

@@ -1,7 +1,7 @@
 """The free-air model from an off-sample segment: the ARX fit of eq. 3.40 and its f0, Q, gain.
 
 Bias-compensated least squares (plain least squares would bias the
-numerator; see NOTES.md), by :func:`afmtool.estimators.rls.identify_arx`.
+numerator; see docs/conventions.md), by :func:`afmtool.estimators.rls.identify_arx`.
 The ``identify freeair`` command (``analyses/freeair_outputs.py``) and the
 free-air route of reep, probeloss and kalman-bank call it.
 """

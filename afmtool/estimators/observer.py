@@ -109,14 +109,14 @@ ran at about 70 MS/s (input samples), the adaptive observer at 170 MS/s.
 Thesis notes
 ------------
 * Eq. 2.8 and the A matrices of eqs. 2.9 and 2.12 carry the damping with
-  the wrong power or sign (NOTES.md): the model is
+  the wrong power or sign (docs/conventions.md): the model is
   p̈ + (ω0/Q)ṗ + ω0²p = ω0²g, i.e. A = [[0, 1], [−ω0², −ω0/Q]].
 * Eq. 2.13: with e = x − x̂ the forcing term is (A_z − A − L(C_z − C))x
   (plus (B_z − B)g), the negative of the printed one; only its RMS is
   used, so the sign is immaterial.  Eq. 5.3 has the right sign.
 * Eq. 2.12 moves ω_e² into C_z (the numerator changes on-sample), whereas
   eq. 5.13 keeps the numerator fixed; this module follows eq. 5.13 (a
-  bank shares one numerator), as NOTES.md recommends.
+  bank shares one numerator), as docs/conventions.md recommends.
 * Eq. 5.15 adds RMS values of uncorrelated components; their variances add:
   RMS = (A_e²/2 + σ²_ηe + σ²_νe)^{1/2}.
 

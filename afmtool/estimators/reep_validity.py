@@ -5,7 +5,7 @@ samples.  Three things make a fitted (b1, b0) meaningless, each a bit of the
 ``flag`` series in ``reep.h5`` (0 = valid):
 
 * :data:`FLAG_NOT_UNDERDAMPED` (1): (b1, b0) outside the under-damped region
-  0 < b0 < 1, |b1| < 2√b0, where eq. 3.48 has no (f0′, Q′) (NOTES.md);
+  0 < b0 < 1, |b1| < 2√b0, where eq. 3.48 has no (f0′, Q′) (docs/conventions.md);
 * :data:`FLAG_LOW_AMPLITUDE` (2): the oscillation amplitude at the drive is
   below ``min_amplitude_fraction`` of the free amplitude.  The regressors
   then carry little but noise: the bias compensation subtracts σ²R⁻¹θ with
@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from afmtool.errors import SampleShareWarning
 from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.models.discretisation import resonance_scalar, resonance_std_scalar
 
@@ -356,10 +357,11 @@ class FlagCounter:
                     min_amplitude_fraction=limits.min_amplitude_fraction, max_sigma2_ratio=limits.max_sigma2_ratio,
                     max_offset_drift=limits.max_offset_drift,
                 )
-                out.append(
-                    f"{count} of {self.total} output samples after the warm-up ({count / self.total:.1%}) "
+                samples = "output sample" if self.total == 1 else "output samples"
+                out.append(SampleShareWarning(
+                    f"{count} of {self.total} {samples} after the warm-up ({100 * count / self.total:.2g} %) "
                     f"flagged: {reason}; "
                     "their f0' and Q' cannot be trusted and are NaN in the summary, force curves and images "
-                    "(reep.h5 keeps them, with 'flag')"
-                )
+                    "(reep.h5 keeps them, with 'flag')", count, self.total,
+                ))
         return out

@@ -13,7 +13,7 @@ default) divided by its free-air level::
     index(n) = RMS_W(e)(n) / ρ_fa,        ρ_fa = √(mean of RMS_W(e)² over a free-air segment)
 
 so it reads about 1 off the sample and several times more on it.  Probe loss
-means the index is **low** (NOTES.md, ch. 2).
+means the index is **low** (docs/conventions.md, ch. 2).
 
 Coherent index (``index="coherent"``, an addition to the thesis)
 ----------------------------------------------------------------

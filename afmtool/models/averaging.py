@@ -12,7 +12,7 @@ oscillator that has the same first harmonic: the *equivalent* resonant
 frequency ωe and quality factor Qe.  This module gives
 
 * :func:`equivalent_parameters_quadrature` — the first-harmonic integrals
-  of ``reference/NOTES.md`` evaluated numerically;
+  of ``docs/conventions.md`` evaluated numerically;
 * :func:`equivalent_parameters_closed_form` — the same integrals in closed
   form (eq. 4.8 rewritten in the project's sign convention);
 * :func:`equivalent_parameter_derivatives` — their partial derivatives in
@@ -352,7 +352,7 @@ def equivalent_parameters_quadrature(
     Notes
     -----
     With p = a·cosθ, ṗ = −aω·sinθ (eq. 4.4) the first-harmonic balance
-    (``reference/NOTES.md``; eqs. 4.6 and 4.7 with Φ = m·F) is
+    (``docs/conventions.md``; eqs. 4.6 and 4.7 with Φ = m·F) is
 
     .. math::
 

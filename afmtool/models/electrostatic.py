@@ -35,7 +35,7 @@ Linearising F_esf about (V0, ℓ_s0) gives ∂F/∂p = 2K_esf·V0²/ℓ_s0³ and
     Γ_p,V(s) = L·ω′²/(s² + (ω′/Q′)s + ω′²),  ω′ = ω0√(1 − κ),
     Q′ = Q0√(1 − κ),  L = −2K_esf·V0/(k·ℓ_s0²)/(1 − κ)   (m/V),
 
-the thesis's eq. 6.14 with its denominator corrected (NOTES.md) and the
+the thesis's eq. 6.14 with its denominator corrected (docs/conventions.md) and the
 1/k that eq. 6.13 leaves implicit (it writes the force per unit stiffness)
 made explicit.  The input is V = α_R·V_R − V_sub, so Δt_s/ΔV_sub = −Γ_p,V
 at constant V_R and sample position.

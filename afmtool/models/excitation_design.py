@@ -22,7 +22,7 @@ whatever the phases (§3.3.2 writes the in-phase case, where all of β is an
 amplitude change ±2B|G(ω_d+Δω)|/|G(ω_d)|).  Design rule: A from the requested
 amplitude, A = a / |G(jω_d)|; then B = min(s_max A, β_tol R_d/(|G_+| + |G_−|)):
 the thesis's B = A/2 where the cantilever attenuates the side lines enough,
-scaled down at low Q (NOTES.md, "Comparing REEP with averaging theory").
+scaled down at low Q (docs/conventions.md, "Comparing REEP with averaging theory").
 
 Phases: the side-line sum is put in quadrature with the main line's response,
 (ψ_+ + ψ_−)/2 = ψ_d + π/2.  Then the beat is mostly a phase swing of the tip

@@ -2,7 +2,7 @@
 
 ``d=3,wa2=1.5e9,wb2=4e10,ca=2000,cb=40000`` gives a
 :class:`afmtool.models.forces.PiecewiseLinearForce` (eq. 4.1 in the
-NOTES.md sign convention): d in nm, ω_a² and ω_b² in 1/s², c_a and c_b in
+docs/conventions.md sign convention): d in nm, ω_a² and ω_b² in 1/s², c_a and c_b in
 1/s, all per unit mass.  Omitted keys are 0; ``d`` is required.
 """
 

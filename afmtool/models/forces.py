@@ -1,6 +1,6 @@
 """Piecewise-linear tip-sample force (eqs. 4.1 and 6.2), one sign convention.
 
-Convention (``reference/NOTES.md``, chapter 4)
+Convention (``docs/conventions.md``, chapter 4)
 ----------------------------------------------
 * The deflection p (nm) and the force are positive **upward**, away from
   the sample.
@@ -42,7 +42,7 @@ How the thesis's signs map to this one
   This module uses F = −F_4.1 with the same (positive) parameter
   values, so the §3.4.3 and chapter-4 sets keep their published numbers.
 * Averaging theory (chapter 4) must then use this F in the
-  first-harmonic balance of NOTES.md; attraction lowers ωe, dissipation
+  first-harmonic balance of docs/conventions.md; attraction lowers ωe, dissipation
   lowers Qe.
 """
 

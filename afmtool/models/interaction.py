@@ -13,7 +13,7 @@ tip-sample force F over one cycle p = a cos θ:
     \\frac{\\omega_e}{Q_e} = \\frac{\\omega_0}{Q} + \\frac{2\\Phi_d}{a\\omega},
 
 Φ_c = (1/2π)∮F cos θ dθ and Φ_d = (1/2π)∮F sin θ dθ (per unit mass; the
-NOTES.md sign convention, force positive away from the sample, so that
+docs/conventions.md sign convention, force positive away from the sample, so that
 attraction gives Φ_c > 0 and dissipation Φ_d > 0; eq. 4.8 writes Φ_d with the
 opposite sign).  Inverting with the measured a, f0′ = ωe/2π and Q′ = Qe:
 
@@ -28,7 +28,7 @@ opposite sign).  Inverting with the measured a, f0′ = ωe/2π and Q′ = Qe:
   E_ts = −∮F dz = π c_ts ω a² = 2π a Φ_d m (J, reported in eV), the
   mean dissipated power P_ts = E_ts ω/2π (W), and the virial
   V_ts = ⟨F p⟩ over a cycle = a Φ_c m (J; the definition of San Paulo &
-  García, Phys. Rev. B 64, 193411 (2001), here with the NOTES.md signs, so
+  García, Phys. Rev. B 64, 193411 (2001), here with the docs/conventions.md signs, so
   attraction gives V_ts > 0).
 
 All are per sample, broadcast over the inputs; nm in, SI out.

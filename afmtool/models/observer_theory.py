@@ -12,7 +12,7 @@ second state)::
 
 with A = [[0, −ωe²], [1, −ωe/Qe]], A_k = [[0, −ωk²], [1, −ωk/Qk]],
 B = [c0, c1]ᵀ and L = [L1, L2]ᵀ.  The numerator (c1, c0) is the same for
-the plant and the observer (eq. 5.13; NOTES.md: a linearised tip-sample
+the plant and the observer (eq. 5.13; docs/conventions.md: a linearised tip-sample
 force changes only the denominator), and the thermal force η enters where
 the dither does (B1 = B, eq. 3.50).  Three polynomials appear throughout:
 

@@ -1,18 +1,28 @@
-"""The headline block of a report: the few numbers a reader looks for first.
+"""The headline of a run: the few numbers a reader looks for first, declared once per command.
 
 Each command's ``results`` hold every number a run produced (77 rows for a
 force curve); the headline picks the handful that answer the question the
 command was run for, each with its units and, where the analysis gives one,
 its uncertainty: f0' and Q' in and after the free-air segment, the
 tracking error against the truth, the probe-loss fraction with precision
-and recall, the BER with its 95 % bound.  ``report.json``, ``--json`` and
-the HTML page carry the same block; nothing here is computed anew, every
-entry is read from ``results`` at the path it names (``source``).
+and recall, the BER with its 95 % bound, the spring constant by each
+method, the verdict of a comparison with its worst bins.
+
+:data:`HEADLINES` declares them, once: per command a tuple of
+:class:`Item` (label, path in ``results``, units, the path of its standard
+deviation, the path of where it occurs).  :func:`headline` reads that
+declaration into ``report.json``'s ``headline``; every other reader takes
+the report's block and nothing else: the end-of-run lines on the terminal
+(:func:`terminal_lines`), ``afmtool batch``'s ``summary.csv``
+(:func:`summary_columns`) and the HTML page.  Nothing here is computed
+anew: every entry is read from ``results`` at the path it names
+(``source``); an analysis that wants a number headlined puts it in its
+results first.  Numbers are written by :mod:`afmtool.report.numbers`.
 
 A headline never contradicts the run (issue 28).  Where the results say
 that the run's premise failed, the headline opens with that state, a text
-entry named ``"warning"`` whose ``source`` is the number that says so, and
-the scores it undermines are left out:
+entry named ``"warning"`` whose ``source`` is the number that says so
+(:data:`STATES`), and the items declared as ``scores`` are left out:
 
 * a free-air phase misfit above 30° (``free_air_route.phase_misfit_deg``):
   the model the observer runs on does not fit the capture; probeloss shows
@@ -27,15 +37,68 @@ the scores it undermines are left out:
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
-__all__ = ["HEADLINE_FIELDS", "STATE_NAME", "headline", "lookup"]
+from afmtool.report.numbers import format_measurement, format_with_units
+
+__all__ = [
+    "HEADLINES", "HEADLINE_FIELDS", "STATES", "STATE_NAME", "Item", "State", "headline", "lookup", "run_subject",
+    "summary_columns", "terminal_lines",
+]
+
+#: ``name`` of a headline entry that states the run's state instead of a number.
+STATE_NAME = "warning"
+#: Above this free-air phase misfit (degrees) the headline shows the misfit, not scores.
+_PHASE_MISFIT_DEG = 30.0
+#: Above this loss fraction probeloss's headline shows the state, not scores.
+_MOSTLY_LOSS = 0.5
+#: Event and time-weighted precision farther apart than this disagree.
+_SCORE_AGREEMENT = 0.1
 
 #: Keys of one headline entry (``schemas/report.schema.json``, ``headline.items``).
-HEADLINE_FIELDS = ("name", "value", "std", "units", "source", "std_source")
+HEADLINE_FIELDS = ("name", "value", "std", "units", "source", "std_source", "at", "note", "text")
 
-_MISSING = object()
+
+@dataclass(frozen=True)
+class Item:
+    """One headline number, as a command declares it.
+
+    Attributes
+    ----------
+    label : str
+        What the number is, for a reader ("f0' in the free-air segment").
+    path : str
+        Dotted path of the value in ``results`` ("segments.free_air.f0_hz.mean").
+    units : str
+        Its units ("" when dimensionless); ``"@path"`` reads them from ``results``.
+    std : str, optional
+        Dotted path of its standard deviation.
+    at : str, optional
+        Dotted path of where it occurs (the z of a force curve's largest shift).
+    at_label : str
+        The name of that coordinate ("z", "separation").
+    at_units : str
+        Its units, or ``"@path"``.
+    note : str, optional
+        Dotted path of a word on its standing ("identified", "not identifiable").
+    text : bool
+        The value may be text or a yes/no (a verdict), not only a number.
+    scores : bool
+        A score that a failed premise undermines: left out when a :class:`State` says so.
+    """
+
+    label: str
+    path: str
+    units: str = ""
+    std: str | None = None
+    at: str | None = None
+    at_label: str = "z"
+    at_units: str = ""
+    note: str | None = None
+    text: bool = False
+    scores: bool = False
 
 #: ``name`` of a headline entry that states the run's state instead of a number.
 STATE_NAME = "warning"
@@ -60,183 +123,406 @@ def lookup(results: Mapping, path: str) -> Any:
     return value
 
 
-class _Block:
-    """Entries collected for one report; a missing or non-numeric source is skipped."""
-
-    def __init__(self, results: Mapping) -> None:
-        self.results = results
-        self.entries: list[dict] = []
-        self.states: list[dict] = []
-
-    def add(self, name: str, source: str, units: str, std_source: str | None = None, *, text: bool = False) -> None:
-        value = lookup(self.results, source)
-        if value is None or (not text and (isinstance(value, bool) or not isinstance(value, (int, float)))):
-            return
-        std = lookup(self.results, std_source) if std_source else None
-        if not isinstance(std, (int, float)) or isinstance(std, bool):
-            std, std_source = None, None
-        self.entries.append(
-            {"name": name, "value": value, "std": std, "units": units, "source": source, "std_source": std_source}
-        )
-
-    def state(self, text: str, source: str) -> None:
-        """A text entry stating the run's state (issue 28): it goes before every number."""
-        self.states.append(
-            {"name": STATE_NAME, "value": text, "std": None, "units": "", "source": source, "std_source": None}
-        )
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def _number(results: Mapping, path: str) -> float | None:
+def _units(results: Mapping, units: str) -> str:
+    if units.startswith("@"):
+        found = lookup(results, units[1:])
+        return found if isinstance(found, str) else ""
+    return units
+
+
+# --------------------------------------------------------------------------- states before numbers
+
+
+class State(NamedTuple):
+    """The run's state where it undermines its own numbers: said first, and maybe the scores left out."""
+
+    text: str
+    source: str
+    hides_scores: bool = True
+
+
+def _number_at(results: Mapping, path: str) -> float | None:
     value = lookup(results, path)
-    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+    return float(value) if _number(value) else None
 
 
-def _phase_state(block: _Block) -> bool:
-    """The free-air phase misfit as the run's state when it exceeds 30°; True if it does."""
-    misfit = _number(block.results, "free_air_route.phase_misfit_deg")
+def _phase_state(results: Mapping, held: bool) -> State | None:
+    """The free-air phase misfit, when it exceeds 30°."""
+    misfit = _number_at(results, "free_air_route.phase_misfit_deg")
     if misfit is None or abs(misfit) <= _PHASE_MISFIT_DEG:
-        return False
-    block.state(f"the free-air model misses the capture's phase at the drive by {misfit:+.0f} deg (> 30): "
-                "scores against it are not shown", "free_air_route.phase_misfit_deg")
-    return True
+        return None
+    return State(f"the free-air model misses the capture's phase at the drive by {misfit:+.0f} deg (> 30): "
+                 "scores against it are not shown", "free_air_route.phase_misfit_deg")
 
 
-def _free_air_model(block: _Block, prefix: str = "free_air_model") -> None:
-    block.add("f0 (free air)", f"{prefix}.f0_hz", "Hz", f"{prefix}.f0_std_hz")
-    block.add("Q (free air)", f"{prefix}.q", "", f"{prefix}.q_std")
+def _free_air_check_state(results: Mapping, held: bool) -> State | None:
+    """reep: a free-air f0' far (in its std) from the lever's or the model's f0."""
+    check = results.get("free_air_check") or {}
+    if check.get("consistent") is not False:
+        return None
+    reference = "the lever" if check.get("reference") == "metadata" else "the model"
+    return State(f"REEP's free-air f0' {check['f0_hz']:.1f} Hz is {check['deviation_std']:.0f} std from "
+                 f"{reference}'s f0 {check['reference_f0_hz']:.1f} Hz: the drive may be far off resonance or the model "
+                 "wrong", "free_air_check.deviation_std", hides_scores=False)
 
 
-def _reep(block: _Block) -> None:
-    _phase_state(block)
-    check = block.results.get("free_air_check") or {}
-    if check.get("consistent") is False:
-        block.state(
-            f"REEP's free-air f0' {check['f0_hz']:.1f} Hz is {check['deviation_std']:.0f} std from "
-            f"{'the lever' if check['reference'] == 'metadata' else 'the model'}'s f0 {check['reference_f0_hz']:.1f} Hz: "
-            "the drive may be far off resonance or the model wrong", "free_air_check.deviation_std")
-    segments = block.results.get("segments") or {}
+def _detectability_state(results: Mapping, held: bool) -> State | None:
+    detectability = results.get("detectability") or {}
+    if not detectability.get("beyond_limit"):
+        return None
+    return State(detectability.get("statement") or "beyond the detection limit", "detectability.beyond_limit",
+                 hides_scores=False)
+
+
+def _mostly_loss_state(results: Mapping, held: bool) -> State | None:
+    loss = _number_at(results, "loss_fraction")
+    if loss is None or loss <= _MOSTLY_LOSS:
+        return None
+    return State(f"the switch reads probe loss {100 * loss:.0f} % of the time: off the sample that long, or the "
+                 "index has no contrast on the sample; scores are not shown", "loss_fraction")
+
+
+def _scores_disagree_state(results: Mapping, held: bool) -> State | None:
+    """Event precision vs /truth against the time-weighted one (asked only while the scores still stand)."""
+    event, timed = _number_at(results, "truth.index.precision"), _number_at(results, "truth.index.time_precision")
+    if held or event is None or timed is None or abs(event - timed) <= _SCORE_AGREEMENT:
+        return None
+    return State(f"event precision {event:.2f} disagrees with the time-weighted precision {timed:.2f}: event "
+                 "precision and recall are not shown", "truth.index.time_precision")
+
+
+#: Each command's states, checked in order before its numbers (issue 28).
+STATES: Mapping[str, tuple[Callable[[Mapping, bool], State | None], ...]] = {
+    "reep": (_phase_state, _free_air_check_state),
+    "probeloss": (_phase_state, _detectability_state, _mostly_loss_state, _scores_disagree_state),
+    "kalman-bank": (_phase_state,),
+}
+
+
+# --------------------------------------------------------------------------- the declarations
+
+
+def _free_air_model(prefix: str = "free_air_model") -> tuple[Item, ...]:
+    return (
+        Item("f0 (free air)", f"{prefix}.f0_hz", "Hz", f"{prefix}.f0_std_hz"),
+        Item("Q (free air)", f"{prefix}.q", "", f"{prefix}.q_std"),
+    )
+
+
+def _reep_segments() -> tuple[Item, ...]:
     labels = {"free_air": "in the free-air segment", "after_free_air": "after the free-air segment",
               "settled": "after the warm-up"}
+    items = []
     for segment, label in labels.items():
-        if segment in segments:
-            block.add(f"f0' {label}", f"segments.{segment}.f0_hz.mean", "Hz", f"segments.{segment}.f0_hz.std")
-            block.add(f"Q' {label}", f"segments.{segment}.q.mean", "", f"segments.{segment}.q.std")
-    block.add("|f0' − f0| median vs truth", "truth_tracking.f0_hz.median_abs", "Hz")
-    block.add("|f0' − f0| 95th percentile vs truth", "truth_tracking.f0_hz.p95_abs", "Hz")
-    block.add("|Q' − Q| median vs truth", "truth_tracking.q.median_abs", "")
-    block.add("|Q' − Q| 95th percentile vs truth", "truth_tracking.q.p95_abs", "")
-    block.add("flagged output samples", "flagged_samples", "samples")
+        items.append(Item(f"f0' {label}", f"segments.{segment}.f0_hz.mean", "Hz", f"segments.{segment}.f0_hz.std"))
+        items.append(Item(f"Q' {label}", f"segments.{segment}.q.mean", "", f"segments.{segment}.q.std"))
+    return tuple(items)
 
 
-def _probeloss_states(block: _Block) -> bool:
-    """The states that replace probeloss's scores; True if any holds."""
-    results = block.results
-    held = _phase_state(block)
-    detectability = results.get("detectability") or {}
-    if detectability.get("beyond_limit"):
-        block.state(detectability.get("statement") or "beyond the detection limit", "detectability.beyond_limit")
-    loss = _number(results, "loss_fraction")
-    if loss is not None and loss > _MOSTLY_LOSS:
-        block.state(f"the switch reads probe loss {100 * loss:.0f} % of the time: off the sample that long, or the "
-                    "index has no contrast on the sample; scores are not shown", "loss_fraction")
-        held = True
-    return held
+def _reep_force_curve() -> tuple[Item, ...]:
+    """On a force curve: the approach's extremes and where they occur (z in the capture's z units)."""
+    leg = "force_curve.approach"
+    z_units = f"@{leg}.z_units"
+    return (
+        Item("largest Δf0' on approach", f"{leg}.largest_df0_hz", "Hz", at=f"{leg}.largest_df0_z", at_units=z_units),
+        Item("smallest Q' on approach", f"{leg}.smallest_q", "", at=f"{leg}.smallest_q_z", at_units=z_units),
+        Item("largest energy dissipated per cycle", f"{leg}.largest_energy_per_cycle_ev", "eV",
+             at=f"{leg}.largest_energy_per_cycle_z", at_units=z_units),
+        Item("largest force gradient", f"{leg}.largest_force_gradient_n_per_m", "N/m",
+             at=f"{leg}.largest_force_gradient_z", at_units=z_units),
+    )
 
 
-def _scores_agree(block: _Block) -> bool:
-    """Event precision vs /truth agrees with the time-weighted one (else a state says why)."""
-    event, timed = _number(block.results, "truth.index.precision"), _number(block.results, "truth.index.time_precision")
-    if event is None or timed is None or abs(event - timed) <= _SCORE_AGREEMENT:
-        return True
-    block.state(f"event precision {event:.2f} disagrees with the time-weighted precision {timed:.2f}: event "
-                "precision and recall are not shown", "truth.index.time_precision")
-    return False
+_REEP = (
+    *_reep_segments(),
+    *_reep_force_curve(),
+    Item("|f0' − f0| median vs truth", "truth_tracking.f0_hz.median_abs", "Hz"),
+    Item("|f0' − f0| 95th percentile vs truth", "truth_tracking.f0_hz.p95_abs", "Hz"),
+    Item("|Q' − Q| median vs truth", "truth_tracking.q.median_abs", ""),
+    Item("|Q' − Q| 95th percentile vs truth", "truth_tracking.q.p95_abs", ""),
+    Item("flagged output samples", "flagged_samples", "samples"),
+)
+
+_PROBELOSS = (
+    Item("probe-loss fraction (index)", "loss_fraction", "of time"),
+    Item("probe-loss fraction (truth)", "truth.loss_fraction", "of time"),
+    Item("precision (index)", "truth.index.precision", "", scores=True),
+    Item("recall (index)", "truth.index.recall", "", scores=True),
+    Item("median latency (index)", "truth.index.median_latency_periods", "drive periods", scores=True),
+    Item("probe-loss fraction (amplitude baseline)", "amplitude_baseline.loss_fraction", "of time"),
+    Item("precision (amplitude baseline)", "truth.amplitude.precision", ""),
+    Item("recall (amplitude baseline)", "truth.amplitude.recall", ""),
+    Item("loss events (index)", "events_total", "events"),
+)
+
+_DECODE = (
+    Item("BER (EKF decoder)", "truth.decoder.ber", ""),
+    Item("BER 95 % upper bound (EKF decoder)", "truth.decoder.ber_upper_95", ""),
+    Item("BER (lock-in baseline)", "truth.baseline.ber", ""),
+    Item("BER estimated from the bit clusters", "bits.estimated_ber_gaussian", ""),
+    Item("bits decoded", "bits.count", "bits"),
+    Item("bit rate", "clock.rate_hz", "bit/s"),
+    Item("ℓ0", "l0.estimate_nm", "nm"),
+)
+
+_KALMAN_BANK = (
+    Item("verdict: pass", "verdict.pass", "", text=True),
+    Item("adaptive observer has the least RMS", "adaptive.fraction_lowest", "of time"),
+    Item("filters in the bank", "design.n_filters", "filters"),
+    *_free_air_model(),
+)
+
+_FREEAIR = (
+    *_free_air_model(),
+    Item("gain", "free_air_model.gain", "", "free_air_model.gain_std"),
+    Item("k (thermal, equipartition)", "spring_constant.thermal.value_n_per_m", "N/m",
+         "spring_constant.thermal.std_n_per_m"),
+    Item("k (Sader)", "spring_constant.sader.value_n_per_m", "N/m", "spring_constant.sader.std_n_per_m"),
+)
+
+_GAMMA = (
+    Item("DC sensitivity Γ_IR,ts", "dc_sensitivity_ua_per_nm", "µA/nm"),
+    Item("−3 dB bandwidth", "bandwidth_hz", "Hz"),
+    Item("roll-off", "roll_off_db_per_decade", "dB/decade"),
+    Item("feed-through capacitance", "feedthrough_fit.capacitance_pf", "pF"),
+)
+
+_ELECTROSTATIC = (
+    Item("ℓ0", "parameters.l0_m.value", "m", "parameters.l0_m.std"),
+    Item("K_esf/k", "parameters.k_esf_over_k_m3_per_v2.value", "m³/V²", "parameters.k_esf_over_k_m3_per_v2.std"),
+    Item("α_R", "parameters.alpha_r.value", "", "parameters.alpha_r.std"),
+    Item("t_h", "parameters.tip_height_m.value", "m", "parameters.tip_height_m.std"),
+    Item("K_esf", "parameters.k_esf_f_m.value", "F·m", "parameters.k_esf_f_m.std"),
+    Item("RMS residual", "rms_residual_nm", "nm"),
+)
+
+_THERMAL = (
+    Item("K_TP (I-V knee)", "iv.k_tp_k_per_mw", "K/mW"),
+    Item("knee power", "iv.knee_power_mw", "mW"),
+    Item("knee voltage", "iv.knee_voltage_v", "V"),
+    Item("K_TP in contact (z curve)", "z_curve.contact_k_tp_k_per_mw", "K/mW"),
+    Item("snap-in z", "z_curve.snap_in_z_nm", "nm"),
+    Item("C(jω) DC gain", "dynamics.c.dc_gain_k_per_mw", "K/mW"),
+    Item("C(jω) −3 dB bandwidth", "dynamics.c.bandwidth_hz", "Hz"),
+    Item("H(jω) DC gain", "dynamics.h.dc_gain_k_per_nm", "K/nm"),
+    Item("H(jω) −3 dB bandwidth", "dynamics.h.bandwidth_hz", "Hz"),
+)
+
+_INVOLS = (
+    Item("InvOLS (contact slope)", "invols_nm_per_v", "nm/V", "invols_std_nm_per_v"),
+    Item("InvOLS implied by the contact slope", "implied_invols_nm_per_v", "nm/V", "implied_invols_std_nm_per_v"),
+    Item("InvOLS of the capture (metadata)", "capture_invols_nm_per_v", "nm/V"),
+    Item("contact slope", "contact_slope", "@contact_slope_units", "contact_slope_std"),
+    Item("contact point z", "contact_z_nm", "nm"),
+)
+
+_COMPARE = (
+    Item("verdict", "verdict", "", text=True),
+    Item("χ² per degree of freedom", "chi2_per_dof", ""),
+    Item("χ² limit per degree of freedom", "chi2_limit_per_dof", ""),
+    Item("outlier share of the bins", "outlier_share", ""),
+    Item("bins compared", "bins_compared", "bins"),
+    Item("bins left out (ill-conditioned)", "bins_ill_conditioned", "bins"),
+    Item("worst bin: (f0' − f0e) shift", "worst_bins.0.f0_z", "σ", at="worst_bins.0.separation_nm",
+         at_label="separation", at_units="nm"),
+    Item("worst bin: (Q' − Qe) shift", "worst_bins.0.q_z", "σ", at="worst_bins.0.separation_nm",
+         at_label="separation", at_units="nm"),
+    Item("second worst bin: (f0' − f0e) shift", "worst_bins.1.f0_z", "σ", at="worst_bins.1.separation_nm",
+         at_label="separation", at_units="nm"),
+)
 
 
-def _probeloss(block: _Block) -> None:
-    scores = not _probeloss_states(block) and _scores_agree(block)
-    block.add("probe-loss fraction (index)", "loss_fraction", "of time")
-    block.add("probe-loss fraction (truth)", "truth.loss_fraction", "of time")
-    if scores:
-        block.add("precision (index)", "truth.index.precision", "")
-        block.add("recall (index)", "truth.index.recall", "")
-        block.add("median latency (index)", "truth.index.median_latency_periods", "drive periods")
-    block.add("probe-loss fraction (amplitude baseline)", "amplitude_baseline.loss_fraction", "of time")
-    block.add("precision (amplitude baseline)", "truth.amplitude.precision", "")
-    block.add("recall (amplitude baseline)", "truth.amplitude.recall", "")
-    block.add("loss events (index)", "events_total", "events")
+def _fit_parameter(name: str, label: str, units: str) -> Item:
+    return Item(label, f"parameters.{name}.value", units, f"parameters.{name}.std", note=f"parameters.{name}.status")
 
 
-def _decode(block: _Block) -> None:
-    block.add("BER (EKF decoder)", "truth.decoder.ber", "")
-    block.add("BER 95 % upper bound (EKF decoder)", "truth.decoder.ber_upper_95", "")
-    block.add("BER (lock-in baseline)", "truth.baseline.ber", "")
-    block.add("BER estimated from the bit clusters", "bits.estimated_ber_gaussian", "")
-    block.add("bits decoded", "bits.count", "bits")
-    block.add("bit rate", "clock.rate_hz", "bit/s")
-    block.add("ℓ0", "l0.estimate_nm", "nm")
+_FIT = (
+    _fit_parameter("d_nm", "d", "nm"),
+    _fit_parameter("omega_a2", "ω_a²", "1/s²"),
+    _fit_parameter("omega_b2", "ω_b²", "1/s²"),
+    _fit_parameter("c_a", "c_a", "1/s"),
+    _fit_parameter("c_b", "c_b", "1/s"),
+    _fit_parameter("contact_z", "contact point z_c", "@parameters.contact_z.units"),
+    Item("onset d + s·z_c", "onset_d_plus_s_contact_z_nm.value", "nm", "onset_d_plus_s_contact_z_nm.std"),
+    Item("RMS residual of f0'", "rms_residual.f0_hz", "Hz"),
+)
 
+_DESIGN = (
+    Item("main line", "lines.0.frequency_hz", "Hz"),
+    Item("main line amplitude", "lines.0.amplitude_v", "V"),
+    Item("lower side line", "lines.1.frequency_hz", "Hz"),
+    Item("upper side line", "lines.2.frequency_hz", "Hz"),
+    Item("side-line amplitude", "lines.1.amplitude_v", "V"),
+    Item("free-air response", "lines.0.response_nm", "nm"),
+    Item("envelope beat (R₊ + R₋)/R_d", "envelope_beat", ""),
+    Item("amplitude beat", "amplitude_beat", ""),
+    Item("loop length", "loop_s", "s"),
+)
 
-def _kalman_bank(block: _Block) -> None:
-    _phase_state(block)
-    block.add("verdict: pass", "verdict.pass", "", text=True)
-    block.add("adaptive observer has the least RMS", "adaptive.fraction_lowest", "of time")
-    block.add("filters in the bank", "design.n_filters", "filters")
-    _free_air_model(block)
+_AVERAGING = (
+    Item("f0e on approach, lowest", "approach.f0_e_range_hz.0", "Hz"),
+    Item("f0e on approach, highest", "approach.f0_e_range_hz.1", "Hz"),
+    Item("Qe on approach, lowest", "approach.q_e_range.0", ""),
+    Item("bistable from separation", "approach.bistable_separation_nm.0", "nm"),
+    Item("bistable up to separation", "approach.bistable_separation_nm.1", "nm"),
+    Item("drive amplitude", "drive_amplitude_nm", "nm"),
+)
 
+_OBSERVER = (
+    Item("recommended observer f_k", "recommendation.f_k_hz", "Hz"),
+    Item("recommended observer Q_k", "recommendation.q_k", ""),
+    Item("recommended window", "recommendation.cycles", "drive periods"),
+    Item("observer f_k range mapped, lowest", "maps.f_k_hz_range.0", "Hz"),
+    Item("observer f_k range mapped, highest", "maps.f_k_hz_range.1", "Hz"),
+    Item("plant f0 (free air)", "plant.f0_hz", "Hz"),
+    Item("plant Q (free air)", "plant.q", ""),
+)
 
-def _freeair(block: _Block) -> None:
-    _free_air_model(block)
-    block.add("gain", "free_air_model.gain", "", "free_air_model.gain_std")
+_CONTROLLERS = (
+    Item("verdict: pass", "pass", "", text=True),
+    Item("probe-loss area, low gain", "table.0.low.loss_area", "of the image"),
+    Item("probe-loss area, high gain", "table.0.high.loss_area", "of the image"),
+    Item("probe-loss area, switching gain", "table.0.switching.loss_area", "of the image"),
+    Item("peak force, switching gain", "table.0.switching.peak_force_n", "N"),
+    Item("at line rate", "table.0.line_rate_hz", "Hz"),
+)
 
-
-def _gamma(block: _Block) -> None:
-    block.add("DC sensitivity Γ_IR,ts", "dc_sensitivity_ua_per_nm", "µA/nm")
-    block.add("−3 dB bandwidth", "bandwidth_hz", "Hz")
-    block.add("roll-off", "roll_off_db_per_decade", "dB/decade")
-    block.add("feed-through capacitance", "feedthrough_fit.capacitance_pf", "pF")
-
-
-def _electrostatic(block: _Block) -> None:
-    block.add("ℓ0", "parameters.l0_m.value", "m", "parameters.l0_m.std")
-    block.add("K_esf/k", "parameters.k_esf_over_k_m3_per_v2.value", "m³/V²", "parameters.k_esf_over_k_m3_per_v2.std")
-    block.add("α_R", "parameters.alpha_r.value", "", "parameters.alpha_r.std")
-    block.add("t_h", "parameters.tip_height_m.value", "m", "parameters.tip_height_m.std")
-    block.add("K_esf", "parameters.k_esf_f_m.value", "F·m", "parameters.k_esf_f_m.std")
-    block.add("RMS residual", "rms_residual_nm", "nm")
-
-
-def _thermal(block: _Block) -> None:
-    block.add("K_TP (I-V knee)", "iv.k_tp_k_per_mw", "K/mW")
-    block.add("knee power", "iv.knee_power_mw", "mW")
-    block.add("knee voltage", "iv.knee_voltage_v", "V")
-
-
-_BY_COMMAND: Mapping[str, Callable[[_Block], None]] = {
-    "identify electrostatic": _electrostatic,
-    "identify thermal": _thermal,
-    "reep": _reep,
-    "probeloss": _probeloss,
-    "decode": _decode,
-    "kalman-bank": _kalman_bank,
-    "identify freeair": _freeair,
-    "identify gamma": _gamma,
+#: Each command's headline, in reading order (the one declaration every reader uses).
+HEADLINES: Mapping[str, tuple[Item, ...]] = {
+    "reep": _REEP,
+    "probeloss": _PROBELOSS,
+    "decode": _DECODE,
+    "kalman-bank": _KALMAN_BANK,
+    "identify freeair": _FREEAIR,
+    "identify gamma": _GAMMA,
+    "identify electrostatic": _ELECTROSTATIC,
+    "identify thermal": _THERMAL,
+    "identify invols": _INVOLS,
+    "theory compare": _COMPARE,
+    "theory fit": _FIT,
+    "theory averaging": _AVERAGING,
+    "theory observer": _OBSERVER,
+    "theory controllers": _CONTROLLERS,
+    "design excitation": _DESIGN,
 }
+
+
+# --------------------------------------------------------------------------- report.json's block
+
+
+def _entry(item: Item, results: Mapping) -> dict | None:
+    value = lookup(results, item.path)
+    if value is None or (not item.text and not _number(value)):
+        return None
+    if item.text and not isinstance(value, (str, bool)) and not _number(value):
+        return None
+    std_source = item.std
+    std = lookup(results, std_source) if std_source else None
+    if not _number(std):
+        std, std_source = None, None
+    units = _units(results, item.units)
+    at = None
+    if item.at is not None:
+        where = lookup(results, item.at)
+        if _number(where):
+            at = {"name": item.at_label, "value": where, "units": _units(results, item.at_units), "source": item.at}
+    note = lookup(results, item.note) if item.note else None
+    note = note if isinstance(note, str) else None
+    text = format_with_units(value, std, units)
+    if at is not None:
+        text += f" at {at['name']} = {format_with_units(at['value'], None, at['units'])}"
+    if note:
+        text += f" ({note})"
+    return {"name": item.label, "value": value, "std": std, "units": units, "source": item.path,
+            "std_source": std_source, "at": at, "note": note, "text": text}
 
 
 def headline(command: str, results: Mapping) -> list[dict]:
     """The headline entries of ``command``'s ``results`` (JSON-ready), in reading order.
 
-    Each entry is ``{"name", "value", "std", "units", "source", "std_source"}``:
+    Each entry is ``{"name", "value", "std", "units", "source", "std_source", "at", "note", "text"}``:
     ``value`` is ``results`` at the dotted path ``source`` and ``std`` (its
     standard deviation, or None) at ``std_source``; ``units`` is ``""`` for a
-    dimensionless number.  A command without a headline of its own gets an
-    empty list, and so does a run whose results lack every source.  Entries
-    named ``STATE_NAME`` (text) come first: the run's state where it
-    undermines its own numbers (module docstring).
+    dimensionless number; ``at`` (or None) says where the value occurs
+    (``{"name", "value", "units", "source"}``), ``note`` (or None) its
+    standing ("identified"); ``text`` is the entry as the terminal and the
+    page write it, by :mod:`afmtool.report.numbers`.  An
+    item whose source the run lacks is left out.  Entries named
+    :data:`STATE_NAME` (text) come first: the run's state where it undermines
+    its own numbers (module docstring), and the scores it undermines are left out.
     """
-    block = _Block(results)
-    fill = _BY_COMMAND.get(command)
-    if fill is not None:
-        fill(block)
-    return block.states + block.entries
+    states: list[State] = []
+    for rule in STATES.get(command, ()):
+        state = rule(results, any(s.hides_scores for s in states))
+        if state is not None:
+            states.append(state)
+    hide_scores = any(s.hides_scores for s in states)
+    items = [item for item in HEADLINES.get(command, ()) if not (item.scores and hide_scores)]
+    entries = [entry for entry in (_entry(item, results) for item in items) if entry is not None]
+    said = [{"name": STATE_NAME, "value": s.text, "std": None, "units": "", "source": s.source, "std_source": None,
+             "at": None, "note": None, "text": s.text} for s in states]
+    return said + entries
+
+
+# --------------------------------------------------------------------------- its readers
+
+
+def summary_columns(report: Mapping) -> dict[str, Any]:
+    """``summary.csv``'s columns of one run: each headline entry by its source path (and std, and where)."""
+    columns: dict[str, Any] = {}
+    for entry in report.get("headline") or []:
+        columns[entry["source"]] = entry["value"]
+        if entry.get("std_source"):
+            columns[entry["std_source"]] = entry["std"]
+        if entry.get("at"):
+            columns[entry["at"]["source"]] = entry["at"]["value"]
+    return columns
+
+
+def run_subject(report: Mapping) -> str:
+    """What a run was run on, for a title: the first input's file name, or its folder's for afmtool's own files.
+
+    ``theory compare fc`` records ``fc/report.json`` as its input: its subject is ``fc``.
+    """
+    inputs = report.get("inputs") or []
+    if not inputs or not isinstance(inputs[0], Mapping):
+        return ""
+    path = str(inputs[0].get("path") or "").rstrip("/")
+    parts = path.replace("\\", "/").split("/")
+    name = parts[-1]
+    if name in _OWN_FILES and len(parts) > 1 and parts[-2] not in ("", "."):
+        return parts[-2]
+    return name
+
+
+#: afmtool's own output files that a later command reads: their folder names the run.
+_OWN_FILES = frozenset({"report.json", "free_air.json", "reep.h5", "thermal_sensor.json", "gamma.h5", "fit.json",
+                        "lines.json", "electrostatic.json"})
+
+#: Warnings printed at the end of a run; the rest are counted (report.json has them all).
+TERMINAL_WARNINGS = 6
+
+
+def terminal_lines(report: Mapping, out: str) -> list[str]:
+    """The end-of-run lines on stderr: what ran, the headline aligned, the warnings, where the files went."""
+    command = str(report.get("command", ""))
+    subject = run_subject(report)
+    lines = [f"afmtool {command}" + (f" · {subject}" if subject else "")]
+    entries: Sequence[Mapping] = report.get("headline") or []
+    width = max((len(str(e["name"])) for e in entries), default=0)
+    for entry in entries:
+        text = entry.get("text") or format_measurement(entry.get("value"), entry.get("std"))
+        lines.append(f"  {str(entry['name']).ljust(width)}  {text}")
+    warnings = [str(w) for w in report.get("warnings") or []]
+    for warning in warnings[:TERMINAL_WARNINGS]:
+        lines.append(f"warning: {warning}")
+    if len(warnings) > TERMINAL_WARNINGS:
+        more = len(warnings) - TERMINAL_WARNINGS
+        lines.append(f"warning: {more} more warning{'s' if more != 1 else ''} in report.json")
+    outputs = ", ".join(str(name) for name in report.get("outputs") or [])
+    lines.append(f"wrote {outputs} to {out}")
+    return lines

@@ -26,13 +26,14 @@ import csv
 import html
 import io
 import json
-import math
 import os
 import stat
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 from afmtool.errors import InputError
+from afmtool.report.numbers import format_measurement as _measurement
+from afmtool.report.numbers import format_value
 
 __all__ = [
     "BATCH_COLUMNS",
@@ -155,39 +156,16 @@ def _load_report(folder: Path) -> dict:
 
 
 def _format(value) -> str:
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            return "—"
-        return f"{value:.6g}"
-    if value is None:
-        return "—"
-    return str(value)
+    return format_value(value)
 
 
 def format_measurement(value, std=None, units: str = "") -> tuple[str, str]:
     """``(number, units)`` as the page shows them: ``("70000.2 ± 1.0", "Hz")``.
 
-    With a standard deviation, the value is rounded to the decimal of the
-    deviation's second significant digit (``200.12 ± 0.23``), both under a
-    shared power of ten when they are below 1e-3 or from 1e6 up
-    (``(1.24318 ± 0.00021)e-06``); without one, to 6 significant digits.  Integers and text are shown as they are.
+    The number is written by :func:`afmtool.report.numbers.format_measurement`,
+    the one rule of the terminal, ``report.json``'s headline and the page.
     """
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return _format(value), units
-    if isinstance(value, int) and std is None:
-        return str(value), units
-    if std is not None and isinstance(std, (int, float)) and math.isfinite(std) and std > 0 and math.isfinite(value):
-        exponent = 0
-        magnitude = max(abs(value), std)
-        if magnitude < 1e-3 or magnitude >= 1e6:  # a shared power of ten: (1.24318 ± 0.00021)e-06
-            exponent = int(math.floor(math.log10(magnitude)))
-            value, std = value / 10.0**exponent, std / 10.0**exponent
-        decimals = max(0, 1 - int(math.floor(math.log10(std))))
-        text = f"{value:.{decimals}f} ± {std:.{decimals}f}"
-        return (f"({text})e{exponent:+03d}" if exponent else text), units
-    return _format(float(value)), units
+    return _measurement(value, std), units
 
 
 def headline_rows(results: Mapping, prefix: str = "", depth: int = 0) -> Iterator[tuple[str, str]]:

@@ -108,7 +108,9 @@ def build_report(
     """Assemble a report dict in the order of ``schemas/report.schema.json``.
 
     ``headline`` is :func:`afmtool.report.headline.headline` of the results:
-    the few numbers with units and uncertainties that the HTML page shows first.
+    the few numbers with units and uncertainties that the terminal, the HTML
+    page and batch's summary show.  ``warning_shares`` gives each warning's
+    share of the samples (:class:`afmtool.errors.SampleShareWarning`), or None.
     """
     from afmtool.report.headline import headline
 
@@ -121,7 +123,8 @@ def build_report(
         "parameters": to_jsonable(parameters),
         "results": jsonable_results,
         "outputs": sorted(outputs),
-        "warnings": list(warnings),
+        "warnings": [str(w) for w in warnings],
+        "warning_shares": [getattr(w, "share", None) for w in warnings],
     }
 
 

@@ -149,7 +149,7 @@ def three_sine(
     g(t) = A sin ω_c t + B sin(ω_c + Δω)t + B sin(ω_c − Δω)t with B =
     ``sideband_scale``·A (the thesis uses B = A/2 and Δf ≈ 6 kHz).  The
     sidebands make the deflection envelope beat by about
-    ±2B|G(f_c ± Δf)|/|G(f_c)|; at low Q scale them down (NOTES.md).
+    ±2B|G(f_c ± Δf)|/|G(f_c)|; at low Q scale them down (docs/conventions.md).
 
     Parameters
     ----------

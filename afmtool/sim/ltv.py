@@ -16,7 +16,7 @@ the drive's main line (free-air phase −90° at resonance) and to < 0.1 % at
 side lines ±6 kHz away; with ``drive_hold="zoh"`` the zero-order-hold
 numerator, exact at every frequency for a dither a DAC holds per sample.  Keeping the numerator fixed while the poles move is
 the structure of eq. 5.13 (c1, c0 fixed, ωe and Qe varying), which
-NOTES.md identifies as the physically right one.  w(n) is optional white
+docs/conventions.md identifies as the physically right one.  w(n) is optional white
 process noise (nm); white measurement noise is added to the recorded
 deflection only.
 
