@@ -49,6 +49,9 @@ class CaptureCalibration(NamedTuple):
     accepts_drive: bool = False
     #: Leave a deflection in V as V (``identify invols``).
     raw_deflection: bool = False
+    #: What the command needs of the capture (:class:`afmtool.analyses.capture_check.CaptureNeeds`),
+    #: checked as it is opened, before anything else; None checks nothing.
+    needs: object = None
 
 
 def apply_calibration(reader, calibration: CaptureCalibration | None, *, convert_units: bool = True):
@@ -63,7 +66,6 @@ def apply_calibration(reader, calibration: CaptureCalibration | None, *, convert
         z_sensitivity_nm_per_v=calibration.z_sensitivity_nm_per_v,
         raw_deflection=calibration.raw_deflection,
     )
-    reader = UnitsReader(reader, spec, convert=convert_units)
     lines = ()
     if calibration.drive:
         from afmtool.estimators.drive_lines import parse_drive_lines
@@ -73,6 +75,13 @@ def apply_calibration(reader, calibration: CaptureCalibration | None, *, convert
         from afmtool.analyses.synthetic_drive import drive_lines_from_metadata
 
         lines = drive_lines_from_metadata(reader.info.metadata)
+    if calibration.needs is not None:
+        # the real reason first: a capture that cannot hold the oscillation, or lacks a channel
+        from afmtool.analyses.capture_check import check_capture
+
+        needs = calibration.needs._replace(drive_lines_hz=tuple(line.frequency_hz for line in lines))
+        check_capture(reader.info, needs, synthesisable=bool(lines))
+    reader = UnitsReader(reader, spec, convert=convert_units)
     if lines:
         from afmtool.analyses.synthetic_drive import SyntheticDriveReader
         from afmtool.config.params import parse_interval

@@ -27,7 +27,10 @@ def decode(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: C
     stdout as it is computed; the bits themselves need the whole record's
     two-class threshold and are written only to decode.h5.
     """
-    run_streaming_command("decode", capture, source.args(), output, flags, "afmtool.analyses.decode_outputs")
+    from afmtool.analyses.capture_check import needs_from_flags
+
+    calibration = source.calibration(needs=needs_from_flags("decode", flags, ("deflection",)))
+    run_streaming_command("decode", capture, source.args(calibration), output, flags, "afmtool.analyses.decode_outputs")
 
 
 def register(app: typer.Typer) -> None:

@@ -121,12 +121,16 @@ class CaptureSource(NamedTuple):
     stdin_timeout: float | None = None
 
     def calibration(
-        self, free_air: str | None = None, *, accepts_drive: bool = False, raw_deflection: bool = False
+        self, free_air: str | None = None, *, accepts_drive: bool = False, raw_deflection: bool = False,
+        needs=None,
     ) -> CaptureCalibration:
-        """The :class:`CaptureCalibration` of these options (``free_air`` places a synthesised drive's phases)."""
+        """The :class:`CaptureCalibration` of these options (``free_air`` places a synthesised drive's phases).
+
+        ``needs`` (:class:`afmtool.analyses.capture_check.CaptureNeeds`) is checked as the capture opens.
+        """
         return CaptureCalibration(
             self.units, self.invols, self.z_sensitivity, self.drive, free_air,
-            accepts_drive=accepts_drive, raw_deflection=raw_deflection,
+            accepts_drive=accepts_drive, raw_deflection=raw_deflection, needs=needs,
         )
 
     def args(self, calibration: CaptureCalibration | None = None) -> tuple:

@@ -28,9 +28,11 @@ def kalman_bank(capture: CaptureArg, *, flags: dict, output: CommandOutput, sour
     report.json).  Writes bank.h5, bank_rms_vs_z.png, report.json and
     config.toml.  Needs dither, deflection and z_piezo.
     """
+    from afmtool.analyses.capture_check import needs_from_flags
     from afmtool.analyses.command_inputs import CommandRun
 
-    calibration = source.calibration(flags["free_air"], accepts_drive=True)
+    needs = needs_from_flags("kalman-bank", flags, ("deflection", "dither", "z_piezo"))
+    calibration = source.calibration(flags["free_air"], accepts_drive=True, needs=needs)
     channel, topic, sample_rate, _, _ = source.args()
 
     def reopen():

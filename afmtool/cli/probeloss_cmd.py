@@ -38,7 +38,9 @@ def probeloss(
     if kalman and flags["decay_cycles"] is not None:
         raise ConfigError("--kalman and --decay-cycles choose the gain two ways; give one")
     flags = {**flags, "gain": "kalman" if kalman else None}
-    calibration = source.calibration(flags["free_air"], accepts_drive=True)
+    from afmtool.analyses.capture_check import needs_from_flags
+
+    calibration = source.calibration(flags["free_air"], accepts_drive=True, needs=needs_from_flags("probeloss", flags))
     analysis = "afmtool.analyses.probeloss_outputs"
     run_streaming_command("probeloss", capture, source.args(calibration), output, flags, analysis)
 

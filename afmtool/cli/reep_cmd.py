@@ -32,7 +32,11 @@ def reep(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: Cap
     drifting within the window) are flagged: NaN in the summary, force curves
     and images, counted in the report (reep.h5 keeps them with 'flag').
     """
-    calibration = source.calibration(flags["free_air"], accepts_drive=True)
+    from afmtool.analyses.capture_check import needs_from_flags
+
+    channels = ("deflection", "dither") if flags.get("use_input") is not False else ("deflection",)
+    calibration = source.calibration(flags["free_air"], accepts_drive=True,
+                                     needs=needs_from_flags("reep", flags, channels))
     run_streaming_command("reep", capture, source.args(calibration), output, flags, "afmtool.analyses.reep_outputs")
 
 
@@ -101,8 +105,11 @@ def identify_freeair(
     if psd:
         report = run_freeair_command(None, psd, out, config, flags, lambda done: None)
     else:
+        from afmtool.analyses.capture_check import needs_from_flags
+
         path = thermal or capture
-        with source.open(path, source.calibration(flags["free_air"], accepts_drive=not thermal)) as reader:
+        needs = needs_from_flags("identify freeair", flags, ("deflection",) if thermal else ("deflection", "dither"))
+        with source.open(path, source.calibration(flags["free_air"], accepts_drive=not thermal, needs=needs)) as reader:
             with progress_bar("identify", reader.info.n_samples, output.quiet) as update:
                 report = run_freeair_command(reader, path, out, config, flags, update)
     finish_command(report, out, output.json_output, output.quiet)
