@@ -107,3 +107,28 @@ def test_the_subject_of_a_run_on_a_run_is_its_folder():
     assert run_subject({"inputs": [{"path": "lever/free_air.json"}]}) == "lever"
     assert run_subject({"inputs": [{"path": "data/curve.h5"}]}) == "curve.h5"
     assert run_subject({"inputs": []}) == ""
+
+
+def test_the_page_sets_warning_severity_by_the_share_of_samples(tmp_path):
+    import json
+
+    from afmtool.errors import SampleShareWarning
+    from afmtool.report.html import render_report_html, warning_severity
+    from afmtool.report.json_report import build_report
+
+    one_in_many = SampleShareWarning("1 of 14777 output samples after the warm-up flagged: ...", 1, 14777)
+    report = build_report("reep", [{"path": "c.h5", "role": "capture", "hash": None}], {},
+                          {"flagged_samples": 1}, ["report.json"], [one_in_many])
+    assert report["warning_shares"] == [1 / 14777]
+    (entry,) = report["headline"]
+    assert entry["units"] == "sample" and entry["text"] == "1 sample"  # not "1 samples"
+    (tmp_path / "report.json").write_text(json.dumps(report))
+    page = render_report_html(tmp_path)
+    assert 'class="warning-flag minor"' in page and 'class="warning minor"' in page  # no red badge
+    assert "0.006767 % of the samples" in page
+    assert [warning_severity(s) for s in (1 / 14777, 0.05, 0.5, None)] == ["minor", "moderate", "serious", "serious"]
+    report = build_report("reep", [], {}, {"flagged_samples": 4000}, ["report.json"],
+                          [SampleShareWarning("4000 of 5000 flagged", 4000, 5000), "the drive is off resonance"])
+    (tmp_path / "report.json").write_text(json.dumps(report))
+    page = render_report_html(tmp_path)
+    assert 'class="warning-flag" href' in page and page.count('class="warning serious"') == 2

@@ -448,42 +448,71 @@ def _chromium() -> str:
 
 _LAYOUT_SCRIPT = """<script>addEventListener("load", () => {
   const box = (sel) => { const e = document.querySelector(sel); if (!e) return null;
-    const r = e.getBoundingClientRect(); return {top: r.top, bottom: r.bottom, height: r.height}; };
+    const r = e.getBoundingClientRect(); return {top: r.top, bottom: r.bottom, height: r.height, width: r.width,
+      left: r.left, right: r.right}; };
+  const body = getComputedStyle(document.body);
+  const content = document.body.clientWidth - parseFloat(body.paddingLeft) - parseFloat(body.paddingRight);
   document.body.setAttribute("data-layout", JSON.stringify({headline: box("#headline"),
-    figure: box("#figures figure img, #runs img.thumb"), viewport: innerHeight}));
+    figure: box("#figures figure img, #runs img.thumb"), table: box("#runs table"), viewport: innerHeight,
+    content: content, scroll_width: document.documentElement.scrollWidth, title: document.title,
+    h1: document.querySelector("h1").textContent}));
 });</script>"""
 
+#: The windows the page is checked in (issue 31): a laptop and a phone.
+WINDOWS = {"desktop": (1280, 900), "phone": (390, 844)}
 
-@pytest.mark.parametrize("run", ["readme", "probeloss", "decode", "batch"])
-def test_headline_and_first_figure_above_the_fold(runs, batch_folder, run, tmp_path):
-    chromium = _chromium()
-    folders, _ = runs
-    folder = batch_folder if run == "batch" else folders[run]
-    page = (folder / "report.html") if run == "batch" else None
-    html_text = page.read_text() if page else _page(folder)
+
+def _layout(chromium: str, folder: Path, html_text: str, size: tuple[int, int], profile: Path) -> dict:
     probe = folder / "layout_probe.html"  # beside the page, so that the batch page's thumbnails resolve alike
     probe.write_text(html_text.replace("</body>", _LAYOUT_SCRIPT + "</body>"))
-    common = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1280,800"]
+    common = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--window-size={size[0]},{size[1]}"]
     try:
         dom = subprocess.run([*common, "--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=120).stdout
     finally:
         probe.unlink()
     match = re.search(r'data-layout="([^"]+)"', dom)
     assert match, "the page did not load"
-    layout = json.loads(match.group(1).replace("&quot;", '"'))
-    fold = min(800, layout["viewport"])
-    print(run, layout)
-    assert layout["headline"]["height"] > 0 and layout["headline"]["bottom"] <= fold
-    # the whole first figure shows (a batch page's first figure is a row's thumbnail)
-    assert layout["figure"]["height"] > (50 if run == "batch" else 300) and layout["figure"]["bottom"] <= fold
+    import html as html_module
+
+    return json.loads(html_module.unescape(match.group(1)))
+
+
+@pytest.mark.parametrize("window", sorted(WINDOWS))
+@pytest.mark.parametrize("run", ["readme", "probeloss", "decode", "compare", "fit", "batch"])
+def test_page_in_chromium_title_headline_and_a_full_width_figure(runs, batch_folder, run, window, tmp_path):
+    """Issue 31: the main figure fills the content width, the title names the command and the input."""
+    chromium = _chromium()
+    folders, _ = runs
+    folder = batch_folder if run == "batch" else folders[run]
+    page = (folder / "report.html") if run == "batch" else None
+    html_text = page.read_text() if page else _page(folder)
+    size = WINDOWS[window]
+    layout = _layout(chromium, folder, html_text, size, tmp_path / "profile")
+    print(run, window, layout)
+    report = None if run == "batch" else json.loads((folder / "report.json").read_text())
+    if report is not None:
+        from afmtool.report.headline import run_subject
+
+        assert layout["title"] == f"afmtool {report['command']} — {run_subject(report)}" == layout["h1"]
+        assert "report.json" not in layout["title"]
+        if report["command"].startswith("theory"):
+            assert layout["title"].endswith(" — force_curve")  # the REEP run compared, not its report.json
+    fold = min(size[1], layout["viewport"])
+    assert layout["headline"]["height"] > 0 and layout["headline"]["top"] < fold
+    assert layout["scroll_width"] <= size[0] + 1, "the page scrolls sideways"
+    if run == "batch":
+        assert layout["table"]["right"] <= size[0] and layout["figure"]["height"] > 20
+    else:
+        assert layout["figure"]["width"] >= 0.97 * layout["content"], layout  # fills the content width
+        assert layout["figure"]["top"] < fold  # and starts above the fold
     shot = tmp_path / "shot.png"
+    common = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", f"--window-size={size[0]},{size[1]}"]
     subprocess.run([*common, f"--screenshot={shot}", (folder / "report.html").as_uri()], capture_output=True, timeout=120)
     import matplotlib.image
 
     pixels = matplotlib.image.imread(shot)
-    assert pixels.shape[:2] == (800, 1280)
+    assert pixels.shape[:2] == (size[1], size[0])
     assert float(np.std(pixels[..., :3])) > 0.05  # not a blank page
-
 
 
 def test_reep_rows_flagged_in_reep_h5_are_left_out_and_marked(tmp_path):

@@ -299,7 +299,9 @@ class ReepStage:
         self.plot_rows = ThinnedRows(PLOTTED, self.decimation.count(0, n_samples) if n_samples else None)
         self.flag_counter = FlagCounter()
         self.geometry = ScanGeometry.from_scan(head.info.capture_metadata.scan)
-        self.image_acc = ImageAccumulator(self.geometry, _IMAGE_QUANTITIES) if self.geometry else None
+        # a raster capture with z also gets its height image: z_piezo per pixel, as recorded
+        image_quantities = _IMAGE_QUANTITIES + (("z",) if self.z_mode else ())
+        self.image_acc = ImageAccumulator(self.geometry, image_quantities) if self.geometry else None
         self.curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if self.z_mode and self.force_curves else None
         self._side = head.side
 

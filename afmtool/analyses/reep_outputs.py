@@ -213,6 +213,8 @@ def _write_images(staged: OutputDir, writer: ResultWriter, result: ReepResult, d
     from afmtool.report.images import ImageStyle, write_scan_images
 
     def style(quantity: str) -> ImageStyle:
+        if quantity == "z":  # the height image of a raster capture with z_piezo
+            return ImageStyle("height (z_piezo)", result.z_units, stem="height")
         title, units = _IMAGE_TITLES[quantity]
         return ImageStyle(title, deflection_units if units is None else units)
 

@@ -63,6 +63,9 @@ def _summarize(capture: str, source: CaptureSource, chunk_samples: int, quiet: b
             return summarize(reader, chunk_samples, update)
 
 
+#: The width ``info`` lays its table out at when stdout is not a terminal: wide enough that nothing is cut.
+_PIPED_WIDTH = 10_000
+
 #: Above this many channels ``info`` prints plain lines instead of a rich table.
 _RICH_TABLE_ROWS = 200
 
@@ -71,7 +74,8 @@ def _print_summary(summary) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    console = Console()
+    # piped, rich would lay the table out at 80 columns and cut values with "…": give it room instead
+    console = Console() if sys.stdout.isatty() else Console(width=_PIPED_WIDTH)
     chosen = summary.metadata.get("segment") if isinstance(summary.metadata.get("segment"), dict) else None
     segment = f", segment {chosen.get('index')} {chosen.get('name')}" if chosen else ""
     console.print(f"[bold]{summary.source}[/] ({summary.format}{segment})")

@@ -69,6 +69,8 @@ EXAMPLES: Mapping[str, tuple[str, ...]] = {
     "theory compare": ("afmtool theory compare results/force_curve --out results/theory_compare",),
     "theory observer": ("afmtool theory observer --recommend --cycles 2,4,8,16,50 --out results/observer",),
     "config init": ("afmtool config init afmtool.toml",),
+    "overlay": ("afmtool overlay mica_0 mica_45min mica_2h mica_16h --labels '0,45 min,2 h,16 h' --out results/ageing",
+                "afmtool overlay results/q50 results/q200 --label-key q --vs separation --out results/multi_q"),
 }
 
 

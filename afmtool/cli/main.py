@@ -29,6 +29,7 @@ from afmtool.cli import (
     design_cmd,
     identify_cmd,
     kalman_bank_cmd,
+    overlay_cmd,
     probeloss_cmd,
     reep_cmd,
     simulate_cmd,
@@ -92,6 +93,7 @@ identify_cmd.register(identify_app)
 batch_cmd.register(app)
 kalman_bank_cmd.register(app)
 probeloss_cmd.register(app)
+overlay_cmd.register(app)
 app.add_typer(identify_app, name="identify")
 app.add_typer(theory_cmd.app, name="theory")
 app.add_typer(design_cmd.app, name="design")

@@ -391,6 +391,15 @@ _CONTROLLERS = (
     Item("at line rate", "table.0.line_rate_hz", "Hz"),
 )
 
+_OVERLAY = (
+    Item("runs overlaid", "n_runs", "runs"),
+    Item("free-air f0' spread across the runs", "free_air_f0_hz_spread", "Hz"),
+    Item("free-air Q' spread across the runs", "free_air_q_spread", ""),
+    Item("largest Δf0' on approach, first run", "first.largest_df0_hz", "Hz"),
+    Item("largest Δf0' on approach, last run", "last.largest_df0_hz", "Hz"),
+    Item("spread of the largest Δf0' across the runs", "largest_df0_hz_spread", "Hz"),
+)
+
 #: Each command's headline, in reading order (the one declaration every reader uses).
 HEADLINES: Mapping[str, tuple[Item, ...]] = {
     "reep": _REEP,
@@ -408,10 +417,16 @@ HEADLINES: Mapping[str, tuple[Item, ...]] = {
     "theory observer": _OBSERVER,
     "theory controllers": _CONTROLLERS,
     "design excitation": _DESIGN,
+    "overlay": _OVERLAY,
 }
 
 
 # --------------------------------------------------------------------------- report.json's block
+
+#: Units that count things, and their singular for a count of one.
+_SINGULAR = {"samples": "sample", "events": "event", "filters": "filter", "bits": "bit", "runs": "run",
+             "drive periods": "drive period"}
+
 
 
 def _entry(item: Item, results: Mapping) -> dict | None:
@@ -425,6 +440,8 @@ def _entry(item: Item, results: Mapping) -> dict | None:
     if not _number(std):
         std, std_source = None, None
     units = _units(results, item.units)
+    if value == 1 and not isinstance(value, bool):
+        units = _SINGULAR.get(units, units)  # "1 sample", not "1 samples"
     at = None
     if item.at is not None:
         where = lookup(results, item.at)

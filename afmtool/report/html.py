@@ -26,6 +26,7 @@ import csv
 import html
 import io
 import json
+import math
 import os
 import stat
 from collections.abc import Iterator, Mapping, Sequence
@@ -58,6 +59,7 @@ MAIN_FIGURES: Mapping[str, tuple[str, ...]] = {
     "kalman-bank": ("bank_rms_vs_time.png", "bank_rms_vs_z.png"),
     "identify gamma": ("gamma_ir_ts.png",),
     "identify freeair": ("thermal_fit.png", "sweep_bode.png"),
+    "overlay": ("overlay_f0_hz.png", "overlay_q.png", "overlay_amplitude.png", "overlay_phase_deg.png"),
 }
 
 #: Headline numbers shown per row of a batch page (each run's own page has all of them).
@@ -72,19 +74,26 @@ header { display: flex; align-items: baseline; gap: 1em; flex-wrap: wrap; margin
 h1 { font-size: 1.45em; margin: 0; } h2 { font-size: 1.15em; border-bottom: 1px solid #ccc; padding-bottom: .15em; margin: 1.2em 0 .5em; }
 .meta { color: #555; font-size: .9em; }
 .warning-flag { background: #b00020; color: #fff; border-radius: .3em; padding: .1em .6em; font-size: .9em; text-decoration: none; }
+.warning-flag.minor { background: #e8eaed; color: #333; } .warning-flag.moderate { background: #b26a00; }
 #headline { display: grid; grid-template-columns: repeat(auto-fill, minmax(14.5em, 1fr)); gap: .4em; margin: .3em 0 .8em; }
 .card { border: 1px solid #d6dde6; border-radius: .35em; padding: .3em .6em; background: #f7f9fc; }
 .card .name { font-size: .8em; color: #445; } .card .value { font-size: 1.15em; font-variant-numeric: tabular-nums; }
 .card .units { color: #445; }
 figure { display: inline-block; margin: .4em; vertical-align: top; }
-figure.main { display: block; margin: .3em 0; } figure.main img { max-width: 100%; max-height: calc(100vh - 16em); width: auto; height: auto; }
+figure.main { display: block; margin: .3em 0; } figure.main img { width: 100%; max-width: 100%; height: auto; }
 figure img { max-width: 34em; height: auto; border: 1px solid #eee; }
 figcaption { font-size: .85em; color: #555; }
 .warning { background: #fde7e9; border-left: 6px solid #b00020; padding: .5em .9em; margin: .35em 0; font-weight: 500; }
+.warning.moderate { background: #fff4e0; border-left-color: #b26a00; } .warning.minor { background: #f3f4f6; border-left-color: #9aa0a6; font-weight: normal; }
+.share { color: #555; font-size: .85em; }
 table { border-collapse: collapse; } td, th { border: 1px solid #ddd; padding: .2em .55em; text-align: left; vertical-align: top; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; }
 details { margin: .4em 0; } summary { cursor: pointer; font-weight: 600; }
-img.thumb { max-height: 7em; max-width: 14em; width: auto; height: auto; border: 1px solid #eee; }
+img.thumb { max-height: 7em; max-width: 100%; width: auto; height: auto; border: 1px solid #eee; }
+.table-wrap { overflow-x: auto; max-width: 100%; }
+table.runs { table-layout: fixed; width: 100%; } table.runs td, table.runs th { overflow-wrap: anywhere; }
+table.runs col.input { width: 16%; } table.runs col.status { width: 12%; } table.runs col.link { width: 11%; } table.runs col.figure { width: 17%; }
+@media (max-width: 40em) { body { padding: 0 .6em 1em; } #headline { grid-template-columns: 1fr 1fr; } table.runs col.figure { width: 0; } table.runs .fig { display: none; } }
 td.num { white-space: nowrap; }
 .status-failed { color: #b00020; font-weight: 600; } .status-ok, .status-skipped { color: #1b6e20; }
 """
@@ -247,23 +256,55 @@ def _inputs(report: Mapping) -> str:
     return "<table><tr><th>path</th><th>role</th><th>hash</th></tr>" + "".join(rows) + "</table>"
 
 
+#: A warning about at most this share of the samples is minor (grey); up to MODERATE_SHARE, moderate (amber).
+MINOR_SHARE = 0.01
+MODERATE_SHARE = 0.1
+_SEVERITY_RANK = {"minor": 0, "moderate": 1, "serious": 2}
+
+
+def warning_severity(share) -> str:
+    """``minor``, ``moderate`` or ``serious`` by the share of samples a warning concerns (None: serious)."""
+    if not isinstance(share, (int, float)) or isinstance(share, bool) or not math.isfinite(share):
+        return "serious"
+    return "minor" if share <= MINOR_SHARE else ("moderate" if share <= MODERATE_SHARE else "serious")
+
+
+def _warnings(report: Mapping) -> tuple[str, str]:
+    """(the header's badge, the warning boxes): each warning's colour follows the share of samples it concerns."""
+    warnings = [str(w) for w in report.get("warnings", [])]
+    shares = list(report.get("warning_shares") or [])
+    shares += [None] * (len(warnings) - len(shares))
+    if not warnings:
+        return "", "<p>none</p>"
+    levels = [warning_severity(share) for share in shares[:len(warnings)]]
+    worst = max(levels, key=_SEVERITY_RANK.get)
+    css = "" if worst == "serious" else f" {worst}"
+    badge = f'<a class="warning-flag{css}" href="#warnings">{len(warnings)} warning{"s" if len(warnings) != 1 else ""}</a>'
+    boxes = []
+    for text, share, level in zip(warnings, shares, levels):
+        note = f' <span class="share">({_measurement(100.0 * share)} % of the samples)</span>' if level != "serious" else ""
+        boxes.append(f'<div class="warning {level}">{html.escape(text)}{note}</div>')
+    return badge, "".join(boxes)
+
+
+def page_title(report: Mapping) -> str:
+    """``afmtool COMMAND — SUBJECT``: the command and what it ran on (a run folder's name for a run on a run)."""
+    from afmtool.report.headline import run_subject
+
+    subject = run_subject(report)
+    return f"afmtool {report.get('command')}" + (f" — {subject}" if subject else "")
+
+
 def render_report_html(folder: Path) -> str:
     """The HTML page for the analysis output ``folder``."""
     folder = Path(folder)
     report = _load_report(folder)
     command = str(report["command"])
-    inputs = report.get("inputs", [])
-    subject = Path(str(inputs[0].get("path"))).name if inputs else ""
-    title = f"afmtool {command}" + (f" — {subject}" if subject else "")
-    warnings = [str(w) for w in report.get("warnings", [])]
-    warning_flag = (
-        f'<a class="warning-flag" href="#warnings">{len(warnings)} warning{"s" if len(warnings) != 1 else ""}</a>'
-        if warnings else ""
-    )
+    title = page_title(report)
+    warning_flag, warning_boxes = _warnings(report)
     headline = report.get("headline") or []
     cards = _headline_cards(headline) or '<p class="meta">no headline numbers for this command; see Details.</p>'
     figures = _figures(command, folder) or "<p>none</p>"
-    warning_boxes = "".join(f'<div class="warning">{html.escape(w)}</div>' for w in warnings) or "<p>none</p>"
     files = "".join(f"<li><code>{html.escape(str(name))}</code></li>" for name in report.get("outputs", []))
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">
@@ -308,6 +349,12 @@ def _subfolder(folder: Path, output: str) -> Path | None:
     return None
 
 
+def _short_name(path: str) -> str:
+    """An input as a batch table shows it: its file name (the whole path is the cell's title)."""
+    name = Path(path).name
+    return name or path
+
+
 def render_batch_html(folder: Path) -> str:
     """The page of a batch folder: a row per input, with its headline, main figure and a link."""
     folder = Path(folder)
@@ -348,15 +395,17 @@ def render_batch_html(folder: Path) -> str:
     for row, status, link, figure, values in cells:
         reason = html.escape(row.get("reason", ""))
         numbers = "".join(f'<td class="num">{html.escape(values.get(n, ""))}</td>' for n in names)
+        source = row.get("input", "")
         body.append(
-            f"<tr><td><code>{html.escape(row.get('input', ''))}</code></td>"
+            f'<tr><td title="{html.escape(source)}"><code>{html.escape(_short_name(source))}</code></td>'
             f'<td class="status-{html.escape(status)}">{html.escape(status)}{(": " + reason) if reason else ""}</td>'
-            f"<td>{link}</td><td>{figure}</td>{numbers}</tr>"
+            f'<td>{link}</td><td class="fig">{figure}</td>{numbers}</tr>'
         )
+    done = counts.get("ok", 0) + counts.get("skipped", 0)
     summary_cards = _headline_cards([
-        {"name": "inputs", "value": len(rows), "units": "runs"},
-        {"name": "done", "value": counts.get("ok", 0) + counts.get("skipped", 0), "units": "runs"},
-        {"name": "failed", "value": counts.get("failed", 0), "units": "runs"},
+        {"name": "inputs", "value": len(rows), "units": "run" if len(rows) == 1 else "runs"},
+        {"name": "done", "value": done, "units": "run" if done == 1 else "runs"},
+        {"name": "failed", "value": counts.get("failed", 0), "units": "run" if counts.get("failed", 0) == 1 else "runs"},
     ])
     title = f"afmtool batch {command}".rstrip() + f" — {folder.name}"
     failed = counts.get("failed", 0)
@@ -369,7 +418,8 @@ def render_batch_html(folder: Path) -> str:
 <header><h1>{html.escape(title)}</h1>{flag}</header>
 <section id="headline-block" aria-label="headline"><div id="headline">{summary_cards}</div></section>
 <section id="runs"><h2>Runs</h2>
-<table><tr><th>input</th><th>status</th><th>report</th><th>main figure</th>{head}</tr>{''.join(body)}</table></section>
+<div class="table-wrap"><table class="runs"><colgroup><col class="input"><col class="status"><col class="link"><col class="figure">{"<col>" * len(names)}</colgroup>
+<tr><th>input</th><th>status</th><th>report</th><th class="fig">main figure</th>{head}</tr>{''.join(body)}</table></div></section>
 </body></html>
 """
 

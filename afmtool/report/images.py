@@ -456,9 +456,14 @@ def _draw_colorbar(fig: Figure, ax: Axes, im: Any, label: str, extend: str) -> N
 
 
 def _image_figure_size(x_real_m: float, y_real_m: float, n: int) -> tuple[float, float]:
-    aspect = min(max(y_real_m / x_real_m, 0.25), 4.0)
+    """(width, height) in inches: the image at its true aspect, plus room for the title and the x axis.
+
+    A scan of a few lines is a thin strip; the figure is cut to it (no band
+    of white above and below), with a floor that keeps the colour bar legible.
+    """
+    aspect = min(max(y_real_m / x_real_m, 0.02), 4.0)
     panel = 4.8 if n == 1 else 3.6
-    height = min(max(panel * aspect, 2.4), 9.0) + 1.0
+    height = min(max(panel * aspect, 0.6), 9.0) + 1.1
     return panel * n + 1.6, height
 
 
