@@ -25,7 +25,7 @@ function from u to p is therefore
 
 |G(jω0)| = k_g·Q and arg G(jω0) = −90°.
 
-Tip-sample force (eq. 4.1 in the NOTES.md sign convention)
+Tip-sample force (eq. 4.1 in the docs/conventions.md sign convention)
 ----------------------------------------------------------
 The force is positive upward, the sample surface sits at p = −l, the
 tip-sample separation is t_s = p + l, attraction is negative for
@@ -238,7 +238,7 @@ def _drive_metadata(drive) -> dict:
 
 @dataclass(frozen=True)
 class PiecewiseLinearForce:
-    """Eq. 4.1 per unit mass in the NOTES.md convention (module docstring).
+    """Eq. 4.1 per unit mass in the docs/conventions.md convention (module docstring).
 
     ``d_nm`` attractive range (nm), ``wa2``/``wb2`` attractive/repulsive
     stiffness per unit mass (1/s²), ``ca``/``cb`` damping per unit mass (1/s).

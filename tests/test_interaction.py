@@ -53,7 +53,7 @@ def test_quantities_match_the_cycle_integrals_of_the_reference_force(l_nm):
         assert energy_ev == 0 and abs(float(out.energy_per_cycle_ev)) < 1e-9
     else:
         assert energy_ev > 0
-    if a < l_nm < a + 4.0:  # attraction only: a negative force gradient, Φ_c > 0 (NOTES.md signs)
+    if a < l_nm < a + 4.0:  # attraction only: a negative force gradient, Φ_c > 0 (docs/conventions.md signs)
         assert float(out.force_gradient_n_per_m) < 0 < float(out.phi_c_n)
     if l_nm < a - 4.0:  # deep in the repulsive wall
         assert float(out.force_gradient_n_per_m) > 0

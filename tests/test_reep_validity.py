@@ -5,7 +5,7 @@ Acceptance: along a force curve into the attractive trap every unflagged f0′ l
 (``sample_data/force_curve_thesis.h5``) and on a capture of the independent
 ``tests/reference_sim.py``; the bundled capture no longer reports an f0′ range below 50 kHz.
 
-The theory here is the first-harmonic balance of NOTES.md (ch. 4) by direct quadrature of
+The theory here is the first-harmonic balance of docs/conventions.md (ch. 4) by direct quadrature of
 the reference simulator's own force, so the truth shares nothing with afmtool; it is also
 checked against afmtool's closed forms (``afmtool.models.averaging``).
 """
@@ -42,7 +42,7 @@ WARMUP_S = 2e-3
 
 
 def first_harmonic_f0_hz(amplitude_nm, separation_nm, f0_hz, force: ref.PiecewiseLinearForce, n_theta=720):
-    """f_e from ωe² = ω0² − (1/(πa))∫₀^{2π} F(a cosθ, −aω sinθ) cosθ dθ (NOTES.md, ch. 4), by quadrature.
+    """f_e from ωe² = ω0² − (1/(πa))∫₀^{2π} F(a cosθ, −aω sinθ) cosθ dθ (docs/conventions.md, ch. 4), by quadrature.
 
     The dissipative terms are odd in sinθ and drop out of the cosθ integral, so ω does not enter.
     """
@@ -124,7 +124,7 @@ def test_without_offset_regressor_the_trap_reads_far_low(tmp_path):
 
 def _reference_force_curve(path: Path, hold: str) -> Path:
     # Free air 80,318 Hz, Q 168, three-sine drive for a 20 nm free amplitude (side lines at a quarter:
-    # at Q 168 their beating would otherwise modulate the interaction, NOTES.md); 0.08 s in free air
+    # at Q 168 their beating would otherwise modulate the interaction, docs/conventions.md); 0.08 s in free air
     # at 30 nm, then in 0.14 s down to 2 nm (the bottom of the trap), and back, as the bundled capture.
     fs, duration = 500e3, 0.4
     top, bottom, t_free = 30.0, 2.0, 0.08

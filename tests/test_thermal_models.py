@@ -136,7 +136,7 @@ def test_linearised_actuation_matches_numerical_derivatives():
     assert small.gain_m_per_v == pytest.approx(float(df_dv) / (k * (1 - kappa)), rel=1e-6)
     assert small.f0_hz == pytest.approx(51858.0 * math.sqrt(1 - kappa))
     assert small.q == pytest.approx(2.3715 * math.sqrt(1 - kappa))
-    # the response: DC gain L, and the denominator s² + (ω′/Q′)s + ω′² (NOTES.md fix)
+    # the response: DC gain L, and the denominator s² + (ω′/Q′)s + ω′² (docs/conventions.md fix)
     assert small.response(np.array([0.0]))[0] == pytest.approx(small.gain_m_per_v)
     assert abs(small.response(np.array([small.f0_hz]))[0]) == pytest.approx(abs(small.gain_m_per_v) * small.q)
     with pytest.raises(ConfigError, match="past snap-in"):

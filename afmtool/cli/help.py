@@ -68,6 +68,16 @@ EXAMPLES: Mapping[str, tuple[str, ...]] = {
     "theory averaging": ("afmtool theory averaging --force-set attractive --out results/averaging",),
     "theory compare": ("afmtool theory compare results/force_curve --out results/theory_compare",),
     "theory observer": ("afmtool theory observer --recommend --cycles 2,4,8,16,50 --out results/observer",),
+    "theory fit": ("afmtool theory fit results/force_curve --out results/fit",
+                   "afmtool theory fit results/scope_curve --z-sensitivity -12.5 --out results/fit_scope"),
+    "theory controllers": ("afmtool theory controllers --out results/controllers",
+                           "afmtool theory controllers --lines 4 --figure-lines 48 --out results/controllers_small"),
+    "identify invols": ("afmtool identify invols curve_on_sapphire.ibw --out results/invols",
+                        "afmtool identify invols scope.csv --channel deflection=CH1 --channel z_piezo=CH2 "
+                        "--z-sensitivity 12.5 --out results/invols"),
+    "design excitation": ("afmtool design excitation --model results/freeair --amplitude 20 --out results/excitation",
+                          "afmtool design excitation --model results/freeair --amplitude 20 --dac-rate 2000000 "
+                          "--beat-tolerance 0.02 --out results/excitation"),
     "config init": ("afmtool config init afmtool.toml",),
     "overlay": ("afmtool overlay mica_0 mica_45min mica_2h mica_16h --labels '0,45 min,2 h,16 h' --out results/ageing",
                 "afmtool overlay results/q50 results/q200 --label-key q --vs separation --out results/multi_q"),

@@ -762,7 +762,7 @@ class SweepIdentification(NamedTuple):
 
 
 def _auto_hold(continuous: RecordFit, sample_rate_hz: float) -> tuple[str, str]:
-    """zoh or continuous from the continuous-model fit's delay (0 or T/2; NOTES: a hold delays by T/2)."""
+    """zoh or continuous from the continuous-model fit's delay (0 or T/2; a hold delays by T/2, docs/conventions.md)."""
     period = 1.0 / sample_rate_hz
     tau, tau_std = continuous.delay_s, continuous.delay_std_s
     seen = f"the continuous-drive model needs a delay of {tau * 1e6:.4g} µs ± {tau_std * 1e6:.2g} µs"

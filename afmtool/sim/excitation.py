@@ -392,3 +392,68 @@ def drive_metadata(params, center_hz: float, amplitude_v: float) -> dict:
     elif params.drive == "sine":
         drive["sideband_offset_hz"] = 0.0
     return drive
+
+
+# --------------------------------------------------------------------------- a designed drive, played
+
+
+def load_designed_drive(path: str) -> MultiSine:
+    """The dither ``afmtool design excitation`` wrote, as the lines a simulator plays.
+
+    ``lines.json`` (or its folder) gives the lines as designed: u(t) = Σ A_k sin(2πf_k t + φ_k).
+    ``excitation.wav`` is the sampled loop an arbitrary waveform generator plays; a
+    generator (or a DAC behind its reconstruction filter) plays its band-limited
+    reconstruction, and because the loop holds a whole number of cycles of every
+    line, that reconstruction is exactly the sum of the sines in the loop's DFT bins:
+    the lines are read from the bins that carry them (above 1e-6 of the largest).  Its
+    volts per full scale come from the ``lines.json`` beside it (``wav_full_scale_v``).
+
+    Raises
+    ------
+    ConfigError
+        The file is neither, or cannot be read as one.
+    """
+    import json
+    from pathlib import Path
+
+    source = Path(path)
+    if source.is_dir():
+        source = source / "lines.json"
+    if source.suffix.lower() == ".wav":
+        return _drive_from_wav(source)
+    try:
+        design = json.loads(source.read_text(encoding="utf-8"))
+        lines = design["lines"]
+        return MultiSine(
+            tuple(float(line["amplitude_v"]) for line in lines),
+            tuple(float(line["frequency_hz"]) for line in lines),
+            tuple(math.radians(float(line.get("phase_deg", 0.0))) for line in lines),
+        )
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"drive_file {path}: not a lines.json of 'afmtool design excitation' ({exc})") from None
+
+
+def _drive_from_wav(source) -> MultiSine:
+    import json
+
+    beside = source.with_name("lines.json")
+    try:
+        full_scale_v = float(json.loads(beside.read_text(encoding="utf-8"))["wav_full_scale_v"])
+    except (OSError, ValueError, KeyError, TypeError):
+        raise ConfigError(f"drive_file {source}: its volts per full scale are in the lines.json beside it "
+                          f"({beside}), which cannot be read; keep the folder 'design excitation' wrote") from None
+    from scipy.io import wavfile
+
+    try:
+        rate, loop = wavfile.read(str(source))
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"drive_file {source}: cannot be read as a WAV loop ({exc})") from None
+    if loop.ndim != 1 or loop.dtype.kind != "f":
+        raise ConfigError(f"drive_file {source}: not the mono float WAV 'design excitation' writes")
+    spectrum = np.fft.rfft(loop.astype(np.float64) * full_scale_v) * (2.0 / loop.size)
+    bins = np.flatnonzero(np.abs(spectrum) > 1e-6 * np.abs(spectrum).max())
+    bins = bins[bins > 0]
+    frequencies = bins * rate / loop.size
+    # X_k = A·e^{i(φ − π/2)} for A·sin(2πft + φ): the sine phase is arg X_k + π/2
+    return MultiSine(tuple(np.abs(spectrum[bins]).tolist()), tuple(frequencies.tolist()),
+                     tuple((np.angle(spectrum[bins]) + math.pi / 2).tolist()))

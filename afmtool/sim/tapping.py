@@ -84,6 +84,10 @@ class TappingParams:
         2.0, "spring constant k (sets the thermal noise level)", "N/m", minimum=0, exclusive_minimum=True
     )
     drive: str = param("three-sine", "dither type", "", choices=DRIVE_KINDS)
+    drive_file: str = param(
+        "", "play a designed dither: lines.json or excitation.wav of 'afmtool design excitation' (replaces drive and "
+        "amplitude_nm); '' = off", "",
+    )
     drive_hold: str = param(
         "continuous", "how the plant sees the dither: a continuous signal at every RK4 stage, or held per sample "
         "(a DAC at the sample rate)", "", choices=("continuous", "zoh"),
@@ -180,6 +184,12 @@ class TappingParams:
         a held dither (``drive_hold="zoh"``) is also divided by sinc(f_c/fs), the
         staircase's fundamental.
         """
+        if self.drive_file:
+            from afmtool.sim.excitation import load_designed_drive
+
+            lines = load_designed_drive(self.drive_file)
+            main = int(np.argmax(lines.amplitudes))
+            return lines, float(lines.frequencies_hz[main]), float(lines.amplitudes[main])
         center_hz = self.f0_hz + self.drive_offset_hz
         if not center_hz > 0:
             raise ConfigError(f"drive_offset_hz={self.drive_offset_hz!r} puts the drive at {center_hz:g} Hz")
@@ -416,6 +426,15 @@ def _initial_state(excitation, cantilever: Cantilever, gain: float, hold_fs: flo
 
 def _drive_metadata(params: TappingParams, excitation, center_hz: float, amplitude_v: float) -> dict:
     drive = drive_metadata(params, center_hz, amplitude_v)
+    if params.drive_file:  # a designed drive: its lines, as an instrument would record them
+        drive.update(kind="designed", source=params.drive_file, lines=[
+            {"frequency_hz": f, "amplitude_v": a, "phase_deg": math.degrees(p)}
+            for a, f, p in zip(excitation.amplitudes, excitation.frequencies_hz, excitation.phases_rad)
+        ])
+        drive.pop("free_amplitude_nm", None)
+        drive.pop("sideband_scale", None)
+        others = [f for f in excitation.frequencies_hz if f != center_hz]
+        drive["sideband_offset_hz"] = float(min(abs(f - center_hz) for f in others)) if others else 0.0
     if params.drive == "chirp":
         drive["start_hz"] = float(excitation.start_hz)
         drive["end_hz"] = float(excitation.end_hz)
@@ -487,7 +506,7 @@ def simulate_tapping(params: TappingParams, seed: int, *, chunk_samples: int = _
     -------
     SimulatedCapture
         Channels ``dither`` (V), ``deflection`` (nm) and, for the
-        force-curve program, ``z_piezo`` (nm, l(t) − l(0): positive = sample
+        force-curve and steps programs, ``z_piezo`` (nm, l(t) − l(0): positive = sample
         farther from the tip).  Truth: ``separation_nm``, ``contact``
         (uint8, p + l < d during the sample period), ``deflection_clean``,
         plus ``ramp_direction`` (force curve: −1 approach, +1 retract) or
@@ -529,6 +548,10 @@ def simulate_tapping(params: TappingParams, seed: int, *, chunk_samples: int = _
         truth["ramp_direction"] = sampled.direction
     elif isinstance(program, LineScan):
         truth["topography_nm"] = program.height_nm(t)
+    elif isinstance(program, SeparationSteps):
+        # the piezo moves the sample by the steps: z_piezo = l(t) − l(0), as on a force curve
+        channels.append(ChannelSpec("z_piezo", "nm"))
+        data["z_piezo"] = separation - separation[0]
 
     metadata = {
         "scenario": "tapping",
