@@ -79,9 +79,9 @@ h1 { font-size: 1.45em; margin: 0; } h2 { font-size: 1.15em; border-bottom: 1px 
 .card { border: 1px solid #d6dde6; border-radius: .35em; padding: .3em .6em; background: #f7f9fc; }
 .card .name { font-size: .8em; color: #445; } .card .value { font-size: 1.15em; font-variant-numeric: tabular-nums; }
 .card .units { color: #445; }
-figure { display: inline-block; margin: .4em; vertical-align: top; }
+figure { display: inline-block; margin: .4em; vertical-align: top; max-width: 100%; }
 figure.main { display: block; margin: .3em 0; } figure.main img { width: 100%; max-width: 100%; height: auto; }
-figure img { max-width: 34em; height: auto; border: 1px solid #eee; }
+figure img { max-width: min(34em, 100%); height: auto; border: 1px solid #eee; }
 figcaption { font-size: .85em; color: #555; }
 .warning { background: #fde7e9; border-left: 6px solid #b00020; padding: .5em .9em; margin: .35em 0; font-weight: 500; }
 .warning.moderate { background: #fff4e0; border-left-color: #b26a00; } .warning.minor { background: #f3f4f6; border-left-color: #9aa0a6; font-weight: normal; }

@@ -404,6 +404,21 @@ def _program(params: TappingParams):
     return LineScan(params.separation_nm, positions, heights, free_air_s, params.duration_s - free_air_s)
 
 
+def _program_channels(program, t: np.ndarray, separation: np.ndarray, channels: list, data: dict, truth: dict) -> None:
+    """What the separation program adds: z_piezo (force curve, steps), the ramp direction, the topography."""
+    if isinstance(program, ForceCurve):
+        sampled = program.sample(t)
+        channels.append(ChannelSpec("z_piezo", "nm"))
+        data["z_piezo"] = sampled.z_piezo_nm
+        truth["ramp_direction"] = sampled.direction
+    elif isinstance(program, LineScan):
+        truth["topography_nm"] = program.height_nm(t)
+    elif isinstance(program, SeparationSteps):
+        # the piezo moves the sample by the steps: z_piezo = l(t) − l(0), as on a force curve
+        channels.append(ChannelSpec("z_piezo", "nm"))
+        data["z_piezo"] = separation - separation[0]
+
+
 def _initial_state(excitation, cantilever: Cantilever, gain: float, hold_fs: float | None = None) -> tuple[float, float]:
     """Free-air steady state at t = 0 (sweeps: that of a sine at their initial frequency and phase).
 
@@ -541,17 +556,7 @@ def simulate_tapping(params: TappingParams, seed: int, *, chunk_samples: int = _
     channels = [ChannelSpec("dither", "V"), ChannelSpec("deflection", "nm")]
     data = {"dither": dither, "deflection": clean + measurement}
     truth = {"separation_nm": separation, "contact": contact, "deflection_clean": clean}
-    if isinstance(program, ForceCurve):
-        sampled = program.sample(t)
-        channels.append(ChannelSpec("z_piezo", "nm"))
-        data["z_piezo"] = sampled.z_piezo_nm
-        truth["ramp_direction"] = sampled.direction
-    elif isinstance(program, LineScan):
-        truth["topography_nm"] = program.height_nm(t)
-    elif isinstance(program, SeparationSteps):
-        # the piezo moves the sample by the steps: z_piezo = l(t) − l(0), as on a force curve
-        channels.append(ChannelSpec("z_piezo", "nm"))
-        data["z_piezo"] = separation - separation[0]
+    _program_channels(program, t, separation, channels, data, truth)
 
     metadata = {
         "scenario": "tapping",
