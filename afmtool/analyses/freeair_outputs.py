@@ -29,7 +29,8 @@ __all__ = ["run_freeair_command"]
 _CHUNK_SAMPLES = 1 << 20
 
 
-def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tuple[FreeAirModel, dict]:
+def _segment_route(reader: CaptureReader, params: FreeAirParams, progress):
+    """(model, details, plot): the ARX fit on the free-air segment, and its Bode figure."""
     interval = parse_interval(params.free_air, "--free-air")
     free_air = reader.info.capture_metadata.free_air
     if interval is None and free_air is not None:
@@ -43,7 +44,51 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> tu
     (segment,) = run_stream(reader, [stage], channels=("deflection", "dither"), chunk_samples=_CHUNK_SAMPLES,
                             progress=progress, prologue=stage.until_end)
     model = free_air_from_segment(segment["deflection"], segment["dither"], fs)
-    return model, {"segment_s": list(interval), "segment_samples": end - start}
+    units = reader.info.units("deflection") or "input units"
+    measured = _segment_lines(segment["deflection"], segment["dither"], fs, model.f0_hz)
+    details = {"segment_s": list(interval), "segment_samples": end - start}
+    return model, details, lambda path: write_segment_bode_png(path, measured, model, units)
+
+
+def _segment_lines(deflection: np.ndarray, dither: np.ndarray, fs: float, f0_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Hz, complex H) of the segment at each line of its dither near f0: one DFT bin at each line's frequency."""
+    from afmtool.estimators.drive_lines import excitation_lines
+
+    lines = np.asarray(excitation_lines(dither, fs, f0_hz), dtype=np.float64)
+    t = np.arange(deflection.size) / fs
+    response = []
+    for f in lines:
+        kernel = np.exp(-2j * np.pi * f * t)
+        response.append(np.dot(deflection, kernel) / np.dot(dither, kernel))
+    return lines, np.asarray(response, dtype=np.complex128)
+
+
+def _discrete_response(model: FreeAirModel, frequency_hz: np.ndarray) -> np.ndarray:
+    """The fitted ARX model on the unit circle (eq. 3.40), numerator and hold included; else the continuous G."""
+    if model.numerator is None or model.denominator is None or not model.sample_rate_hz:
+        return model_response(model, frequency_hz)
+    z_inv = np.exp(-2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) / model.sample_rate_hz)
+    numerator = sum(c * z_inv**k for k, c in enumerate(model.numerator))
+    b1, b0 = model.denominator
+    return numerator / (1.0 + b1 * z_inv + b0 * z_inv**2)
+
+
+def write_segment_bode_png(path: Path, measured: tuple[np.ndarray, np.ndarray], model: FreeAirModel, units: str) -> None:
+    """The segment route's figure: the fitted model (±1σ) and the segment's response at its drive lines."""
+    from afmtool.report.bode import BodeCurve, write_bode_png
+
+    span = max(5.0 * model.f0_hz / model.q, 0.05 * model.f0_hz)
+    lines_hz = measured[0]
+    low = min([model.f0_hz - span, *(lines_hz - 0.1 * span)])
+    high = max([model.f0_hz + span, *(lines_hz + 0.1 * span)])
+    fine = np.linspace(max(low, 1.0), high, 2000)
+    curves = [BodeCurve(fine, _discrete_response(model, fine), f"ARX fit: f0 = {model.f0_hz:.1f} Hz, Q = {model.q:.1f}",
+                        {"color": "C3"}, model_magnitude_std(model, fine))]
+    if lines_hz.size:
+        curves.append(BodeCurve(lines_hz, measured[1], "segment, at the drive lines",
+                                {"color": "C0", "linestyle": "none", "marker": "o"}))
+    write_bode_png(path, curves, title="Free-air model from the off-sample segment",
+                   magnitude_label=f"|H| (dB re 1 {units})", markers=[(model.f0_hz, "f0")])
 
 
 def model_response(model: FreeAirModel, frequency_hz: np.ndarray) -> np.ndarray:
@@ -394,13 +439,13 @@ def run_freeair_command(
         model, details, warnings, plot = _sweep_route(reader, params, progress)
         inputs = [{**input_record(source), **calibration_record(reader)}]
     else:
-        model, details = _segment_route(reader, params, progress)
+        model, details, plot = _segment_route(reader, params, progress)
         inputs = [{**input_record(source), **calibration_record(reader)}]
     with OutputDir(out) as staged:
         model.save(staged.path("free_air.json"))
         if params.route == "sweep" and params.sweep_method == "record":
             _write_sweep_fit(staged, details.pop("_fit"), reader.info.sample_rate_hz)
         elif plot is not None:
-            plot(staged.path("thermal_fit.png" if params.route == "thermal" else "sweep_bode.png"))
+            plot(staged.path({"thermal": "thermal_fit.png", "sweep": "sweep_bode.png"}.get(params.route, "segment_bode.png")))
         results = {"free_air_model": model.to_dict(), "route": params.route, **details}
         return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, warnings)

@@ -58,7 +58,7 @@ MAIN_FIGURES: Mapping[str, tuple[str, ...]] = {
     "decode": ("decode_time_series.png", "eye.png", "psd.png", "l0_search.png"),
     "kalman-bank": ("bank_rms_vs_time.png", "bank_rms_vs_z.png"),
     "identify gamma": ("gamma_ir_ts.png",),
-    "identify freeair": ("thermal_fit.png", "sweep_bode.png"),
+    "identify freeair": ("thermal_fit.png", "sweep_bode.png", "segment_bode.png"),
     "overlay": ("overlay_f0_hz.png", "overlay_q.png", "overlay_amplitude.png", "overlay_phase_deg.png"),
 }
 
