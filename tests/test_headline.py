@@ -132,3 +132,9 @@ def test_the_page_sets_warning_severity_by_the_share_of_samples(tmp_path):
     (tmp_path / "report.json").write_text(json.dumps(report))
     page = render_report_html(tmp_path)
     assert 'class="warning-flag" href' in page and page.count('class="warning serious"') == 2
+
+
+def test_an_overlay_is_titled_by_its_runs():
+    runs = [{"label": label} for label in ("0", "45 min", "2 h", "16 h")]
+    assert run_subject({"command": "overlay", "results": {"runs": runs}, "inputs": [{"path": "r/report.json"}]}) == \
+        "0, 45 min, 2 h, 16 h"

@@ -99,7 +99,9 @@ def _read_one(folder: Path) -> OverlayRun:
             for quantity in FORCE_CURVE_QUANTITIES:
                 if quantity in names:
                     curve[quantity] = np.asarray(handle[f"force_curve/{leg}/{quantity}"][()], dtype=float)
-                    run.units[quantity] = handle.units(f"force_curve/{leg}/{quantity}")
+                    units = handle.units(f"force_curve/{leg}/{quantity}")
+                    # reep's tables leave the amplitude's units to the series (the deflection's)
+                    run.units[quantity] = units or (run.amplitude_units if quantity == "amplitude" else "")
             run.curves[leg] = curve
         rows = handle.read_rows([q for q in TIME_QUANTITIES if q in handle.names()], max_points=_TIME_POINTS)
         rows.pop("_rows", None)

@@ -505,6 +505,10 @@ def run_subject(report: Mapping) -> str:
 
     ``theory compare fc`` records ``fc/report.json`` as its input: its subject is ``fc``.
     """
+    runs = (report.get("results") or {}).get("runs") if report.get("command") == "overlay" else None
+    if isinstance(runs, list) and runs:  # an overlay: its runs, by label
+        labels = [str(run.get("label")) for run in runs if isinstance(run, Mapping)]
+        return ", ".join(labels) if len(labels) <= 6 else f"{', '.join(labels[:3])} … {labels[-1]} ({len(labels)} runs)"
     inputs = report.get("inputs") or []
     if not inputs or not isinstance(inputs[0], Mapping):
         return ""
