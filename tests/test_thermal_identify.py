@@ -168,6 +168,10 @@ def test_identify_thermal_command_end_to_end(tmp_path):
     assert res["dynamics"]["lever_motion_removed"] is True
     assert res["dynamics"]["c"]["dc_gain_k_per_mw"] == pytest.approx(102.5, rel=0.02)
     assert res["dynamics"]["h"]["dc_gain_k_per_nm"] == pytest.approx(0.2231, rel=0.03)
+    # issue 31: the --vr-sweep route is headlined too (it was empty)
+    headline = {entry["name"]: entry for entry in report["headline"]}
+    assert headline["C(jω) DC gain"]["value"] == res["dynamics"]["c"]["dc_gain_k_per_mw"]
+    assert headline["H(jω) DC gain"]["units"] == "K/nm" and "K_TP in contact (z curve)" in headline
     for name in ("thermal_sensor.json", "iv.csv", "g_table.csv", "k_tp.csv", "frf_c.csv", "frf_h.csv", "iv_knee.png",
                  "g_of_t.png", "k_tp.png", "c.png", "h.png", "thermal.h5"):
         assert (out / name).is_file(), name
