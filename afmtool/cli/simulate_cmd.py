@@ -120,7 +120,7 @@ def simulate(
     )
     with output_target(output, fmt) as target:
         convert_capture(reader, target, fmt)
-    if not quiet:
+    if not quiet and output != "-":  # into a pipe, the samples are the answer: stderr stays quiet
         from afmtool.cli.common import print_stderr_lines
 
         print_stderr_lines(_summary(scenario, captured, output, fmt))
@@ -140,7 +140,7 @@ def _summary(scenario: str, captured, output: str, fmt: str) -> list[str]:
     drive = captured.metadata.get("drive") or {}
     if drive.get("kind") == "designed":
         lines.append(f"  drive: {len(drive['lines'])} designed lines from {drive['source']}")
-    lines.append(f"wrote {'stdout' if output == '-' else output}")
+    lines.append(f"wrote {output}")
     return lines
 
 
