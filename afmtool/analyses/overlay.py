@@ -317,7 +317,8 @@ def run_overlay_command(folders: Sequence[Path], out: Path, *, labels: Sequence[
     figures = figures or FigureProcess()
     inputs = [input_record(Path(run.folder) / "report.json", "run") for run in runs if (Path(run.folder) / "report.json").is_file()]
     with OutputDir(out) as staged, figures.stopped_on_failure():
-        page = staged.path("report.html")  # named now, so that report.json lists it
+        page = staged.path("report.html")  # named (and there) now, so that report.json lists it
+        page.touch()
         for name, panels, x_label, title in _figure_specs(runs, vs, x_units, legs, contact):
             figures.draw(write_multi_panel_png, staged.path(name), panels, x_label=x_label, title=title)
         _write_csv(staged.path("overlay.csv"), _tidy_rows(runs, vs, x_units, contact))

@@ -28,6 +28,8 @@ def finish_run(
         encoding="utf-8",
     )
     report_path = staged.path("report.json")
+    # OutputDir.names lists the outputs that exist: report.json must, to list itself
+    report_path.touch()
     from afmtool.report.captured_warnings import drain
 
     warnings = [*warnings, *drain()]  # numpy/h5py warnings of this run, recorded instead of printed
