@@ -16,6 +16,8 @@ import pytest
 
 from tests.conftest import run_cli, validate_report
 
+pytestmark = pytest.mark.long  # four simulated force curves through REEP, then the overlay
+
 LABELS = ("0", "45 min", "2 h", "16 h")
 DAMPING = (1.0e4, 2.0e4, 4.0e4, 8.0e4)
 

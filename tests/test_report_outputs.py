@@ -502,7 +502,7 @@ def _layout(chromium: str, folder: Path, html_text: str, size: tuple[int, int], 
 
 
 @pytest.mark.parametrize("window", sorted(WINDOWS))
-@pytest.mark.parametrize("run", ["readme", "probeloss", "decode", "compare", "fit", "batch"])
+@pytest.mark.parametrize("run", ["readme", "probeloss", "compare", "batch"])
 def test_page_in_chromium_title_headline_and_a_full_width_figure(runs, batch_folder, run, window, tmp_path):
     """Issue 31: the main figure fills the content width, the title names the command and the input."""
     chromium = _chromium()

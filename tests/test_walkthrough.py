@@ -23,6 +23,8 @@ import pytest
 from tests import reference_sim as ref
 from tests.conftest import REPO
 
+pytestmark = pytest.mark.long  # five commands and three reference captures: about half a minute of CPU
+
 F0_HZ, Q, K_N_PER_M, INVOLS_NM_PER_V, Z_NM_PER_V = 75_000.0, 180.0, 2.0, 50.0, 10.0
 FS = 500_000.0
 
