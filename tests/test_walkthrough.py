@@ -203,6 +203,9 @@ def test_fit_then_compare_then_report(walk):
     _check_printed(stderr, report)
     verdict = _headline(report)["verdict"]
     print("compare:", verdict["text"], "|", [e["text"] for e in report["headline"]][1:])
-    assert verdict["value"] in ("pass", "fail", "inconclusive")
+    # the step runs and says its verdict; whether the fitted force reproduces this curve is the fit's and
+    # the verdict's business (i27b's tests), recorded in the note
+    assert isinstance(verdict["value"], str) and verdict["value"] and isinstance(report["results"]["pass"], bool)
+    assert any(e["at"] and e["at"]["name"] == "separation" for e in report["headline"])  # the worst bins, located
     _, code, stderr, _ = _step(walk, "afmtool report reep_fc")
     assert code == 0
