@@ -138,3 +138,15 @@ def test_an_overlay_is_titled_by_its_runs():
     runs = [{"label": label} for label in ("0", "45 min", "2 h", "16 h")]
     assert run_subject({"command": "overlay", "results": {"runs": runs}, "inputs": [{"path": "r/report.json"}]}) == \
         "0, 45 min, 2 h, 16 h"
+
+
+def test_controllers_and_design_headlines_read_their_results():
+    controllers = {"pass": True, "table": [{"line_rate_hz": 4.0, "low": {"loss_area": 0.0658}, "high": {"loss_area": 0.0348},
+                                            "switching": {"loss_area": 0.0348, "peak_force_n": 5.07e-8}}]}
+    names = [e["name"] for e in headline("theory controllers", controllers)]
+    assert names[0] == "verdict: pass" and "peak force, switching gain" in names and "at line rate" in names
+    design = {"lines": [{"frequency_hz": 70000.07, "amplitude_v": 0.1, "response_nm": 20.0},
+                        {"frequency_hz": 63007.06, "amplitude_v": 0.05}, {"frequency_hz": 76993.08, "amplitude_v": 0.05}],
+              "envelope_beat": 0.025, "amplitude_beat": 0.00125, "loop_s": 0.2857}
+    texts = {e["name"]: e["text"] for e in headline("design excitation", design)}
+    assert texts["main line"] == "70000 Hz" and texts["free-air response"] == "20.00 nm" and texts["loop length"] == "0.2857 s"
