@@ -209,3 +209,27 @@ def test_fit_then_compare_then_report(walk):
     assert any(e["at"] and e["at"]["name"] == "separation" for e in report["headline"])  # the worst bins, located
     _, code, stderr, _ = _step(walk, "afmtool report reep_fc")
     assert code == 0
+
+
+def test_the_same_curve_from_an_instrument_file_without_metadata(walk):
+    """The recorded curve as a multichannel float WAV (unitless channels, no metadata): the same answers."""
+    from scipy.io import wavfile
+
+    folder, _ = walk
+    _, code, _, from_csv = _step(walk, "afmtool reep curve.csv")
+    assert code == 0
+    table = np.loadtxt(folder / "curve.csv", delimiter=",", skiprows=1)
+    wavfile.write(folder / "curve.wav", int(FS), table[:, 1:].astype(np.float32))
+    line = ("afmtool reep curve.wav --channel dither=ch1 --channel deflection=ch2 --channel z_piezo=ch3 "
+            "--units dither=V --units deflection=V --units z_piezo=V --invols 50 --z-sensitivity 10 "
+            "--free-air 0:0.01 --model lever --spring-constant 2 --out reep_wav")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(folder)
+        code, _, stderr = _invoke(line)
+    assert code == 0, stderr
+    report = json.loads((folder / "reep_wav" / "report.json").read_text())
+    _check_printed(stderr, report)
+    wav, csv_ = _headline(report), _headline(from_csv)
+    for name in ("f0' in the free-air segment", "largest Δf0' on approach", "smallest Q' on approach"):
+        print(name, "csv", csv_[name]["text"], "wav", wav[name]["text"])
+        assert wav[name]["value"] == pytest.approx(csv_[name]["value"], rel=0.02, abs=0.5)
