@@ -56,6 +56,7 @@ __all__ = [
     "Stage",
     "Warmup",
     "lead_start",
+    "read_ahead",
     "read_segment",
     "replay_held",
     "run_stream",
@@ -253,6 +254,27 @@ def replay_held(held: list[Chunk], rest: Iterator[Chunk]) -> Iterator[Chunk]:
     while held:
         yield held.pop(0)
     yield from rest
+
+
+def read_ahead(
+    chunks: Iterator[Chunk], names: tuple[str, ...], start_sample: int, end_sample: int
+) -> tuple[dict[str, np.ndarray], Iterator[Chunk]]:
+    """Samples [start_sample, end_sample) of ``names`` or as many of them as the capture has, read ahead.
+
+    As :func:`read_segment`, but a capture that ends first gives what it has
+    (possibly nothing) instead of an error: a survey, not a segment the
+    analysis needs whole.
+    """
+    held: list[Chunk] = []
+    for chunk in chunks:
+        held.append(chunk)
+        if chunk.start + len(chunk) >= end_sample:
+            break
+    data = {}
+    for name in names:
+        parts = [c.data[name][max(0, start_sample - c.start):max(0, end_sample - c.start)] for c in held]
+        data[name] = np.concatenate(parts) if parts else np.zeros(0)
+    return data, replay_held(held, chunks)
 
 
 def read_segment(

@@ -29,7 +29,6 @@ from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
 from afmtool.analyses.freeair_route import resolve_free_air
 from afmtool.analyses.freeair_source import FreeAirSegment
 from afmtool.config.params import ProbeLossParams
-from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.probeloss_events import (
     Events,
     RunState,
@@ -45,8 +44,7 @@ from afmtool.pipeline import Decimation, Head, Split, run_stream
 from afmtool.report.results import JsonResults
 
 if TYPE_CHECKING:  # numba-backed modules load when the command runs
-    from afmtool.estimators.observer import ObserverDesign
-    from afmtool.estimators.reliability import FreeAirCalibration
+    from afmtool.estimators.reliability import DetectorDesign, DetectorOptions
 
 __all__ = [
     "SERIES_UNITS",
@@ -65,7 +63,7 @@ _IMAGE_QUANTITIES = ("loss", "index")
 
 @dataclass(frozen=True)
 class ProbeLossSetup:
-    """Everything fixed before the pass: model, observer, normalisation, thresholds, A_upper.
+    """Everything fixed before the pass: model, detector (with its prediction), A_upper.
 
     Attributes
     ----------
@@ -74,16 +72,13 @@ class ProbeLossSetup:
     model_source : str
         The free-air route: ``"f0-q"``, ``"model"`` (``--model``) or
         ``"segment"`` (ARX fit here); :mod:`afmtool.analyses.freeair_route`.
-    design : ObserverDesign
-        The observer.
-    window_samples : int
-        W of the index.
+    detector : DetectorDesign
+        The index, its parameters and its predicted performance
+        (:func:`~afmtool.estimators.reliability.design_detector`).
     drive_hz : float
         Drive (lock-in) frequency, Hz.
     period_samples : float
         fs/drive_hz.
-    calibration : FreeAirCalibration
-        Index level and thresholds.
     amplitude_upper : float or None
         A_upper, deflection units; None when neither it nor a set point is
         known (the amplitude baseline is then skipped).
@@ -100,21 +95,14 @@ class ProbeLossSetup:
     route : dict
         How the model was chosen and the drive's hold, for report.json.
     warnings : tuple of str
-        Set-up warnings (route fallbacks, a skipped baseline).
-    drive_rad : float
-        0 for the RMS index, ω_d·T (rad per sample) for the coherent index
-        (:mod:`afmtool.estimators.reliability`).
-    index_choice : dict
-        Which index runs and why (:func:`_choose_index`), for report.json.
+        Set-up warnings (route fallbacks, a skipped baseline, a capture beyond the limit).
     """
 
     model: FreeAirModel
     model_source: str
-    design: ObserverDesign
-    window_samples: int
+    detector: DetectorDesign
     drive_hz: float
     period_samples: float
-    calibration: FreeAirCalibration
     amplitude_upper: float | None
     free_amplitude: float | None
     setpoint: float | None
@@ -123,8 +111,6 @@ class ProbeLossSetup:
     segment_s: tuple[float, float] | None
     route: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
-    drive_rad: float = 0.0
-    index_choice: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -140,112 +126,28 @@ class ProbeLossResult(JsonResults):
 
 # --------------------------------------------------------------------------- set-up
 
-
-def _design(params: ProbeLossParams, model: FreeAirModel, fs: float, period_samples: float, decay_cycles: float):
-    from afmtool.estimators.observer import ObserverDesign
-
-    denominator, numerator = model.denominator_at(fs), model.numerator_at(fs)
-    if params.gain == "kalman":
-        return ObserverDesign.from_kalman(
-            denominator, numerator, params.process_noise, params.measurement_noise, input_gain=model.gain
-        )
-    return ObserverDesign.from_decay(denominator, numerator, decay_cycles, period_samples)
+#: Samples after the free-air segment read ahead as the survey (on-sample amplitude and forcing, loss events).
+SURVEY_SAMPLES = 1 << 20
 
 
-def _calibrate(params: ProbeLossParams, design, window: int, segment: FreeAirSegment | None, drive_rad: float):
-    """Index level and thresholds: from the segment, or given."""
-    from afmtool.estimators.reliability import (
-        FreeAirCalibration,
-        ReliabilityState,
-        calibrate_index,
-        check_thresholds,
-        reliability_update,
-        settle_samples,
-    )
-
-    on = params.on or None
-    off = params.off or None
-    if segment is None:
-        if not (params.index_level and on and off):
-            raise ConfigError(
-                "without a free-air segment (--free-air or metadata free_air) give --index-level, --on and --off"
-            )
-        thresholds = check_thresholds(on, off)
-        return FreeAirCalibration(params.index_level, thresholds, 0, math.nan, math.nan, math.nan, params.quantile)
-    # the detector itself with level 1 gives the un-normalised statistic (RMS or |X|) on the segment
-    unit = ReliabilityState.initial(design, window, 1.0, (1.0, 2.0), drive_rad=drive_rad)
-    statistic = reliability_update(unit, segment.data["deflection"], segment.data["dither"]).block.index
-    skip = settle_samples(design, window)
-    if statistic.size < skip + 16:
-        raise InputError(
-            f"free-air segment {segment.interval_s[0]:g}:{segment.interval_s[1]:g} s is shorter than the "
-            f"observer's settling ({skip} samples) plus 16"
-        )
-    calibration = calibrate_index(
-        statistic[skip:], on=on, off=off, quantile=params.quantile, off_ratio=params.off_ratio
-    )
-    if params.index_level:
-        calibration = calibration._replace(level=params.index_level)
-    return calibration
-
-
-def _free_amplitude(segment: FreeAirSegment | None, drive_hz: float, fs: float, lowpass_hz: float) -> float | None:
-    """Mean lock-in amplitude over the free-air segment after the low-pass settles."""
+def _free_amplitude(segment: FreeAirSegment | None, drive_hz: float, fs: float,
+                    lowpass_hz: float) -> tuple[float | None, float | None]:
+    """Mean and standard deviation of the lock-in amplitude over the free-air segment after the low-pass settles."""
     from afmtool.estimators.lockin import LockIn
 
     if segment is None:
-        return None
+        return None, None
     lockin = LockIn(drive_hz, fs, lowpass_hz)
     blocks, _ = lockin.process(segment.data["deflection"], lockin.initial_state(1))
     amplitude = blocks[0].amplitude
     skip = min(amplitude.size // 2, math.ceil(5.0 * fs / lowpass_hz))
-    return float(np.mean(amplitude[skip:]))
-
-
-#: The observer's error time constant when ``decay_cycles = 0`` (auto), drive periods.
-DEFAULT_DECAY_CYCLES = 1.0
-#: Auto: the shortest time constant it may choose, drive periods, and the on-sample RMS index it aims
-#: at, as a multiple of the off threshold (the index reads 1.3-1.6x its prediction; tests/test_probeloss_reference.py).
-AUTO_MIN_DECAY_CYCLES = 0.5
-AUTO_TARGET_OFF_RATIO = 1.5
-#: Window of the coherent index when ``index = "auto"`` chooses it, drive periods: at one period
-#: its Rayleigh tail (0.999 quantile 2.6) leaves it no better than the RMS index (reliability docstring).
-AUTO_COHERENT_WINDOW_PERIODS = 1.5
+    return float(np.mean(amplitude[skip:])), float(np.std(amplitude[skip:]))
 
 
 def _setpoint(params: ProbeLossParams, reader: CaptureReader) -> float | None:
     """A_sp from ``--setpoint`` or metadata ``controller.setpoint_nm``, deflection units; None if neither."""
     value = params.setpoint or reader.info.capture_metadata.controller.setpoint_nm
     return None if value is None else float(value)
-
-
-def _choose_index(params: ProbeLossParams, q: float, design, period: float, rms_calibration, free_amplitude,
-                  setpoint) -> dict:
-    """Which index runs, and why (``results.index.choice``).
-
-    ``auto`` keeps the thesis's RMS index unless the amplitude the sample takes
-    away is known (A0 from the free-air segment, A_sp from the set point) and
-    the RMS index it predicts on the sample
-    (:func:`~afmtool.estimators.reliability.predicted_rms_index`) stays below
-    the off threshold: the switch would then never leave loss on the sample,
-    and the coherent index, linear in the contrast, runs instead.
-    """
-    from afmtool.estimators.reliability import predicted_rms_index
-
-    if params.index == "rms":
-        return {"kind": "rms", "reason": "--index"}
-    if free_amplitude is None or setpoint is None or not 0 < setpoint < free_amplitude:
-        return {"kind": "rms", "reason": "the thesis's index; A0 or A_sp unknown, so its on-sample contrast cannot be predicted"}
-    radius = float(np.max(np.abs(design.error_poles)))
-    predicted = predicted_rms_index(free_amplitude - setpoint, q, rms_calibration.level, radius, period)
-    off = rms_calibration.thresholds.off
-    record = {"predicted_rms_index_on_sample": predicted, "rms_off_threshold": off}
-    if predicted >= off:
-        return {"kind": "rms", "reason": f"the RMS index is predicted to read {predicted:.2f} on the sample, above its "
-                                         f"off threshold {off:.2f}", **record}
-    return {"kind": "coherent", "reason": f"the RMS index is predicted to read only {predicted:.2f} on the sample, "
-                                          f"below its off threshold {off:.2f} (high Q x noise / amplitude change)",
-            **record}
 
 
 def _amplitude_upper(params: ProbeLossParams, reader: CaptureReader, free_amplitude: float | None):
@@ -259,59 +161,62 @@ def _amplitude_upper(params: ProbeLossParams, reader: CaptureReader, free_amplit
     return setpoint + params.upper_fraction * (free_amplitude - setpoint), setpoint
 
 
-def _auto_decay_cycles(params: ProbeLossParams, choice: dict, cycles: float) -> float | None:
-    """A shorter observer memory where the RMS index has contrast to spare (``decay_cycles = 0``), else None.
+def _options(params: ProbeLossParams) -> DetectorOptions:
+    from afmtool.estimators.reliability import DetectorOptions
 
-    The index falls to ``on`` after the tip leaves in about τ_obs·ln(index/on):
-    at Q 100 with 0.03 nm of noise it reads 12 on the sample and takes 3.2
-    drive periods.  The contrast C grows as τ_obs (:func:`~afmtool.estimators.reliability.predicted_rms_index`),
-    so τ_obs is cut in proportion until the predicted index is
-    ``AUTO_TARGET_OFF_RATIO`` × off, down to ``AUTO_MIN_DECAY_CYCLES``.
-    """
-    predicted = choice.get("predicted_rms_index_on_sample")
-    if params.decay_cycles or params.gain != "decay" or choice["kind"] != "rms" or predicted is None:
-        return None
-    target = AUTO_TARGET_OFF_RATIO * choice["rms_off_threshold"]
-    if predicted <= target:
-        return None
-    # index = √(1 + C²/2) with C ∝ τ_obs: scale τ_obs by C(target)/C(predicted)
-    shorter = cycles * math.sqrt((target * target - 1.0) / (predicted * predicted - 1.0))
-    return max(AUTO_MIN_DECAY_CYCLES, shorter)
+    return DetectorOptions(
+        index=params.index, gain=params.gain, decay_cycles=params.decay_cycles, process_noise=params.process_noise,
+        measurement_noise=params.measurement_noise, window_periods=params.window_periods,
+        index_level=params.index_level, on=params.on, off=params.off, quantile=params.quantile,
+        off_ratio=params.off_ratio, latency_periods=params.latency_periods,
+    )
 
 
-def _detector(params: ProbeLossParams, model: FreeAirModel, fs: float, drive_hz: float,
-              segment: FreeAirSegment | None, free_amplitude: float | None, setpoint: float | None):
-    """The observer, index window, calibration, demodulation angle and index choice, as ``params`` ask."""
-    from afmtool.estimators.reliability import index_window
+def _read_survey(reader: CaptureReader, chunks: Iterator[Chunk], segment: FreeAirSegment | None):
+    """The capture after the free-air segment, up to ``SURVEY_SAMPLES``, read ahead: ((y, g, first) or None, chunks)."""
+    if segment is None:
+        return None, chunks
+    from afmtool.pipeline import read_ahead
 
-    period = fs / drive_hz
-    coherent_rad = 2.0 * math.pi * drive_hz / fs
-    cycles = params.decay_cycles or DEFAULT_DECAY_CYCLES
-    design = _design(params, model, fs, period, cycles)
-    window = index_window(fs, drive_hz, params.window_periods)
-    if params.index == "coherent":  # nothing to choose: one calibration, of the coherent index
-        calibration = _calibrate(params, design, window, segment, coherent_rad)
-        return design, window, calibration, coherent_rad, {"kind": "coherent", "reason": "--index"}
-    calibration = _calibrate(params, design, window, segment, 0.0)
-    choice = _choose_index(params, model.q, design, period, calibration, free_amplitude, setpoint)
-    shorter = _auto_decay_cycles(params, choice, cycles)
-    if shorter is not None:
-        choice = {**choice, "decay_cycles": shorter, "decay_cycles_reason":
-                  f"the RMS index has contrast to spare ({choice['predicted_rms_index_on_sample']:.1f} predicted on the "
-                  f"sample); a shorter observer memory reads loss sooner"}
-        design = _design(params, model, fs, period, shorter)
-        calibration = _calibrate(params, design, window, segment, 0.0)
-    if choice["kind"] != "coherent":
-        return design, window, calibration, 0.0, choice
-    window = index_window(fs, drive_hz, AUTO_COHERENT_WINDOW_PERIODS)
-    calibration = _calibrate(params, design, window, segment, coherent_rad)
-    return design, window, calibration, coherent_rad, choice
+    first = segment.start_sample + len(segment.data["deflection"])
+    data, chunks = read_ahead(chunks, ("deflection", "dither"), first, first + SURVEY_SAMPLES)
+    if data["deflection"].size < 16:
+        return None, chunks
+    return (data["deflection"], data["dither"], first), chunks
+
+
+def _design_detector(params: ProbeLossParams, reader: CaptureReader, model: FreeAirModel, drive_hz: float,
+                     segment: FreeAirSegment | None, survey, lowpass_hz: float, free: tuple) -> DetectorDesign:
+    from afmtool.estimators.reliability import DesignInputs, design_detector
+
+    fs = reader.info.sample_rate_hz
+    offset = reader.info.capture_metadata.drive.sideband_offset_hz or 0.0
+    lines = (drive_hz, drive_hz - offset, drive_hz + offset) if offset > 0 else (drive_hz,)
+    inputs = DesignInputs(
+        tuple(model.denominator_at(fs)), tuple(model.numerator_at(fs)), model.gain, fs, drive_hz,
+        (segment.data["deflection"], segment.data["dither"]) if segment is not None else None, survey,
+        free[0], free[1], _setpoint(params, reader), lowpass_hz, lines,
+    )
+    return design_detector(inputs, _options(params))
+
+
+def _setup_warnings(route_warnings, upper, detector: DetectorDesign) -> list[str]:
+    warnings = list(route_warnings)
+    statement = detector.statement()
+    if statement:  # the run's premise: first
+        warnings.insert(0, statement)
+    if upper is None:
+        warnings.append(
+            "amplitude baseline skipped: it needs --amplitude-upper, or a free-air segment and the set point "
+            "(--setpoint or metadata controller.setpoint_nm) for the automatic A_upper"
+        )
+    return warnings
 
 
 def prepare_probeloss(
     reader: CaptureReader, params: ProbeLossParams, chunks: Iterator[Chunk], model: FreeAirModel | None
 ) -> tuple[ProbeLossSetup, Iterator[Chunk]]:
-    """Read the free-air segment ahead and fix the model, observer, index level, thresholds and A_upper."""
+    """Read the free-air segment and the survey ahead; fix the model, the detector (predicted) and A_upper."""
     from afmtool.estimators.lockin import default_lowpass_hz
 
     fs = reader.info.sample_rate_hz
@@ -320,25 +225,17 @@ def prepare_probeloss(
         drive_hold=params.drive_hold, drive_frequency_hz=params.drive_frequency_hz,
     )
     model, source, segment, drive_hz = route.model, route.route, route.segment, route.drive_hz
-    interval = segment.interval_s if segment is not None else None
     period = fs / drive_hz
     sideband_offset_hz = reader.info.capture_metadata.drive.sideband_offset_hz
     lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(drive_hz, sideband_offset_hz)
-    free_amplitude = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
-    upper, setpoint = _amplitude_upper(params, reader, free_amplitude)
-    design, window, calibration, drive_rad, index = _detector(
-        params, model, fs, drive_hz, segment, free_amplitude, _setpoint(params, reader)
-    )
-    warnings = list(route.warnings)
-    if upper is None:
-        warnings.append(
-            "amplitude baseline skipped: it needs --amplitude-upper, or a free-air segment and the set point "
-            "(--setpoint or metadata controller.setpoint_nm) for the automatic A_upper"
-        )
-    decimate = params.decimate or max(1, round(period))
+    free = _free_amplitude(segment, drive_hz, fs, lowpass_hz)
+    upper, setpoint = _amplitude_upper(params, reader, free[0])
+    survey, chunks = _read_survey(reader, chunks, segment)
+    detector = _design_detector(params, reader, model, drive_hz, segment, survey, lowpass_hz, free)
     setup = ProbeLossSetup(
-        model, source, design, window, drive_hz, period, calibration, upper, free_amplitude, setpoint,
-        lowpass_hz, decimate, interval, route.report, tuple(warnings), drive_rad, index,
+        model, source, detector, drive_hz, period, upper, free[0], setpoint, lowpass_hz,
+        params.decimate or max(1, round(period)), segment.interval_s if segment is not None else None, route.report,
+        tuple(_setup_warnings(route.warnings, upper, detector)),
     )
     return setup, chunks
 
@@ -348,26 +245,22 @@ def prepare_probeloss(
 
 @dataclass(frozen=True)
 class ProbeLossKernels:
-    """The free-air observer with its index, and the lock-in, as a pure function of a chunk.
+    """The detector and the lock-in, as a pure function of a chunk.
 
     The :class:`~afmtool.pipeline.ChunkKernels` of :class:`ProbeLossStage`:
     ``estimate`` runs both from their initial state over the lead and the
-    chunk.  The observer's error forgets its start with its poles and the
-    window RMS after one window (:func:`~afmtool.estimators.reliability.settle_samples`),
+    chunk.  The detector's filter forgets its start with its poles (and a
+    window RMS after one window: :meth:`~afmtool.estimators.reliability.DetectorDesign.lead_samples`),
     the lock-in with its low-pass's poles.  The switch, whose hysteresis
-    remembers its state for as long as the index stays between the
+    remembers its state for as long as its statistics stay between the
     thresholds, is put right by :meth:`ProbeLossStage.account` from the
     chunk's first decisive sample.
     """
 
-    design: ObserverDesign
-    window_samples: int
-    level: float
-    thresholds: tuple[float, float]
+    detector: DetectorDesign
     every: int
     lockin: object
     lead_samples: int
-    drive_rad: float = 0.0
 
     @property
     def alignment(self) -> int:
@@ -375,17 +268,15 @@ class ProbeLossKernels:
 
     def estimate(self, lead: Chunk | None, chunk: Chunk):
         """``(ReliabilityBlock, amplitude)`` of ``chunk`` from the initial states warmed on ``lead``."""
-        from afmtool.estimators.reliability import ReliabilityState, reliability_update
-
         first = lead.start if lead is not None else chunk.start
-        detector = ReliabilityState.initial(self.design, self.window_samples, self.level, self.thresholds,
-                                            drive_rad=self.drive_rad, samples_seen=first)
+        design = self.detector
+        detector = design.initial_state(first)
         lock_state = self.lockin.initial_state(1, first)
         block = amplitude = None
         for part in (lead, chunk):
             if part is not None:
                 p = part.data["deflection"]
-                block, detector = reliability_update(detector, p, part.data["dither"], keep_every=self.every)
+                block, detector = design.update(detector, p, part.data["dither"], keep_every=self.every)
                 (demodulated,), lock_state = self.lockin.process(p, lock_state, self.every)
                 amplitude = demodulated.amplitude
         return block, amplitude
@@ -417,17 +308,13 @@ class ProbeLossStage:
     def prepare(self, head: Head) -> None:
         """Detectors and counters at their initial state."""
         from afmtool.estimators.lockin import LockIn
-        from afmtool.estimators.reliability import ReliabilityState
 
         setup = self.setup
         if setup is None:
             raise RuntimeError("ProbeLossStage runs with prologue=stage.free_air_prologue (the free-air setup)")
         self.side = head.side
         self.decimation = Decimation(setup.decimate)
-        self.detector = ReliabilityState.initial(
-            setup.design, setup.window_samples, float(setup.calibration.level), setup.calibration.thresholds,
-            drive_rad=setup.drive_rad,
-        )
+        self.detector = setup.detector.initial_state()
         self.lockin = LockIn(setup.drive_hz, self.fs, setup.lowpass_hz)
         self.lock_state = self.lockin.initial_state(1)
         self.amp_switch = 0
@@ -442,31 +329,27 @@ class ProbeLossStage:
 
     def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
         """The index, switch and amplitude baseline at the kept samples of this chunk."""
-        from afmtool.estimators.reliability import reliability_update
-
         setup = self.setup
         p = chunk.data["deflection"]
         # the amplitude at the kept samples (Decimation), beside the observer
         demodulating = self.side.submit(self.lockin.process, p, self.lock_state, setup.decimate)
         try:
-            step = reliability_update(self.detector, p, chunk.data["dither"], keep_every=setup.decimate)
+            step = setup.detector.update(self.detector, p, chunk.data["dither"], keep_every=setup.decimate)
         finally:
             demodulated, self.lock_state = demodulating.result()
         self.detector = step.state
         return self.account(chunk, (step.block, demodulated[0].amplitude))
 
     def kernels(self) -> ProbeLossKernels | None:
-        """The observer and the lock-in as :class:`ProbeLossKernels`, for a split run."""
-        from afmtool.estimators.reliability import settle_samples
+        """The detector and the lock-in as :class:`ProbeLossKernels`, for a split run."""
         from afmtool.estimators.split_lead import DEFAULT_RESIDUAL, sos_lead
 
         setup = self.setup
         lockin_lead = sos_lead(self.lockin.sos)
         if lockin_lead is None:
             return None
-        lead = max(settle_samples(setup.design, setup.window_samples, DEFAULT_RESIDUAL), lockin_lead)
-        return ProbeLossKernels(setup.design, setup.window_samples, float(setup.calibration.level),
-                                tuple(setup.calibration.thresholds), setup.decimate, self.lockin, lead, setup.drive_rad)
+        lead = max(setup.detector.lead_samples(DEFAULT_RESIDUAL), lockin_lead)
+        return ProbeLossKernels(setup.detector, setup.decimate, self.lockin, lead)
 
     def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
         """Everything after the kernels, in capture order: the switch's true state, events, baseline, images."""
@@ -616,13 +499,9 @@ def _image_results(result_images: dict, geometry: ScanGeometry) -> dict:
     }
 
 
-def _finite_or_none(value: float) -> float | None:
-    return None if math.isnan(value) else float(value)
-
-
 def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
-    """The model, observer, index normalisation and baseline threshold, for report.json."""
-    calibration = setup.calibration
+    """The model, detector (observer, index, prediction) and baseline threshold, for report.json."""
+    detector = setup.detector
     return {
         "free_air_model": setup.model.to_dict(),
         "free_air_model_source": setup.model_source,
@@ -630,25 +509,9 @@ def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
         "free_air_segment_s": list(setup.segment_s) if setup.segment_s else None,
         "drive_frequency_hz": setup.drive_hz,
         "decimate": setup.decimate,
-        "observer": {
-            "gain_design": params.gain,
-            "decay_cycles": (setup.index_choice.get("decay_cycles", params.decay_cycles or DEFAULT_DECAY_CYCLES)
-                             if params.gain == "decay" else None),
-            "gain": list(setup.design.gain),
-            "error_pole_radius": float(np.max(np.abs(setup.design.error_poles))),
-            "window_samples": setup.window_samples,
-        },
-        "index": {
-            "kind": "coherent" if setup.drive_rad else "rms",
-            "choice": setup.index_choice,
-            "level": calibration.level,
-            "on": calibration.thresholds.on,
-            "off": calibration.thresholds.off,
-            "free_air_samples": calibration.samples,
-            "free_air_median": _finite_or_none(calibration.index_median),
-            "free_air_quantile": _finite_or_none(calibration.index_quantile),
-            "free_air_max": _finite_or_none(calibration.index_max),
-        },
+        "observer": detector.observer_dict(params.gain),
+        "index": detector.index_dict(),
+        "detectability": detector.detectability_dict(),
         "amplitude_baseline": {
             "upper": setup.amplitude_upper,
             "free_amplitude": setup.free_amplitude,
@@ -662,21 +525,24 @@ def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
 MOSTLY_LOSS_FRACTION = 0.5
 
 
-def _mostly_loss_warning(loss_fraction: float) -> list[str]:
-    """A warning when the switch read loss most of the time: off the sample, or an index without contrast.
+def _mostly_loss_warning(loss_fraction: float, truth: dict | None) -> list[str]:
+    """A warning when the switch read loss most of the time, or flagged most of the on-sample time (truth).
 
-    On the sample the index rises by about ΔA·π·c/(Q·σ) (module docstring of
-    :mod:`afmtool.estimators.reliability`): at high Q and noise it can stay below
-    the off threshold, and the switch then never leaves the loss it entered in
-    free air (issue 14: 91-96 % of on-sample time flagged at Q 300-400, 0.1 nm).
+    A run never flags most of the on-sample time silently (issue 28): either
+    the tip was off the sample that long, or the index has no contrast on
+    the sample (results.detectability says what was predicted).
     """
-    if not loss_fraction > MOSTLY_LOSS_FRACTION:
-        return []
-    return [f"the switch reads probe loss {100 * loss_fraction:.0f} % of the time: either the tip was off the sample "
-            "that long, or the index does not rise above its off threshold on the sample (its contrast falls as "
-            "Q x noise / amplitude change grows); check the index figure, and try the coherent index "
-            "(--index coherent --window-periods 1.5, or give --setpoint and --index auto chooses it where it "
-            "is needed), a longer observer memory (--decay-cycles) or --kalman"]
+    warnings = []
+    if loss_fraction > MOSTLY_LOSS_FRACTION:
+        warnings.append(
+            f"the switch reads probe loss {100 * loss_fraction:.0f} % of the time: either the tip was off the sample "
+            "that long, or the index has no contrast on the sample; see results.detectability (the predicted "
+            "latency and precision) and the index figure, and try --index forcing or a longer --latency-periods"
+        )
+    flagged = ((truth or {}).get("index") or {}).get("on_sample_flagged_fraction")
+    if flagged is not None and flagged > MOSTLY_LOSS_FRACTION:
+        warnings.append(f"the switch flags {100 * flagged:.0f} % of the on-sample time (against /truth)")
+    return warnings
 
 
 def _event_results(index_events: Events, amp_events: Events, lead: np.ndarray, n_samples: int, fs: float,
@@ -745,7 +611,6 @@ def run_probeloss(
         "sample_rate_hz": fs,
         **_event_results(index_events, amp_events, lead, state.n_samples, fs, params.max_events),
     }
-    warnings.extend(_mostly_loss_warning(results["loss_fraction"]))
     skipped = setup.amplitude_upper is None
     results["amplitude_baseline"]["skipped"] = skipped
     results["amplitude_baseline"]["loss_fraction"] = None if skipped else float(np.sum(amp_events.duration)) / state.n_samples
@@ -760,4 +625,5 @@ def run_probeloss(
     truth = _truth_results(reader, params, setup, index_events, amp_events)
     if truth is not None:
         results["truth"] = truth
+    warnings.extend(_mostly_loss_warning(results["loss_fraction"], truth))
     return ProbeLossResult(results, tuple(warnings), images, geometry, setup)

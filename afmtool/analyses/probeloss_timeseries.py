@@ -45,7 +45,9 @@ def _panels(rows: Mapping[str, np.ndarray], results: Mapping, amplitude_units: s
                           {**threshold, "linestyle": "--"}))
     panels = [
         # log axis: the thresholds sit near 1-4 where the index on the sample reaches hundreds
-        {"y_label": "index (dimensionless)", "series": index_series, "y_scale": "log"},
+        # the forcing index is a signed projection, about N(0, 1) off the sample: a linear axis
+        {"y_label": "index (dimensionless)", "series": index_series,
+         "y_scale": "linear" if index.get("kind") == "forcing" else "log"},
         {"y_label": "switch (0/1)", "series": switches},
         {"y_label": f"amplitude ({units})", "series": amplitude},
     ]

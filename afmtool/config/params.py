@@ -270,8 +270,7 @@ class ProbeLossParams:
     )
     decay_cycles: float = field(
         0.0,
-        "Decay design: time constant of the observer error; 0 = 1, or shorter (down to 0.5) where A0 and the "
-        "set point predict contrast to spare",
+        "Decay design of the rms and coherent indices: time constant of the observer error; 0 = 1",
         "drive periods",
         bounds=">= 0",
         flag="--decay-cycles",
@@ -288,14 +287,24 @@ class ProbeLossParams:
     )
     index: str = field(
         "auto",
-        "Reliability index: the innovation's window RMS (thesis), or its amplitude at the drive, "
-        "demodulated over the window (keeps its contrast at high Q x noise; with --window-periods 1.5); "
-        "auto = coherent (1.5 periods) where A0 and the set point predict too little RMS contrast",
-        choices=("auto", "rms", "coherent"),
+        "Reliability index: the innovation's window RMS (thesis), its amplitude at the drive demodulated over "
+        "the window (coherent), or the tip-sample force at the drive by a Kalman filter on the free-air model "
+        "(forcing, near the information limit); auto = the one predicted fastest at precision >= 0.9 on this "
+        "capture (report.json: detectability)",
+        choices=("auto", "rms", "coherent", "forcing"),
         flag="--index",
     )
     window_periods: float = field(
-        1.0, "Reliability-index window (RMS or demodulation)", "drive periods", bounds="> 0", flag="--window-periods"
+        0.0, "Window of the rms or coherent index; 0 = 1 (rms) or 1.5 (coherent)", "drive periods", bounds=">= 0",
+        flag="--window-periods",
+    )
+    latency_periods: float = field(
+        0.0,
+        "Latency the detector aims at: the most precise design predicted within it; 0 = the fastest predicted "
+        "at precision >= 0.9",
+        "drive periods",
+        bounds=">= 0",
+        flag="--latency-periods",
     )
     index_level: float = field(
         0.0,

@@ -84,6 +84,14 @@ is 1 to 2 drive periods.
 
 Everything streams: each update takes a state and returns ``(block, state)``;
 chunked runs equal one call bit for bit.
+
+Which detector a capture gets
+-----------------------------
+:func:`design_detector` (:mod:`afmtool.estimators.detector_design`) chooses
+among this module's two indices and the forcing detector of
+:mod:`afmtool.estimators.forcing_observer` (the tip-sample force at the
+drive, near the information limit) by their performance predicted on the
+capture itself, and returns a typed :class:`DetectorDesign`.
 """
 
 from __future__ import annotations
@@ -100,6 +108,15 @@ from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators._common import JIT_OPTIONS, as_signal
 from afmtool.estimators.decimation import Decimation
+
+# the detector's design (issue 29, item 6): which index, its parameters, its predicted performance
+from afmtool.estimators.detector_design import (
+    DesignInputs,
+    DetectorDesign,
+    DetectorOptions,
+    IndexKind,
+    design_detector,
+)
 from afmtool.estimators.observer import (
     ObserverDesign,
     ObserverState,
@@ -113,6 +130,11 @@ from afmtool.estimators.observer import (
 )
 
 __all__ = [
+    "DesignInputs",
+    "DetectorDesign",
+    "DetectorOptions",
+    "IndexKind",
+    "design_detector",
     "LOSS_WHEN",
     "Thresholds",
     "check_thresholds",
@@ -398,8 +420,9 @@ def _phasor_push(ring, sums, pos, e, cos_k, sin_k):
 
 
 @njit(**JIT_OPTIONS)
-def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, off, carried, first_keep, keep_every,
-                        phasor, out_switch, out_index, out_decisive):
+def _reliability_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion
+        y, g, obs, xhat, ring, sums, counters, inv_level, on, off, carried, first_keep, keep_every,
+        phasor, out_switch, out_index, out_decisive):
     """Observer, window RMS, index and switch in one pass over a chunk.
 
     The observer and window steps are the shared helpers of
@@ -414,7 +437,8 @@ def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, of
     ``off``), −1 if none: up to it the switch only holds its initial state.
     A ``ring`` of two rows makes it the coherent index (module docstring),
     with ``phasor`` = [cos ω_d n0, sin ω_d n0, cos ω_d, sin ω_d] for the
-    chunk's first stream sample n0 (:func:`_phasor_push`).
+    chunk's first stream sample n0 (:func:`_phasor_push`); its first two
+    entries are written back at exit (the phasor rotates on across chunks).
     """
     n_samples = y.shape[0]
     coherent = ring.shape[0] == 2
@@ -468,6 +492,8 @@ def _reliability_kernel(y, g, obs, xhat, ring, sums, counters, inv_level, on, of
     counters[1] = filled
     counters[2] = since
     carried[0] = state
+    phasor[0] = cos_k
+    phasor[1] = sin_k
     out_decisive[0] = decisive
 
 
@@ -559,6 +585,10 @@ class ReliabilityState:
     drive_rad : float
         0 for the RMS index; ω_d·T (rad per sample, in (0, π]) for the
         coherent index at the drive, whose window then has two rows.
+    phasor : (float, float) or None
+        (cos, sin) of ω_d·samples_seen, rotated on from where the detector
+        started (so a chunked run equals one call bit for bit); None anchors
+        it at ``samples_seen``.
     """
 
     observer: ObserverState
@@ -567,6 +597,7 @@ class ReliabilityState:
     switch: int = 0
     samples_seen: int = 0
     drive_rad: float = 0.0
+    phasor: tuple[float, float] | None = None
 
     @classmethod
     def initial(
@@ -718,11 +749,14 @@ def reliability_update(state: ReliabilityState, deflection, dither, *, keep_ever
     carried = np.array([state.switch], dtype=np.int64)
     decisive = np.empty(1, dtype=np.int64)
     on, off = state.thresholds
+    phasor = _phasor(state.drive_rad, state.samples_seen)
+    if state.phasor is not None:
+        phasor[0], phasor[1] = state.phasor
     _reliability_kernel(y, g, obs, xhat, ring, sums, counters, 1.0 / state.level, on, off, carried,
-                        first_keep, int(keep_every), _phasor(state.drive_rad, state.samples_seen), switch, index, decisive)
+                        first_keep, int(keep_every), phasor, switch, index, decisive)
     estimate = xhat[0]
     estimate.setflags(write=False)
     new_observer = ObserverState(design, estimate, WindowState._pack(ring, sums, counters))
     new_state = ReliabilityState(new_observer, state.level, state.thresholds, int(carried[0]),
-                                 state.samples_seen + n, state.drive_rad)
+                                 state.samples_seen + n, state.drive_rad, (float(phasor[0]), float(phasor[1])))
     return ReliabilityStep(ReliabilityBlock(switch, index, int(decisive[0])), new_state)
