@@ -200,11 +200,15 @@ def _design_detector(params: ProbeLossParams, reader: CaptureReader, model: Free
     return design_detector(inputs, _options(params))
 
 
-def _setup_warnings(route_warnings, upper, detector: DetectorDesign) -> list[str]:
+def _setup_warnings(route_warnings, upper, detector: DetectorDesign, setpoint: float | None) -> list[str]:
     warnings = list(route_warnings)
     statement = detector.statement()
     if statement:  # the run's premise: first
         warnings.insert(0, statement)
+    on = detector.on_sample
+    if on is not None and setpoint and on.amplitude_source.startswith("estimated"):
+        warnings.append(f"the set point {setpoint:g} matches no stretch of the capture; the detector is designed for "
+                        f"the amplitude it taps at, {on.amplitude:.3g} (the mode below the free amplitude)")
     if upper is None:
         warnings.append(
             "amplitude baseline skipped: it needs --amplitude-upper, or a free-air segment and the set point "
@@ -235,7 +239,7 @@ def prepare_probeloss(
     setup = ProbeLossSetup(
         model, source, detector, drive_hz, period, upper, free[0], setpoint, lowpass_hz,
         params.decimate or max(1, round(period)), segment.interval_s if segment is not None else None, route.report,
-        tuple(_setup_warnings(route.warnings, upper, detector)),
+        tuple(_setup_warnings(route.warnings, upper, detector, _setpoint(params, reader))),
     )
     return setup, chunks
 

@@ -71,6 +71,14 @@ RMS_WINDOW_PERIODS = 1.0
 COHERENT_WINDOW_PERIODS = 1.5
 #: The observer's error time constant of the rms and coherent indices when not given, drive periods.
 DEFAULT_DECAY_CYCLES = 1.0
+#: How the on-sample amplitude was found, for report.json.
+_AMPLITUDE_SOURCES = {
+    "setpoint": "set point",
+    "estimated": "estimated from the capture: the mode of the amplitude below the free amplitude over the survey "
+                 "(no set point given)",
+    "estimated: the set point matches no stretch of the capture": "estimated from the capture: the mode of the "
+    "amplitude below the free amplitude over the survey (the set point given matches no stretch of it)",
+}
 #: Memory of the filter that surveys the capture (on-sample forcing, survey events), drive periods.
 SURVEY_MEMORY_PERIODS = 2.0
 
@@ -234,11 +242,11 @@ class DetectorDesign:
 
     @property
     def beyond_limit(self) -> bool:
-        """No design meets the targets within ``TARGET_LATENCY`` drive periods (None-safe: False without a prediction)."""
-        from afmtool.estimators.forcing_design import TARGET_LATENCY
+        """The prediction (with its uncertainty) misses a target; False without a prediction."""
+        from afmtool.estimators.forcing_design import LATENCY_UNCERTAINTY, TARGET_LATENCY
 
         p = self.prediction
-        return p is not None and not (p.latency_periods <= TARGET_LATENCY and p.meets())
+        return p is not None and not (p.latency_periods * (1.0 + LATENCY_UNCERTAINTY) <= TARGET_LATENCY and p.meets())
 
     def initial_state(self, samples_seen: int = 0):
         """The detector's state before sample ``samples_seen`` of the stream."""
@@ -323,9 +331,7 @@ class DetectorDesign:
                         "recall": TARGET_RECALL},
             "on_sample": None if on is None else {
                 "free_amplitude": on.free_amplitude, "amplitude": on.amplitude,
-                "amplitude_source": ("set point" if on.amplitude_source == "setpoint" else
-                                     "estimated from the capture: the mode of the amplitude below the free "
-                                     "amplitude over the survey (no set point given)"),
+                "amplitude_source": _AMPLITUDE_SOURCES.get(on.amplitude_source, on.amplitude_source),
                 "forcing_source": on.forcing_source, "periods_on_sample": on.periods_on_sample,
             },
             "alternatives": [{"kind": kind, **prediction.as_dict()} for kind, prediction in self.alternatives],
@@ -341,9 +347,9 @@ class DetectorDesign:
         limit = self.information_limit_periods
         bound = f"; information limit {limit:.1f} periods" if limit is not None and math.isfinite(limit) else ""
         if p.precision >= TARGET_PRECISION:
-            return (f"beyond the detection limit: no detector meets the targets within {TARGET_LATENCY:g} drive "
-                    f"periods on this capture; predicted latency {p.latency_periods:.1f} periods at precision "
-                    f"{p.precision:.2f}{bound}")
+            return (f"beyond the detection limit: no detector is predicted to meet the targets within "
+                    f"{TARGET_LATENCY:g} drive periods on this capture; predicted latency {p.latency_periods:.1f} "
+                    f"periods (±15 %) at precision {p.precision:.2f}{bound}")
         return (f"beyond the detection limit: precision {TARGET_PRECISION:g} is out of reach on this capture; "
                 f"predicted latency {p.latency_periods:.1f} periods at precision {p.precision:.2f}{bound}")
 
@@ -462,11 +468,14 @@ def _survey(inputs: DesignInputs) -> _Survey:
     steady = None
     if on_sample is not None and on_sample.forcing_source == "survey":
         band = max(0.02 * inputs.free_amplitude, 3.0 * (inputs.free_spread or 0.0))
-        rows = np.abs(block.amplitude - on_sample.amplitude) < band
-        # each kept row stands for the period of samples before it
-        steady = np.repeat(rows, every)[: y.size]
-        steady = np.concatenate([steady, np.zeros(y.size - steady.size, dtype=bool)])
+        steady = _rows_to_samples(np.abs(block.amplitude - on_sample.amplitude) < band, every, y.size)
     return _Survey(on_sample, model, sigma, steady, skip)
+
+
+def _rows_to_samples(rows: np.ndarray, every: int, n: int) -> np.ndarray:
+    """A mask over decimated rows as a mask over samples (each kept row stands for the ``every`` before it)."""
+    mask = np.repeat(rows, every)[:n]
+    return np.concatenate([mask, np.zeros(n - mask.size, dtype=bool)])
 
 
 def _drive_phasor(dither: np.ndarray, drive_rad: float) -> complex:
@@ -514,15 +523,29 @@ def _forcing_design(options: DetectorOptions, inputs: DesignInputs, survey: _Sur
 # ----------------------------------------------------------------------------------- the choice
 
 
+#: Auto's order of preference among designs predicted equally fast (within the prediction's uncertainty):
+#: the thesis's index reads all of the innovation, so it is the least hurt by what the synthetic record
+#: leaves out (tapping that rings after a return, grazing contacts, a three-sine's beat).
+_PREFERENCE = (IndexKind.RMS, IndexKind.COHERENT, IndexKind.FORCING)
+
+
 def _pick(designs: list[DetectorDesign], latency_periods: float) -> DetectorDesign:
-    """Auto: the smallest predicted latency among those meeting the targets, else the most precise."""
+    """Auto: the smallest predicted latency among those meeting the targets, else the most precise.
+
+    Designs within ``LATENCY_UNCERTAINTY`` of the smallest latency count as
+    equally fast and are ranked by ``_PREFERENCE``.
+    """
+    from afmtool.estimators.forcing_design import LATENCY_UNCERTAINTY
+
     if latency_periods:
         within = [d for d in designs if d.prediction.latency_periods <= latency_periods]
         if within:
             return max(within, key=lambda d: d.prediction.precision)
     meeting = [d for d in designs if d.prediction.meets()]
     if meeting:
-        return min(meeting, key=lambda d: d.prediction.latency_periods)
+        fastest = min(d.prediction.latency_periods for d in meeting)
+        tied = [d for d in meeting if d.prediction.latency_periods <= fastest * (1.0 + LATENCY_UNCERTAINTY)]
+        return min(tied, key=lambda d: _PREFERENCE.index(d.kind))
     return max(designs, key=lambda d: (d.prediction.precision, -d.prediction.latency_periods))
 
 
@@ -587,8 +610,8 @@ def design_detector(inputs: DesignInputs, options: DetectorOptions | None = None
             raise ConfigError("--index forcing: the on-sample forcing is within the noise of every candidate filter; "
                               "use --index rms or coherent")
     for design in thesis.values():
-        designs.append(dataclasses.replace(design, prediction=Prediction.of(_thesis_scores(design, record, inputs),
-                                                                            events)))
+        scores = _thesis_scores(design, record, inputs)
+        designs.append(dataclasses.replace(design, prediction=Prediction.of(scores, events)))
     chosen = designs[0] if wanted else _pick(designs, options.latency_periods)
     alternatives = tuple((d.kind.value, d.prediction) for d in designs)
     reason = ("--index" if wanted else f"the smallest predicted latency meeting the targets among "

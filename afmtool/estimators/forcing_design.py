@@ -6,13 +6,13 @@ The candidates (issue 28, items 1-2): Kalman filters of
 ``ON_FRACTIONS`` of the on-sample forcing μ1 = |F_sp − F_fa|.  For each:
 
 * its noise s (the free-air standard deviation of z) is measured on the
-  capture's free-air segment, and its on-sample spread on the survey's
-  steady tapping (the larger is used);
-* on = min(f·μ1, μ1 − ``ON_MARGIN``·s) keeps on-sample false alarms rare,
+  capture's free-air segment, and its on-sample spread s_on on the
+  survey's steady tapping (at least s);
+* on = min(f·μ1, μ1 − ``ON_MARGIN``·s_on) keeps on-sample false alarms rare,
   off = max(on + ``HYSTERESIS``·s, ``OFF_MARGIN``·s) keeps the switch in loss
-  off the sample, big = max(off + s, ``BIG_MARGIN``·s);
-  a candidate whose off is not ``REACH_MARGIN``·s below μ1 cannot see the
-  tip come back and is dropped;
+  off the sample (where only the noise moves z), big = max(off + s,
+  ``BIG_MARGIN``·s); a candidate whose off is not ``REACH_MARGIN``·s_on
+  below μ1 cannot see the tip come back and is dropped;
 * it runs over :func:`~afmtool.estimators.detectability.synthetic_record`
   (its noise scaled to what the filter measured on the capture) and is
   scored there: latency, return lag, recall, false alarms, and the
@@ -56,6 +56,7 @@ from afmtool.estimators.forcing_observer import (
 __all__ = [
     "MEMORY_PERIODS",
     "ON_FRACTIONS",
+    "LATENCY_UNCERTAINTY",
     "TARGET_LATENCY",
     "TARGET_PRECISION",
     "TARGET_RECALL",
@@ -80,6 +81,10 @@ HYSTERESIS = 2.0
 OFF_MARGIN = 2.5
 BIG_MARGIN = 6.0
 REACH_MARGIN = 3.0
+#: Relative uncertainty of a predicted latency: on the reference simulator's grid the measured median
+#: latency came out 0-15 % above the prediction (tests/test_probeloss_envelope.py); a capture is within
+#: the limit only when its prediction plus this margin is.
+LATENCY_UNCERTAINTY = 0.15
 #: The issue's targets.
 TARGET_LATENCY = 3.0
 TARGET_PRECISION = 0.9
@@ -174,8 +179,8 @@ def _measure(model: ForcingModel, gain, free_air, survey, steady, direction: com
     spread = scale
     if survey is not None and steady is not None and np.count_nonzero(steady) > 16:
         deflection, dither, first = survey
-        z = ((forcing_phasors(model, gain, deflection, dither, first=first)[steady] - reference)
-             * direction.conjugate()).real
+        w = forcing_phasors(model, gain, deflection, dither, first=first) - reference
+        z = (w[steady] * direction.conjugate()).real
         spread = max(scale, 1.4826 * float(np.median(np.abs(z - np.median(z)))))
     return _Measured(reference, scale, spread)
 
@@ -215,13 +220,14 @@ def forcing_candidates(model: ForcingModel, sigma: float, forcing: complex, peri
         # the synthetic noise scaled to what this filter measures on the capture's free air
         synthetic_scale = float(np.std((noise[record.first_scored:] * direction.conjugate()).real))
         w = signal + noise * (measured.scale / synthetic_scale)
-        s = max(measured.scale, measured.on_spread)
+        # on the sample z spreads by the noise and the tapping's own fluctuations; off it, by the noise alone
+        s_on, s_off = max(measured.scale, measured.on_spread), measured.scale
         detector_base = (model, tuple(gain), measured.reference, direction, measured.scale)
         for fraction in ON_FRACTIONS:
-            on = min(fraction * mu1, mu1 - ON_MARGIN * s)
-            off = max(on + HYSTERESIS * s, OFF_MARGIN * s)
-            big = max(off + s, BIG_MARGIN * s)
-            if not (on > 0 and off <= mu1 - REACH_MARGIN * s):
+            on = min(fraction * mu1, mu1 - ON_MARGIN * s_on)
+            off = max(on + HYSTERESIS * s_off, OFF_MARGIN * s_off)
+            big = max(off + s_off, BIG_MARGIN * s_off)
+            if not (on > 0 and off <= mu1 - REACH_MARGIN * s_on):
                 continue
             switch = np.empty(w.size, dtype=np.int8)
             _switch_kernel(w.real.copy(), w.imag.copy(), direction.real, direction.imag, on, off, big, switch)
