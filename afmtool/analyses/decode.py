@@ -12,9 +12,10 @@ on the chunk size; memory is flat apart from one value per bit.
 
 The voltage is V = α_R·V_R − V_sub from the ``v_r`` and ``v_sub`` channels
 (eq. 6.3), or a channel named by ``voltage_channel``.  Model parameters
-come from the parameters, else the capture metadata (``cantilever``,
-``electrostatic``), else the thesis's values (eq. 7.10); the report says
-which.  Units: deflection in nm, K_esf in F·m with F = −K_esf·V²/ℓ² (no ½).
+come from the parameters, ``--electrostatic`` (``identify electrostatic``'s
+result) or the capture metadata, and never from the thesis's experiment:
+a missing one stops the run with its name (:mod:`afmtool.analyses.decode_model`);
+the report says where each came from.  Units: deflection in nm, K_esf in F·m with F = −K_esf·V²/ℓ² (no ½).
 """
 
 from __future__ import annotations
@@ -26,13 +27,14 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from afmtool.analyses.decode_model import ModelSetup, resolve_model
 from afmtool.config.params import DecodeParams, parse_bracket_nm, parse_interval
 from afmtool.config.samples import interval_samples, sample_count
 from afmtool.errors import ConfigError, InputError
+from afmtool.estimators.bit_errors import BitErrors, ber_upper_bound, bit_errors
 from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
-from afmtool.io.metadata import CantileverMetadata, ElectrostaticMetadata
 from afmtool.io.results import ResultWriter
-from afmtool.models.electrostatic import THESIS_CH7_PARAMS, ElectrostaticParams, LeverVoltages, actuation_voltage
+from afmtool.models.electrostatic import LeverVoltages, actuation_voltage
 from afmtool.pipeline import Decimation, Head, Split, read_segment, run_stream
 from afmtool.report.results import JsonResults
 
@@ -66,146 +68,6 @@ _READ_AHEAD = 1
 _MIN_MEASUREMENT_NOISE_NM = 1e-4
 
 
-# --------------------------------------------------------------------------- model
-
-
-class ModelSetup(NamedTuple):
-    """The plant the EKF models before ℓ0 is estimated, and where each value came from."""
-
-    f0_hz: float
-    q: float
-    electrostatic: ElectrostaticParams  #: its l0_m is the guess (metadata, parameter or thesis)
-    sources: dict  #: parameter name -> "parameter", "metadata" or "thesis (eq. 7.10)"
-
-
-def _pick(name: str, given: float, meta: CantileverMetadata | ElectrostaticMetadata, key: str, default: float | None,
-          scale: float = 1.0):
-    if given:
-        return given * scale, "parameter"
-    value = getattr(meta, key)  # a typed metadata record, validated when the capture was opened
-    if value is not None:
-        return value, "metadata"
-    if default is None:
-        raise ConfigError(f"give {name} in the [decode] section of --config (the capture metadata has no {key})")
-    return default, "thesis (eq. 7.10)"
-
-
-def resolve_model(info: CaptureInfo, params: DecodeParams) -> ModelSetup:
-    """f0, Q, k, K_esf, α_R, t_h and an ℓ0 guess from parameters, metadata or the thesis."""
-    cantilever = info.capture_metadata.cantilever
-    es_meta = info.capture_metadata.electrostatic
-    th = THESIS_CH7_PARAMS
-    sources = {}
-    f0, sources["f0_hz"] = _pick("f0_hz", params.f0_hz, cantilever, "f0_hz", None)
-    q, sources["q"] = _pick("q", params.q, cantilever, "q", None)
-    k, sources["spring_constant_n_per_m"] = _pick(
-        "spring_constant_n_per_m", params.spring_constant_n_per_m, cantilever, "spring_constant_n_per_m",
-        th.spring_constant_n_per_m,
-    )
-    k_esf, sources["k_esf_f_m"] = _pick("k_esf_f_m", params.k_esf_f_m, es_meta, "k_esf_f_m", th.k_esf_f_m)
-    alpha, sources["alpha_r"] = _pick("alpha_r", params.alpha_r, es_meta, "alpha_r", th.alpha_r)
-    tip, sources["tip_height_nm"] = _pick("tip_height_nm", params.tip_height_nm, es_meta, "tip_height_m",
-                                          th.tip_height_m, 1e-9)
-    l0, sources["l0_guess_nm"] = _pick("l0_nm", params.l0_nm, es_meta, "l0_m", th.l0_m, 1e-9)
-    if params.voltage_channel:
-        sources["alpha_r"] = "unused (voltage channel)"
-    return ModelSetup(f0, q, ElectrostaticParams(k, k_esf, alpha, l0, tip), sources)
-
-
-# --------------------------------------------------------------------------- truth
-
-
-class BitErrors(NamedTuple):
-    """Decoded bits against the ground truth."""
-
-    compared: int  #: decoded bits that fall on a truth bit cell
-    errors: int
-    ber: float  #: errors/compared (NaN if none compared)
-    lag_samples: int  #: latency from the truth cell to the decoded centre (the alignment chosen)
-    inverted: bool  #: the polarity was flipped (baseline only)
-    confusion: dict  #: counts "truth0_decoded0", "truth0_decoded1", "truth1_decoded0", "truth1_decoded1"
-
-
-def bit_errors(
-    bits: np.ndarray,
-    centre_samples: np.ndarray,
-    truth_bit: np.ndarray,
-    truth_index: np.ndarray,
-    *,
-    max_lag: int,
-    allow_inversion: bool = False,
-) -> BitErrors:
-    """Compare decoded bits with the truth after aligning the latency.
-
-    Decoded bit i (centre c_i, samples of the signal it was decoded from) is
-    compared with the truth bit under the tip at sample round(c_i − L).  The
-    latency L ∈ [0, max_lag] is the one with the fewest errors (a BER
-    tester's pattern alignment; ties: the middle of the best range).  With
-    ``allow_inversion`` the polarity is chosen the same way.
-
-    Parameters
-    ----------
-    bits : numpy.ndarray
-        Decoded bits (0/1).
-    centre_samples : numpy.ndarray
-        Their centres, samples from the capture start.
-    truth_bit, truth_index : numpy.ndarray
-        Per-sample truth: the bit under the tip and its cell (−1 outside).
-    max_lag : int
-        Largest latency tried, samples.
-    allow_inversion : bool, optional
-        Also try the inverted bits.
-    """
-    bits = np.asarray(bits).astype(bool)
-    centres = np.asarray(centre_samples, dtype=np.float64)
-    truth_bit = np.asarray(truth_bit).astype(bool)
-    truth_index = np.asarray(truth_index)
-    n = truth_bit.size
-    best = None
-    for lag in range(max_lag + 1):
-        idx = np.rint(centres - lag).astype(np.int64)
-        ok = (idx >= 0) & (idx < n)
-        ok[ok] &= truth_index[idx[ok]] >= 0
-        if not ok.any():
-            continue
-        truth = truth_bit[idx[ok]]
-        decoded = bits[ok]
-        for inverted in (False, True) if allow_inversion else (False,):
-            errors = int(np.count_nonzero((decoded ^ inverted) != truth))
-            rate = errors / ok.sum()
-            if best is None or rate < best[0] - 1e-15:
-                best = (rate, [(lag, inverted, errors, int(ok.sum()))])
-            elif abs(rate - best[0]) <= 1e-15:
-                best[1].append((lag, inverted, errors, int(ok.sum())))
-    if best is None:
-        return BitErrors(0, 0, math.nan, 0, False, {})
-    lag, inverted, errors, compared = best[1][len(best[1]) // 2]
-    idx = np.rint(centres - lag).astype(np.int64)
-    ok = (idx >= 0) & (idx < n)
-    ok[ok] &= truth_index[idx[ok]] >= 0
-    truth = truth_bit[idx[ok]]
-    decoded = bits[ok] ^ inverted
-    confusion = {
-        f"truth{t}_decoded{d}": int(np.count_nonzero((truth == bool(t)) & (decoded == bool(d))))
-        for t in (0, 1) for d in (0, 1)
-    }
-    return BitErrors(compared, errors, errors / compared, int(lag), bool(inverted), confusion)
-
-
-def ber_upper_bound(errors: int, compared: int, confidence: float = 0.95) -> float:
-    """One-sided Clopper-Pearson upper bound of a bit error rate: ``errors`` in ``compared`` bits.
-
-    For no errors it is 1 − (1 − confidence)^(1/n) ≈ 3/n at 95 % (the rule of three).
-    """
-    from scipy.special import betaincinv  # scipy.stats.beta.ppf is this, and scipy.stats costs 0.4 s to import
-
-    if not 0 <= errors <= compared or compared < 1:
-        raise ConfigError(f"errors={errors!r} and compared={compared!r} must satisfy 0 <= errors <= compared, compared >= 1")
-    if errors == compared:
-        return 1.0
-    return float(betaincinv(errors + 1, compared - errors, confidence))
-
-
 # --------------------------------------------------------------------------- result
 
 
@@ -218,9 +80,22 @@ class DecodeResult(JsonResults):
     l0_curve_nm: tuple[np.ndarray, np.ndarray] | None  #: (ℓ0, innovation RMS), nm
     psd: dict = field(default_factory=dict)  #: frequency_hz, deflection, innovation (nm²/Hz)
     eye: dict = field(default_factory=dict)  #: x (bit periods), traces (2-D, nm), threshold_nm
+    step: object = None  #: StepSeries around the V_phi step (--mode step), for its figure
 
 
 # --------------------------------------------------------------------------- setup helpers
+
+
+def _step_sample(info: CaptureInfo, params: DecodeParams, nominal) -> int | None:
+    """The V_phi step's sample in --mode step (auto: when the metadata has vphi_step); None for bits."""
+    metadata_time = info.capture_metadata.vphi_step.time_s
+    if params.mode == "bits" or (params.mode == "auto" and metadata_time is None):
+        return None
+    time_s = params.step_time_s or metadata_time or (nominal[1] if nominal is not None else None)
+    if time_s is None:
+        raise ConfigError("--mode step needs the step's time: --step-time, metadata vphi_step.time_s or a nominal "
+                          "segment ending at it")
+    return sample_count(time_s, info.sample_rate_hz, "step time")
 
 
 def _nominal_interval(info: CaptureInfo, params: DecodeParams) -> tuple[float, float] | None:
@@ -295,7 +170,7 @@ def _tune(setup: ModelSetup, params: DecodeParams, fs: float, segment, warmup: i
         l0_result: dict = {"estimate_nm": params.l0_nm, "source": "parameter"}
         curve = None
     else:
-        model, l0_result, curve = _search_l0(model, params, es, segment, fs, warmup, warnings)
+        model, l0_result, curve = _search_l0(model, params, setup, segment, fs, warmup, warnings)
     if params.process_noise_n_per_rthz:
         noise["process_noise_n_per_rthz"], noise["process_source"] = params.process_noise_n_per_rthz, "parameter"
     else:
@@ -338,19 +213,21 @@ def _measurement_noise(setup: ModelSetup, params: DecodeParams, fs: float, y, no
     return r_nm
 
 
-def _search_l0(model, params: DecodeParams, es: ElectrostaticParams, segment, fs: float, warmup: int,
+def _search_l0(model, params: DecodeParams, setup: ModelSetup, segment, fs: float, warmup: int,
                warnings: list) -> tuple:
     """ℓ0 by §7.4 on the nominal segment: (model with it, the report's ``l0``, the RMS curve in nm)."""
     from afmtool.estimators.ekf_tuning import estimate_l0
 
     y, v = segment
+    geometric = False
     if params.l0_bracket_nm:
         low, high = parse_bracket_nm(params.l0_bracket_nm)
     else:
-        guess = es.l0_m * 1e9
-        low, high = max(0.75 * guess, 1.01 * es.tip_height_m * 1e9), 1.33 * guess
+        low_m, high_m, geometric = setup.l0_bracket_m()
+        low, high = max(low_m, 1.01 * setup.electrostatic.tip_height_m) * 1e9, high_m * 1e9
     search = estimate_l0(
-        model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup
+        model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup,
+        geometric=geometric,
     )
     l0_result = {
         "estimate_nm": search.l0_m * 1e9,
@@ -590,9 +467,11 @@ def run_decode(
     -------
     DecodeResult
     """
+    from afmtool.io.electrostatic_file import read_electrostatic_file
+
     info = reader.info
     fs = info.sample_rate_hz
-    setup = resolve_model(info, params)
+    setup = resolve_model(info, params, read_electrostatic_file(params.electrostatic) if params.electrostatic else None)
     if setup.f0_hz >= fs / 2:
         raise InputError(f"f0 = {setup.f0_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
     channels = ("deflection",) + ((params.voltage_channel,) if params.voltage_channel else ("v_sub", "v_r"))
@@ -605,7 +484,6 @@ def run_decode(
     baseline, psd, bits_start = decoding.baseline, decoding.psd, decoding.bits_start
     actuation_hz, actuation_source = decoding.actuation_hz, decoding.actuation_source
     warnings = list(tuning.warnings)
-    decided = _decide(stage, params, mean_window, writer, warnings)
     if tuning.l0_curve_nm is not None:
         writer.put("l0_search/l0_nm", tuning.l0_curve_nm[0], "nm")
         writer.put("l0_search/innovation_rms_nm", tuning.l0_curve_nm[1], "nm")
@@ -620,11 +498,19 @@ def run_decode(
             "mean_window_samples": mean_window,
             "bit_stream_innovation_rms_nm": totals.bit_stream_rms_nm,
         },
-        **decided.results,
-        "baseline": {**baseline.results(), **decided.baseline_results},
         "n_samples": totals.n_samples,
         "duration_s": totals.n_samples / fs,
     }
+    if decoding.step_window is not None:
+        from afmtool.analyses.decode_step import step_results
+
+        series = decoding.step_window.series()
+        results["mode"] = "step"
+        results["step"] = step_results(series, decoding.step_window.step_sample, fs, actuation_hz, setup.f0_hz,
+                                       setup.q, mean_window)
+        return DecodeResult(results, tuple(warnings), tuning.l0_curve_nm, psd.spectra(fs), {}, series)
+    decided = _decide(stage, params, mean_window, writer, warnings)
+    results.update({"mode": "bits", **decided.results, "baseline": {**baseline.results(), **decided.baseline_results}})
     results["clock"]["bits_from_s"] = bits_start / fs
     _compare_truth(reader, results, decided, stage.clock.period_samples, 0.5 * (mean_window - 1))
     eye = {"x": stage.eye_x, "traces": stage.eye_traces, "threshold_nm": decided.threshold_nm}
@@ -641,7 +527,7 @@ def _model_results(setup: ModelSetup, params: DecodeParams) -> dict:
         "k_esf_f_m": es.k_esf_f_m,
         "alpha_r": es.alpha_r,
         "tip_height_nm": es.tip_height_m * 1e9,
-        "l0_guess_nm": es.l0_m * 1e9,
+        "l0_guess_nm": es.l0_m * 1e9 if setup.l0_known else None,
         "sources": setup.sources,
         "convention": "F_esf = -K_esf*V^2/(l0 + p)^2 (no 1/2), K_esf in F*m; EKF state [p (nm), dp/dt (nm/s)]",
         "voltage": params.voltage_channel or "alpha_r*v_r - v_sub",
@@ -743,6 +629,12 @@ class _DecodeStage:
         self.baseline = _Baseline.create(params, fs, self.actuation_hz, self.mean_window)
         self.bits = _BitStage(fs, self.bits_start, params, self.actuation_hz, self.baseline.delay_primary,
                               self.baseline.delay_aux)
+        step_sample = _step_sample(self.info, params, nominal)
+        self.step_window = None
+        if step_sample is not None:
+            from afmtool.analyses.decode_step import StepWindow
+
+            self.step_window = StepWindow(step_sample, fs / self.actuation_hz)
         self.psd = _PsdBuffer(self.bits_start, sample_count(params.psd_window_s, fs, "psd_window_s"))
         self.ekf_state = EkfState.initial(self.design, stats_from=self.bits_start)  # sums ε² over the bit stream
         self.lock_state = self.baseline.lockin.initial_state(1)
@@ -793,15 +685,20 @@ class _DecodeStage:
             "innovation_mean": self.mean_kept.take(mean, chunk.start),
         }
         self.psd.feed(chunk.start, y, innovation)
-        self.bits.feed(chunk.start, mean, self.held(chunk.start, n, amplitude))
+        held = self.held(chunk.start, n, amplitude)
+        if self.step_window is not None:
+            self.step_window.feed(chunk.start, y, innovation, held)
+        else:
+            self.bits.feed(chunk.start, mean, held)
         self.n_total = chunk.start + n
         return columns
 
     def finish(self) -> _Totals:
         """Close the last bit cell; the sample count and the bit stream's innovation RMS."""
-        self.bits.finish()
-        if self.bits.clock is None:
-            raise InputError(f"the bit stream (from {self.bits_start / self.fs:g} s) is empty; check --bits-from")
+        if self.step_window is None:
+            self.bits.finish()
+            if self.bits.clock is None:
+                raise InputError(f"the bit stream (from {self.bits_start / self.fs:g} s) is empty; check --bits-from")
         from afmtool.estimators.ekf import InnovationSums
 
         # a split run adds its chunks' sums; a sequential one carries them in the EKF's state

@@ -11,7 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_eye_png", "write_l0_png", "write_psd_png"]
+__all__ = ["write_eye_png", "write_l0_png", "write_psd_png", "write_step_png"]
+
+#: Points drawn per panel of the step figure (min/max envelopes keep the spikes).
+_STEP_POINTS = 4000
 
 #: Eye-diagram trace style: thin, translucent, one colour.
 _EYE_STYLE = {"color": "C0", "linewidth": 0.6, "alpha": 0.25}
@@ -67,4 +70,32 @@ def write_l0_png(path: Path, l0_nm: np.ndarray, rms_nm: np.ndarray, estimate_nm:
         path, [(np.asarray(l0_nm), np.asarray(rms_nm), "", {"color": "C0", "marker": ".", "markersize": 3})],
         x_label="l0 (nm)", y_label="innovation RMS (nm)", title="l0 search on the nominal segment",
         markers=[(estimate_nm, f"l0 = {estimate_nm:.1f} nm")],
+    )
+
+
+def write_step_png(path: Path, deflection: np.ndarray, innovation: np.ndarray, amplitude: np.ndarray,
+                   first_sample: int, step_sample: int, sample_rate_hz: float, mean_window: int) -> None:
+    """The V_phi step (§7.7, Figs. 7.9-7.12): deflection, its amplitude, the innovation and its running mean.
+
+    Time in ms from the step; the step is a dotted line through every panel.
+    """
+    from afmtool.report.images import write_multi_panel_png
+
+    n = deflection.size
+    t_ms = (first_sample + np.arange(n) - step_sample) / sample_rate_hz * 1e3
+    c = np.concatenate(([0.0], np.cumsum(innovation)))
+    mean = np.full(n, np.nan)
+    mean[mean_window - 1:] = (c[mean_window:] - c[:-mean_window]) / mean_window
+    step = max(1, n // _STEP_POINTS)
+
+    def panel(values, label, colour):
+        return {"y_label": label, "series": [(t_ms[::step], values[::step], "", {"color": colour, "linewidth": 0.8})]}
+
+    write_multi_panel_png(
+        path,
+        [panel(deflection, "deflection (nm)", "C0"), panel(amplitude, "amplitude at f_a (nm)", "C1"),
+         panel(innovation, "EKF innovation (nm)", "C2"), panel(mean, "innovation, running mean (nm)", "C3")],
+        x_label="time from the V_phi step (ms)",
+        title="Step in the surface potential (thesis Figs. 7.9-7.12)",
+        markers=[(0.0, "V_phi step")],
     )

@@ -36,7 +36,8 @@ def run_decode_command(run: CommandRun) -> dict:
                     writer.put(f"psd/{name}", result.psd[name], units)
         staged.flush_early("decode.h5")  # to disk while the figures are drawn
         _write_figures(run.figures, staged, result)
-        _write_time_series(run.figures, staged, reader, result.results)
+        if result.step is None:
+            _write_time_series(run.figures, staged, reader, result.results)
         inputs = [{**record.result(), **calibration_record(reader)}]
         run.figures.wait()
         return finish_run(staged, "decode", inputs, "decode", params, result.results, result.warnings)
@@ -61,7 +62,14 @@ def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: Captur
 
 
 def _write_figures(figures: FigureProcess, staged: OutputDir, result: DecodeResult) -> None:
-    from afmtool.analyses.decode_figures import write_eye_png, write_l0_png, write_psd_png
+    from afmtool.analyses.decode_figures import write_eye_png, write_l0_png, write_psd_png, write_step_png
+
+    if result.step is not None:  # --mode step: the response to the V_phi step
+        series, step = result.step, result.results["step"]
+        fs = result.results["ekf"]["sample_rate_hz"]
+        figures.draw(write_step_png, staged.path("decode_step.png"), series.deflection, series.innovation,
+                     series.amplitude, series.first, round(step["time_s"] * fs), fs,
+                     result.results["ekf"]["mean_window_samples"])
 
     if result.eye:
         figures.draw(write_eye_png, staged.path("eye.png"), result.eye["x"], result.eye["traces"],

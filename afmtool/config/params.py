@@ -653,21 +653,36 @@ class DecodeParams:
     )
     f0_hz: float = field(0.0, "Resonant frequency f0; 0 = metadata cantilever.f0_hz", "Hz", bounds=">= 0")
     q: float = field(0.0, "Quality factor Q; 0 = metadata cantilever.q", bounds="> 0.5", automatic=0.0)
+    electrostatic: str = field(
+        "",
+        "electrostatic.json (or its folder) from 'identify electrostatic': K_esf/k, alpha_R, l0 (and t_h, k) of "
+        "eqs. 6.6/6.7; parameters given here win, the capture metadata fills the rest",
+        flag="--electrostatic",
+    )
     spring_constant_n_per_m: float = field(
-        0.0, "Spring constant k; 0 = metadata, else eq. 7.10's 0.1404", "N/m", bounds=">= 0"
+        0.0, "Spring constant k; 0 = --electrostatic, else metadata cantilever", "N/m", bounds=">= 0"
     )
     k_esf_f_m: float = field(
-        0.0, "K_esf (no-1/2 convention); 0 = metadata electrostatic, else 1.66e-21", "F*m", bounds=">= 0"
+        0.0, "K_esf (no-1/2 convention); 0 = --electrostatic (K_esf/k times k), else metadata", "F*m", bounds=">= 0"
     )
     alpha_r: float = field(
-        0.0, "alpha_R of V = alpha_R*V_R - V_sub; 0 = metadata electrostatic, else 0.2549", bounds=">= 0"
+        -1.0,
+        "alpha_R of V = alpha_R*V_R - V_sub (eq. 6.3); 0 = the lever at ground (V = -V_sub); -1 = --electrostatic, "
+        "else metadata",
+        bounds=">= 0",
+        automatic=-1.0,
+        flag="--alpha-r",
     )
-    tip_height_nm: float = field(0.0, "Tip height t_h; 0 = metadata electrostatic, else 768.3", "nm", bounds=">= 0")
+    tip_height_nm: float = field(
+        0.0, "Tip height t_h; 0 = --electrostatic, else metadata, else none (the separation is not clamped)", "nm",
+        bounds=">= 0",
+    )
     l0_nm: float = field(
         0.0, "Lever-sample separation l0; 0 = estimate on the nominal segment (§7.4)", "nm", bounds=">= 0", flag="--l0"
     )
     l0_bracket_nm: str = field(
-        "", "l0 search bracket LOW:HIGH; empty = 0.75-1.33 x the guess (metadata or 1081.8)", "nm"
+        "", "l0 search bracket LOW:HIGH; empty = 0.75-1.33 x the guess (--electrostatic or metadata l0), else "
+        "1.05 t_h (or 100 nm) to 20 um on a geometric grid", "nm"
     )
     l0_grid_points: int = field(
         41, "Coarse grid points of the l0 search before golden-section refinement", bounds=">= 5"
@@ -730,6 +745,17 @@ class DecodeParams:
         0.0, "Lock-in baseline low-pass; 0 = min(bit rate/2, actuation/4)", "Hz", bounds=">= 0"
     )
     psd_window_s: float = field(0.02, "Stretch of the bit stream used for the PSD comparison plot", "s", bounds="> 0")
+    mode: str = field(
+        "auto",
+        "What the capture holds: bits read back, or a step in the surface potential V_phi (§7.7: step response of "
+        "the deflection, its amplitude and the EKF innovation); auto = step when the metadata has vphi_step",
+        choices=("auto", "bits", "step"),
+        flag="--mode",
+    )
+    step_time_s: float = field(
+        0.0, "Time of the V_phi step; 0 = metadata vphi_step.time_s, else the end of the nominal segment", "s",
+        bounds=">= 0", flag="--step-time",
+    )
     eye_traces: int = field(200, "Bit cells drawn in the eye diagram", bounds=">= 1")
     # 1 Mi samples: each chunk costs ~2 ms of hand-offs between the reading, computing and
     # writing threads, 0.6 s per 1e8 samples at 256 Ki; the buffers cost ~100 MB.

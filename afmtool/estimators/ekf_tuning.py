@@ -107,6 +107,7 @@ def estimate_l0(
     grid_points: int = 41,
     tolerance_m: float = 1e-11,
     warmup: int = 0,
+    geometric: bool = False,
 ) -> L0Search:
     """ℓ0 that minimises the innovation RMS over a nominal segment (§7.4).
 
@@ -126,6 +127,9 @@ def estimate_l0(
         Final bracket width of the golden-section search, m.
     warmup : int, optional
         Samples left out of the RMS at the start (the filter's transient).
+    geometric : bool, optional
+        A geometric coarse grid (for a wide bracket: the force goes as 1/ℓ0²)
+        instead of an even one.
 
     Returns
     -------
@@ -148,7 +152,7 @@ def estimate_l0(
             evaluated[l0] = _stats(design.with_l0(l0), y, v, warmup).rms_nm
         return evaluated[l0]
 
-    grid = np.linspace(low, high, grid_points)
+    grid = np.geomspace(low, high, grid_points) if geometric else np.linspace(low, high, grid_points)
     grid_rms = np.array([rms(float(g)) for g in grid])
     note = _grid_check(grid, grid_rms)
     k = int(np.argmin(grid_rms))

@@ -29,6 +29,7 @@ __all__ = [
     "ForceMetadata",
     "IntervalMetadata",
     "RampMetadata",
+    "StepMetadata",
     "ScanMetadata",
     "SweepSegmentMetadata",
     "json_depth",
@@ -186,8 +187,9 @@ def _check_interval(name: str, value: Any) -> None:
 #: "finite" (any sign) or "string".  Any other key in them is kept as free-form.
 _SETUP_KEYS = {
     "controller": (("setpoint_nm", "positive"), ("mode", "string")),
-    "electrostatic": (("k_esf_f_m", "positive"), ("alpha_r", "positive"), ("l0_m", "positive"),
+    "electrostatic": (("k_esf_f_m", "positive"), ("alpha_r", "non-negative"), ("l0_m", "positive"),
                       ("tip_height_m", "non-negative")),
+    "vphi_step": (("time_s", "non-negative"), ("step_v", "finite")),
     "ramp": (("kind", "string"), ("v_r_v", "finite"), ("v_sub_max_v", "finite")),
     "force": (("d_nm", "non-negative"), ("omega_a2_per_s2", "non-negative"), ("omega_b2_per_s2", "non-negative"),
               ("c_a_per_s", "non-negative"), ("c_b_per_s", "non-negative"), ("set", "string")),
@@ -366,6 +368,18 @@ class ElectrostaticMetadata:
 
 
 @dataclass(frozen=True)
+class StepMetadata:
+    """``vphi_step``: a step in the sample's surface potential V_φ at ``time_s`` (s) of ``step_v`` (V) (§7.7)."""
+
+    time_s: float | None = None
+    step_v: float | None = None
+
+    @classmethod
+    def from_mapping(cls, value: Mapping) -> StepMetadata:
+        return cls(_float(value.get("time_s")), _float(value.get("step_v")))
+
+
+@dataclass(frozen=True)
 class IntervalMetadata:
     """A segment of the capture, in seconds from its first sample (``free_air``, ``nominal``)."""
 
@@ -449,6 +463,7 @@ class CaptureMetadata:
     controller: ControllerMetadata = ControllerMetadata()
     electrostatic: ElectrostaticMetadata = ElectrostaticMetadata()
     ramp: RampMetadata = RampMetadata()
+    vphi_step: StepMetadata = StepMetadata()
     force: ForceMetadata | None = None
     free_air: IntervalMetadata | None = None
     nominal: IntervalMetadata | None = None
@@ -481,6 +496,7 @@ class CaptureMetadata:
             controller=typed("controller", ControllerMetadata) or ControllerMetadata(),
             electrostatic=typed("electrostatic", ElectrostaticMetadata) or ElectrostaticMetadata(),
             ramp=typed("ramp", RampMetadata) or RampMetadata(),
+            vphi_step=typed("vphi_step", StepMetadata) or StepMetadata(),
             force=typed("force", ForceMetadata),
             free_air=typed("free_air", IntervalMetadata),
             nominal=typed("nominal", IntervalMetadata),
