@@ -467,55 +467,63 @@ def run_decode(
     -------
     DecodeResult
     """
+    from afmtool.io.chunks import require_channels
     from afmtool.io.electrostatic_file import read_electrostatic_file
 
     info = reader.info
     fs = info.sample_rate_hz
+    channels = ("deflection",) + ((params.voltage_channel,) if params.voltage_channel else ("v_sub", "v_r"))
+    require_channels(info, channels)  # before the model: a capture of something else is told so first
     setup = resolve_model(info, params, read_electrostatic_file(params.electrostatic) if params.electrostatic else None)
     if setup.f0_hz >= fs / 2:
         raise InputError(f"f0 = {setup.f0_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
-    channels = ("deflection",) + ((params.voltage_channel,) if params.voltage_channel else ("v_sub", "v_r"))
     decoding = _DecodeStage(info, params, setup, channels)
     (totals,) = run_stream(
         reader, [decoding], writer, channels=channels, chunk_samples=params.chunk_samples, progress=progress,
         prologue=decoding.nominal_prologue, read_ahead=_READ_AHEAD, split=split, on_start=on_stream_start,
     )
-    tuning, stage, nominal, mean_window = decoding.tuning, decoding.bits, decoding.nominal, decoding.mean_window
-    baseline, psd, bits_start = decoding.baseline, decoding.psd, decoding.bits_start
-    actuation_hz, actuation_source = decoding.actuation_hz, decoding.actuation_source
-    warnings = list(tuning.warnings)
+    tuning = decoding.tuning
     if tuning.l0_curve_nm is not None:
         writer.put("l0_search/l0_nm", tuning.l0_curve_nm[0], "nm")
         writer.put("l0_search/innovation_rms_nm", tuning.l0_curve_nm[1], "nm")
-    results: dict = {
-        "model": _model_results(setup, params),
-        "nominal_segment_s": list(nominal) if nominal is not None else None,
-        **tuning.results,
-        "ekf": {
-            "sample_rate_hz": fs,
-            "actuation_hz": actuation_hz,
-            "actuation_source": actuation_source,
-            "mean_window_samples": mean_window,
-            "bit_stream_innovation_rms_nm": totals.bit_stream_rms_nm,
-        },
-        "n_samples": totals.n_samples,
-        "duration_s": totals.n_samples / fs,
-    }
+    results = _common_results(decoding, totals, fs)
+    warnings = list(tuning.warnings)
     if decoding.step_window is not None:
         from afmtool.analyses.decode_step import step_results
 
         series = decoding.step_window.series()
         results["mode"] = "step"
-        results["step"] = step_results(series, decoding.step_window.step_sample, fs, actuation_hz, setup.f0_hz,
-                                       setup.q, mean_window)
-        return DecodeResult(results, tuple(warnings), tuning.l0_curve_nm, psd.spectra(fs), {}, series)
+        results["step"] = step_results(series, decoding.step_window.step_sample, fs, decoding.actuation_hz,
+                                       setup.f0_hz, setup.q, decoding.mean_window)
+        return DecodeResult(results, tuple(warnings), tuning.l0_curve_nm, decoding.psd.spectra(fs), {}, series)
+    stage, mean_window = decoding.bits, decoding.mean_window
     decided = _decide(stage, params, mean_window, writer, warnings)
-    results.update({"mode": "bits", **decided.results, "baseline": {**baseline.results(), **decided.baseline_results}})
-    results["clock"]["bits_from_s"] = bits_start / fs
+    results.update({"mode": "bits", **decided.results,
+                    "baseline": {**decoding.baseline.results(), **decided.baseline_results}})
+    results["clock"]["bits_from_s"] = decoding.bits_start / fs
     _compare_truth(reader, results, decided, stage.clock.period_samples, 0.5 * (mean_window - 1))
     eye = {"x": stage.eye_x, "traces": stage.eye_traces, "threshold_nm": decided.threshold_nm}
     eye = eye if stage.eye_traces.size else {}
-    return DecodeResult(results, tuple(warnings), tuning.l0_curve_nm, psd.spectra(fs), eye)
+    return DecodeResult(results, tuple(warnings), tuning.l0_curve_nm, decoding.psd.spectra(fs), eye)
+
+
+def _common_results(decoding: _DecodeStage, totals, fs: float) -> dict:
+    """The model, the nominal segment, the tuning and the EKF's figures: the results of either mode."""
+    nominal = decoding.nominal
+    return {
+        "model": _model_results(decoding.setup, decoding.params),
+        "nominal_segment_s": list(nominal) if nominal is not None else None,
+        **decoding.tuning.results,
+        "ekf": {
+            "sample_rate_hz": fs,
+            "actuation_hz": decoding.actuation_hz,
+            "actuation_source": decoding.actuation_source,
+            "mean_window_samples": decoding.mean_window,
+            "bit_stream_innovation_rms_nm": totals.bit_stream_rms_nm,
+        },
+        "n_samples": totals.n_samples,
+        "duration_s": totals.n_samples / fs,
+    }
 
 
 def _model_results(setup: ModelSetup, params: DecodeParams) -> dict:

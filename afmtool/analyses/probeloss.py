@@ -173,8 +173,12 @@ def _options(params: ProbeLossParams) -> DetectorOptions:
 
 
 def _read_survey(reader: CaptureReader, chunks: Iterator[Chunk], segment: FreeAirSegment | None):
-    """The capture after the free-air segment, up to ``SURVEY_SAMPLES``, read ahead: ((y, g, first) or None, chunks)."""
-    if segment is None:
+    """The capture after the free-air segment, up to ``SURVEY_SAMPLES``, read ahead: ((y, g, first) or None, chunks).
+
+    None for a stream of unknown length (stdin): reading ahead would hold back the first rows of a live
+    capture; the detector is then designed from the set point, if one is given.
+    """
+    if segment is None or reader.info.n_samples is None:
         return None, chunks
     from afmtool.pipeline import read_ahead
 

@@ -146,14 +146,15 @@ def estimate_on_sample(amplitude: np.ndarray, phasors: np.ndarray, free_amplitud
         U, the dither's phasor at the drive: F_sp from the set point when
         the survey has no stretch at A_sp.
     """
-    if free_amplitude <= 0 or amplitude.size == 0:
+    if free_amplitude <= 0:
         return None
     finite = np.isfinite(amplitude) & np.isfinite(phasors)
     amplitude, phasors = amplitude[finite], phasors[finite]
     # below A0 by more than its free-air scatter, or 2 %
     below = amplitude < free_amplitude - max(0.02 * free_amplitude, 5.0 * free_spread)
     band = max(0.02 * free_amplitude, 3.0 * free_spread)
-    estimated = _mode(amplitude[below], 0.005 * free_amplitude) if np.count_nonzero(below) >= 3 * period_rows else None
+    enough = np.count_nonzero(below) >= max(1.0, 3 * period_rows)
+    estimated = _mode(amplitude[below], 0.005 * free_amplitude) if enough else None
 
     def at(a_sp: float) -> tuple[np.ndarray, float]:
         steady = below & (np.abs(amplitude - a_sp) < band)

@@ -455,8 +455,14 @@ def _survey(inputs: DesignInputs) -> _Survey:
     gain = reference_gain(model, sigma, period, SURVEY_MEMORY_PERIODS)
     skip = min(deflection.size // 2, math.ceil(math.log(1e-6) / math.log(closed_loop_radius(model, gain))))
     reference = complex(np.mean(forcing_phasors(model, gain, deflection, dither)[skip:]))
-    if inputs.survey is None or inputs.free_amplitude is None:
+    if inputs.free_amplitude is None:
         return _Survey(None, model, sigma, None, skip)
+    if inputs.survey is None:  # a stream read live: the set point alone, if given, says what tapping does
+        empty = np.zeros(0)
+        on_sample = estimate_on_sample(empty, empty.astype(complex), inputs.free_amplitude, inputs.free_spread or 0.0,
+                                       reference, 1.0, setpoint=inputs.setpoint,
+                                       drive_phasor=_drive_phasor(dither, inputs.drive_rad))
+        return _Survey(on_sample, model, sigma, None, skip)
     y, g, first = inputs.survey
     every = max(1, round(period))
     lockin = LockIn(inputs.drive_hz, fs, inputs.lowpass_hz)

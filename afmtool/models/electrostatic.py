@@ -84,7 +84,8 @@ class ElectrostaticParams:
     l0_m : float
         ℓ0, the lever-sample separation at zero deflection, m.
     tip_height_m : float
-        t_h, m.
+        t_h, m; 0 when not known (the separation is then not clamped: it
+        matters only with the lever within t_h of the sample).
     """
 
     spring_constant_n_per_m: float
@@ -94,10 +95,12 @@ class ElectrostaticParams:
     tip_height_m: float
 
     def __post_init__(self) -> None:
-        for name in ("spring_constant_n_per_m", "k_esf_f_m", "l0_m", "tip_height_m"):
+        for name in ("spring_constant_n_per_m", "k_esf_f_m", "l0_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name}={value!r} must be a finite number > 0")
+        if not (math.isfinite(self.tip_height_m) and self.tip_height_m >= 0):
+            raise ConfigError(f"tip_height_m={self.tip_height_m!r} must be a finite number >= 0 (0: not known)")
         if not math.isfinite(self.alpha_r):
             raise ConfigError(f"alpha_r={self.alpha_r!r} must be finite")
 

@@ -267,6 +267,12 @@ _DECODE = (
     Item("bits decoded", "bits.count", "bits"),
     Item("bit rate", "clock.rate_hz", "bit/s"),
     Item("ℓ0", "l0.estimate_nm", "nm"),
+    # --mode step: the response to a V_phi step (§7.7)
+    Item("innovation settling after the V_phi step", "step.innovation.settling_periods", "actuation periods"),
+    Item("amplitude settling after the V_phi step", "step.amplitude.settling_periods", "actuation periods"),
+    Item("deflection settling after the V_phi step", "step.deflection.settling_periods", "actuation periods"),
+    Item("running mean of the innovation: detection delay", "step.innovation_mean.delay_periods",
+         "actuation periods"),
 )
 
 _KALMAN_BANK = (
