@@ -58,7 +58,7 @@ def test_range_reads_equal_the_chunks_through_segment_and_units(tmp_path, rng):
 
 
 def test_no_range_source_without_random_access(tmp_path, rng):
-    from afmtool.analyses.synthetic_drive import SyntheticDriveReader
+    from afmtool.io.synthetic_drive import SyntheticDriveReader
 
     path = _segmented_capture(tmp_path / "seg.h5", rng)
     with open_capture(path, channel_map={"deflection": "/channels/defl_raw", "dither": "/channels/dither"}) as reader:

@@ -207,7 +207,7 @@ class _ArrayReader:
 
 
 def test_synthetic_dither_does_not_depend_on_the_chunk_size(tmp_path):
-    from afmtool.analyses.synthetic_drive import SyntheticDriveReader
+    from afmtool.io.synthetic_drive import SyntheticDriveReader
 
     capture = _drop_dither(LTV, tmp_path / "x.h5")
     capture["metadata"]["drive"]["hold"] = "zero-order"

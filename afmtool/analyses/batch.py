@@ -107,7 +107,7 @@ def _output_hashes(folder: Path, names: Sequence[str]) -> dict[str, str]:
     return {name: sha256_file(folder / name) for name in names if (folder / name).is_file()}
 
 
-def _complete(item: BatchItem) -> dict | None:
+def _complete(item: BatchItem, command: Sequence[str] = (), extra_args: Sequence[str] = ()) -> dict | None:
     """The existing report if the subfolder holds this input's finished result, every file intact.
 
     Intact means: report.json is for the same input bytes, and every output
@@ -125,21 +125,21 @@ def _complete(item: BatchItem) -> dict | None:
         manifest = json.loads(_manifest_path(item).read_text())
     except (ValueError, KeyError, IndexError, TypeError, OSError, RecursionError):
         return None
-    if not _input_unchanged(item.source, recorded):
+    if not _input_unchanged(item.source, recorded, command, extra_args):
         return None
     if any(not (folder / name).exists() for name in names):
         return None
     return report if manifest == _output_hashes(folder, names) else None
 
 
-def _input_unchanged(source: str, recorded) -> bool:
+def _input_unchanged(source: str, recorded, command: Sequence[str] = (), extra_args: Sequence[str] = ()) -> bool:
     """Whether ``source`` still has the hash its report recorded, by the report's own algorithm.
 
     A file hash (sha256) is recomputed over the file; a sample hash (XXH3-128,
-    :mod:`afmtool.io.provenance`) over the same channels, read with the default
-    options (units converted as the metadata says).  A run made with capture
-    options (``--arg=--channel ...``) that change those samples, or with
-    ``--no-hash``, cannot be checked this way and is redone.
+    :mod:`afmtool.io.provenance`) over the same channels, read through the one
+    reader stack with the run's own capture options (``--arg=--invols=50``...,
+    :func:`capture_options_of`).  A run made with ``--no-hash`` cannot be checked
+    this way and is redone.
     """
     if not isinstance(recorded, dict):
         return False
@@ -147,13 +147,44 @@ def _input_unchanged(source: str, recorded) -> bool:
         if recorded.get("over") == "file":
             return recorded.get("algorithm") == "sha256" and recorded.get("value") == sha256_file(Path(source))
         from afmtool.io.provenance import hash_matches
-        from afmtool.io.registry import open_capture
-        from afmtool.io.units import Calibration, UnitsReader
+        from afmtool.io.stack import CaptureOptions, open_capture
 
-        with UnitsReader(open_capture(source), Calibration()) as reader:
+        options = capture_options_of(command, source, extra_args) if command else None
+        with open_capture(source, options or CaptureOptions()) as reader:
             return hash_matches(recorded, reader)
     except (InputError, ConfigError, OSError, ValueError):
         return False
+
+
+#: Commands whose runs may synthesise the dither from metadata drive.lines (as their CLI does).
+_ACCEPTS_DRIVE = ("reep", "probeloss", "kalman-bank")
+
+
+def capture_options_of(command: Sequence[str], source: str, extra_args: Sequence[str]):
+    """The :class:`~afmtool.io.stack.CaptureOptions` a run of ``afmtool COMMAND SOURCE EXTRA_ARGS`` reads with.
+
+    The extra arguments are parsed by the command's own options (click), so ``--invols``,
+    ``--units``, ``--channel``, ``--segment``, ``--drive`` mean here what they mean to the run.
+    None when they cannot be parsed (the run itself will say why).
+    """
+    import typer.main
+
+    from afmtool.cli.calibration_options import CaptureCalibration, capture_options
+    from afmtool.cli.main import app
+
+    try:
+        click_command = typer.main.get_command(app)
+        for word in command:
+            click_command = click_command.commands[word]
+        values = click_command.make_context("afmtool", [source, *extra_args, "--out", "-"],
+                                            resilient_parsing=True).params
+        calibration = CaptureCalibration(values.get("units"), values.get("invols"), values.get("z_sensitivity"),
+                                         values.get("drive"), values.get("free_air") or None,
+                                         accepts_drive=" ".join(command) in _ACCEPTS_DRIVE)
+        return capture_options(values.get("channel"), values.get("topic"), values.get("sample_rate"), calibration,
+                               segment=values.get("segment"))
+    except Exception:  # noqa: BLE001 - click's own usage errors, a bad value: the run reports them; no check here
+        return None
 
 
 def headline(report: dict) -> dict:
@@ -193,7 +224,7 @@ def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], 
     Completed inputs are skipped; an input that failed before with the same
     bytes is reported failed again without rerunning unless ``retry_failed``.
     """
-    existing = _complete(item)
+    existing = _complete(item, command, extra_args)
     if existing is not None:
         return BatchOutcome(item.source, item.out_dir, "skipped", "outputs complete", headline(existing))
     known = None if retry_failed else _known_failure(item)

@@ -50,6 +50,10 @@ class CaptureNeeds(NamedTuple):
     drive_lines_hz: tuple[float, ...] = ()
     oscillation: bool = True
 
+    def __call__(self, info, drive_lines_hz: tuple[float, ...] = (), synthesisable: bool = False) -> None:
+        """Check ``info`` (the reader stack's hook, :attr:`afmtool.io.stack.CaptureOptions.needs`)."""
+        check_capture(info, self._replace(drive_lines_hz=tuple(drive_lines_hz)), synthesisable=synthesisable)
+
 
 def _positive(value) -> float | None:
     try:

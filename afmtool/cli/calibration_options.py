@@ -1,9 +1,11 @@
 """``--units``, ``--invols``, ``--z-sensitivity`` and ``--drive``: how a capture's channels are read.
 
-The options are bundled in :class:`CaptureCalibration` and applied where the
-capture is opened (:func:`afmtool.cli.common.open_input`): units are parsed
-and converted once there (:mod:`afmtool.io.units`), and a drive that was
-not recorded is synthesised (:mod:`afmtool.analyses.synthetic_drive`).
+The options are bundled in :class:`CaptureCalibration` and, with the format's
+options, become one :class:`afmtool.io.stack.CaptureOptions` (:func:`capture_options`),
+applied where the capture is opened by the one reader stack
+(:func:`afmtool.io.stack.open_capture`): units are parsed and converted once
+there (:mod:`afmtool.io.units`), and a drive that was not recorded is
+synthesised (:mod:`afmtool.io.synthetic_drive`).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from typing import Annotated, NamedTuple, Optional
 
 import typer
 
-__all__ = ["UnitsOpt", "InvolsOpt", "ZSensitivityOpt", "DriveOpt", "CaptureCalibration", "apply_calibration"]
+__all__ = ["UnitsOpt", "InvolsOpt", "ZSensitivityOpt", "DriveOpt", "CaptureCalibration", "capture_options"]
 
 UnitsOpt = Annotated[
     Optional[list[str]],
@@ -54,37 +56,18 @@ class CaptureCalibration(NamedTuple):
     needs: object = None
 
 
-def apply_calibration(reader, calibration: CaptureCalibration | None, *, convert_units: bool = True):
-    """Wrap ``reader`` so that its channels come out in internal units, with a synthesised dither if asked."""
+def capture_options(channel, topic, sample_rate, calibration: CaptureCalibration | None = None, *,
+                    convert_units: bool = True, segment: str | None = None, hash_samples: bool = False):
+    """The command line's capture options as one :class:`afmtool.io.stack.CaptureOptions`."""
     from afmtool.cli.options import parse_mapping
-    from afmtool.io.units import Calibration, UnitsReader
+    from afmtool.io.stack import CaptureOptions
 
     calibration = calibration or CaptureCalibration()
-    spec = Calibration(
-        units=parse_mapping(calibration.units, "--units"),
-        invols_nm_per_v=calibration.invols_nm_per_v,
-        z_sensitivity_nm_per_v=calibration.z_sensitivity_nm_per_v,
-        raw_deflection=calibration.raw_deflection,
+    return CaptureOptions(
+        channel_map=parse_mapping(channel, "--channel"), topic_map=parse_mapping(topic, "--topic"),
+        sample_rate_hz=sample_rate, segment=segment, units=parse_mapping(calibration.units, "--units"),
+        invols_nm_per_v=calibration.invols_nm_per_v, z_sensitivity_nm_per_v=calibration.z_sensitivity_nm_per_v,
+        drive=calibration.drive, free_air=calibration.free_air, accepts_drive=calibration.accepts_drive,
+        raw_deflection=calibration.raw_deflection, convert_units=convert_units, needs=calibration.needs,
+        hash_samples=hash_samples,
     )
-    lines = ()
-    if calibration.drive:
-        from afmtool.estimators.drive_lines import parse_drive_lines
-
-        lines = parse_drive_lines(calibration.drive)
-    elif calibration.accepts_drive and "dither" not in reader.info.channel_names:
-        from afmtool.analyses.synthetic_drive import drive_lines_from_metadata
-
-        lines = drive_lines_from_metadata(reader.info.metadata)
-    if calibration.needs is not None:
-        # the real reason first: a capture that cannot hold the oscillation, or lacks a channel
-        from afmtool.analyses.capture_check import check_capture
-
-        needs = calibration.needs._replace(drive_lines_hz=tuple(line.frequency_hz for line in lines))
-        check_capture(reader.info, needs, synthesisable=bool(lines))
-    reader = UnitsReader(reader, spec, convert=convert_units)
-    if lines:
-        from afmtool.analyses.synthetic_drive import SyntheticDriveReader
-        from afmtool.config.params import parse_interval
-
-        reader = SyntheticDriveReader(reader, lines, parse_interval(calibration.free_air or "", "--free-air"))
-    return reader

@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from afmtool.cli.options import check_stream_format, parse_mapping
+from afmtool.cli.options import check_stream_format
 from afmtool.cli.progress import progress_bar, stderr_console
 
 __all__ = [
@@ -40,24 +40,19 @@ def stdout_pipe() -> Iterator[None]:
 
 
 def open_calibrated(
-    path, channel, topic, sample_rate, calibration=None, *, convert_units: bool = True, segment: str | None = None
+    path, channel, topic, sample_rate, calibration=None, *, convert_units: bool = True, segment: str | None = None,
+    hash_samples: bool = False,
 ):
-    """Open a capture, its units parsed and converted once here (``--units``, ``--invols``, ``--drive``)."""
-    from afmtool.cli.calibration_options import apply_calibration
-    from afmtool.io.registry import open_capture
+    """Open a capture through the one reader stack (:func:`afmtool.io.stack.open_capture`).
 
-    reader = open_capture(
-        path,
-        channel_map=parse_mapping(channel, "--channel"),
-        topic_map=parse_mapping(topic, "--topic"),
-        sample_rate_hz=sample_rate,
-        segment=segment,
-    )
-    try:
-        return apply_calibration(reader, calibration, convert_units=convert_units)
-    except BaseException:
-        reader.close()
-        raise
+    Its units are parsed and converted there (``--units``, ``--invols``), a drive not
+    recorded is synthesised (``--drive``), and with ``hash_samples`` its samples are hashed as read.
+    """
+    from afmtool.cli.calibration_options import capture_options
+    from afmtool.io.stack import open_capture
+
+    return open_capture(path, capture_options(channel, topic, sample_rate, calibration, convert_units=convert_units,
+                                              segment=segment, hash_samples=hash_samples))
 
 
 @contextmanager

@@ -11,10 +11,13 @@ import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, CaptureWriter, ChannelSpec
+
+if TYPE_CHECKING:
+    from afmtool.io.stack import CaptureOptions
 
 __all__ = ["FORMATS", "check_writable_rate", "companion_files", "open_capture", "create_writer", "format_for_path", "input_format"]
 
@@ -97,6 +100,7 @@ def format_for_path(path: Path | str) -> str:
 
 def open_capture(
     path: Path | str,
+    options: CaptureOptions | None = None,
     *,
     channel_map: Mapping[str, str] | None = None,
     topic_map: Mapping[str, str] | None = None,
@@ -109,7 +113,17 @@ def open_capture(
     and renames channels (``{"deflection": "CH2"}``) for every other format
     but bags.  ``segment`` (a name or a number from 0) reads one segment of
     a segmented file.
+
+    With ``options`` (:class:`afmtool.io.stack.CaptureOptions`) the whole reader stack is
+    applied (:func:`afmtool.io.stack.open_capture`: units, calibration, a synthesised drive,
+    the sample hash), and the keywords must not be given; without, the file as recorded.
     """
+    if options is not None:
+        if channel_map or topic_map or sample_rate_hz is not None or segment is not None:
+            raise TypeError("give the format's keywords inside CaptureOptions, not beside it")
+        from afmtool.io.stack import open_capture as open_stack
+
+        return open_stack(path, options)
     fmt = input_format(path)
     from afmtool.report.input_guard import register_input
 
