@@ -59,14 +59,19 @@ def run_stream(
     reader, config, flags
         As for the command's file output; ``chunk_samples`` is
         :data:`STREAM_CHUNK_SAMPLES` unless a flag sets it.
-    fmt : str
-        ``"csv"`` or ``"jsonl"``.
+    fmt : str or sink
+        ``"csv"`` or ``"jsonl"`` rows on stdout; or an object with ``append(columns)``,
+        ``put(...)`` and ``finish(warnings)`` (``stream=True`` of the Python API).
     row_columns : tuple of str, optional
         For analyses whose blocks hold columns of more than one length: the
         columns of one length that become rows (others are dropped).
     """
     flags = {"chunk_samples": STREAM_CHUNK_SAMPLES, **{k: v for k, v in flags.items() if v is not None}}
     params = resolve_from(params_cls, section, load_toml(config) if config else None, flags)
+    if not isinstance(fmt, str):  # the Python API's sink (afmtool.api.results.ChunkQueue): rows as arrays
+        result = analysis(reader, params, fmt if row_columns is None else _Selected(fmt, row_columns))
+        fmt.finish(result.warnings)
+        return
     with RowWriter(sys.stdout, fmt) as rows:
         result = analysis(reader, params, rows if row_columns is None else _Selected(rows, row_columns))
     for warning in result.warnings:

@@ -174,30 +174,33 @@ def run_capture_analysis(
     finish_command(report, out, json_output, quiet)
 
 
-def run_streaming_command(name: str, capture: str, source_args: tuple, output, flags: dict, analysis: str) -> None:
-    """reep, probeloss and decode: run ``analysis`` into ``--stream`` rows or ``--out``.
+def run_streaming_command(name: str, capture: str, source_args: tuple, output, flags: dict, analysis: str = "") -> None:
+    """reep, probeloss, decode and kalman-bank: ``--stream`` rows on stdout, or the folder ``--out``.
 
-    ``analysis`` is the module holding ``run_<name>_stream(reader, config, flags, fmt)`` and
-    ``run_<name>_command(run)`` (an :class:`~afmtool.analyses.command_inputs.CommandRun`,
-    which hashes the samples as they are read unless ``--no-hash``, and splits the capture
-    over ``--jobs``).  ``output`` is the command's :class:`~afmtool.cli.groups.CommandOutput`.
+    Both go through :mod:`afmtool.api.run` (the Python API's own path): the capture is
+    read through the one reader stack with the command line's options
+    (:func:`afmtool.cli.calibration_options.capture_options`), hashed as it is read
+    unless ``--no-hash``, split over ``--jobs``.  ``output`` is the command's
+    :class:`~afmtool.cli.groups.CommandOutput`; ``analysis`` is kept for callers that name it.
     """
-    import importlib
+    from afmtool.api.capture import Capture
+    from afmtool.api.run import run_capture_command, run_stream_rows
+    from afmtool.cli.calibration_options import capture_options
+    from afmtool.errors import ConfigError
 
-    from afmtool.analyses.command_inputs import CommandRun
-
+    channel, topic, sample_rate, calibration, segment = (*source_args, None, None)[:5]
+    source = Capture(capture, capture_options(channel, topic, sample_rate, calibration, segment=segment))
+    streaming, stream_format = output.stream_mode
+    if streaming:
+        check_stream_format(stream_format)
+        with stdout_pipe():
+            run_stream_rows(name, source, flags, output.config, stream_format)
+        return
+    if output.out is None:
+        raise ConfigError("--out is required (or use --stream)")
     with figure_process(output) as figures:
-        module = importlib.import_module(analysis)
-        stem = name.replace("-", "_")
-        to_rows, to_folder = getattr(module, f"run_{stem}_stream"), getattr(module, f"run_{stem}_command")
-        run_capture_analysis(
-            name, capture, source_args, output.out, output.stream_mode, output.json_output, output.quiet,
-            to_rows=lambda reader: to_rows(reader, output.config, flags, output.stream_format),
-            to_folder=lambda reader, update: to_folder(
-                CommandRun(reader, capture, output.out, output.config, flags, update, hash_input=not output.no_hash,
-                           split=output.split(), figures=figures)
-            ),
-        )
+        report = run_capture_command(name, source, output.out, flags, output.settings(figures, split=True))
+    finish_command(report, output.out, output.json_output, output.quiet)
 
 
 def figure_process(output):

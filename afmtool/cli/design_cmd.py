@@ -33,7 +33,7 @@ def excitation(
     (float32) and excitation.csv at --dac-rate (a seamless loop of whole beat
     periods, for an arbitrary waveform generator) and excitation.png.
     """
-    from afmtool.analyses.design_excitation import run_design_excitation_command
+    from afmtool.api.run import run_folder_command
 
-    report = run_design_excitation_command(model, output.out, output.config, flags)
+    report = run_folder_command("design excitation", model, output.out, flags, output.settings())
     finish_command(report, output.out, output.json_output, output.quiet)

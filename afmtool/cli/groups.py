@@ -27,6 +27,7 @@ from afmtool.cli.calibration_options import CaptureCalibration, DriveOpt, Invols
 from afmtool.cli.options import (
     ChannelOpt,
     ConfigOpt,
+    DataFormatOpt,
     JobsOpt,
     JsonOpt,
     NoHashOpt,
@@ -200,6 +201,7 @@ class CommandOutput(NamedTuple):
     jobs: int | None = None
     scheduler: str | None = None
     scheduler_timeout: float = 10.0
+    data_format: str = "h5"
 
     def split(self):
         """The :class:`afmtool.pipeline.Split` of ``--jobs`` and ``--scheduler``; a scheduler is probed now.
@@ -217,6 +219,16 @@ class CommandOutput(NamedTuple):
 
             probe_scheduler(self.scheduler, self.scheduler_timeout)
         return Split.of(self.jobs, self.scheduler, self.scheduler_timeout)
+
+    def settings(self, figures=None, *, split: bool = False):
+        """The :class:`afmtool.api.run.RunSettings` of these options (``split``: probe ``--jobs``/``--scheduler``)."""
+        from afmtool.api.run import RunSettings
+        from afmtool.cli.progress import progress_bar
+
+        quiet = self.quiet
+        return RunSettings(config=self.config, split=self.split() if split else None, hash_input=not self.no_hash,
+                           figures=figures, progress=lambda name, total: progress_bar(name, total, quiet),
+                           data_format=self.data_format)
 
     @property
     def stream_mode(self) -> tuple[bool, str]:
@@ -240,5 +252,6 @@ def output_options(
                        option("scheduler", SchedulerOpt, None), option("scheduler_timeout", SchedulerTimeoutOpt, 10.0)]
     if json:
         parameters.append(option("json_output", JsonOpt, False))
-    parameters += [option("config", ConfigOpt, None), option("quiet", QuietOpt, False)]
+    parameters += [option("config", ConfigOpt, None), option("quiet", QuietOpt, False),
+                   option("data_format", DataFormatOpt, "h5")]
     return OptionGroup(keyword, tuple(parameters), lambda values: CommandOutput(**values))

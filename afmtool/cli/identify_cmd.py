@@ -10,7 +10,6 @@ import typer
 from afmtool.cli.common import finish_command
 from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
 from afmtool.cli.param_flags import param_flags
-from afmtool.cli.progress import progress_bar
 from afmtool.config.params import (
     ElectrostaticFitParams,
     GammaParams,
@@ -22,6 +21,17 @@ from afmtool.config.params import (
 _CH6_CAPTURE = capture_options(drive=False, segment=False)
 
 __all__ = ["register"]
+
+
+def _capture(source: CaptureSource, path: str | None):
+    """``path`` with the command line's capture options (:class:`afmtool.api.capture.Capture`); None for none."""
+    from afmtool.api.capture import Capture
+    from afmtool.cli.calibration_options import capture_options
+
+    if path is None:
+        return None
+    return Capture(path, capture_options(source.channel, source.topic, source.sample_rate, source.calibration(),
+                                         segment=source.segment))
 
 
 @with_options(param_flags(GammaParams), output_options(Path("gamma")), _CH6_CAPTURE)
@@ -46,17 +56,14 @@ def identify_gamma(
     Bode plots (PNG) and report.json with the DC sensitivity (uA/nm), the -3 dB
     bandwidth, the roll-off (dB/decade) and the usable band.
     """
-    from afmtool.analyses.gamma_outputs import run_gamma_command
+    from afmtool.api.run import run_identify_gamma
     from afmtool.errors import ConfigError
 
     if stepped and h1:
         raise ConfigError("give at most one of --stepped and --h1")
     flags = {**flags, "method": "stepped" if stepped else ("h1" if h1 else None)}
-    calibration = source.calibration()
-    with source.open(sweep, calibration) as near, source.open(contact, calibration) as far:
-        total = (near.info.n_samples or 0) + (far.info.n_samples or 0)
-        with progress_bar("identify gamma", total or None, output.quiet) as update:
-            report = run_gamma_command(near, far, (sweep, contact), output.out, output.config, flags, update)
+    report = run_identify_gamma(_capture(source, sweep), _capture(source, contact), output.out, flags,
+                                output.settings())
     finish_command(report, output.out, output.json_output, output.quiet)
 
 
@@ -87,20 +94,11 @@ def identify_thermal(
     by eq. 6.12.  Writes thermal_sensor.json (for 'identify electrostatic'),
     tables (CSV, thermal.h5), plots and report.json.
     """
-    from contextlib import ExitStack
+    from afmtool.api.run import run_identify_thermal
 
-    from afmtool.analyses.thermal_outputs import run_thermal_command
-
-    sources = {"iv": iv, "z": z_curve, "vr": vr_sweep, "gamma": gamma, "model": model}
-    calibration = source.calibration()
-    with ExitStack() as stack:
-        readers = {
-            key: stack.enter_context(source.open(path, calibration)) if path else None
-            for key, path in (("iv", iv), ("z", z_curve), ("vr", vr_sweep))
-        }
-        total = sum((r.info.n_samples or 0) for r in readers.values() if r is not None)
-        with progress_bar("identify thermal", total or None, output.quiet) as update:
-            report = run_thermal_command(readers, sources, output.out, output.config, flags, update)
+    inputs = {"iv": _capture(source, iv), "z": _capture(source, z_curve), "vr": _capture(source, vr_sweep),
+              "gamma": gamma, "model": model}
+    report = run_identify_thermal(inputs, output.out, flags, output.settings())
     finish_command(report, output.out, output.json_output, output.quiet)
 
 
@@ -122,10 +120,9 @@ def identify_electrostatic(
     ratio, unless --spring-constant is given).  Writes electrostatic.json, fit.csv,
     electrostatic_fit.png and report.json.
     """
-    from afmtool.analyses.electrostatic_outputs import run_electrostatic_command
+    from afmtool.api.run import run_identify_electrostatic
 
-    with source.open(capture, source.calibration()) as reader:
-        report = run_electrostatic_command(reader, capture, output.out, output.config, flags, thermal_model)
+    report = run_identify_electrostatic(_capture(source, capture), output.out, flags, output.settings(), thermal_model)
     finish_command(report, output.out, output.json_output, output.quiet)
 
 
@@ -144,10 +141,9 @@ def identify_invols(
     deflection already in a length gives the slope (1 on a hard sample) and the
     InvOLS it implies.  Writes invols.png, report.json and config.toml.
     """
-    from afmtool.analyses.invols import run_invols_command
+    from afmtool.api.run import run_identify_invols
 
-    with source.open(curve, source.calibration(raw_deflection=True)) as reader:
-        report = run_invols_command(reader, curve, output.out, output.config, flags)
+    report = run_identify_invols(_capture(source, curve), output.out, flags, output.settings())
     finish_command(report, output.out, output.json_output, output.quiet)
 
 

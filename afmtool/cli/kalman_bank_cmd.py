@@ -6,11 +6,10 @@ from pathlib import Path
 
 import typer
 
-from afmtool.cli.common import figure_process, finish_command, open_calibrated
+from afmtool.cli.common import run_streaming_command
 from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
 from afmtool.cli.options import CaptureArg
 from afmtool.cli.param_flags import param_flags
-from afmtool.cli.progress import progress_bar
 from afmtool.config.params import KalmanBankParams
 
 __all__ = ["register"]
@@ -28,25 +27,7 @@ def kalman_bank(capture: CaptureArg, *, flags: dict, output: CommandOutput, sour
     report.json).  Writes bank.h5, bank_rms_vs_z.png, report.json and
     config.toml.  Needs dither, deflection and z_piezo.
     """
-    from afmtool.analyses.capture_check import needs_from_flags
-    from afmtool.analyses.command_inputs import CommandRun
-
-    needs = needs_from_flags("kalman-bank", flags, ("deflection", "dither", "z_piezo"))
-    calibration = source.calibration(flags["free_air"], accepts_drive=True, needs=needs)
-    channel, topic, sample_rate, _, _ = source.args()
-
-    def reopen():
-        return open_calibrated(capture, channel, topic, sample_rate, calibration)
-
-    with figure_process(output) as figures:
-        from afmtool.analyses.kalman_bank_outputs import run_kalman_bank_command
-
-        with source.open(capture, calibration) as reader:
-            with progress_bar("kalman-bank", reader.info.n_samples, output.quiet) as update:
-                run = CommandRun(reader, capture, output.out, output.config, flags, update, reopen=reopen,
-                                 hash_input=not output.no_hash, split=output.split(), figures=figures)
-                report = run_kalman_bank_command(run)
-    finish_command(report, output.out, output.json_output, output.quiet)
+    run_streaming_command("kalman-bank", capture, source.args(source.calibration(flags["free_air"])), output, flags)
 
 
 def register(app: typer.Typer) -> None:

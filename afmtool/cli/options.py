@@ -38,6 +38,11 @@ CaptureArg = Annotated[
     ),
 ]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output folder; created if missing.")]
+DataFormatOpt = Annotated[
+    str,
+    typer.Option("--format", help="Result arrays as afmtool's HDF5 (h5), NetCDF (netcdf: .nc) or Zarr (zarr: a .zarr "
+                 "folder), labelled with CF units; netcdf and zarr open with plain xarray."),
+]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the report as JSON on stdout.")]
 ConfigOpt = Annotated[
     Optional[Path],

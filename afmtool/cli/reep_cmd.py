@@ -11,7 +11,6 @@ from afmtool.cli.common import finish_command, run_streaming_command
 from afmtool.cli.groups import CaptureSource, CommandOutput, capture_options, output_options, with_options
 from afmtool.cli.options import CaptureArg
 from afmtool.cli.param_flags import param_flags
-from afmtool.cli.progress import progress_bar
 from afmtool.config.params import FreeAirParams, ReepParams, SpringConstantParams
 
 __all__ = ["register"]
@@ -86,33 +85,24 @@ def identify_freeair(
     afmtool identify freeair --psd tune_volts.csv --invols 52.3 --out fa;
     afmtool identify freeair --thermal record.h5 --temperature 298 --out fa
     """
-    from afmtool.analyses.freeair_outputs import run_freeair_command
+    from afmtool.api.capture import Capture
+    from afmtool.api.run import run_identify_freeair
+    from afmtool.cli.calibration_options import capture_options
     from afmtool.errors import ConfigError
 
-    if psd and thermal:
-        raise ConfigError("give one thermal input: --psd FILE.csv or --thermal CAPTURE")
-    route = "thermal" if (psd or thermal) else ("sweep" if sweep else "segment")
-    if thermal and capture is not None:
-        raise ConfigError("--thermal CAPTURE takes the record itself: give no other CAPTURE")
-    if route != "thermal" and capture is None:
-        raise ConfigError("give a CAPTURE (segment or --sweep route), --psd FILE.csv or --thermal CAPTURE (thermal)")
     if stepped and flags["sweep_method"] not in (None, "stepped"):
         raise ConfigError(f"--stepped contradicts --sweep-method {flags['sweep_method']}")
-    flags = {**flags, "route": route, "spring": spring, "invols_nm_per_v": source.invols}
+    flags = {**flags, "route": "thermal" if (psd or thermal) else ("sweep" if sweep else "segment"), "spring": spring}
     if stepped:
         flags["sweep_method"] = "stepped"
-    out, config = output.out, output.config
-    if psd:
-        report = run_freeair_command(None, psd, out, config, flags, lambda done: None)
-    else:
-        from afmtool.analyses.capture_check import needs_from_flags
+    options = capture_options(source.channel, source.topic, source.sample_rate, source.calibration())
 
-        path = thermal or capture
-        needs = needs_from_flags("identify freeair", flags, ("deflection",) if thermal else ("deflection", "dither"))
-        with source.open(path, source.calibration(flags["free_air"], accepts_drive=not thermal, needs=needs)) as reader:
-            with progress_bar("identify", reader.info.n_samples, output.quiet) as update:
-                report = run_freeair_command(reader, path, out, config, flags, update)
-    finish_command(report, out, output.json_output, output.quiet)
+    def opened(path):
+        return None if path is None else Capture(path, options)
+
+    report = run_identify_freeair(opened(capture), output.out, flags, output.settings(), psd=psd,
+                                  thermal=opened(thermal), invols=source.invols)
+    finish_command(report, output.out, output.json_output, output.quiet)
 
 
 def register(app: typer.Typer, identify: typer.Typer) -> None:

@@ -51,11 +51,12 @@ def averaging(
     Approach and retract are followed separately, so bistable jumps show as
     hysteresis; theory.h5 also holds the topography sensitivities of §4.4-4.6.
     """
-    from afmtool.analyses.theory_outputs import run_averaging_command
+    from afmtool.api.run import run_folder_command
 
     q_first, q_values = _q_flags(q)
     flags = {**flags, "q": q_first, "q_values": q_values}
-    finish_command(run_averaging_command(output.out, output.config, flags), output.out, output.json_output, output.quiet)
+    report = run_folder_command("theory averaging", None, output.out, flags, output.settings())
+    finish_command(report, output.out, output.json_output, output.quiet)
 
 
 @app.command("compare")
@@ -83,9 +84,9 @@ def compare(
     reep_out --fit fit --out cmp; afmtool theory compare sim_reep --force-set
     attractive --out cmp
     """
-    from afmtool.analyses.theory_outputs import run_compare_command
+    from afmtool.api.run import run_folder_command
 
-    report = run_compare_command(reep_dir, output.out, output.config, flags)
+    report = run_folder_command("theory compare", reep_dir, output.out, flags, output.settings())
     finish_command(report, output.out, output.json_output, output.quiet)
 
 
@@ -102,9 +103,9 @@ def fit(
     the Jacobian, as in 'identify electrostatic'); fit.png the curves with the
     fitted theory over them.
     """
-    from afmtool.analyses.theory_fit import run_theory_fit_command
+    from afmtool.api.run import run_folder_command
 
-    report = run_theory_fit_command(reep_dir, output.out, output.config, flags)
+    report = run_folder_command("theory fit", reep_dir, output.out, flags, output.settings())
     finish_command(report, output.out, output.json_output, output.quiet)
 
 
@@ -122,8 +123,9 @@ def observer(
     """
     from afmtool.analyses.observer_theory_outputs import run_observer_theory_command
 
-    finish_command(run_observer_theory_command(output.out, output.config, flags), output.out, output.json_output,
-                   output.quiet)
+    with output.settings().writing():
+        report = run_observer_theory_command(output.out, output.config, flags)
+    finish_command(report, output.out, output.json_output, output.quiet)
 
 
 @app.command("controllers")
@@ -148,5 +150,6 @@ def controllers(*, flags: dict, output: CommandOutput) -> None:
     def progress(step: str) -> None:
         stderr_console(output.quiet).print(f"simulating the three controllers: {step}", highlight=False)
 
-    report = run_controllers_command(output.out, output.config, flags, progress)
+    with output.settings().writing():
+        report = run_controllers_command(output.out, output.config, flags, progress)
     finish_command(report, output.out, output.json_output, output.quiet)

@@ -30,6 +30,7 @@ __all__ = [
     "open_decode_results",
     "open_probeloss_results",
     "open_result_file",
+    "read_all_datasets",
 ]
 
 #: Most rows drawn per line of a figure.
@@ -213,3 +214,23 @@ def open_decode_results(path: Path | str) -> ResultFile:
     """``decode.h5`` of ``afmtool decode`` (or its folder): ``bit_times_s``, ``bits``, ``soft``, ``t_mean``, ..."""
     path = Path(path)
     return open_result_file(path / "decode.h5" if path.is_dir() else path, what="decode output")
+
+
+def read_all_datasets(path: Path | str) -> list[tuple[str, np.ndarray, dict]]:
+    """Every dataset of an afmtool result file, whole: ``(path inside the file, values, attrs)``, in file order.
+
+    For converting a finished run to labelled arrays (:mod:`afmtool.report.labelled`); the
+    values are read into memory.
+    """
+    found: list[tuple[str, np.ndarray, dict]] = []
+    try:
+        with h5py.File(path, "r") as f:
+            def visit(name: str, obj) -> None:
+                if isinstance(obj, h5py.Dataset):
+                    attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in obj.attrs.items()}
+                    found.append((name, obj[()], attrs))
+
+            f.visititems(visit)
+    except OSError as exc:
+        raise InputError(f"{path}: not a readable afmtool result file ({exc})") from None
+    return found

@@ -41,6 +41,7 @@ __all__ = [
     "BATCH_SUMMARY",
     "MAIN_FIGURES",
     "format_measurement",
+    "headline_cards",
     "headline_rows",
     "read_regular_file",
     "render_batch_html",
@@ -208,6 +209,18 @@ def _headline_cards(entries: Sequence[Mapping]) -> str:
             f'{" " if units else ""}<span class="units">{html.escape(units)}</span></div></div>'
         )
     return "".join(cards)
+
+
+_NOTEBOOK_CARD_STYLE = (
+    "<style>.afmtool-cards{display:flex;flex-wrap:wrap;gap:.5em}.afmtool-cards .card{border:1px solid #ccc;"
+    "border-radius:4px;padding:.4em .7em}.afmtool-cards .name{font-size:85%;color:#555}"
+    ".afmtool-cards .number{font-size:130%;font-weight:600}</style>"
+)
+
+
+def headline_cards(entries: Sequence[Mapping]) -> str:
+    """The headline as cards in a block of its own (a notebook's result display): the page's cards, styled inline."""
+    return f'{_NOTEBOOK_CARD_STYLE}<div class="afmtool-cards">{_headline_cards(entries)}</div>'
 
 
 # --------------------------------------------------------------------------- one run
