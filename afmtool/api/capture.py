@@ -177,10 +177,9 @@ class Capture:
 
     def chunks(self, channels: Sequence[str] | None = None, chunk_samples: int = DEFAULT_CHUNK_SAMPLES) -> Iterator[Chunk]:
         """The samples in aligned chunks (``chunk.data[name]``, ``chunk.start``), read as analyses read them."""
-        from afmtool.io.chunks import iter_chunks
+        from afmtool.io.chunks import opened_chunks
 
-        with self.open_reader() as reader:
-            yield from iter_chunks(reader, tuple(channels or reader.info.channel_names), chunk_samples)
+        return opened_chunks(self.open_reader, channels, chunk_samples)
 
     def read(self, channels: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """Every sample of ``channels`` (default all) in memory, in the analyses' units."""

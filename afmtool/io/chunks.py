@@ -16,7 +16,7 @@ import numpy as np
 from afmtool.errors import InputError
 from afmtool.io.capture import DEFAULT_CHUNK_SAMPLES, CaptureInfo, CaptureReader, Chunk
 
-__all__ = ["iter_chunks", "require_channels"]
+__all__ = ["iter_chunks", "opened_chunks", "require_channels"]
 
 
 def require_channels(info: CaptureInfo, channels: Sequence[str]) -> None:
@@ -73,3 +73,12 @@ def iter_chunks(
         if progress is not None:
             progress(done)
         yield chunk
+
+
+def opened_chunks(open_reader, channels, chunk_samples: int):
+    """The chunks of a capture that ``open_reader()`` opens, closed after the last one (``afmtool.Capture.chunks``).
+
+    ``channels`` None reads every channel.
+    """
+    with open_reader() as reader:
+        yield from iter_chunks(reader, tuple(channels or reader.info.channel_names), chunk_samples)

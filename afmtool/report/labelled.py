@@ -225,7 +225,7 @@ def write_dataset(dataset: xarray.Dataset, path: Path | str, data_format: str) -
         dataset.to_netcdf(path, engine="h5netcdf", invalid_netcdf=False)
     elif data_format == "zarr":
         try:
-            import zarr  # noqa: F401
+            import zarr  # noqa: F401 - checked here, so that the message says what is missing
         except ImportError:
             raise ConfigError("--format zarr needs zarr: pip install 'afmtool[xarray]'") from None
         dataset.to_zarr(path, mode="w", consolidated=True)
