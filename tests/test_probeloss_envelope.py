@@ -231,3 +231,25 @@ def test_latency_periods_trades_latency_for_precision(tmp_path):
     assert slower["latency_periods"] <= 6.0 and slower["precision"] >= default["precision"]
     # no design reaches 2 periods here: the fastest one is taken, with the precision that costs
     assert faster["latency_periods"] < default["latency_periods"] and faster["precision"] < default["precision"]
+
+
+def test_false_alarm_rate_by_rice_formula_matches_the_filter():
+    """Item 1's false-alarm rate: Rice's formula (crossing_rate) against crossings counted on the forcing filter's
+    own output of white noise, at margins where they are countable."""
+    from afmtool.estimators.forcing_design import crossing_rate, reference_gain
+    from afmtool.estimators.forcing_observer import forcing_model, forcing_phasors
+    from afmtool.models.discretisation import discrete_denominator, line_numerator
+
+    fs, f0, q, sigma = 5e5, 70e3, 200.0, 0.05
+    model = forcing_model(tuple(discrete_denominator(f0, q, fs)), tuple(0.1 * np.asarray(line_numerator(f0, q, fs))),
+                          2 * math.pi * f0 / fs)
+    gain = reference_gain(model, sigma, fs / f0, 1.0)
+    noise = sigma * np.random.default_rng(11).standard_normal(2_000_000)
+    z = forcing_phasors(model, gain, noise, np.zeros(noise.size))[20_000:].real
+    z = (z - z.mean()) / z.std()
+    lag1 = float(np.corrcoef(z[1:], z[:-1])[0, 1])
+    for margin in (1.5, 2.0, 2.5):
+        counted = np.count_nonzero((z[1:] < -margin) & (z[:-1] >= -margin)) / (z.size - 1)
+        predicted = crossing_rate(margin, lag1)
+        print(f"{margin} std: {counted:.3e} crossings per sample counted, {predicted:.3e} predicted")
+        assert abs(counted / predicted - 1.0) < 0.3

@@ -170,6 +170,11 @@ class Prediction(NamedTuple):
         Share of on-sample time flagged away from the returns.
     events : str
         ``"survey"`` or ``"reference"``: the loss events ``precision`` is for.
+    false_alarms_per_kperiod, false_returns_per_kperiod : float or None
+        The forcing detector's expected false losses per 1000 drive periods on
+        the sample and false returns per 1000 off it (Rice's formula:
+        :func:`~afmtool.estimators.forcing_design.crossing_rate`); None for the
+        rms and coherent indices (their rates are in ``false_fraction``).
     """
 
     latency_periods: float
@@ -178,11 +183,13 @@ class Prediction(NamedTuple):
     recall_5: float
     false_fraction: float
     events: str
+    false_alarms_per_kperiod: float | None = None
+    false_returns_per_kperiod: float | None = None
 
     @classmethod
-    def of(cls, scores: SwitchScores, events: LossEvents) -> Prediction:
+    def of(cls, scores: SwitchScores, events: LossEvents, rates: tuple = (None, None)) -> Prediction:
         return cls(scores.latency_periods, scores.return_periods, predicted_precision(scores, events),
-                   scores.recall_5, scores.false_fraction, events.source)
+                   scores.recall_5, scores.false_fraction, events.source, *rates)
 
     def meets(self) -> bool:
         from afmtool.estimators.forcing_design import TARGET_PRECISION, TARGET_RECALL
@@ -192,7 +199,9 @@ class Prediction(NamedTuple):
     def as_dict(self) -> dict:
         return {"latency_periods": self.latency_periods, "return_periods": self.return_periods,
                 "precision": self.precision, "recall_5_periods": self.recall_5,
-                "false_alarm_fraction": self.false_fraction, "precision_for": self.events}
+                "false_alarm_fraction": self.false_fraction, "precision_for": self.events,
+                "false_alarms_per_1000_periods": self.false_alarms_per_kperiod,
+                "false_returns_per_1000_periods": self.false_returns_per_kperiod}
 
 
 @dataclass(frozen=True, eq=False)
@@ -521,8 +530,9 @@ def _forcing_design(options: DetectorOptions, inputs: DesignInputs, survey: _Sur
         return None, REFERENCE_EVENTS
     events = _loss_events(provisional, survey, inputs)
     chosen = choose_candidate(candidates, options.latency_periods, events)
+    rates = (chosen.false_alarms_per_kperiod, chosen.false_returns_per_kperiod)
     design = DetectorDesign(IndexKind.FORCING, forcing=chosen.detector, memory_periods=chosen.memory_periods,
-                            prediction=Prediction.of(chosen.scores, events), on_sample=on_sample)
+                            prediction=Prediction.of(chosen.scores, events, rates), on_sample=on_sample)
     return design, events
 
 

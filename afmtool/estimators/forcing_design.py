@@ -63,6 +63,7 @@ __all__ = [
     "ForcingCandidate",
     "forcing_candidates",
     "choose_candidate",
+    "crossing_rate",
     "provisional_candidate",
     "reference_gain",
 ]
@@ -105,6 +106,9 @@ class ForcingCandidate(NamedTuple):
         on/μ1.
     scores : SwitchScores
         On the synthetic record.
+    false_alarms_per_kperiod, false_returns_per_kperiod : float
+        Expected false losses per 1000 drive periods on the sample, and false
+        returns per 1000 periods off it, by Rice's formula (:func:`crossing_rate`).
     """
 
     detector: ForcingDetector
@@ -112,6 +116,8 @@ class ForcingCandidate(NamedTuple):
     forcing_noise: float
     on_fraction: float
     scores: SwitchScores
+    false_alarms_per_kperiod: float = 0.0
+    false_returns_per_kperiod: float = 0.0
 
     @property
     def latency(self) -> float:
@@ -124,6 +130,22 @@ class ForcingCandidate(NamedTuple):
     def meets(self, events: LossEvents = REFERENCE_EVENTS) -> bool:
         """Precision and recall targets met (latency aside)."""
         return self.precision(events) >= TARGET_PRECISION and self.scores.recall_5 >= TARGET_RECALL
+
+
+def crossing_rate(margin_std: float, lag1_correlation: float) -> float:
+    """Expected crossings per sample of a level ``margin_std`` standard deviations from a stationary Gaussian's mean.
+
+    Rice's formula, ν = (1/2π)·√(λ₂/λ₀)·exp(−u²/2), with the spectral
+    moments' ratio of a sampled smooth process λ₂/λ₀ ≈ 2(1 − ρ₁), ρ₁ its
+    correlation one sample apart (measured on the filter's own output of
+    white noise).  The expected false alarms of a switch whose threshold sits
+    ``margin_std`` below the on-sample mean (and false returns, above the
+    off-sample one).  Against crossings counted on the forcing filter's output
+    at 1.5-2.5 std it is 15-28 % high: conservative
+    (``tests/test_probeloss_envelope.py``).
+    """
+    rho = min(max(lag1_correlation, -1.0), 1.0)
+    return math.sqrt(2.0 * (1.0 - rho)) / (2.0 * math.pi) * math.exp(-0.5 * margin_std * margin_std)
 
 
 @njit(**JIT_OPTIONS)
@@ -220,6 +242,8 @@ def forcing_candidates(model: ForcingModel, sigma: float, forcing: complex, peri
         # the synthetic noise scaled to what this filter measures on the capture's free air
         synthetic_scale = float(np.std((noise[record.first_scored:] * direction.conjugate()).real))
         w = signal + noise * (measured.scale / synthetic_scale)
+        z_noise = (noise[record.first_scored:] * direction.conjugate()).real
+        lag1 = float(np.corrcoef(z_noise[1:], z_noise[:-1])[0, 1])
         # on the sample z spreads by the noise and the tapping's own fluctuations; off it, by the noise alone
         s_on, s_off = max(measured.scale, measured.on_spread), measured.scale
         detector_base = (model, tuple(gain), measured.reference, direction, measured.scale)
@@ -232,8 +256,10 @@ def forcing_candidates(model: ForcingModel, sigma: float, forcing: complex, peri
             switch = np.empty(w.size, dtype=np.int8)
             _switch_kernel(w.real.copy(), w.imag.copy(), direction.real, direction.imag, on, off, big, switch)
             scores = score_switch(switch, record.contact, period, record.first_scored)
-            candidates.append(ForcingCandidate(ForcingDetector(*detector_base, on, off, big), actual, q, fraction,
-                                               scores))
+            per_kperiod = 1000.0 * period
+            candidates.append(ForcingCandidate(
+                ForcingDetector(*detector_base, on, off, big), actual, q, fraction, scores,
+                per_kperiod * crossing_rate((mu1 - on) / s_on, lag1), per_kperiod * crossing_rate(off / s_off, lag1)))
     return candidates
 
 
