@@ -48,6 +48,8 @@ class BatchOutcome:
     headline: dict
     #: The exit status of the input's run: 2 for bad input, 1 for an internal error, < 0 killed.
     exit_code: int = 0
+    #: The run failed on the environment (a full disk, a read-only one), not on the input.
+    fault: bool = False
 
 
 def expand_inputs(patterns: Sequence[str]) -> list[Path]:
@@ -248,6 +250,9 @@ def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], 
 def _failed(item: BatchItem, proc: subprocess.CompletedProcess) -> BatchOutcome:
     """The outcome of a child that did not succeed; a verdict on the input is recorded for reruns."""
     reason = _reason(proc.stderr, proc.returncode)
+    if _is_fault(reason):
+        # a full disk is not a verdict on the input: nothing is recorded, the batch stops
+        return BatchOutcome(item.source, item.out_dir, "failed", reason, {}, proc.returncode, fault=True)
     if _killed(proc.returncode):
         # not a verdict on the input: the next batch run tries it again
         return BatchOutcome(item.source, item.out_dir, "failed", f"killed by a signal ({reason})", {}, proc.returncode)
@@ -255,6 +260,15 @@ def _failed(item: BatchItem, proc: subprocess.CompletedProcess) -> BatchOutcome:
     record = {"input": item.source, "sha256": _sha_or_none(item.source), "reason": reason, "exit_code": proc.returncode}
     write_text_atomic(Path(item.out_dir) / FAILURE_FILE, json.dumps(record) + "\n")
     return BatchOutcome(item.source, item.out_dir, "failed", reason, {}, proc.returncode)
+
+
+def _is_fault(reason: str) -> bool:
+    """Whether a child's error line is a fault of the environment (its cause in the words of strerror)."""
+    import errno
+    import os
+
+    codes = (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EROFS, errno.EIO)
+    return any(f"({os.strerror(code)})" in reason or reason.endswith(os.strerror(code)) for code in codes)
 
 
 def _reason(stderr: str, returncode: int) -> str:
@@ -270,8 +284,11 @@ def _outcome(future, item: BatchItem) -> BatchOutcome:
     try:
         return future.result()
     except Exception as exc:  # noqa: BLE001 - whatever ended the task, the batch goes on and reports it
+        from afmtool.report.faults import environment_fault
+
         reason = one_line(f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)
-        return BatchOutcome(item.source, item.out_dir, "failed", f"worker lost ({reason})", {}, -1)
+        fault = environment_fault(exc) is not None  # the worker could not write (a full disk)
+        return BatchOutcome(item.source, item.out_dir, "failed", f"worker lost ({reason})", {}, -1, fault=fault)
 
 
 def _killed(returncode: int) -> bool:

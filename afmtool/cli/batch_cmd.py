@@ -47,7 +47,7 @@ def batch(
     """
     from afmtool.analyses.batch import expand_inputs, plan_batch, write_summary
     from afmtool.errors import ConfigError
-    from afmtool.report.atomic import atomic_path
+    from afmtool.report.atomic import OutputError, atomic_path
     from afmtool.report.outputs import FolderLock
 
     if command not in _COMMANDS:
@@ -60,11 +60,38 @@ def batch(
     out.parent.mkdir(parents=True, exist_ok=True)
     # one batch (or command) at a time on --out: two batches on one folder mixed their outputs
     with FolderLock(Path(os.path.realpath(out)), out):
-        out.mkdir(parents=True, exist_ok=True)
-        outcomes = _run_with_progress(command, items, args or [], workers, (scheduler, scheduler_timeout), retry_failed, quiet)
-        with atomic_path(out / "summary.csv") as temp:
-            write_summary(temp, outcomes)
+        before = set(os.listdir(out)) if out.is_dir() else None
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            outcomes = _run_with_progress(command, items, args or [], workers, (scheduler, scheduler_timeout), retry_failed, quiet)
+            faults = [o for o in outcomes if o.fault]
+            if faults:
+                raise OutputError(f"--out {out}: could not be written ({faults[0].reason.rsplit('(', 1)[-1].rstrip(')')}); "
+                                  "this batch kept nothing")
+            with atomic_path(out / "summary.csv") as temp:
+                write_summary(temp, outcomes)
+        except Exception:
+            _remove_what_this_run_made(out, before)  # a full disk, an error: no partial batch
+            raise
     _report(outcomes, out, quiet)
+
+
+def _remove_what_this_run_made(out: Path, before: set[str] | None) -> None:
+    """The folder if this run created it, else the entries it added (subfolders, manifests); never raises."""
+    import shutil
+
+    try:
+        if before is None:
+            shutil.rmtree(out, ignore_errors=True)
+            return
+        for name in set(os.listdir(out)) - before:
+            path = out / name
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def _run_with_progress(command, items, args, workers, scheduler: tuple, retry_failed, quiet):
@@ -92,7 +119,7 @@ def _report(outcomes, out: Path, quiet: bool) -> None:
     for o in outcomes:
         if o.status == "failed":
             print(f"afmtool: failed: {o.source}: {o.reason}", file=sys.stderr)
-    if not quiet or counts["failed"]:
+    if not quiet:  # with --quiet only the failed inputs, one line each
         print(
             f"afmtool: batch: {counts['ok']} done, {counts['skipped']} skipped (complete), {counts['failed']} failed; "
             f"{out / 'summary.csv'}",

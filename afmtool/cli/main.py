@@ -222,6 +222,23 @@ def _hdf5_files_open() -> bool:
         return True
 
 
+def _hdf5_objects_open() -> bool:
+    """Whether libhdf5 still holds any file, dataset, group or attribute open.
+
+    A dataset left open after its file was closed is freed by libhdf5's own
+    exit handler, and that crashed (SIGSEGV in ``H5D_close`` from
+    ``H5_term_library``) after a failed ``theory fit`` on a full disk.
+    """
+    h5py = sys.modules.get("h5py")
+    if h5py is None:
+        return False
+    try:
+        kinds = h5py.h5f.OBJ_FILE | h5py.h5f.OBJ_DATASET | h5py.h5f.OBJ_GROUP | h5py.h5f.OBJ_ATTR
+        return bool(h5py.h5f.get_obj_ids(types=kinds))
+    except Exception:  # noqa: BLE001 - asking must never fail the exit
+        return True
+
+
 def _threads_still_running() -> bool:
     """Whether a helper thread (the input hash, a read-ahead) outlived the failed run."""
     main_thread = threading.main_thread()
@@ -246,7 +263,7 @@ def _exit_now_if_teardown_unsafe(code: object) -> None:
     """
     if code in (0, None):
         return
-    if not (_hdf5_files_open() or _threads_still_running()):
+    if not (_hdf5_objects_open() or _threads_still_running()):
         return
     _flush_and_exit(code if isinstance(code, int) else 1)
 

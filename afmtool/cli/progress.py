@@ -7,7 +7,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-__all__ = ["progress_bar", "stderr_console"]
+__all__ = ["progress_bar", "progress_steps", "stderr_console"]
 
 # Runs shorter than this never show a bar, so quick commands stay quiet.
 _SHOW_AFTER_S = 1.0
@@ -52,3 +52,18 @@ def progress_bar(description: str, total: int | None, quiet: bool) -> Iterator[C
     finally:
         if task is not None:
             progress.stop()
+
+
+@contextmanager
+def progress_steps(description: str, quiet: bool) -> Iterator[Callable[[str], None]]:
+    """Yield ``step(text)``: the step a long run is at, as one transient line on a TTY, else nothing.
+
+    Steps printed as lines came before a failed run's one error line (``theory
+    controllers`` on a full disk printed its progress first); a status line
+    that disappears when the run ends leaves stderr to the outcome.
+    """
+    if quiet or not sys.stderr.isatty():
+        yield lambda text: None
+        return
+    with stderr_console().status(description) as status:
+        yield lambda text: status.update(f"{description}: {text}")

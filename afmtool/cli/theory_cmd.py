@@ -145,11 +145,8 @@ def controllers(*, flags: dict, output: CommandOutput) -> None:
     this command with --lines 4 --figure-lines 48.
     """
     from afmtool.analyses.controllers import run_controllers_command
-    from afmtool.cli.progress import stderr_console
+    from afmtool.cli.progress import progress_steps
 
-    def progress(step: str) -> None:
-        stderr_console(output.quiet).print(f"simulating the three controllers: {step}", highlight=False)
-
-    with output.settings().writing():
+    with output.settings().writing(), progress_steps("simulating the three controllers", output.quiet) as progress:
         report = run_controllers_command(output.out, output.config, flags, progress)
     finish_command(report, output.out, output.json_output, output.quiet)

@@ -16,9 +16,9 @@ from __future__ import annotations
 import json
 import os
 import signal
-import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -516,28 +516,49 @@ class Hdf5Writer:
         for spec in channels:
             dataset_name(spec.name)
         self._file = h5py.File(path, "w", rdcc_nbytes=0)  # flat memory while appending (see io.results)
-        self._file.attrs["sample_rate_hz"] = float(sample_rate_hz)
-        if metadata:
-            self._file.attrs["metadata"] = json.dumps(dict(metadata))
-        group = self._file.create_group("channels", track_order=True)
-        filters = {"compression": "gzip", "shuffle": True} if compression == "gzip" else {}
-        self._filters = filters
         self._datasets = {}
-        for spec in channels:
-            ds = group.create_dataset(
-                spec.name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(_WRITE_CHUNK,), **filters
-            )
-            ds.attrs["units"] = spec.units
-            self._datasets[spec.name] = ds
+        self._failed = False
+        with self._failing(close=True):
+            self._file.attrs["sample_rate_hz"] = float(sample_rate_hz)
+            if metadata:
+                self._file.attrs["metadata"] = json.dumps(dict(metadata))
+            group = self._file.create_group("channels", track_order=True)
+            filters = {"compression": "gzip", "shuffle": True} if compression == "gzip" else {}
+            self._filters = filters
+            for spec in channels:
+                ds = group.create_dataset(
+                    spec.name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(_WRITE_CHUNK,), **filters
+                )
+                ds.attrs["units"] = spec.units
+                self._datasets[spec.name] = ds
+
+    @contextmanager
+    def _failing(self, *, close: bool = False) -> Iterator[None]:
+        """A write that raises marks the file failed: it is then never closed (afmtool.report.faults.close_hdf5).
+
+        ``close``: the constructor's writes; nobody else will call :meth:`close` if they fail.
+        """
+        try:
+            yield
+        except BaseException:
+            self._failed = True
+            if close:
+                self.close()
+            raise
 
     def write(self, data: Mapping[str, np.ndarray]) -> None:
-        for name, ds in self._datasets.items():
-            values = np.asarray(data[name])
-            start = ds.shape[0]
-            ds.resize((start + len(values),))
-            ds[start:] = values
+        with self._failing():
+            for name, ds in self._datasets.items():
+                values = np.asarray(data[name])
+                start = ds.shape[0]
+                ds.resize((start + len(values),))
+                ds[start:] = values
 
     def write_truth(self, truth: Mapping[str, np.ndarray]) -> None:
+        with self._failing():
+            self._write_truth(truth)
+
+    def _write_truth(self, truth: Mapping[str, np.ndarray]) -> None:
         group = self._file.require_group("truth")
         for name, values in truth.items():
             dataset_name(name, "ground-truth")
@@ -555,10 +576,9 @@ class Hdf5Writer:
                 )
 
     def close(self) -> None:
-        try:
-            self._file.close()
-        except BaseException:
-            from afmtool.report.faults import keep_until_exit
+        """Close the file; after a failed write it is left unclosed (afmtool.report.faults.close_hdf5)."""
+        from afmtool.report.faults import close_hdf5
 
-            keep_until_exit(self._file, self._datasets, sys.exc_info()[2])  # see keep_until_exit: no finaliser may flush
-            raise
+        handle, self._file = self._file, None
+        if handle is not None:
+            close_hdf5(handle, self._datasets, failed=self._failed)

@@ -155,16 +155,24 @@ class ResultFile:
             columns[name].attrs["units"] = unit
         return columns
 
-    def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+    def close(self, *, failed: bool = False) -> None:
+        """Close the file; one written to (``r+``) is flushed first, and left unclosed if a write failed
+        (:func:`afmtool.report.faults.close_hdf5`)."""
+        if self._file is None:
+            return
+        handle, self._file = self._file, None
+        if handle.mode == "r":
+            handle.close()
+            return
+        from afmtool.report.faults import close_hdf5
+
+        close_hdf5(handle, failed=failed)
 
     def __enter__(self) -> ResultFile:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close(failed=exc_type is not None)
 
 
 def _bisect(dataset, value: float, n: int) -> int:

@@ -7,7 +7,6 @@ Columns are appended chunk by chunk to resizable datasets, each with a
 from __future__ import annotations
 
 import queue
-import sys
 import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -40,8 +39,13 @@ class ResultWriter:
         self._units = dict(units)
         self._series: dict[str, h5py.Dataset] = {}
         self._pending: dict[str, np.ndarray] = {}  # per series, less than one chunk not yet written
-        for key, value in (attrs or {}).items():
-            self._file.attrs[key] = value
+        self._behind = None
+        try:
+            for key, value in (attrs or {}).items():
+                self._file.attrs[key] = value
+        except BaseException:
+            self.close(failed=True)
+            raise
         self._behind = _WriteBehind(self._append_now) if write_behind else None
 
     def append(self, columns: Mapping[str, np.ndarray]) -> None:
@@ -90,36 +94,37 @@ class ResultWriter:
         for key, value in (attrs or {}).items():
             ds.attrs[key] = value
 
-    def close(self) -> None:
-        """Write what is still pending and close the file."""
+    def close(self, *, failed: bool = False) -> None:
+        """Write what is still pending and close the file.
+
+        ``failed``: the run failed while writing (the file is thrown away);
+        it is left unclosed, out of reach of every finaliser
+        (:func:`afmtool.report.faults.close_hdf5`).
+        """
+        from afmtool.report.faults import close_hdf5
+
+        if self._file is None:
+            return
         try:
             if self._behind is not None:
                 self._behind.stop()
-            for name, rest in self._pending.items():
-                if rest.shape[-1]:
-                    _write_at_end(self._series[name], rest)
+            if not failed:
+                for name, rest in self._pending.items():
+                    if rest.shape[-1]:
+                        _write_at_end(self._series[name], rest)
             self._pending.clear()
         except BaseException:
-            _close_or_keep(self)
+            failed = True
             raise
-        _close_or_keep(self)
+        finally:
+            handle, self._file = self._file, None
+            close_hdf5(handle, self._series, failed=failed)
 
     def __enter__(self) -> ResultWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-def _close_or_keep(writer: ResultWriter) -> None:
-    """Close the file; if that fails (a full disk), keep its objects from finalisers and re-raise."""
-    try:
-        writer._file.close()
-    except BaseException:
-        from afmtool.report.faults import keep_until_exit
-
-        keep_until_exit(writer._file, writer._series, sys.exc_info()[2])
-        raise
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close(failed=exc_type is not None)
 
 
 def _write_at_end(ds: h5py.Dataset, block: np.ndarray) -> None:

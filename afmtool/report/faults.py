@@ -12,8 +12,9 @@ from __future__ import annotations
 import errno
 import os
 import re
+import sys
 
-__all__ = ["FAULT_ERRNOS", "environment_fault", "fault_message", "keep_until_exit"]
+__all__ = ["FAULT_ERRNOS", "close_hdf5", "environment_fault", "fault_message", "keep_until_exit"]
 
 #: errno values that mean "the environment refused", not "afmtool is wrong".
 FAULT_ERRNOS = frozenset(
@@ -37,6 +38,12 @@ FAULT_ERRNOS = frozenset(
 )
 
 _ERRNO_IN_TEXT = re.compile(r"(?:errno\s*=\s*|\[Errno\s+)(\d+)")
+#: Messages of libraries that carry no errno: SQLite (a ROS2 db3 bag) on a full disk or quota.
+_FAULT_TEXTS = (
+    ("database or disk is full", errno.ENOSPC),
+    ("attempt to write a readonly database", errno.EROFS),
+    ("disk i/o error", errno.EIO),
+)
 
 
 def environment_fault(exc: BaseException) -> int | None:
@@ -47,9 +54,15 @@ def environment_fault(exc: BaseException) -> int | None:
         code = getattr(exc, "errno", None)
         if isinstance(code, int) and code in FAULT_ERRNOS:
             return code
-        match = _ERRNO_IN_TEXT.search(str(exc))
+        text = str(exc)
+        match = _ERRNO_IN_TEXT.search(text)
         if match and int(match.group(1)) in FAULT_ERRNOS:
             return int(match.group(1))
+        if type(exc).__module__ == "sqlite3" or type(exc).__name__ == "OperationalError":
+            lowered = text.lower()
+            for needle, fault in _FAULT_TEXTS:
+                if needle in lowered:
+                    return fault
         exc = exc.__cause__ or exc.__context__
     return None
 
@@ -75,3 +88,32 @@ def keep_until_exit(*objects: object) -> None:
     not close in its own frame.
     """
     _kept.extend(objects)
+
+
+def close_hdf5(handle: object, *objects: object, failed: bool = False) -> None:
+    """Close an HDF5 file being written, never where libhdf5 can crash.
+
+    A file whose write already failed (``failed``: an exception is leaving
+    the writer, a full disk most often) is not closed at all: closing it
+    makes libhdf5 flush again, and it crashed there (SIGSEGV in
+    ``H5Fclose``, reep on a force curve at 4 KiB free).  It is kept from
+    every finaliser instead (:func:`keep_until_exit`); it lies in a staging
+    folder or a temporary file that the failed run removes, and the run ends
+    by ``os._exit``.  Otherwise the file is flushed first: a flush that
+    fails (the library failing inside its own flush) raises here, and the
+    file is kept the same way, unclosed; after a good flush, close has
+    nothing left to write.
+    """
+    if failed:
+        keep_until_exit(handle, *objects)
+        return
+    try:
+        handle.flush()
+    except BaseException:
+        keep_until_exit(handle, *objects, sys.exc_info()[2])
+        raise
+    try:
+        handle.close()
+    except BaseException:
+        keep_until_exit(handle, *objects, sys.exc_info()[2])
+        raise
