@@ -85,8 +85,13 @@ class Warmup:
 
     @classmethod
     def of_windows(cls, windows: float, lam: float) -> Warmup:
-        """``int(windows / (1 − λ))`` samples: ``windows`` exponential windows of forgetting factor ``lam``."""
-        return cls(int(windows / (1.0 - lam)))
+        """``int(windows / (1 − λ))`` samples: ``windows`` exponential windows of forgetting factor ``lam``.
+
+        Raises ConfigError when that is no sample count (``warmup_windows = 1e308``).
+        """
+        from afmtool.config.samples import check_count
+
+        return cls(int(check_count(windows / (1.0 - lam), "warmup_windows", windows)))
 
     def first_settled(self, kept_index: np.ndarray) -> int:
         """Position in the sorted ``kept_index`` of the first sample past the warm-up."""

@@ -234,3 +234,37 @@ def test_convert_of_a_subnormal_rate_is_one_line(tmp_path):
         f.create_dataset("channels/deflection", data=np.arange(100.0)).attrs["units"] = "nm"
     _one_line_exit_2(run_cli("convert", path, tmp_path / "out.csv"), "sample rate")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["slow.h5"]
+
+
+# -- 8. one outcome line -------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def fresh_outcome():
+    import signal
+    import threading
+
+    from afmtool.cli import main as cli_main
+
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    cli_main._OUTCOME = threading.Lock()
+    cli_main._ERROR_CODE.clear()
+    yield cli_main
+    for s, handler in handlers.items():
+        signal.signal(s, handler)
+
+
+def test_an_interrupt_after_the_error_line_adds_no_line(capfd, fresh_outcome):
+    """A huge_claim capture refused while a SIGTERM arrived printed its refusal and 'interrupted'."""
+    with pytest.raises(SystemExit) as done:
+        fresh_outcome._error("huge_claim.h5: claims 1e15 samples", 2)
+    fresh_outcome._Signals().report()  # what the SIGTERM handler (or its deadline) does
+    err = capfd.readouterr().err
+    assert done.value.code == 2 and err.splitlines() == ["afmtool: error: huge_claim.h5: claims 1e15 samples"]
+
+
+def test_a_refusal_raised_by_the_interrupt_adds_no_line(capfd, fresh_outcome):
+    fresh_outcome._Signals().report()
+    with pytest.raises(SystemExit) as done:
+        fresh_outcome._error("x.h5: cannot read (interrupted)", 2)
+    assert done.value.code == 130 and capfd.readouterr().err.splitlines() == ["afmtool: interrupted"]

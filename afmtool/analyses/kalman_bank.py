@@ -272,7 +272,7 @@ def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: 
 def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
     fs = reader.info.sample_rate_hz
     drive_hz = drive_frequency(reader, params.drive_frequency_hz, model)
-    window = sample_count(params.rms_window_periods, fs / drive_hz, "rms_window_periods", minimum=1)
+    window = sample_count(params.rms_window_periods, fs / drive_hz, "rms_window_periods", minimum=1, per="drive period")
     points = _design_points(params, tables, model)
     designs = build_bank(
         points, model.numerator_at(fs), fs, noise_ratio=params.noise_ratio, input_gain=model.gain,
@@ -280,7 +280,7 @@ def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
     )
     radius = float(np.mean([np.abs(d.error_poles).mean() for d in designs]))
     return BankSetup(
-        model, segment_s, lam, drive_hz, window, params.decimate or sample_count(1.0, fs / drive_hz, "the drive period", minimum=1),
+        model, segment_s, lam, drive_hz, window, params.decimate or sample_count(1.0, fs / drive_hz, "the drive period", minimum=1, per="drive period"),
         warmup_samples(params, lam) + window, points, designs, radius,
     )
 

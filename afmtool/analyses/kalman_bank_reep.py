@@ -52,7 +52,9 @@ def reep_delay(lam: float, decimate: int) -> int:
 
 def warmup_samples(params: KalmanBankParams, lam: float) -> int:
     """REEP's start-up left out of the statistics: ``warmup_windows`` windows 1/(1 − λ)."""
-    return int(params.warmup_windows / (1.0 - lam))
+    from afmtool.config.samples import check_count
+
+    return int(check_count(params.warmup_windows / (1.0 - lam), "warmup_windows", params.warmup_windows))
 
 
 class HeldReepCoefficients:

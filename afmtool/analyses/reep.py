@@ -281,7 +281,7 @@ class ReepStage:
         drive = head.info.capture_metadata.drive
         self.drive_hz = _drive_frequency(params, drive, self.model, head.first.data["deflection"], fs)
         self.lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(self.drive_hz, drive.sideband_offset_hz)
-        self.decimation = Decimation(params.decimate or sample_count(1.0, fs / self.drive_hz, "the drive period", minimum=1))
+        self.decimation = Decimation(params.decimate or sample_count(1.0, fs / self.drive_hz, "the drive period", minimum=1, per="drive period"))
         self.numerator = self.model.numerator_at(fs) if (self.model is not None and params.use_input) else None
         self.lines = self._input_checks(head.first.data.get("dither"))
         self.bandpass = self._make_bandpass()

@@ -100,8 +100,27 @@ app.add_typer(design_cmd.app, name="design")
 app.add_typer(config_cmd.app, name="config")
 
 
+#: Held once the run's one outcome line (an error, or "interrupted") is on its way to stderr; a new one per run.
+_OUTCOME = threading.Lock()
+#: The exit status of the error line printed, if one was.
+_ERROR_CODE: list[int] = []
+
+
+def _claim_outcome() -> bool:
+    """Whether this caller is the one to print the run's outcome (the first to ask)."""
+    return _OUTCOME.acquire(blocking=False)
+
+
 def _error(message: str, code: int) -> None:
     first_line = str(message).strip().splitlines()[0] if str(message).strip() else "error"
+    if not _claim_outcome():
+        # "interrupted" is printed already: a refusal the interrupt raised on its way out adds no line
+        sys.exit(130)
+    if threading.current_thread() is threading.main_thread():
+        # a SIGTERM now must not add "interrupted" after the one error line (huge_claim refused during a SIGTERM)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _ERROR_CODE.append(code)
     print(f"afmtool: error: {first_line}", file=sys.stderr)
     sys.exit(code)
 
@@ -126,7 +145,8 @@ class _Signals:
     def report(self) -> None:
         if not self.reported:
             self.reported = True
-            os.write(2, b"afmtool: interrupted\n")
+            if _claim_outcome():  # not after an error line
+                os.write(2, b"afmtool: interrupted\n")
 
 
 def _give_up(state: _Signals) -> None:
@@ -134,7 +154,7 @@ def _give_up(state: _Signals) -> None:
     # long call into a library): end the process. Outputs are staged; the next run removes
     # what this one leaves, and --out is the old folder or the new one.
     state.report()
-    os._exit(130)
+    os._exit(_ERROR_CODE[0] if _ERROR_CODE else 130)  # an error line printed already keeps its status
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -142,6 +162,9 @@ def main(argv: list[str] | None = None) -> None:
     from afmtool.report.faults import environment_fault
     from afmtool.report.interrupts import interrupt_now
 
+    global _OUTCOME
+    _OUTCOME = threading.Lock()  # one outcome line per run (main runs more than once in a test process)
+    _ERROR_CODE.clear()
     # SIGINT and SIGTERM unwind as KeyboardInterrupt, so staged outputs are cleaned up.
     state = _Signals()
 
@@ -166,8 +189,11 @@ def main(argv: list[str] | None = None) -> None:
         # them) cannot unwind anything there; Python would print it as 'Exception ignored'.
         # Deliver the signal again a moment later, where it can unwind the run.
         if info.exc_value is not None and environment_fault(info.exc_value) is not None:
-            # h5py dropping an object of a file the disk has no room for: the write that
-            # failed first raised in the run already, and is reported as one line
+            # h5py dropping an object of a file the disk has no room for: remembered, so the
+            # file is never flushed again (report.faults.close_hdf5), and reported as one line
+            from afmtool.report.faults import note_swallowed
+
+            note_swallowed(info.exc_value)
             return
         if info.exc_type is not None and issubclass(info.exc_type, KeyboardInterrupt):
             state.swallowed += 1

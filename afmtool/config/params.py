@@ -714,7 +714,9 @@ class DecodeParams:
         bounds=">= 0",
         flag="--actuation-hz",
     )
-    mean_window: int = field(0, "Running mean of the innovation, samples; 0 = one actuation period", bounds=">= 0")
+    mean_window: int = field(
+        0, "Running mean of the innovation, samples; 0 = one actuation period", bounds="[1, 10000000]", automatic=0
+    )
     bit_rate_hz: float = field(
         0.0, "Bit rate; 0 = recover the clock from the transitions", "Hz", bounds=">= 0", flag="--bit-rate"
     )

@@ -16,14 +16,16 @@ import math
 
 from afmtool.errors import ConfigError, InputError
 
-__all__ = ["MAX_SAMPLES", "sample_count", "interval_samples"]
+__all__ = ["MAX_SAMPLES", "check_count", "sample_count", "interval_samples"]
 
 #: More samples than any capture holds (2 MHz for 15 years); exact in float64 and within int64.
 MAX_SAMPLES = 10**15
 
 
-def sample_count(value: float, samples_per_unit: float, name: str, *, minimum: int = 0, ceil: bool = False) -> int:
-    """``round(value * samples_per_unit)`` (``ceil`` if asked) as an int, refused unless finite and in [minimum, MAX_SAMPLES].
+def sample_count(
+    value: float, samples_per_unit: float, name: str, *, minimum: int = 0, ceil: bool = False, per: str = "s"
+) -> int:
+    """``max(minimum, round(value * samples_per_unit))`` (``ceil`` if asked), refused unless finite and in [0, MAX_SAMPLES].
 
     Parameters
     ----------
@@ -35,22 +37,31 @@ def sample_count(value: float, samples_per_unit: float, name: str, *, minimum: i
     name : str
         How the message names the parameter (``warmup_s``, ``--free-air``).
     minimum : int
-        The fewest samples the caller can use.
+        The fewest samples the caller can use: a shorter time gives this many.
     ceil : bool
         Round up instead of to the nearest.
+    per : str
+        The unit of ``value``, for the message (``s``, ``drive period``).
 
     Raises
     ------
     ConfigError
-        The product is not finite, or outside ``[minimum, MAX_SAMPLES]``.
+        The product is not finite, or outside ``[0, MAX_SAMPLES]``.
     """
     count = float(value) * float(samples_per_unit)
-    if not (math.isfinite(count) and minimum - 0.5 <= count <= MAX_SAMPLES):
+    if not (math.isfinite(count) and 0 <= count <= MAX_SAMPLES):
         raise ConfigError(
-            f"{name}={value!r} is {count:.4g} samples (at {samples_per_unit:.6g} per unit); "
-            f"it must be between {minimum} and {MAX_SAMPLES:.0e} samples"
+            f"{name}={value!r} is {count:.4g} samples (at {samples_per_unit:.6g} samples per {per}); "
+            f"it must be between 0 and {MAX_SAMPLES:.0e} samples"
         )
     return max(minimum, math.ceil(count) if ceil else round(count))
+
+
+def check_count(count: float, name: str, value: object) -> float:
+    """``count`` (samples, not yet rounded) if finite and in [0, MAX_SAMPLES]; else ConfigError naming ``name=value``."""
+    if not (math.isfinite(count) and 0 <= count <= MAX_SAMPLES):
+        raise ConfigError(f"{name}={value!r} is {count:.4g} samples; it must be between 0 and {MAX_SAMPLES:.0e} samples")
+    return count
 
 
 def interval_samples(
@@ -67,8 +78,8 @@ def interval_samples(
     """
     start_s, end_s = interval
     text = f"{start_s:g}:{end_s:g}"
-    start = sample_count(start_s, sample_rate_hz, f"{option} {text} START")
-    end = sample_count(end_s, sample_rate_hz, f"{option} {text} END")
+    start = sample_count(start_s, sample_rate_hz, f"{option} {text}: START")
+    end = sample_count(end_s, sample_rate_hz, f"{option} {text}: END")
     if n_samples is not None and end > n_samples:
         raise InputError(
             f"{option} {text} s ends at sample {end:,}, past the capture's {n_samples:,} samples "

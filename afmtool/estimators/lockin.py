@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from afmtool.config.samples import MAX_SAMPLES
+from afmtool.errors import ConfigError
 from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.estimators.decimation import Decimation
 from afmtool.estimators.filters import butterworth_lowpass_sos
@@ -171,6 +173,11 @@ class LockIn:
             raise ValueError(f"{frequency_hz=} must be in (0, sample_rate_hz/2)")
         if not 0 < lowpass_hz < sample_rate_hz / 2:
             raise ValueError(f"{lowpass_hz=} must be in (0, sample_rate_hz/2)")
+        if not sample_rate_hz / lowpass_hz <= MAX_SAMPLES:  # a corner of 1e-320 Hz: no filter, and an IndexError
+            raise ConfigError(
+                f"lockin_lowpass_hz={lowpass_hz!r}: its time constant of {sample_rate_hz / lowpass_hz:.3g} samples "
+                f"is longer than any capture ({MAX_SAMPLES:.0e} samples)"
+            )
         self.frequency_hz = float(frequency_hz)
         self.sample_rate_hz = float(sample_rate_hz)
         self.lowpass_hz = float(lowpass_hz)

@@ -221,7 +221,7 @@ def index_window(sample_rate_hz: float, drive_frequency_hz: float, periods: floa
     one = drive_period_window(sample_rate_hz, drive_frequency_hz)  # validates fs and f
     if periods == 1:
         return one
-    return sample_count(periods, sample_rate_hz / drive_frequency_hz, "periods", minimum=1)
+    return sample_count(periods, sample_rate_hz / drive_frequency_hz, "periods", minimum=1, per="drive period")
 
 
 def settle_samples(design: ObserverDesign, window_samples: int, residual: float = 1e-6) -> int:

@@ -145,6 +145,7 @@ class ResultFile:
         ds.attrs["units"] = units
         for key, value in (attrs or {}).items():
             ds.attrs[key] = value
+        self._h5.flush()  # while ``ds`` is alive, so a full disk raises here (see io.results.ResultWriter.put)
 
     def create_columns(self, group: str, units: Mapping[str, str], n_rows: int) -> dict[str, h5py.Dataset]:
         """Empty float64 columns ``group/<name>`` of ``n_rows``, each with its units, to be filled in blocks."""

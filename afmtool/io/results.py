@@ -93,6 +93,9 @@ class ResultWriter:
         ds.attrs["units"] = units
         for key, value in (attrs or {}).items():
             ds.attrs[key] = value
+        # written to disk while ``ds`` is alive: h5py writes a small dataset's data when it drops the
+        # object, where a full disk's error is only printed, and the next flush then crashed libhdf5
+        self._file.flush()
 
     def close(self, *, failed: bool = False) -> None:
         """Write what is still pending and close the file.

@@ -73,7 +73,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from afmtool.errors import ConfigError
+from afmtool.errors import ConfigError, InputError
 from afmtool.estimators._common import JIT_OPTIONS
 
 #: How the drive reached the plant between samples (module docstring).
@@ -468,6 +468,12 @@ def classify_hold(
     δf well below f0·(πf/fs)/(4Q) (≈ 7 Hz at 70 kHz, Q = 200, fs = 500 kHz).
     """
     continuous = complex(_continuous_response(f0_hz, q, drive_hz))
+    if not (continuous != 0 and math.isfinite(abs(continuous))):
+        # f0 = 1e-300 Hz beside a 70 kHz drive: the model's response there is 0 and its phase undefined
+        raise InputError(
+            f"the free-air model (f0 {f0_hz:g} Hz, Q {q:g}) has no response at the {drive_hz:g} Hz drive "
+            f"({abs(continuous):.3g}); check --f0 and --q"
+        )
     zoh = complex(
         sampled_response(zoh_numerator(f0_hz, q, sample_rate_hz), discrete_denominator(f0_hz, q, sample_rate_hz),
                          drive_hz, sample_rate_hz)

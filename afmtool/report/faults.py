@@ -14,7 +14,7 @@ import os
 import re
 import sys
 
-__all__ = ["FAULT_ERRNOS", "close_hdf5", "environment_fault", "fault_message", "keep_until_exit"]
+__all__ = ["FAULT_ERRNOS", "close_hdf5", "environment_fault", "fault_message", "keep_until_exit", "note_swallowed"]
 
 #: errno values that mean "the environment refused", not "afmtool is wrong".
 FAULT_ERRNOS = frozenset(
@@ -75,6 +75,15 @@ def fault_message(exc: BaseException, code: int, where: object = None) -> str:
 
 
 _kept: list[object] = []
+#: Environment faults raised where Python cannot raise them (h5py's finalisers), first first.
+_swallowed: list[BaseException] = []
+
+
+def note_swallowed(exc: BaseException) -> None:
+    """Record a fault a finaliser met: an HDF5 dataset whose cached data could not be written when it was
+    dropped.  libhdf5 is then in a state where flushing the file crashed (SIGSEGV in H5D__flush_all_cb), so
+    :func:`close_hdf5` neither flushes nor closes it afterwards, and raises the fault instead."""
+    _swallowed.append(exc)
 
 
 def keep_until_exit(*objects: object) -> None:
@@ -104,8 +113,11 @@ def close_hdf5(handle: object, *objects: object, failed: bool = False) -> None:
     file is kept the same way, unclosed; after a good flush, close has
     nothing left to write.
     """
-    if failed:
+    if failed or _swallowed:
         keep_until_exit(handle, *objects)
+        if not failed:  # a write failed in a finaliser (h5py dropping a dataset): raise it now
+            code = environment_fault(_swallowed[0]) or errno.EIO
+            raise OSError(code, os.strerror(code), getattr(handle, "filename", None))
         return
     try:
         handle.flush()

@@ -378,12 +378,35 @@ def simulate(name: str, overrides: Mapping[str, Any] | None = None, seed: int = 
         params = dataclasses.replace(info.params_cls(), **checked)
     except TypeError as exc:  # a params class refusing a value in its own __post_init__
         raise ConfigError(f"scenario {name!r}: {exc}") from None
+    _check_size(name, params)
     capture = info.run(params, int(seed))
     metadata = dict(capture.metadata)
     metadata["scenario"] = name
     metadata["seed"] = int(seed)
     metadata["parameters"] = parameters_to_dict(params)
     return dataclasses.replace(capture, metadata=metadata)
+
+
+#: A simulated capture is held in memory, every channel and its truth: at most this many samples.
+MAX_SIMULATED_SAMPLES = 1 << 25
+#: The simulators discretise continuous models at the sample rate; past this their matrices are singular.
+MAX_SIMULATED_RATE_HZ = 1e10
+
+
+def _check_size(name: str, params: Any) -> None:
+    """Refuse a scenario whose sample rate or length no simulation can hold (before anything is allocated)."""
+    rate = getattr(params, "sample_rate_hz", None)
+    if not isinstance(rate, (int, float)):
+        return
+    if not rate <= MAX_SIMULATED_RATE_HZ:
+        raise ConfigError(f"scenario {name!r}: sample_rate_hz={rate!r} must be at most {MAX_SIMULATED_RATE_HZ:g}")
+    for key in ("duration_s", "capture_s"):
+        duration = getattr(params, key, None)
+        if isinstance(duration, (int, float)) and not duration * rate <= MAX_SIMULATED_SAMPLES:
+            raise ConfigError(
+                f"scenario {name!r}: {key}={duration!r} at {rate:g} Hz is {duration * rate:.4g} samples; a simulation "
+                f"is held in memory, at most {MAX_SIMULATED_SAMPLES:,} samples (simulate shorter captures)"
+            )
 
 
 # --------------------------------------------------------------------------- built-in scenarios
