@@ -374,11 +374,11 @@ def simulate(name: str, overrides: Mapping[str, Any] | None = None, seed: int = 
             )
         checked[key] = _coerce(key, kinds[key], value)
         _check_bounds(key, checked[key], fields[key].metadata)
+    _check_size(name, {f: checked.get(f, fields[f].default) for f in ("sample_rate_hz", "duration_s", "capture_s") if f in fields})
     try:
         params = dataclasses.replace(info.params_cls(), **checked)
     except TypeError as exc:  # a params class refusing a value in its own __post_init__
         raise ConfigError(f"scenario {name!r}: {exc}") from None
-    _check_size(name, params)
     capture = info.run(params, int(seed))
     metadata = dict(capture.metadata)
     metadata["scenario"] = name
@@ -393,15 +393,16 @@ MAX_SIMULATED_SAMPLES = 1 << 25
 MAX_SIMULATED_RATE_HZ = 1e10
 
 
-def _check_size(name: str, params: Any) -> None:
-    """Refuse a scenario whose sample rate or length no simulation can hold (before anything is allocated)."""
-    rate = getattr(params, "sample_rate_hz", None)
+def _check_size(name: str, values: Mapping[str, Any]) -> None:
+    """Refuse a scenario whose sample rate or length no simulation can hold, before its parameters are
+    even built (their own checks discretise the model at that rate)."""
+    rate = values.get("sample_rate_hz")
     if not isinstance(rate, (int, float)):
         return
     if not rate <= MAX_SIMULATED_RATE_HZ:
         raise ConfigError(f"scenario {name!r}: sample_rate_hz={rate!r} must be at most {MAX_SIMULATED_RATE_HZ:g}")
     for key in ("duration_s", "capture_s"):
-        duration = getattr(params, key, None)
+        duration = values.get(key)
         if isinstance(duration, (int, float)) and not duration * rate <= MAX_SIMULATED_SAMPLES:
             raise ConfigError(
                 f"scenario {name!r}: {key}={duration!r} at {rate:g} Hz is {duration * rate:.4g} samples; a simulation "
