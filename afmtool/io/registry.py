@@ -60,6 +60,10 @@ def input_format(path: Path | str) -> str:
     """The format of an existing input: by suffix, or a ROS2 bag directory."""
     if str(path) == "-":
         return "csv"
+    from afmtool.io.zarr_capture import is_zarr_store
+
+    if is_zarr_store(path):
+        return "zarr"
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such file")
@@ -211,6 +215,12 @@ def _views(reader: CaptureReader, fmt: str, channel_map: Mapping[str, str] | Non
 
 
 def _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, segment) -> CaptureReader:
+    if fmt == "zarr":
+        from afmtool.io.zarr_capture import ZarrReader
+
+        if topic_map:
+            raise InputError(f"{path}: --topic maps bag topics; use --channel NAME=ARRAY for Zarr")
+        return ZarrReader(str(path), sample_rate_hz)
     if fmt in _READERS:
         import importlib
 
