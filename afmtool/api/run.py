@@ -51,6 +51,10 @@ class RunSettings:
         ``progress(name, total_samples)`` -> a context manager yielding ``update(samples_done)``.
     data_format : str
         ``--format``: ``h5`` (afmtool's HDF5), ``netcdf`` or ``zarr`` for the result arrays.
+    own_warnings : bool
+        Record the run's Python warnings into its report as a fresh ``afmtool`` process does
+        (Python's default filters, each first occurrence), restoring the caller's warning state after.
+        The CLI records them for the whole process itself (False there).
     """
 
     config: Path | None = None
@@ -59,6 +63,7 @@ class RunSettings:
     figures: Any = None
     progress: Callable[[str, int | None], AbstractContextManager] = field(default=_no_progress)
     data_format: str = "h5"
+    own_warnings: bool = True
 
     def figure_process(self):
         from afmtool.report.figure_process import FigureProcess
@@ -68,10 +73,25 @@ class RunSettings:
     @contextmanager
     def writing(self):
         """The run's result arrays are written in :attr:`data_format` (``report.run.finish_run`` converts them)."""
+        import warnings
+
         from afmtool.report.run import result_format
 
-        with result_format(self.data_format):
-            yield
+        if not self.own_warnings:
+            with result_format(self.data_format):
+                yield
+            return
+        from afmtool.report.captured_warnings import record, take
+
+        with warnings.catch_warnings():
+            warnings.resetwarnings()  # Python's own defaults, as in a fresh afmtool process
+            warnings.simplefilter("default")
+            for category in (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning):
+                warnings.simplefilter("ignore", category)
+            warnings.showwarning = record
+            take()  # nothing recorded before this run belongs to its report
+            with result_format(self.data_format):
+                yield
 
 
 #: The capture commands: the channels each needs, and whether a dither may be synthesised for it.

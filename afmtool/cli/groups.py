@@ -228,7 +228,7 @@ class CommandOutput(NamedTuple):
         quiet = self.quiet
         return RunSettings(config=self.config, split=self.split() if split else None, hash_input=not self.no_hash,
                            figures=figures, progress=lambda name, total: progress_bar(name, total, quiet),
-                           data_format=self.data_format)
+                           data_format=self.data_format, own_warnings=False)
 
     @property
     def stream_mode(self) -> tuple[bool, str]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 import warnings
 
-__all__ = ["add", "capture_warnings", "drain", "take"]
+__all__ = ["add", "capture_warnings", "drain", "record", "take"]
 
 _lock = threading.Lock()
 _seen: dict[str, int] = {}
@@ -47,3 +47,7 @@ def add(counts: dict[str, int]) -> None:
 def drain() -> list[str]:
     """The distinct warnings recorded so far (with counts), and forget them."""
     return [text if count == 1 else f"{text} ({count} times)" for text, count in take().items()]
+
+
+#: The recording ``showwarning`` (the Python API installs it around one run: ``afmtool.api.run.RunSettings``).
+record = _record
