@@ -50,7 +50,8 @@ THUMB_SIZE = 256
 DIRECTIONS = ("trace", "retrace")
 # Every .gsf the CLI writes, by the command that writes it (see test_every_gsf_writer_is_covered).
 GSF_NAMES = sorted(
-    [f"reep/{q}_{d}.gsf" for q in ("f0_hz", "q", "amplitude", "phase_deg") for d in DIRECTIONS]
+    # a raster capture with z gets a height image beside REEP's
+    [f"reep/{q}_{d}.gsf" for q in ("f0_hz", "q", "amplitude", "phase_deg", "height") for d in DIRECTIONS]
     # the raster capture's metadata has k, so REEP also writes the interaction maps (issue 17 item 1)
     + [f"reep/{q}_{d}.gsf" for q in InteractionQuantities.units() for d in DIRECTIONS]
     + [f"probeloss/{q}_{d}.gsf" for q in ("loss_mask", "index") for d in DIRECTIONS]

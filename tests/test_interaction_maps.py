@@ -138,6 +138,6 @@ def test_raster_without_k_writes_no_interaction_images(tmp_path):
     report = _run(capture, tmp_path / "reep")
     assert "spring constant" in report["results"]["interaction"]["reason"]
     assert sorted(p.name for p in (tmp_path / "reep").glob("*.gsf")) == sorted(
-        f"{q}_{d}.gsf" for q in ("f0_hz", "q", "amplitude", "phase_deg") for d in ("trace", "retrace"))
+        f"{q}_{d}.gsf" for q in ("f0_hz", "q", "amplitude", "phase_deg", "height") for d in ("trace", "retrace"))
     with h5py.File(tmp_path / "reep" / "reep.h5") as f:
         assert "interaction" not in f and "k_e_n_per_m" not in f["images"]

@@ -303,7 +303,8 @@ def test_force_curve_contact_truth():
 def test_tapping_other_programs_and_drives():
     steps = simulate("tapping", {"duration_s": 0.004, "program": "steps", "step_levels_nm": [40, 10],
                                  "drive": "stepped", "sweep_steps": 4}, seed=0)
-    assert "z_piezo" not in steps.data
+    # the piezo moves the sample by the steps, so the steps program records z as a force curve does
+    assert steps.data["z_piezo"][0] == 0.0 and set(np.unique(steps.data["z_piezo"])) == {0.0, -30.0}
     assert steps.metadata["free_air"] == {"start_s": 0.0, "end_s": 0.002}
     assert len(steps.metadata["segments"]) == 4
     scan = simulate("tapping", {"duration_s": 0.004, "program": "line-scan", "free_air_fraction": 0.25,

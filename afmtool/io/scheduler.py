@@ -137,7 +137,7 @@ def probe_scheduler(address: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
     except TimeoutError:
         raise InputError(f"--scheduler {address}: no connection within {deadline.timeout_s:g} s (--scheduler-timeout)") from None
     except OSError as exc:
-        raise InputError(f"--scheduler {address}: cannot connect ({exc.strerror or exc})") from None
+        raise InputError(f"--scheduler {address}: cannot connect to a Dask scheduler there ({exc.strerror or exc})") from None
     with sock:
         (length,) = struct.unpack("Q", _read_exactly(sock, 8, deadline, address, "handshake's length"))
         if not 16 <= length <= MAX_HANDSHAKE_BYTES:

@@ -455,16 +455,32 @@ def _draw_colorbar(fig: Figure, ax: Axes, im: Any, label: str, extend: str) -> N
     fig.colorbar(im, cax=cax, label=label, extend=extend)
 
 
-def _image_figure_size(x_real_m: float, y_real_m: float, n: int) -> tuple[float, float]:
+def _image_figure_size(x_real_m: float, y_real_m: float, n: int, colorbar_label: str) -> tuple[float, float]:
     """(width, height) in inches: the image at its true aspect, plus room for the title and the x axis.
 
     A scan of a few lines is a thin strip; the figure is cut to it (no band
-    of white above and below), with a floor that keeps the colour bar legible.
+    of white above and below), with a floor that keeps the colour bar's
+    label (set vertically beside it) inside the figure: a label taller than
+    the figure collapsed the constrained layout of a 3-line scan's
+    probe-loss index.
     """
     aspect = min(max(y_real_m / x_real_m, 0.02), 4.0)
     panel = 4.8 if n == 1 else 3.6
-    height = min(max(panel * aspect, 0.6), 9.0) + 1.1
+    label_in = _LABEL_CHAR_IN * max(len(line) for line in colorbar_label.split("\n"))
+    height = min(max(panel * aspect, 0.6, label_in - 1.0), 9.0) + 1.1
     return panel * n + 1.6, height
+
+
+#: Width of a 10 pt DejaVu Sans character, with margin (inches).
+_LABEL_CHAR_IN = 0.085
+
+
+def _short_colorbar_label(label: str, x_real_m: float, y_real_m: float) -> str:
+    """The label on two lines, quantity over units, when the image is too thin for it on one."""
+    if 4.8 * y_real_m / x_real_m < _LABEL_CHAR_IN * len(label) and " (" in label:
+        quantity, _, units = label.rpartition(" (")
+        return f"{quantity}\n({units}"
+    return label
 
 
 @dataclass(frozen=True)
@@ -607,13 +623,14 @@ def write_image_png(
 
     factor, unit = _lateral_scale(x_real, y_real)
     zs = _z_scale([arr], z_units, zr)
-    with _png_figure(path, *_image_figure_size(x_real, y_real, 1)) as fig:
+    label = _short_colorbar_label(_colorbar_label(z_label, zs.units), x_real, y_real)
+    with _png_figure(path, *_image_figure_size(x_real, y_real, 1, label)) as fig:
         ax = fig.add_subplot()
         im = _draw_image(ax, arr, (0.0, x_real * factor, y_real * factor, 0.0), colormap, zs)
         ax.set_xlabel(f"x ({unit})")
         ax.set_ylabel(f"y ({unit})")
         ax.set_title(title)
-        _draw_colorbar(fig, ax, im, _colorbar_label(z_label, zs.units), zs.extend)
+        _draw_colorbar(fig, ax, im, label, zs.extend)
 
 
 @skipped_when_empty
@@ -660,7 +677,8 @@ def write_side_by_side_png(
     factor, unit = _lateral_scale(x_real, y_real)
     zs = _z_scale(arrays, z_units, zr)
     extent = (0.0, x_real * factor, y_real * factor, 0.0)
-    with _png_figure(path, *_image_figure_size(x_real, y_real, len(arrays))) as fig:
+    label = _short_colorbar_label(_colorbar_label(z_label, zs.units), x_real, y_real)
+    with _png_figure(path, *_image_figure_size(x_real, y_real, len(arrays), label)) as fig:
         axes = fig.subplots(1, len(arrays), sharex=True, sharey=True, squeeze=False)[0]
         for ax, arr, panel_title in zip(axes, arrays, titles, strict=True):
             im = _draw_image(ax, arr, extent, colormap, zs)
@@ -668,7 +686,7 @@ def write_side_by_side_png(
             ax.set_xlabel(f"x ({unit})")
         axes[0].set_ylabel(f"y ({unit})")
         fig.suptitle(suptitle)
-        _draw_colorbar(fig, axes[-1], im, _colorbar_label(z_label, zs.units), zs.extend)
+        _draw_colorbar(fig, axes[-1], im, label, zs.extend)
 
 
 # --------------------------------------------------------------------------- line plots
