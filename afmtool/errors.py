@@ -7,7 +7,8 @@ at the I/O boundary with ``raise ... from None`` so the message names the
 user's file, not a library internal.
 """
 
-__all__ = ["AfmtoolError", "InputError", "ConfigError", "SegmentsAtDifferentRates", "SampleShareWarning", "one_line"]
+__all__ = ["AfmtoolError", "InputError", "ConfigError", "SegmentsAtDifferentRates", "SampleShareWarning", "CaptureWarning",
+           "one_line"]
 
 
 class AfmtoolError(Exception):
@@ -66,3 +67,11 @@ class SampleShareWarning(str):
         warning = super().__new__(cls, text)
         warning.share = count / total if total > 0 else 1.0
         return warning
+
+
+class CaptureWarning(UserWarning):
+    """A capture read, but not wholly as its file says (a scaling afmtool cannot apply, a note read in part).
+
+    Raised through :mod:`warnings` by the readers; the CLI records it in the run's report, or
+    prints it once at the end of ``info`` and ``convert``.
+    """

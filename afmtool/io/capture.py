@@ -13,7 +13,9 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Protocol
 
+from afmtool.errors import InputError
 from afmtool.io.metadata import CaptureMetadata
+from afmtool.io.text import clean_label
 
 if TYPE_CHECKING:  # numpy stays out of CLI start-up (afmtool --help)
     import numpy as np
@@ -39,10 +41,21 @@ DEFAULT_CHUNK_SAMPLES = 1 << 20
 
 @dataclass(frozen=True)
 class ChannelSpec:
-    """One channel: its name and physical units (e.g. ``"nm"``, ``"V"``)."""
+    """One channel: its name and physical units (e.g. ``"nm"``, ``"V"``).
+
+    The units are cleaned as the record is made (:func:`afmtool.io.text.clean_label`:
+    decoded, NULs and control characters removed), so that whatever a file held, writers
+    get one printable line.  The name is a reader's key for the channel, so it is not
+    changed here: readers decode it where they read it, and :class:`CaptureInfo` refuses a
+    name that is still not one printable line.
+    """
 
     name: str
     units: str = ""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.units, str) and self.units.isprintable() and self.units == self.units.strip()):
+            object.__setattr__(self, "units", clean_label(self.units))
 
 
 @dataclass(frozen=True)
@@ -85,6 +98,9 @@ class CaptureInfo:
     capture_metadata: CaptureMetadata = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        for spec in self.channels:
+            if not spec.name.isprintable():
+                raise InputError(f"{self.source}: channel name {spec.name!r} is not one printable line (NUL or control characters)")
         object.__setattr__(self, "metadata", MappingProxyType(dict(self.metadata)))
         object.__setattr__(self, "capture_metadata", CaptureMetadata.from_mapping(self.metadata, self.source))
 
