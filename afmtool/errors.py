@@ -7,7 +7,8 @@ at the I/O boundary with ``raise ... from None`` so the message names the
 user's file, not a library internal.
 """
 
-__all__ = ["AfmtoolError", "InputError", "ConfigError", "SegmentsAtDifferentRates", "SampleShareWarning", "CaptureWarning",
+__all__ = ["AfmtoolError", "InputError", "ConfigError", "SelectionNeeded", "SegmentsAtDifferentRates", "SampleShareWarning",
+           "CaptureWarning", "one_line"]
            "one_line"]
 
 
@@ -39,15 +40,31 @@ class ConfigError(AfmtoolError):
     """A parameter, config file or flag value that is not valid."""
 
 
-class SegmentsAtDifferentRates(InputError):
-    """A segmented file whose segments are sampled at different rates: one must be chosen (``--segment``).
+class SelectionNeeded(InputError):
+    """A file that holds several captures which cannot be read as one: one must be chosen.
+
+    ``option`` is the flag that chooses (``--segment``, ``--curve``, ``--group``) and
+    ``choices`` the values it takes, one per capture, so that ``info`` can describe or
+    summarise each one instead; ``listing`` describes the file's captures (JSON-ready).
+    """
+
+    def __init__(self, message: object, option: str, choices: tuple = (), listing: dict | None = None) -> None:
+        super().__init__(message)
+        self.option = option
+        self.choices = tuple(str(c) for c in choices)
+        self.listing = dict(listing or {})
+
+
+class SegmentsAtDifferentRates(SelectionNeeded):
+    """A segmented file whose segments are sampled at different rates, or hold different channels:
+    one must be chosen (``--segment``).
 
     ``segments`` lists them (:class:`afmtool.io.capture.SegmentSpec`), so that ``info`` can
     summarise each one instead.
     """
 
     def __init__(self, message: object, segments: tuple = ()) -> None:
-        super().__init__(message)
+        super().__init__(message, "--segment", tuple(range(len(segments))))
         self.segments = tuple(segments)
 
 

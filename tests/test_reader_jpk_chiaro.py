@@ -40,7 +40,9 @@ def test_force_save_example(shared):
     info = _info(shared / FORCE_SAVE)
     assert info["format"] == "jpk" and info["sample_rate_hz"] == 2000.0 and info["n_samples"] == 8400
     units = {c["name"]: c["units"] for c in info["channels"]}
-    assert units == {"cellhesion-height": "m", "height": "m", "deflection": "m", "capacitiveSensorHeight": "m"}
+    # the capacitive sensor's measured height is the z-piezo (issue 32: the measured height is preferred)
+    assert units == {"cellhesion-height": "m", "height": "m", "deflection": "m", "z_piezo": "m"}
+    assert info["metadata"]["instrument"]["z_piezo_from"] == "capacitiveSensorHeight"
     assert [(s["name"], s["start"], s["n_samples"], s["sample_rate_hz"]) for s in info["segments"]] == [
         ("extend", 0, 6000, 2000.0),
         ("retract", 6000, 2400, 2000.0),
@@ -54,7 +56,7 @@ def test_force_save_example(shared):
 def test_old_format_spot3(shared):
     info = _info(shared / SPOT3)
     assert info["n_samples"] == 4000 and info["sample_rate_hz"] == pytest.approx(2000.0, rel=1e-12)
-    assert [c["name"] for c in info["channels"]] == ["height", "deflection", "strainGaugeHeight"]
+    assert [c["name"] for c in info["channels"]] == ["height", "deflection", "z_piezo"]  # strainGaugeHeight
     assert [(s["name"], s["n_samples"]) for s in info["segments"]] == [("extend", 2000), ("retract", 2000)]
     assert info["metadata"]["cantilever"]["spring_constant_n_per_m"] == pytest.approx(0.0434937, rel=1e-5)
     assert info["metadata"]["cantilever"]["deflection_sensitivity_nm_per_v"] == pytest.approx(70.001, rel=1e-4)
@@ -156,10 +158,12 @@ def test_chiaro_samples_match_a_plain_parse(shared, tmp_path):
     np.testing.assert_array_equal(from_text["Load"], table[:, 1])
 
 
-def test_text_that_is_not_chiaro_is_refused(tmp_path):
+def test_text_that_is_not_a_table_is_refused(tmp_path):
+    """A .txt that is neither a Chiaro export nor a table of numbers: one line, exit 2."""
     (tmp_path / "notes.txt").write_text("hello\nworld\n")
     result = run_cli("info", tmp_path / "notes.txt")
-    assert result.returncode == 2 and "not an Optics11 Chiaro export" in result.stderr.decode()
+    err = result.stderr.decode()
+    assert result.returncode == 2 and err.count("\n") == 1 and "notes.txt" in err and result.stdout == b"", err
 
 
 def test_zip_bomb_member_is_refused(shared, tmp_path):

@@ -35,24 +35,53 @@ def info(
     Statistics are computed by streaming, so any size of capture works.
     Segmented files (force curves) list their segments; --segment NAME|N
     summarises one of them.  A file whose segments have different sample
-    rates is summarised segment by segment (with --json, as a list).
+    rates or channels is summarised segment by segment, and a TDMS file
+    whose groups differ group by group (with --json, as a list).  A JPK
+    force map or QI data file lists its curves and their grid positions;
+    --curve N or --curve X,Y summarises one.
     """
-    from afmtool.errors import SegmentsAtDifferentRates
+    from afmtool.errors import SelectionNeeded
     from afmtool.report.json_report import dumps, to_jsonable
 
     try:
         summaries = [_summarize(capture, source, chunk_samples, quiet)]
-    except SegmentsAtDifferentRates as exc:
-        if source.segment is not None:
+    except SelectionNeeded as exc:
+        field = exc.option.lstrip("-")
+        if getattr(source, field) is not None:
             raise
-        summaries = [_summarize(capture, source._replace(segment=str(i)), chunk_samples, quiet)
-                     for i in range(len(exc.segments))]
+        if exc.option == "--curve":  # a map: the list of its curves, not thousands of summaries
+            _print_listing(capture, exc, json_output)
+            return
+        summaries = [_summarize(capture, source._replace(**{field: choice}), chunk_samples, quiet)
+                     for choice in exc.choices]
     with stdout_pipe():
         if json_output:
             typer.echo(dumps(to_jsonable(summaries[0] if len(summaries) == 1 else summaries)), nl=False)
         else:
             for summary in summaries:
                 _print_summary(summary)
+
+
+def _print_listing(capture: str, exc, json_output: bool) -> None:
+    """The curves of a map (index, grid cell, position), when no --curve chose one."""
+    from afmtool.report.json_report import dumps
+
+    listing = {"source": capture, **exc.listing,
+               "choose": f"{exc.option} N or {exc.option} X,Y"}
+    with stdout_pipe():
+        if json_output:
+            typer.echo(dumps(listing), nl=False)
+            return
+        curves = exc.listing.get("curves", [])
+        shape = exc.listing.get("grid_shape")
+        lines = [f"{capture} ({listing['format']}): {len(curves)} curves"
+                 + (f" on a {shape[0]} x {shape[1]} grid" if shape else "") + f"; choose one with {listing['choose']}",
+                 f"{'curve':>6} {'grid x,y':>9} {'x (m)':>14} {'y (m)':>14}"]
+        for c in curves:
+            cell = ",".join(str(v) for v in c["grid_index"]) if c["grid_index"] else "-"
+            x, y = c["position_m"] or (float("nan"), float("nan"))
+            lines.append(f"{c['curve']:>6} {cell:>9} {x:>14.6g} {y:>14.6g}")
+        sys.stdout.write("\n".join(lines) + "\n")
 
 
 def _summarize(capture: str, source: CaptureSource, chunk_samples: int, quiet: bool):

@@ -30,7 +30,7 @@ PANELS = ("Input", "Model", "Estimator", "Output")
 _INPUT = frozenset({
     "--channel", "--topic", "--sample-rate", "--chunk-samples", "--contact", "--psd", "--iv", "--z-curve",
     "--vr-sweep", "--reep", "--voltage-channel", "--sweep", "--config", "--arg",
-    "--segment", "--units", "--invols", "--z-sensitivity", "--z-channel", "--deflection-channel", "--leg",
+    "--segment", "--curve", "--group", "--units", "--invols", "--z-sensitivity", "--z-channel", "--deflection-channel", "--leg",
 })
 _MODEL = frozenset({
     "--model", "--models", "--free-air", "--thermal-model", "--spring-constant", "--temperature",

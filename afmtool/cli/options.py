@@ -20,6 +20,8 @@ __all__ = [
     "SampleRateOpt",
     "ChunkOpt",
     "SegmentOpt",
+    "CurveOpt",
+    "GroupOpt",
     "StreamOutOpt",
     "StreamOpt",
     "StreamFormatOpt",
@@ -33,8 +35,9 @@ __all__ = [
 CaptureArg = Annotated[
     str,
     typer.Argument(
-        help="Capture file (.h5, .csv, .bag, ROS2 bag folder, .ibw, .jpk-force, .jpk-qi-series, .tdms, .wav, "
-        "LabOne .h5/.csv, Chiaro .txt/.zip), or - for CSV on stdin."
+        help="Capture file (.h5, .csv, .txt, .bag, ROS2 bag folder, .ibw, .jpk-force, .jpk-qi-series, .jpk-force-map, "
+        ".jpk-qi-data, .tdms, .wav, .mat, .npz, .npy, LabOne .h5/.csv, Chiaro .txt/.zip, AFM Workshop .csv, NT-MDT .txt), "
+        "or - for CSV on stdin."
     ),
 ]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output folder; created if missing.")]
@@ -71,6 +74,17 @@ StdinTimeoutOpt = Annotated[
     Optional[float],
     typer.Option("--stdin-timeout", metavar="S", help="With - (CSV on stdin): end the run (exit 2) when stdin gives "
                  "no complete chunk for S s; it says 'waiting for input on stdin' after 5 s either way."),
+]
+CurveOpt = Annotated[
+    Optional[str],
+    typer.Option("--curve", metavar="N|X,Y",
+                 help="Read one curve of a JPK force map or QI data file: its index N, or its grid cell X,Y "
+                 "('afmtool info' lists them)."),
+]
+GroupOpt = Annotated[
+    Optional[str],
+    typer.Option("--group", metavar="NAME",
+                 help="Read one group of a TDMS file: its name or number from 0 ('afmtool info' lists them)."),
 ]
 ChunkOpt = Annotated[
     int, typer.Option("--chunk-samples", help="Samples per streamed chunk (memory vs overhead).", min=1)

@@ -95,6 +95,9 @@ class CaptureInfo:
     truth_names: tuple[str, ...] = ()
     #: The file's segments (empty for an unsegmented capture); see ``--segment``.
     segments: tuple[SegmentSpec, ...] = ()
+    #: False when the file gives no units for channels it cannot be assumed to hold in afmtool's
+    #: (a text export without a header, or a vendor export whose columns carry none): ``--units`` must.
+    units_declared: bool = True
     capture_metadata: CaptureMetadata = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:

@@ -49,6 +49,7 @@ import numpy as np
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 from afmtool.io.metadata import parse_metadata_json
+from afmtool.io.preamble import preamble_metadata
 from afmtool.io.unit_names import unit_symbol
 
 __all__ = ["CsvReader", "CsvWriter", "STDIO", "MAX_LINE_CHARS", "MAX_COLUMNS", "split_unit"]
@@ -104,7 +105,22 @@ def _delimiter(header_line: str) -> str:
     return ","
 
 
-def _is_number(text: str) -> bool:
+def _data_delimiter(line: str) -> str:
+    """The delimiter of a row of numbers: tab or semicolon when present (their numbers may use decimal commas)."""
+    for candidate in ("\t", ";"):
+        if candidate in line:
+            return candidate
+    return ","
+
+
+def _fields(line: str, delimiter: str) -> list[str]:
+    return [c.strip().strip('"').strip() for c in line.split(delimiter)]
+
+
+def _is_number(text: str, delimiter: str = ",") -> bool:
+    """Whether ``text`` is a number (with a decimal comma where the delimiter is not a comma)."""
+    if delimiter != ",":
+        text = text.replace(",", ".")
     try:
         float(text)
     except ValueError:
@@ -112,12 +128,39 @@ def _is_number(text: str) -> bool:
     return True
 
 
+def _is_data_row(line: str, delimiter: str) -> bool:
+    return all(_is_number(field, delimiter) for field in _fields(line, delimiter))
+
+
 def _parse_comment(line: str, header: dict) -> None:
+    """``# key: value``, ``# key = value`` or ``# key value`` (the value is the last word)."""
     body = line.lstrip("#").strip()
-    if not body or ":" not in body:
-        return
-    key, value = (part.strip() for part in body.split(":", 1))
-    header[key] = value
+    pair = _preamble_pair(body, words=True, max_chars=None)  # a metadata JSON is as long as its line
+    if pair is not None:
+        header[pair[0]] = pair[1]
+
+
+#: Most preamble keys kept from a text export.
+MAX_PREAMBLE_KEYS = 1000
+#: Longest preamble value kept, characters.
+_MAX_VALUE_CHARS = 1000
+
+
+def _preamble_pair(line: str, *, words: bool = False, max_chars: int | None = _MAX_VALUE_CHARS) -> tuple[str, str] | None:
+    """A preamble line as ``(key, value)``: ``key: value``, ``key = value``, ``key<TAB>value`` (the first separator
+    in the line); else None.  With ``words``, also ``key value`` (a comment's key and its last word).
+    """
+    at = [(line.find(sep), sep) for sep in (":", "=", "\t") if line.find(sep) > 0]
+    if at:
+        _, separator = min(at)
+        key, _, value = line.partition(separator)
+        if key.strip():
+            return key.strip(), value.strip()[:max_chars]
+    if words:
+        key, _, value = line.rpartition(" ")
+        if key.strip() and value:
+            return key.strip(), value[:max_chars]
+    return None
 
 
 class CsvReader(ReaderBase):
@@ -138,6 +181,9 @@ class CsvReader(ReaderBase):
                 raise InputError(f"{path}: cannot open ({exc.strerror})") from None
         self._line_no = 0
         self._pushed_back: str | None = None
+        self._preamble: dict[str, str] = {}
+        self._headerless = False
+        self._decimal_comma = False
         try:
             self._columns, comments = self._read_header()
             self._rows_per_read = max(1, _BLOCK_VALUES // len(self._columns))
@@ -167,7 +213,15 @@ class CsvReader(ReaderBase):
         return line
 
     def _read_header(self) -> tuple[list[str], dict]:
+        """Comments, a preamble, the header (and a row of unit names), up to the first row of numbers.
+
+        The header is the last line before the first data row that splits into as many fields;
+        the lines before it are the preamble (``key: value``, ``key = value``, ``key<TAB>value``).
+        A file whose first non-comment line is numbers has no header: its columns are
+        ``column1``, ``column2``... and their units unknown.
+        """
         comments: dict[str, str] = {}
+        recent: list[str] = []  # the last lines that were neither blank, comments nor numbers
         for _ in range(MAX_PREAMBLE_LINES):
             line = self._next_line()
             if line is None:
@@ -178,14 +232,54 @@ class CsvReader(ReaderBase):
             if stripped.startswith("#"):
                 _parse_comment(stripped, comments)
                 continue
-            return self._parse_header_row(stripped, comments), comments
+            delimiter = _data_delimiter(stripped)
+            if _is_data_row(stripped, delimiter):
+                self._pushed_back, self._line_no = line, self._line_no - 1
+                return self._header_before(recent, stripped, delimiter, comments), comments
+            if len(recent) == 2:
+                self._remember_preamble(recent.pop(0))
+            recent.append(stripped)
         else:
-            raise InputError(f"{self._name}: no header row in the first {MAX_PREAMBLE_LINES} lines")
+            raise InputError(f"{self._name}: no data row in the first {MAX_PREAMBLE_LINES} lines")
+        if recent:  # a header and no rows
+            for line in recent[:-1]:
+                self._remember_preamble(line)
+            return self._parse_header_row(recent[-1], comments), comments
         raise InputError(f"{self._name}: empty file (no header row)")
 
+    def _header_before(self, recent: list[str], data_row: str, delimiter: str, comments: dict) -> list[str]:
+        """The columns named by the header line(s) just before the first data row (see :meth:`_read_header`)."""
+        width = len(data_row.split(delimiter))
+        split = [_fields(line, delimiter) for line in recent]
+        if split and len(split[-1]) == width:
+            units_row = None
+            if len(split) == 2 and len(split[0]) == width and not any(_is_number(f, delimiter) for f in split[1] if f):
+                units_row = split.pop()  # a row of unit names under the header (scope CSVs)
+                recent = recent[:1]
+            for line in recent[:-1]:
+                self._remember_preamble(line)
+            return self._set_columns(split[-1], delimiter, comments, units_row)
+        for line in recent:
+            self._remember_preamble(line)
+        self._headerless = True
+        return self._set_columns([f"column{i + 1}" for i in range(width)], delimiter, comments, None)
+
+    def _remember_preamble(self, line: str) -> None:
+        """Keep a preamble line's ``key: value`` (or ``key = value``, ``key<TAB>value``), bounded."""
+        if len(self._preamble) < MAX_PREAMBLE_KEYS:
+            parsed = _preamble_pair(line)
+            if parsed is not None:
+                self._preamble.setdefault(parsed[0], parsed[1])
+
     def _parse_header_row(self, stripped: str, comments: dict) -> list[str]:
-        self._delimiter = _delimiter(stripped)
-        fields = [c.strip().strip('"').strip() for c in stripped.split(self._delimiter)]
+        """A header line on its own (its delimiter from itself), and a row of unit names under it, if any."""
+        columns = self._set_columns(_fields(stripped, _delimiter(stripped)), _delimiter(stripped), comments, None)
+        self._read_units_row(columns)
+        return columns
+
+    def _set_columns(self, fields: list[str], delimiter: str, comments: dict, units_row: list[str] | None) -> list[str]:
+        self._delimiter = delimiter
+        self._decimal_comma = delimiter != ","
         if len(fields) > MAX_COLUMNS:
             raise InputError(f"{self._name}: line {self._line_no}: {len(fields)} columns; at most {MAX_COLUMNS}")
         named = [split_unit(f) for f in fields]
@@ -193,7 +287,8 @@ class CsvReader(ReaderBase):
         if any(not c for c in columns) or len(set(columns)) != len(columns):
             raise InputError(f"{self._name}: line {self._line_no}: header needs distinct non-empty names")
         self._header_units = {name: unit for name, unit in named}
-        self._read_units_row(columns)
+        for name, unit in zip(columns, units_row or ()):
+            self._header_units[name] = self._header_units[name] or unit
         self._time = next((c for c in columns if c.lower() in TIME_NAMES), None)
         self._t_scale, self._t_relative = 1.0, _T_RELATIVE_DIGITS
         if self._time is not None:
@@ -211,9 +306,9 @@ class CsvReader(ReaderBase):
         line = self._next_line()
         if line is None:
             return
-        fields = [f.strip().strip('"').strip() for f in line.strip().split(self._delimiter)]
+        fields = _fields(line.strip(), self._delimiter)
         if line.strip() and not line.lstrip().startswith("#") and len(fields) == len(columns):
-            if not any(_is_number(f) for f in fields if f):
+            if not any(_is_number(f, self._delimiter) for f in fields if f):
                 for name, unit in zip(columns, fields):
                     self._header_units[name] = self._header_units[name] or unit
                 return
@@ -224,10 +319,16 @@ class CsvReader(ReaderBase):
         """Read a first block so the sample rate can come from the time column."""
         return self._read_rows(min(4096, self._rows_per_read))
 
+    #: The format name this reader reports.
+    format_name = "csv"
+
     def _make_info(self, comments: dict, sample_rate_hz: float | None) -> CaptureInfo:
         metadata = {}
+        if self._preamble:
+            mapped = preamble_metadata(self._preamble, "text export")
+            metadata, sample_rate_hz = mapped.metadata, sample_rate_hz or mapped.sample_rate_hz
         if "metadata" in comments:
-            metadata = parse_metadata_json(comments["metadata"], self._name)
+            metadata = {**metadata, **parse_metadata_json(comments["metadata"], self._name)}
         if sample_rate_hz is None and "sample_rate_hz" in comments:
             try:
                 sample_rate_hz = float(comments["sample_rate_hz"])
@@ -242,7 +343,7 @@ class CsvReader(ReaderBase):
                 # digits undo that and move the rate by < 1e-12, far inside the uniformity check.
                 sample_rate_hz = float(f"{sample_rate_hz:.12g}")
         if sample_rate_hz is None:
-            raise InputError(f"{self._name}: no sample rate; add '# sample_rate_hz: ...', a t column, or --sample-rate")
+            raise InputError(f"{self._name}: no sample rate; add '# sample_rate_hz: ...', a t column, or give --sample-rate")
         if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
             raise InputError(f"{self._name}: sample rate {sample_rate_hz!r} must be a positive number")
         self._t0 = 0.0
@@ -253,7 +354,10 @@ class CsvReader(ReaderBase):
             for name in self._columns
             if name != self._time
         )
-        return CaptureInfo(self._name, "csv", float(sample_rate_hz), channels, None, metadata)
+        # a vendor export's columns without units are in the vendor's units, not afmtool's: --units must say
+        declared = not self._headerless and not (self._preamble and any(not c.units for c in channels))
+        return CaptureInfo(self._name, self.format_name, float(sample_rate_hz), channels, None, metadata,
+                           units_declared=declared)
 
     def _read_rows(self, n_rows: int) -> np.ndarray:
         parts = []
@@ -276,9 +380,16 @@ class CsvReader(ReaderBase):
             if line is None:
                 break
             if line.strip() and not line.lstrip().startswith("#"):
+                if not line.endswith("\n"):
+                    raise InputError(
+                        f"{self._name}: line {self._line_no} ends without a line end, as a file cut short does (its last "
+                        "value may have lost digits); end the file with a newline if it is complete"
+                    )
                 lines.append(line)
         if not lines:
             return None
+        if self._decimal_comma:
+            lines = [line.replace(",", ".") for line in lines]
         try:
             rows = np.loadtxt(lines, delimiter=self._delimiter, dtype=np.float64, ndmin=2)
         except ValueError as exc:

@@ -411,8 +411,8 @@ class LaboneCsvReader(CsvReader):
         self._labone_path = Path(path)
         super().__init__(path, sample_rate_hz)
 
-    def _parse_header_row(self, stripped: str, comments: dict) -> list[str]:
-        columns = super()._parse_header_row(stripped, comments)
+    def _set_columns(self, fields: list[str], delimiter: str, comments: dict, units_row: list[str] | None) -> list[str]:
+        columns = super()._set_columns(fields, delimiter, comments, units_row)
         if "timestamp" not in columns:
             raise InputError(f"{self._name}: a LabOne CSV needs a timestamp column")
         self._time = "timestamp"

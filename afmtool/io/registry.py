@@ -1,7 +1,9 @@
 """Open any capture by its path; create a writer for any output format.
 
-Readers are chosen by suffix (a ROS2 bag is a directory holding
-``metadata.yaml``); writers by an explicit format name or the output suffix.
+Readers are chosen from one table, :data:`READERS`, by suffix (and by content
+where formats share a suffix: LabOne and AFM Workshop ``.csv``, Chiaro and
+NT-MDT ``.txt``; a ROS2 bag is a directory holding ``metadata.yaml``); writers by
+an explicit format name or the output suffix.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, NamedTuple, TextIO
 
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureReader, CaptureWriter, ChannelSpec
@@ -19,45 +21,82 @@ from afmtool.io.capture import CaptureReader, CaptureWriter, ChannelSpec
 if TYPE_CHECKING:
     from afmtool.io.stack import CaptureOptions
 
-__all__ = ["FORMATS", "check_writable_rate", "companion_files", "open_capture", "create_writer", "format_for_path", "input_format"]
+__all__ = ["FORMATS", "READERS", "SELECTIONS", "ReaderEntry", "Selection", "check_writable_rate", "companion_files",
+           "open_capture", "create_writer", "format_for_path", "input_format", "reader_entry"]
 
 #: Output format names accepted by ``--format`` and ``convert``.
 FORMATS = ("hdf5", "csv", "ros1", "ros2-mcap", "ros2-sqlite3")
 
-_SUFFIX_FORMATS = {
-    ".h5": "hdf5",
-    ".hdf5": "hdf5",
-    ".hdf": "hdf5",
-    ".csv": "csv",
-    ".bag": "ros1",
-    ".mcap": "ros2-mcap",
-    ".db3": "ros2-sqlite3",
-    ".ibw": "ibw",
-    ".tdms": "tdms",
-    ".wav": "wav",
-    ".jpk-force": "jpk",
-    ".jpk-qi-series": "jpk",
-    ".txt": "chiaro",
-    ".zip": "chiaro",
-}
+#: What a reader may be asked for beyond its path and ``--sample-rate``, as keyword arguments.
+SELECTIONS = ("segment", "curve", "group")
 
-#: Input-only formats: their readers, as (module, class) under afmtool.io.
-_READERS = {
-    "ibw": ("ibw", "IbwReader"),
-    "jpk": ("jpk", "JpkReader"),
-    "chiaro": ("chiaro", "ChiaroReader"),
-    "tdms": ("tdms", "TdmsReader"),
-    "wav": ("wav", "WavReader"),
-    "labone-csv": ("labone", "LaboneCsvReader"),
-    "labone-hdf5": ("labone", "LaboneHdf5Reader"),
-}
 
-#: Formats whose readers select a segment themselves (segments at different rates).
-_NATIVE_SEGMENTS = ("jpk", "labone-hdf5")
+class Selection(NamedTuple):
+    """Which part of a file to read: ``--segment`` (name or number), ``--curve`` (``N`` or ``X,Y``), ``--group``."""
+
+    segment: str | None = None
+    curve: str | None = None
+    group: str | None = None
+
+
+class ReaderEntry(NamedTuple):
+    """One input format: the suffixes that name it, the reader class, and what that reader takes itself.
+
+    ``takes`` lists the keyword arguments the class accepts: ``channel_map`` (the
+    format maps ``--channel NAME=SOURCE`` onto its own datasets or variables, instead
+    of a rename), ``topic_map`` (bags), and the selections it makes natively
+    (``segment``, ``curve``, ``group``).  ``--segment`` on a reader that does not take it is
+    applied from the segments it reports; ``--curve`` and ``--group`` are refused.
+    """
+
+    format: str
+    suffixes: tuple[str, ...]
+    module: str
+    reader: str
+    takes: frozenset[str] = frozenset()
+    description: str = ""
+
+
+#: Every input format, in the order ``--help`` and error messages list them.  Adding a format is adding a row
+#: (and, if its suffix is shared, a sniff in :func:`_sniff`).
+READERS: tuple[ReaderEntry, ...] = (
+    ReaderEntry("hdf5", (".h5", ".hdf5", ".hdf"), "hdf5", "Hdf5Reader", frozenset({"channel_map"}), "afmtool HDF5"),
+    ReaderEntry("csv", (".csv",), "csv", "CsvReader", frozenset(), "CSV or a text export"),
+    ReaderEntry("ros1", (".bag",), "rosbag", "RosbagReader", frozenset({"topic_map"}), "ROS1 bag"),
+    ReaderEntry("ros2", (".mcap", ".db3"), "rosbag", "RosbagReader", frozenset({"topic_map"}), "ROS2 bag folder"),
+    ReaderEntry("ibw", (".ibw",), "ibw", "IbwReader", frozenset(), "Igor binary wave"),
+    ReaderEntry("jpk", (".jpk-force", ".jpk-qi-series", ".jpk-force-map", ".jpk-qi-data"), "jpk", "JpkReader",
+                frozenset({"segment", "curve"}), "JPK force curve, map or QI data"),
+    ReaderEntry("tdms", (".tdms",), "tdms", "TdmsReader", frozenset({"group"}), "NI TDMS"),
+    ReaderEntry("wav", (".wav",), "wav", "WavReader", frozenset(), "WAV"),
+    ReaderEntry("mat", (".mat",), "matlab", "MatReader", frozenset({"channel_map"}), "MATLAB v5 or v7.3"),
+    ReaderEntry("npz", (".npz",), "numpy_files", "NpzReader", frozenset({"channel_map"}), "NumPy .npz"),
+    ReaderEntry("npy", (".npy",), "numpy_files", "NpyReader", frozenset({"channel_map"}), "NumPy .npy"),
+    ReaderEntry("text", (".txt",), "text_exports", "TextExportReader", frozenset(), "text export"),
+    ReaderEntry("chiaro", (".zip",), "chiaro", "ChiaroReader", frozenset(), "Optics11 Chiaro export"),
+    # recognised by content (see _sniff, input_format), never by suffix alone
+    ReaderEntry("zarr", (), "zarr_capture", "ZarrReader", frozenset(), "Zarr store"),
+    ReaderEntry("labone-csv", (), "labone", "LaboneCsvReader", frozenset(), "Zurich Instruments LabOne CSV"),
+    ReaderEntry("labone-hdf5", (), "labone", "LaboneHdf5Reader", frozenset({"segment"}), "Zurich Instruments LabOne HDF5"),
+    ReaderEntry("afm-workshop", (), "text_exports", "AfmWorkshopReader", frozenset(), "AFM Workshop CSV"),
+    ReaderEntry("ntmdt", (), "text_exports", "NtmdtReader", frozenset(), "NT-MDT Nova text export"),
+)
+_BY_FORMAT = {entry.format: entry for entry in READERS}
+_BY_SUFFIX = {suffix: entry.format for entry in READERS for suffix in entry.suffixes}
+#: Suffixes of several dots, matched before Path.suffix.
+_LONG_SUFFIXES = tuple(sorted((s for s in _BY_SUFFIX if s.count(".") > 1 or "-" in s), key=len, reverse=True))
+#: Output suffixes and the format they imply.
+_OUTPUT_SUFFIXES = {".h5": "hdf5", ".hdf5": "hdf5", ".hdf": "hdf5", ".csv": "csv", ".bag": "ros1",
+                    ".mcap": "ros2-mcap", ".db3": "ros2-sqlite3"}
+
+
+def reader_entry(fmt: str) -> ReaderEntry:
+    """The :class:`ReaderEntry` of an input format name (as :func:`input_format` returns it)."""
+    return _BY_FORMAT[fmt]
 
 
 def input_format(path: Path | str) -> str:
-    """The format of an existing input: by suffix, or a ROS2 bag directory."""
+    """The format of an existing input: by suffix (and content, where a suffix is shared), or a ROS2 bag directory."""
     if str(path) == "-":
         return "csv"
     from afmtool.io.zarr_capture import is_zarr_store
@@ -71,22 +110,31 @@ def input_format(path: Path | str) -> str:
         if (path / "metadata.yaml").is_file():
             return "ros2"
         raise InputError(f"{path}: a directory that is not a ROS2 bag (no metadata.yaml)")
-    fmt = _SUFFIX_FORMATS.get(_suffix(path))
+    fmt = _BY_SUFFIX.get(_suffix(path))
     if fmt is None:
-        known = ", ".join(sorted(_SUFFIX_FORMATS))
+        known = ", ".join(sorted(_BY_SUFFIX))
         raise InputError(f"{path}: unknown extension {path.suffix or '(none)'!r}; expected one of {known}")
     if path.stat().st_size == 0:
         raise InputError(f"{path}: empty file")
+    return _sniff(path, fmt)
+
+
+def _sniff(path: Path, fmt: str) -> str:
+    """The format of a file whose suffix several formats share, from its first bytes."""
     if fmt in ("hdf5", "csv"):
         from afmtool.io.labone import sniff_labone
 
         fmt = sniff_labone(path, fmt)
-    return "ros2" if fmt.startswith("ros2") else fmt
+    if fmt in ("csv", "text"):
+        from afmtool.io.text_exports import sniff_text_export
+
+        fmt = sniff_text_export(path, fmt)
+    return fmt
 
 
 def _suffix(path: Path) -> str:
     name = path.name.lower()
-    for suffix in (".jpk-qi-series", ".jpk-force"):
+    for suffix in _LONG_SUFFIXES:
         if name.endswith(suffix):
             return suffix
     return path.suffix.lower()
@@ -96,7 +144,7 @@ def format_for_path(path: Path | str) -> str:
     """The output format implied by an output path's suffix."""
     if str(path) == "-":
         return "csv"
-    fmt = _SUFFIX_FORMATS.get(Path(path).suffix.lower())
+    fmt = _OUTPUT_SUFFIXES.get(Path(path).suffix.lower())
     if fmt is None:
         raise InputError(f"{path}: cannot tell the output format from the extension; give --format")
     return fmt
@@ -110,42 +158,49 @@ def open_capture(
     topic_map: Mapping[str, str] | None = None,
     sample_rate_hz: float | None = None,
     segment: str | None = None,
+    curve: str | None = None,
+    group: str | None = None,
 ) -> CaptureReader:
     """Open a capture for streaming; use as a context manager or call ``close``.
 
-    ``channel_map`` names HDF5 datasets (``{"deflection": "/s"}``) for HDF5,
-    and renames channels (``{"deflection": "CH2"}``) for every other format
-    but bags.  ``segment`` (a name or a number from 0) reads one segment of
-    a segmented file.
+    ``channel_map`` names HDF5 datasets (``{"deflection": "/s"}``), MATLAB or
+    NumPy variables (``{"deflection": "defl"}``, ``"data:1"`` for a column), and
+    renames channels (``{"deflection": "CH2"}``) for every other format but
+    bags.  ``segment`` (a name or a number from 0) reads one segment of a
+    segmented file; ``curve`` (``N`` or ``X,Y``) one curve of a JPK force map or
+    QI data file; ``group`` (a name or number) one group of a TDMS file.
 
     With ``options`` (:class:`afmtool.io.stack.CaptureOptions`) the whole reader stack is
     applied (:func:`afmtool.io.stack.open_capture`: units, calibration, a synthesised drive,
     the sample hash), and the keywords must not be given; without, the file as recorded.
     """
     if options is not None:
-        if channel_map or topic_map or sample_rate_hz is not None or segment is not None:
+        given = (channel_map, topic_map, sample_rate_hz, segment, curve, group)
+        if any(value is not None and value != {} for value in given):
             raise TypeError("give the format's keywords inside CaptureOptions, not beside it")
         from afmtool.io.stack import open_capture as open_stack
 
         return open_stack(path, options)
     fmt = input_format(path)
+    entry = _BY_FORMAT[fmt]
     from afmtool.report.input_guard import register_input
 
     register_input(path)  # so that no output of this run can overwrite it
     for companion in companion_files(path, fmt):
         register_input(companion)  # nor any other file of a multi-file input
-    native_segment = segment if fmt in _NATIVE_SEGMENTS else None
+    options = {"channel_map": channel_map, "topic_map": topic_map, "segment": segment, "curve": curve, "group": group}
+    _check_options(path, entry, options)
+    native = {key: value for key, value in options.items() if value and key in entry.takes}
     watch = _stdin_watch() if str(path) == "-" else None
     if watch is not None:
         from afmtool.io.csv import CsvReader, _text_stream
 
-        if topic_map:
-            raise InputError(f"{path}: --topic maps bag topics; CSV columns are channels")
         reader = CsvReader(path, sample_rate_hz, stream=_text_stream(io.BufferedReader(watch, buffer_size=1 << 16)))
     else:
-        reader = _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, native_segment)
+        reader = _open_entry(path, entry, sample_rate_hz, native)
     try:
-        reader = _views(reader, fmt, channel_map, segment if native_segment is None else None)
+        rename = channel_map if "channel_map" not in entry.takes else None
+        reader = _views(reader, rename, segment if "segment" not in entry.takes else None)
     except BaseException:
         reader.close()
         raise
@@ -198,7 +253,29 @@ def companion_files(path: Path | str, fmt: str) -> list[Path]:
     return [p for p in found if p != path and os.path.lexists(p)]
 
 
-def _views(reader: CaptureReader, fmt: str, channel_map: Mapping[str, str] | None, segment: str | None):
+def _check_options(path, entry: ReaderEntry, options: Mapping) -> None:
+    """Refuse an option the format has no meaning for, naming what it is for."""
+    if options["topic_map"] and "topic_map" not in entry.takes:
+        hint = {"hdf5": "; use --channel NAME=/dataset for HDF5", "csv": "; CSV columns are channels",
+                "zarr": "; use --channel NAME=ARRAY for Zarr"}.get(entry.format, "")
+        raise InputError(f"{path}: --topic maps bag topics{hint or '; use --channel NAME=CHANNEL'}")
+    if options["channel_map"] and "topic_map" in entry.takes:
+        raise InputError(f"{path}: --channel maps HDF5 datasets and renames channels; use --topic for bags")
+    for key, what in (("curve", "a curve of a JPK force map or QI data file"), ("group", "a group of a TDMS file")):
+        if options[key] is not None and key not in entry.takes:
+            raise InputError(f"{path}: --{key} selects {what}; this is a {entry.description or entry.format} file")
+
+
+def _open_entry(path, entry: ReaderEntry, sample_rate_hz: float | None, native: Mapping) -> CaptureReader:
+    import importlib
+
+    reader_class = getattr(importlib.import_module(f"afmtool.io.{entry.module}"), entry.reader)
+    if entry.format == "zarr":  # a folder or an fsspec URL, not a local Path
+        return reader_class(str(path), sample_rate_hz)
+    return reader_class(path if str(path) == "-" else Path(path), sample_rate_hz=sample_rate_hz, **native)
+
+
+def _views(reader: CaptureReader, channel_map: Mapping[str, str] | None, segment: str | None):
     import dataclasses
 
     from afmtool.io.views import SEGMENTS_KEY, RenamedView, SegmentView, segments_from_metadata, select_segment
@@ -209,47 +286,9 @@ def _views(reader: CaptureReader, fmt: str, channel_map: Mapping[str, str] | Non
         reader.info = dataclasses.replace(info, segments=segments)
     if segment is not None:
         reader = SegmentView(reader, select_segment(reader.info.segments, segment, info.source))
-    if channel_map and fmt != "hdf5":
+    if channel_map:
         reader = RenamedView(reader, channel_map)
     return reader
-
-
-def _open_format(path, fmt, channel_map, topic_map, sample_rate_hz, segment) -> CaptureReader:
-    if fmt == "zarr":
-        from afmtool.io.zarr_capture import ZarrReader
-
-        if topic_map:
-            raise InputError(f"{path}: --topic maps bag topics; use --channel NAME=ARRAY for Zarr")
-        return ZarrReader(str(path), sample_rate_hz)
-    if fmt in _READERS:
-        import importlib
-
-        if topic_map:
-            raise InputError(f"{path}: --topic maps bag topics; use --channel NAME=CHANNEL")
-        module, name = _READERS[fmt]
-        reader_class = getattr(importlib.import_module(f"afmtool.io.{module}"), name)
-        if segment is not None:
-            return reader_class(Path(path), sample_rate_hz, segment=segment)
-        return reader_class(Path(path), sample_rate_hz)
-    if fmt == "hdf5":
-        from afmtool.io.hdf5 import Hdf5Reader
-
-        if topic_map:
-            raise InputError(f"{path}: --topic maps bag topics; use --channel NAME=/dataset for HDF5")
-
-        return Hdf5Reader(Path(path), channel_map, sample_rate_hz)
-    if fmt == "csv":
-        from afmtool.io.csv import CsvReader
-
-        if topic_map:
-            raise InputError(f"{path}: --topic maps bag topics; CSV columns are channels")
-
-        return CsvReader(path, sample_rate_hz)
-    if channel_map:
-        raise InputError(f"{path}: --channel maps HDF5 datasets and renames channels; use --topic for bags")
-    from afmtool.io.rosbag import RosbagReader
-
-    return RosbagReader(Path(path), topic_map, sample_rate_hz)
 
 
 def check_writable_rate(sample_rate_hz: float, target: Path | str) -> None:

@@ -199,6 +199,23 @@ def _check_unit_names(info: CaptureInfo, calibration: Calibration) -> None:
             raise InputError(f"{info.source}: --units names no channel {name!r} (has: {have})")
 
 
+def _check_units_given(info: CaptureInfo, calibration: Calibration, convert: bool) -> None:
+    """A capture whose file gives no units (a headerless text export) needs ``--units``.
+
+    Refused when no channel has units from either source; for an analysis (``convert``), also when a
+    canonical channel, which it reads in afmtool's units, has none.
+    """
+    if info.units_declared:
+        return
+    missing = [c.name for c in info.channels if not c.units and c.name not in calibration.units]
+    if len(missing) == len(info.channels) or (convert and any(name in CHANNEL_KINDS for name in missing)):
+        names = [n for n in missing if n in CHANNEL_KINDS] if len(missing) < len(info.channels) else missing
+        raise InputError(
+            f"{info.source}: columns {', '.join(names[:8])} have no units in the file; give them with "
+            f"--units {names[0]}=UNIT (e.g. nm, V)"
+        )
+
+
 def plan_conversions(info: CaptureInfo, calibration: Calibration) -> dict[str, ChannelConversion]:
     """Each channel's conversion to its internal unit.
 
@@ -242,6 +259,7 @@ class UnitsReader(ReaderBase):
         self.calibration = calibration
         source_info = reader.info
         _check_unit_names(source_info, calibration)
+        _check_units_given(source_info, calibration, convert)
         overridden = tuple(ChannelSpec(c.name, calibration.units.get(c.name, c.units)) for c in source_info.channels)
         source_info = replace(source_info, channels=overridden)
         if convert:
