@@ -29,7 +29,7 @@ from afmtool.errors import InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 from afmtool.io.metadata import parse_metadata_json
 
-__all__ = ["Hdf5Reader", "Hdf5Writer", "dataset_name", "max_samples_override"]
+__all__ = ["Hdf5Reader", "Hdf5Writer", "dataset_name", "max_samples_override", "unit_attribute", "UNIT_ATTRIBUTES"]
 
 _WRITE_CHUNK = 1 << 16
 
@@ -335,9 +335,7 @@ class Hdf5Reader(ReaderBase):
         metadata = {}
         if "metadata" in attrs:
             metadata = parse_metadata_json(_text_attr(path, "metadata", attrs["metadata"]), str(path))
-        channels = tuple(
-            ChannelSpec(name, _units_attr(path, name, d.attrs.get("units", ""))) for name, d in self._datasets.items()
-        )
+        channels = tuple(ChannelSpec(name, unit_attribute(path, name, d.attrs)) for name, d in self._datasets.items())
         n_samples = len(next(iter(self._datasets.values())))
         truth_names = tuple(self._truth)
         return CaptureInfo(str(path), "hdf5", float(sample_rate_hz), channels, n_samples, metadata, truth_names)
@@ -487,9 +485,25 @@ def _text_attr(path: Path, name: str, value) -> str:
 
 def _units_attr(path: Path, channel: str, value) -> str:
     units = _text_attr(path, f"units of {channel}", value)
-    if not units.isprintable() or len(units) > 64:
-        raise InputError(f"{path}: units of {channel} {units[:64]!r} must be one short printable line")
-    return units
+    if len(units) > 64:
+        raise InputError(f"{path}: units of {channel} {units[:64]!r} must be one short line")
+    return units  # decoded and cleaned (NULs, control characters) where its ChannelSpec is made
+
+
+#: Attribute names that hold a dataset's units, in the order they are looked for: afmtool's own, then
+#: what NetCDF (CF conventions), afmformats' HDF5 export and other writers use.
+UNIT_ATTRIBUTES = ("units", "unit", "Unit", "Units", "UNITS", "UNIT")
+
+
+def unit_attribute(path: Path, name: str, attrs) -> str:
+    """A dataset's units from its attributes, under any of :data:`UNIT_ATTRIBUTES` (or that name in any case)."""
+    for key in UNIT_ATTRIBUTES:
+        if key in attrs:
+            return _units_attr(path, name, attrs[key])
+    for key in attrs:
+        if str(key).lower() in ("units", "unit"):
+            return _units_attr(path, name, attrs[key])
+    return ""
 
 
 def _decode_attr(value) -> str:
