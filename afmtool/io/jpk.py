@@ -98,6 +98,8 @@ MAX_RESOLVED_PROPERTIES = 1 << 21
 MAX_INDIRECTION_DEPTH = 8
 #: Largest ratio of a member's size to its compressed size (deflate itself stops near 1032).
 _MAX_COMPRESSION = 1100
+#: Relative spread of segment rates that are one clock's (num-points / duration, rounded in the header).
+_RATE_TOLERANCE = 1e-9
 #: Where the deflection's chain stops (see the module docstring).
 _DEFLECTION_TARGET = "distance"
 #: The channels that may be the z-piezo, most preferred first (see the module docstring).
@@ -368,7 +370,9 @@ class JpkReader(ReaderBase):
         self._prefix = "" if chosen_curve is None else f"index/{chosen_curve.index}/"
         numbers = layout[None if chosen_curve is None else chosen_curve.index]
         self._segments = self._read_segments(numbers, sample_rate_hz)
-        uniform_rate = len({s.sample_rate_hz for s in self._segments}) == 1
+        # durations are written as n / rate in decimal, so one clock's rates differ in their last digits
+        rates = [s.sample_rate_hz for s in self._segments]
+        uniform_rate = max(rates) - min(rates) <= _RATE_TOLERANCE * max(rates)
         same_channels = len({tuple(s.channels) for s in self._segments}) == 1
         starts = np.cumsum([0] + [s.n_samples for s in self._segments])[:-1]
         together = uniform_rate and same_channels

@@ -27,6 +27,9 @@ from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 
 __all__ = ["WavReader"]
 
+#: Most RIFF chunks walked before reading (a WAV has three or four).
+MAX_CHUNKS = 10_000
+
 # What scipy.io.wavfile raises on a damaged or truncated file.
 _WAV_ERRORS = (
     ValueError, EOFError, KeyError, IndexError, TypeError, ArithmeticError, MemoryError, struct.error,
@@ -70,6 +73,7 @@ class WavReader(ReaderBase):
     def _load(self) -> tuple[int, np.ndarray]:
         from scipy.io import wavfile
 
+        self._check_chunks()
         try:
             with warnings.catch_warnings():
                 # scipy warns, and reads on, when the file ends before its header's data size
@@ -88,6 +92,37 @@ class WavReader(ReaderBase):
             raise InputError(f"{self._path}: truncated or damaged WAV file ({_first_line(exc)})") from None
         except _WAV_ERRORS as exc:
             raise InputError(f"{self._path}: not a readable WAV file ({_first_line(exc)})") from None
+
+    def _check_chunks(self) -> None:
+        """Walk the RIFF chunks (at most :data:`MAX_CHUNKS`, each skipped by its size): exactly one ``data`` chunk.
+
+        scipy reads the first ``data`` chunk and stops, so a file holding two (a
+        recorder that appended a second take) read as the first one's samples alone.
+        """
+        try:
+            with open(self._path, "rb") as handle:
+                size = handle.seek(0, 2)
+                handle.seek(0)
+                head = handle.read(12)
+                if len(head) < 12 or head[:4] not in (b"RIFF", b"RIFX", b"RF64") or head[8:12] != b"WAVE":
+                    return  # scipy says what it is not
+                order = ">" if head[:4] == b"RIFX" else "<"
+                at, data_chunks = 12, 0
+                for _ in range(MAX_CHUNKS):
+                    handle.seek(at)
+                    header = handle.read(8)
+                    if len(header) < 8:
+                        break
+                    data_chunks += header[:4] == b"data"
+                    length = struct.unpack(order + "I", header[4:])[0]
+                    at += 8 + length + (length & 1)
+                    if at >= size:
+                        break
+        except OSError as exc:
+            raise InputError(f"{self._path}: cannot read ({exc.strerror})") from None
+        if data_chunks > 1:
+            raise InputError(f"{self._path}: {data_chunks} data chunks; a WAV capture holds one (scipy would read "
+                             "the first alone)")
 
     def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
         columns = [int(name[2:]) - 1 for name in channels]
