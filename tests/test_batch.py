@@ -122,3 +122,24 @@ def test_batch_runs_the_other_analyses(tmp_path, command, capture, extra, column
     report = json.loads((out / capture.replace(".", "_") / "report.json").read_text())
     assert report["command"] == command
     assert row[column] != ""
+
+
+def test_batch_iterates_the_curves_of_a_map(tmp_path, shared):
+    """Issue 32: a JPK force map is one input per curve, each run with --curve N; a rerun skips them all."""
+    source = shared / "data" / "formats" / "force-map2x2-example.jpk-force-map"
+    out = tmp_path / "map"
+    args = ["batch", "invols", source, "--out", out, "--workers", "2", "--quiet", "--arg=--segment", "--arg=extend"]
+    result = run_cli(*args)
+    assert result.returncode == 0, result.stderr.decode()
+    with open(out / "summary.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [row["input"].rsplit(" ", 1)[-1] for row in rows] == ["0", "1", "2", "3"]
+    assert all(row["input"].endswith(f"--curve {k}") and row["status"] == "ok" for k, row in enumerate(rows))
+    for k in range(4):
+        report = json.loads((out / f"force-map2x2-example_jpk-force-map_curve{k}" / "report.json").read_text())
+        single = run_cli("identify", "invols", source, "--curve", str(k), "--segment", "extend", "--out",
+                         tmp_path / f"single{k}", "--quiet", "--json")
+        assert report["results"] == json.loads(single.stdout)["results"]
+    again = run_cli(*args)
+    with open(out / "summary.csv") as handle:
+        assert [row["status"] for row in csv.DictReader(handle)] == ["skipped"] * 4, again.stderr.decode()

@@ -22,26 +22,61 @@ from tests.conftest import SAMPLE_DATA, run_cli
 
 FORMATS = "data/formats"
 
-# name, format, sample rate (Hz), samples, segments [(name, samples)], {channel: units}  (SOURCES.md)
+# name, extra info args, format, sample rate (Hz), samples, segments [(name, samples)], {channel: units}  (SOURCES.md)
+RATE_GIVEN = ["--sample-rate", "1000"]  # files that record no sample rate (their readers ask for --sample-rate)
 EXPECTED = [
-    ("fmt-igor-fd_SiN_FD_plot.ibw", "ibw", 2000.0, 2016, [("approach", 1009), ("retract", 1007)],
+    ("fmt-igor-fd_SiN_FD_plot.ibw", [], "ibw", 2000.0, 2016, [("approach", 1009), ("retract", 1007)],
      {"raw": "m", "deflection": "m", "z_piezo": "m"}),
-    ("force-save-example.jpk-force", "jpk", 2000.0, 8400, [("extend", 6000), ("retract", 2400)],
+    ("win-version2.ibw", RATE_GIVEN, "ibw", 1000.0, 5, [], {"version2": ""}),
+    ("win-double.ibw", RATE_GIVEN, "ibw", 1000.0, 5, [], {"double": ""}),
+    ("win-version5.ibw", RATE_GIVEN, "ibw", 1000.0, 5, [], {"version5": ""}),
+    ("force-save-example.jpk-force", [], "jpk", 2000.0, 8400, [("extend", 6000), ("retract", 2400)],
      {"cellhesion-height": "m", "height": "m", "deflection": "m", "z_piezo": "m"}),
-    ("fmt-jpk-fd_spot3-0192.jpk-force", "jpk", 2000.0, 4000, [("extend", 2000), ("retract", 2000)],
+    ("fmt-jpk-fd_spot3-0192.jpk-force", [], "jpk", 2000.0, 4000, [("extend", 2000), ("retract", 2000)],
      {"height": "m", "deflection": "m", "z_piezo": "m"}),
-    ("fmt-chiaro-txt_AEBP1_Indentation_002.zip", "chiaro", 1000.0, 13827, [],
+    ("fmt-jpk-fd_flipsign_2015.05.22-15.31.49.352.jpk-force", [], "jpk", 2000.0, 14000,
+     [("extend", 10000), ("retract", 4000)], {"height": "m", "deflection": "m", "z_piezo": "m"}),
+    ("fmt-jpk-cl_calibration_force-save-2015.02.04-11.25.21.294.jpk-force", [], "jpk", 204.8, 4096,
+     [("extend", 2048), ("retract", 2048)], {"height": "m", "deflection": "V", "z_piezo": "m", "measuredHeight": "m"}),
+    ("force-map2x2-example.jpk-force-map", ["--curve", "0"], "jpk-map", 2005.0, 24060,
+     [("extend", 12030), ("retract", 12030)],
+     {"height": "m", "deflection": "m", "hDeflection": "V", "error": "V", "z_piezo": "m"}),
+    ("fmt-jpk-fd_2020.02.07-16.29.05.036.jpk-qi-data", ["--curve", "0,0"], "jpk-qi", 300 / 0.028, 600,
+     [("extend", 300), ("retract", 300)], {"height": "m", "deflection": "m", "z_piezo": "m", "smoothedMeasuredHeight": "m"}),
+    ("fmt-chiaro-txt_AEBP1_Indentation_002.zip", [], "chiaro", 1000.0, 13827, [],
      {"Load": "uN", "Indentation": "nm", "deflection": "nm", "z_piezo": "nm", "Auxiliary": ""}),
-    ("raw1.tdms", "tdms", 50000.0, 2000, [],
+    ("raw1.tdms", [], "tdms", 50000.0, 2000, [],
      {n: "V" for n in ("First  Channel", "Second Chan", "Third Chan", "Fourth Chan", "Fifth Chan", "Sixth Chan",
                        "Seventh Cha")}),
+    ("fmt-afm-workshop-fd_single_2018-08-01_13.06.09.csv", RATE_GIVEN, "afm-workshop", 1000.0, 1140,
+     [("extend", 570), ("retract", 570)], {"z_piezo": "nm", "deflection": "V"}),
+    ("fmt-afm-workshop-fd_single_2021-01-15.csv", RATE_GIVEN, "afm-workshop", 1000.0, 6738,
+     [("extend", 3369), ("retract", 3369)], {"z_piezo": "nm", "deflection": "V"}),
+    ("fmt-ntmdt-txt-fd_2015_01_17_gel4-0,1_mQ_adh_6B_Curve_DFL_Height_51.txt", RATE_GIVEN, "ntmdt", 1000.0, 1644,
+     [("approach", 822), ("retract", 822)], {"z_piezo": "nm", "deflection": "nA"}),
 ]
+#: Files that hold several captures: info lists them (each summarised, or the curves listed).
+LISTED = {
+    "fmt-jpk-fd_qi-data-2021.04.13.jpk-qi-series": "segments",  # segments at 5 and 50 kHz
+    "fmt-jpk-cc_pr14-polymergel-2021.06.30.jpk-force": "segments",  # the pause stores fewer channels
+    "force-map2x2-example.jpk-force-map": "curves",
+    "fmt-jpk-fd_2020.02.07-16.29.05.036.jpk-qi-data": "curves",
+}
+#: Files that are no capture at all, refused with that reason.
+REFUSED = {"win-textWave.ibw": "holds text", "win-zeroPointWave.ibw": "no points"}
+
+
+def test_every_file_in_the_folder_is_held_here(shared):
+    """Acceptance (issue 32): every data file in ../shared/data/formats is read by a test here (or refused with its reason)."""
+    names = {p.name for p in (shared / FORMATS).iterdir() if p.is_file() and p.name != "SOURCES.md"}
+    held = {row[0] for row in EXPECTED} | set(LISTED) | set(REFUSED)
+    assert names <= held, sorted(names - held)
 
 
 @pytest.mark.parametrize("row", EXPECTED, ids=[r[0] for r in EXPECTED])
 def test_info_on_every_real_file(shared, row):
-    name, fmt, rate, n, segments, channels = row
-    result = run_cli("info", shared / FORMATS / name, "--json")
+    name, args, fmt, rate, n, segments, channels = row
+    result = run_cli("info", shared / FORMATS / name, "--json", *args)
     assert result.returncode == 0, result.stderr.decode()
     info = json.loads(result.stdout)
     assert info["format"] == fmt
@@ -49,6 +84,17 @@ def test_info_on_every_real_file(shared, row):
     assert info["n_samples"] == n
     assert {c["name"]: c["units"] for c in info["channels"]} == channels
     assert [(s["name"], s["n_samples"]) for s in info["segments"]] == segments
+
+
+@pytest.mark.parametrize("name", sorted(LISTED))
+def test_info_lists_what_a_file_holds(shared, name):
+    result = run_cli("info", shared / FORMATS / name, "--json")
+    assert result.returncode == 0, result.stderr.decode()
+    info = json.loads(result.stdout)
+    if LISTED[name] == "curves":
+        assert len(info["curves"]) == 4 and all(c["grid_index"] is not None for c in info["curves"])
+    else:
+        assert isinstance(info, list) and len(info) in (2, 3) and all(s["n_samples"] > 0 for s in info)
 
 
 def test_info_on_the_qi_series_segments(shared):
@@ -165,6 +211,8 @@ def _write_foreign(fmt: str, folder):
                          "Time (s)\tLoad (uN)\tIndentation (nm)\tCantilever (nm)\tAuxiliary\r\n")
             np.savetxt(handle, table, delimiter="\t", fmt="%.17g", newline="\r\n")
         return path, ["--channel", "dither=Auxiliary", "--units", "dither=V"]
+    if fmt in _ARRAY_AND_TEXT:
+        return _write_array_or_text(fmt, folder, fs, dither, deflection)
     if fmt == "scope-csv":
         path = folder / "ltv_scope.csv"
         t = np.arange(len(dither)) / fs
@@ -172,6 +220,40 @@ def _write_foreign(fmt: str, folder):
             handle.write("Time (s),CH1 (V),CH2 (nm)\r\n")
             np.savetxt(handle, np.column_stack([t, dither, deflection]), delimiter=",", fmt="%.17g", newline="\r\n")
         return path, ["--channel", "dither=CH1", "--channel", "deflection=CH2"]
+    raise AssertionError(fmt)
+
+
+_ARRAY_AND_TEXT = ("mat-v5", "mat-v7.3", "npz", "npy", "text")
+
+
+def _write_array_or_text(fmt: str, folder, fs: float, dither, deflection):
+    """The issue-32 formats: MATLAB (scipy.io, hdf5storage), NumPy, and a vendor-style text export."""
+    if fmt in ("mat-v5", "mat-v7.3", "npz"):  # a DAQ script's save(): the signals and fs, by their own libraries
+        variables = {"dither": dither, "deflection": deflection, "fs": np.float64(fs)}
+        path = folder / ("ltv.npz" if fmt == "npz" else "ltv.mat")
+        if fmt == "mat-v5":
+            from scipy.io import savemat
+
+            savemat(path, variables)
+        elif fmt == "mat-v7.3":
+            import hdf5storage
+
+            hdf5storage.savemat(str(path), variables, format="7.3", matlab_compatible=True)
+        else:
+            np.savez(path, **variables)
+        return path, []
+    if fmt == "npy":  # one (n, 2) array; numpy records no rate
+        path = folder / "ltv.npy"
+        np.save(path, np.column_stack([dither, deflection]))
+        return path, ["--channel", "dither=0", "--channel", "deflection=1", "--sample-rate", repr(fs)]
+    if fmt == "text":  # a vendor text export: a preamble, units in the header, ';' and decimal commas
+        path = folder / "ltv_export.txt"
+        with open(path, "w", encoding="latin-1", newline="") as handle:
+            handle.write(f"AFM export\r\nSampling rate, Hz: {fs!r}\r\nOperator = x\r\n\r\n"
+                         "dither (V);deflection (nm)\r\n")
+            for a, b in zip(dither, deflection):
+                handle.write(f"{a!r};{b!r}\r\n".replace(".", ","))
+        return path, []
     raise AssertionError(fmt)
 
 
@@ -275,7 +357,8 @@ def reference_runs(tmp_path_factory):
 
 
 @pytest.mark.long  # 13 CLI runs, about 15 s of CPU
-@pytest.mark.parametrize("fmt", ["tdms", "wav", "labone", "scope-csv", "csv", "ros1", "ros2-mcap", "ibw", "jpk", "chiaro"])
+@pytest.mark.parametrize("fmt", ["tdms", "wav", "labone", "scope-csv", "csv", "ros1", "ros2-mcap", "ibw", "jpk", "chiaro",
+                                 "mat-v5", "mat-v7.3", "npz", "npy", "text"])
 def test_reep_and_probeloss_identical_through_each_format(tmp_path, reference_runs, fmt):
     (tmp_path / "p.toml").write_text(PARAMETERS)
     foreign, mapping = _write_foreign(fmt, tmp_path)
@@ -327,7 +410,11 @@ def test_vendor_metadata_follows_the_schema(shared, name):
     from tests.conftest import load_schema
 
     segment = "retract" if "qi-series" in name else None
-    with open_capture(shared / FORMATS / name, segment=segment) as reader:
+    row = next((r for r in EXPECTED if r[0] == name), None)
+    args = dict(zip(row[1][::2], row[1][1::2])) if row else {}
+    curve = args.get("--curve")
+    rate = float(args["--sample-rate"]) if "--sample-rate" in args else None
+    with open_capture(shared / FORMATS / name, segment=segment, curve=curve, sample_rate_hz=rate) as reader:
         metadata = json.loads(json.dumps(dict(reader.info.metadata)))
     jsonschema.validate(metadata, load_schema("capture-metadata.schema.json"))
     validate_metadata(metadata)

@@ -21,6 +21,7 @@ _COMMANDS = {
     "probeloss": ("probeloss",),
     "kalman-bank": ("kalman-bank",),
     "decode": ("decode",),
+    "invols": ("identify", "invols"),
 }
 
 
@@ -42,7 +43,8 @@ def batch(
     """Run one analysis over many captures in parallel on Dask, and keep going past bad files.
 
     Each input gets its own subfolder of --out; summary.csv has one row per input
-    with its status and headline results.  Rerunning skips inputs whose outputs
+    with its status and headline results.  A JPK force map or QI data file is
+    one input per curve (NAME_curveN; the runs get --curve N).  Rerunning skips inputs whose outputs
     are complete.  Exit status 2 when any input failed (one line each on stderr), 1 when one met an internal error.  Needs 'afmtool[cluster]'.
     """
     from afmtool.analyses.batch import expand_inputs, plan_batch, write_summary

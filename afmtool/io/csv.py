@@ -323,10 +323,10 @@ class CsvReader(ReaderBase):
     format_name = "csv"
 
     def _make_info(self, comments: dict, sample_rate_hz: float | None) -> CaptureInfo:
-        metadata = {}
-        if self._preamble:
-            mapped = preamble_metadata(self._preamble, "text export")
-            metadata, sample_rate_hz = mapped.metadata, sample_rate_hz or mapped.sample_rate_hz
+        # '# key value' comments and a vendor preamble both give what they can (a rate, k, the InvOLS)
+        comment_keys = {k: v for k, v in comments.items() if k not in ("metadata", "sample_rate_hz") and not k.startswith("units.")}
+        mapped = preamble_metadata({**comment_keys, **self._preamble}, "text export" if self._preamble else None)
+        metadata, sample_rate_hz = mapped.metadata, sample_rate_hz or mapped.sample_rate_hz
         if "metadata" in comments:
             metadata = {**metadata, **parse_metadata_json(comments["metadata"], self._name)}
         if sample_rate_hz is None and "sample_rate_hz" in comments:
@@ -354,6 +354,8 @@ class CsvReader(ReaderBase):
             for name in self._columns
             if name != self._time
         )
+        if self.format_name == "text" and not len(self._pending_rows):
+            raise InputError(f"{self._name}: no rows of numbers; not a table afmtool reads")
         # a vendor export's columns without units are in the vendor's units, not afmtool's: --units must say
         declared = not self._headerless and not (self._preamble and any(not c.units for c in channels))
         return CaptureInfo(self._name, self.format_name, float(sample_rate_hz), channels, None, metadata,

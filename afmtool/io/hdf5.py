@@ -484,10 +484,10 @@ def _text_attr(path: Path, name: str, value) -> str:
 
 
 def _units_attr(path: Path, channel: str, value) -> str:
-    units = _text_attr(path, f"units of {channel}", value)
-    if len(units) > 64:
-        raise InputError(f"{path}: units of {channel} {units[:64]!r} must be one short line")
-    return units  # decoded and cleaned (NULs, control characters) where its ChannelSpec is made
+    units = _text_attr(path, f"units of {channel}", value).strip("\x00")  # a C buffer's padding
+    if not units.isprintable() or len(units) > 64:
+        raise InputError(f"{path}: units of {channel} {units[:64]!r} must be one short printable line")
+    return units
 
 
 #: Attribute names that hold a dataset's units, in the order they are looked for: afmtool's own, then

@@ -291,18 +291,25 @@ class LaboneHdf5Reader(ReaderBase):
         if clockbase is None:
             raise InputError(f"{self._path}: no clockbase for {members[0].name}; cannot turn timestamps into seconds")
         rate = sample_rate_hz
-        first_tick = int(pieces[0][0]["timestamp"][0]) if n else 0
+        first_tick = self._tick(pieces[0][0]["timestamp"][0]) if n else 0
         if rate is None:
             if n < 2:
                 raise InputError(f"{self._path}: fewer than 2 demodulator samples; give --sample-rate")
             last_group, last_len = pieces[-1]
-            span_ticks = int(last_group["timestamp"][last_len - 1]) - first_tick
+            span_ticks = self._tick(last_group["timestamp"][last_len - 1]) - first_tick
             rate = (n - 1) * clockbase / span_ticks if span_ticks > 0 else math.nan
         if not (math.isfinite(rate) and rate > 0):
             raise InputError(f"{self._path}: timestamps give sample rate {rate!r}; they must increase")
         channels = tuple(ChannelSpec(f, FIELD_UNITS[f]) for f in fields)
         return {"kind": "demods", "pieces": pieces, "fields": fields, "n": n, "rate": float(rate),
                 "channels": channels, "clockbase": clockbase, "first_tick": first_tick}
+
+    def _tick(self, value) -> int:
+        """One timestamp as an exact integer; a NaN or infinite one (a float dataset) is refused."""
+        value = np.asarray(value).reshape(-1)[0]
+        if value.dtype.kind == "f" and not np.isfinite(value):
+            raise InputError(f"{self._path}: a timestamp is {float(value)!r}, not a clock tick")
+        return int(value)
 
     def _scope_layout(self, group, sample_rate_hz: float | None) -> dict:
         dataset = self._member(group, "wave")
@@ -335,7 +342,7 @@ class LaboneHdf5Reader(ReaderBase):
             for lo in range(0, length, block_samples):
                 hi = min(lo + block_samples, length)
                 try:
-                    ticks = group["timestamp"][lo:hi].astype(np.int64) - layout["first_tick"]
+                    ticks = _ticks_since(np.asarray(group["timestamp"][lo:hi]), layout["first_tick"])
                     data = {name: group[name][lo:hi].astype(np.float64) for name in channels}
                 except (OSError, RuntimeError, ValueError) as exc:
                     raise InputError(f"{self._path}: cannot read {group.name} at sample {lo} ({_first_line(exc)})") from None
@@ -366,6 +373,19 @@ class LaboneHdf5Reader(ReaderBase):
 
     def close(self) -> None:
         self._file.close()
+
+
+def _ticks_since(raw: np.ndarray, first: int) -> np.ndarray:
+    """Clock ticks after ``first`` as float64: exact integer differences where they fit in int64, never an overflow.
+
+    Timestamps are uint64; one at 2^64 - 1 (a damaged or hostile file) made the int64
+    arithmetic overflow.  Out-of-range values fall back to a float difference, which the
+    uniformity check then refuses.
+    """
+    if raw.dtype.kind in "iu" and raw.size and abs(first) < 2**62 and int(raw.max()) < 2**62 and int(raw.min()) > -(2**62):
+        return (raw.astype(np.int64) - np.int64(first)).astype(np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        return raw.astype(np.float64) - float(first)
 
 
 def _first_line(exc: BaseException) -> str:

@@ -33,6 +33,8 @@ __all__ = [
     "ScanMetadata",
     "SweepSegmentMetadata",
     "json_depth",
+    "load_json",
+    "MAX_JSON_CHARS",
     "parse_metadata_json",
     "validate_metadata",
 ]
@@ -234,14 +236,8 @@ _FAMILIES = {
 
 
 def parse_metadata_json(text: str, where: str) -> dict:
-    """Parse and validate a metadata JSON string found in ``where``."""
-    depth = json_depth(text)
-    if depth > MAX_JSON_DEPTH:
-        raise InputError(f"{where}: metadata JSON is nested {depth} deep, more than {MAX_JSON_DEPTH}")
-    try:
-        value = json.loads(text)
-    except (json.JSONDecodeError, TypeError, RecursionError) as exc:
-        raise InputError(f"{where}: metadata is not valid JSON ({exc})") from None
+    """Parse (bounded: :func:`load_json`) and validate a metadata JSON string found in ``where``."""
+    value = load_json(text, where, "metadata")
     try:
         return validate_metadata(value)
     except InputError as exc:
@@ -250,6 +246,32 @@ def parse_metadata_json(text: str, where: str) -> dict:
 
 #: Deepest nesting of arrays and objects accepted in metadata JSON (the schema needs 3).
 MAX_JSON_DEPTH = 64
+#: Longest metadata JSON parsed, characters (afmtool writes a few kB).
+MAX_JSON_CHARS = 64 << 20
+
+
+def load_json(text: str, where: str, what: str = "metadata") -> object:
+    """JSON from a file (an HDF5 attribute, a bag's metadata message, a CSV comment), parsed within bounds.
+
+    The depth is measured first, without recursion (:func:`json_depth`): Python's parser
+    recurses once per level and ends in RecursionError, or at 10^5 levels a stack
+    overflow.  Past :data:`MAX_JSON_DEPTH` levels or :data:`MAX_JSON_CHARS` characters,
+    one line and exit 2.
+
+    Raises
+    ------
+    InputError
+        Text that is too deep, too long or not JSON, naming ``where`` and ``what``.
+    """
+    if len(text) > MAX_JSON_CHARS:
+        raise InputError(f"{where}: {what} JSON is {len(text):,} characters, more than {MAX_JSON_CHARS:,}")
+    depth = json_depth(text)
+    if depth > MAX_JSON_DEPTH:
+        raise InputError(f"{where}: {what} JSON is nested {depth} deep, more than {MAX_JSON_DEPTH}")
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, TypeError, RecursionError, ValueError) as exc:
+        raise InputError(f"{where}: {what} is not valid JSON ({str(exc)[:200]})") from None
 
 
 def json_depth(text: str) -> int:

@@ -81,9 +81,13 @@ def _number(text: str) -> float | None:
     return value if math.isfinite(value) and value > 0 else None
 
 
-def preamble_metadata(preamble: Mapping[str, str], vendor_format: str) -> PreambleMetadata:
-    """Map a preamble's known keys into metadata (see the module's table); the rest is kept as text."""
-    metadata: dict = {"instrument": {"vendor_format": vendor_format}}
+def preamble_metadata(preamble: Mapping[str, str], vendor_format: str | None) -> PreambleMetadata:
+    """Map a preamble's known keys into metadata (see the module's table).
+
+    With ``vendor_format``, the preamble is also kept as text under ``instrument.header``;
+    without, only what maps is returned (comment lines of an afmtool CSV).
+    """
+    metadata: dict = {}
     rate = None
     for key, text in preamble.items():
         name, unit = split_key_unit(key)
@@ -101,7 +105,9 @@ def preamble_metadata(preamble: Mapping[str, str], vendor_format: str) -> Preamb
         else:
             family, field = target.split(".")
             metadata.setdefault(family, {}).setdefault(field, factor)
-    header = dict(list(preamble.items())[:MAX_HEADER_ENTRIES])
-    if header:
-        metadata["instrument"]["header"] = header
+    if vendor_format is not None:
+        metadata["instrument"] = {"vendor_format": vendor_format}
+        header = dict(list(preamble.items())[:MAX_HEADER_ENTRIES])
+        if header:
+            metadata["instrument"]["header"] = header
     return PreambleMetadata(metadata, rate)

@@ -47,7 +47,7 @@ from rosbags.typesys import Stores, TypesysError, get_typestore
 
 from afmtool.errors import AfmtoolError, ConfigError, InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
-from afmtool.io.metadata import validate_metadata
+from afmtool.io.metadata import load_json, validate_metadata
 
 __all__ = ["METADATA_TOPIC", "TOPIC_PREFIX", "RosbagReader", "RosbagWriter"]
 
@@ -341,10 +341,7 @@ class RosbagReader(ReaderBase):
             if first is None:
                 return {}
             text = bag.deserialize(first[2], first[0].msgtype).data
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise InputError(f"{path}: {METADATA_TOPIC} is not valid JSON ({exc})") from None
+        return load_json(text, str(path), METADATA_TOPIC)  # bounded: a deeply nested array gave RecursionError
 
     def _count_samples(self) -> int:
         """Samples per channel: message counts for Float64 topics, one pass for arrays."""

@@ -96,7 +96,7 @@ class _TableReader(ReaderBase):
             parts = list(table.blocks(table.info.channel_names, 1 << 16))
             data = {name: np.concatenate([p.data[name] for p in parts]) if parts else np.empty(0)
                     for name in table.info.channel_names}
-            stated = preamble_metadata(table._preamble, self.vendor).sample_rate_hz
+            stated = preamble_metadata(table._preamble, None).sample_rate_hz
         return table, data, sample_rate_hz if sample_rate_hz is not None else stated
 
     def _finish(self, path: Path, rate: float | None, channels: dict[str, tuple[str, np.ndarray]],
