@@ -34,15 +34,35 @@ _GRACE_S = 20.0
 READERS = (
     "csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", "psd", "toml", "metadata",
     "ibw", "jpk", "tdms", "wav", "labone-hdf5", "labone-csv", "chiaro",
+    "jpk-map", "afm-workshop", "ntmdt", "text", "mat5", "mat73", "npz", "npy",
 )
 _SUFFIX = {"csv": ".csv", "hdf5": ".h5", "ros1": ".bag", "psd": ".csv", "toml": ".toml", "metadata": ".json",
            "ibw": ".ibw", "jpk": ".jpk-force", "tdms": ".tdms", "wav": ".wav", "labone-hdf5": ".h5",
-           "labone-csv": ".csv", "chiaro": ".zip"}
+           "labone-csv": ".csv", "chiaro": ".zip", "jpk-map": ".jpk-force-map", "afm-workshop": ".csv",
+           "ntmdt": ".txt", "text": ".txt", "mat5": ".mat", "mat73": ".mat", "npz": ".npz", "npy": ".npy"}
 #: Readers of instrument formats, whose seeds are real files or their libraries' own output.
-VENDOR_READERS = ("ibw", "jpk", "tdms", "wav", "labone-hdf5", "labone-csv", "chiaro")
+VENDOR_READERS = ("ibw", "jpk", "tdms", "wav", "labone-hdf5", "labone-csv", "chiaro", "jpk-map", "afm-workshop", "ntmdt")
+#: Readers of the issue-32 formats whose seeds their own libraries write (scipy, hdf5storage, numpy, text).
+LIBRARY_READERS = ("text", "mat5", "mat73", "npz", "npy")
 #: Readers whose files are ZIP archives: half their cases mutate one member and re-zip it.
-_ZIP_READERS = ("jpk", "chiaro")
+_ZIP_READERS = ("jpk", "chiaro", "jpk-map", "npz")
+#: Readers whose formats record no sample rate: the target gives one.
+_NO_RATE = ("afm-workshop", "ntmdt", "npy")
 _FORMATS = Path(__file__).resolve().parents[2] / "shared" / "data" / "formats"
+#: The mutation corpus of the vendor readers: every real file of the format (the peers' test files,
+#: ../shared/data/formats/SOURCES.md); case k mutates file k mod n.
+CORPUS = {
+    "ibw": ("fmt-igor-fd_SiN_FD_plot.ibw", "win-version2.ibw", "win-double.ibw", "win-version5.ibw",
+            "win-textWave.ibw", "win-zeroPointWave.ibw"),
+    "jpk": ("fmt-jpk-fd_spot3-0192.jpk-force", "force-save-example.jpk-force",
+            "fmt-jpk-fd_flipsign_2015.05.22-15.31.49.352.jpk-force", "fmt-jpk-cc_pr14-polymergel-2021.06.30.jpk-force",
+            "fmt-jpk-cl_calibration_force-save-2015.02.04-11.25.21.294.jpk-force",
+            "fmt-jpk-fd_qi-data-2021.04.13.jpk-qi-series"),
+    "jpk-map": ("fmt-jpk-fd_2020.02.07-16.29.05.036.jpk-qi-data", "force-map2x2-example.jpk-force-map"),
+    "tdms": ("raw1.tdms",),
+    "afm-workshop": ("fmt-afm-workshop-fd_single_2018-08-01_13.06.09.csv", "fmt-afm-workshop-fd_single_2021-01-15.csv"),
+    "ntmdt": ("fmt-ntmdt-txt-fd_2015_01_17_gel4-0,1_mQ_adh_6B_Curve_DFL_Height_51.txt",),
+}
 
 
 # --------------------------------------------------------------------------- seeds
@@ -68,9 +88,8 @@ def _seed_capture(folder: Path, fmt: str) -> Path:
 
 def _seed_vendor(path: Path, reader: str) -> Path:
     """A small valid file in a vendor format: a real instrument file, or its library's own output."""
-    if reader in ("ibw", "jpk", "tdms"):
-        name = {"ibw": "fmt-igor-fd_SiN_FD_plot.ibw", "jpk": "fmt-jpk-fd_spot3-0192.jpk-force", "tdms": "raw1.tdms"}
-        shutil.copyfile(_FORMATS / name[reader], path)
+    if reader in CORPUS:
+        shutil.copyfile(_FORMATS / CORPUS[reader][0], path)
     elif reader == "chiaro":  # the real export's header and its first 300 rows, zipped as it came
         import zipfile
 
@@ -105,10 +124,51 @@ def _seed_vendor(path: Path, reader: str) -> Path:
     return path
 
 
+def _seed_library(path: Path, reader: str, variant: int) -> Path:
+    """A small capture of an issue-32 format, written by that format's own library (variant 0 or 1)."""
+    rng = np.random.default_rng(variant + 3)
+    dither, deflection = rng.standard_normal(200), rng.standard_normal(200)
+    variables = {"dither": dither, "deflection": deflection, "fs": np.float64(5e5)}
+    if reader == "mat5":
+        from scipy.io import savemat
+
+        savemat(path, {**variables, "data": np.column_stack([dither, deflection])}, do_compression=bool(variant))
+    elif reader == "mat73":
+        import hdf5storage
+
+        hdf5storage.savemat(str(path), variables, format="7.3", matlab_compatible=True)
+    elif reader == "npz":
+        (np.savez_compressed if variant else np.savez)(path, **variables)
+    elif reader == "npy":
+        np.save(path, np.column_stack([dither, deflection]) if variant else deflection)
+    else:  # a vendor-style text export: a preamble, units in the header, a delimiter, perhaps decimal commas
+        sep, comma = (";", True) if variant else (",", False)
+        rows = "".join(f"{float(a)!r}{sep}{float(b)!r}\n".replace(".", "," if comma else ".")
+                       for a, b in zip(dither, deflection))
+        path.write_text(f"Export\nSample rate, kHz: 500\nSpring constant = 2.5\n\ndither (V){sep}deflection (nm)\n{rows}")
+    return path
+
+
+def seed_inputs(folder: Path, reader: str) -> list[Path]:
+    """The reader's mutation corpus: its real files (vendor formats) or two library-written variants."""
+    if reader in CORPUS:
+        paths = []
+        for k, name in enumerate(CORPUS[reader]):
+            target = folder / f"seed{k}{_SUFFIX[reader]}"
+            shutil.copyfile(_FORMATS / name, target)
+            paths.append(target)
+        return paths
+    if reader in LIBRARY_READERS:
+        return [_seed_library(folder / f"seed{k}{_SUFFIX[reader]}", reader, k) for k in (0, 1)]
+    return [seed_input(folder, reader)]
+
+
 def seed_input(folder: Path, reader: str) -> Path:
     if reader in ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap"):
         return _seed_capture(folder, reader)
     path = folder / ("seed" + _SUFFIX[reader])
+    if reader in LIBRARY_READERS:
+        return _seed_library(path, reader, 0)
     if reader in VENDOR_READERS:
         return _seed_vendor(path, reader)
     if reader == "psd":
@@ -210,7 +270,7 @@ def _hdf5_hostile(seed: Path, folder: Path, rng: np.random.Generator) -> tuple[P
     with h5py.File(other, "w") as f:
         f.create_dataset("s", data=np.full(64, 42.0))
         f.create_dataset("g/s", data=np.full(64, 43.0))
-    kind = int(rng.integers(0, 7))
+    kind = int(rng.integers(0, 8))
     where = "channels" if rng.random() < 0.5 else "truth"
     with h5py.File(target, "a") as f:
         if kind == 0:  # size claim: unallocated chunks read as fill values
@@ -243,6 +303,10 @@ def _hdf5_hostile(seed: Path, folder: Path, rng: np.random.Generator) -> tuple[P
             depth = int(rng.integers(10, 20_000))
             f.attrs["metadata"] = "[" * depth + "]" * depth
             return target, depth > 64
+        if kind == 7:  # issue 34: a metadata block of up to 100,000 keys: read (or refused) within the case's time
+            keys = int(rng.integers(1000, 100_001))
+            f.attrs["metadata"] = json.dumps({"instrument": {f"k{i}": i for i in range(keys)}})
+            return target, False
         f["a"] = h5py.SoftLink("/b")  # a soft-link loop
         f["b"] = h5py.SoftLink("/a")
         f[f"{where}/loop"] = h5py.SoftLink("/a/x")
@@ -270,31 +334,176 @@ def _text_hostile(reader: str, seed: Path, folder: Path, rng: np.random.Generato
     return target, depth > 16
 
 
+def _tdms_hostile(folder: Path, rng: np.random.Generator) -> tuple[Path, bool]:
+    """Issue 34: scaling chains that refer to themselves or each other, huge scale counts; an unsupported scaling."""
+    from nptdms import ChannelObject, TdmsWriter
+
+    target = folder / "case.tdms"
+    kind = int(rng.integers(0, 4))
+    count = 2
+    scales: dict = {}
+    if kind == 2:
+        count = 10 ** int(rng.integers(3, 13))
+    for k in range(2):
+        source = {0: {1: 1}, 1: {0: 1, 1: 0}}.get(kind, {}).get(k, 0xFFFFFFFF)
+        scales |= {f"NI_Scale[{k}]_Scale_Type": "Reciprocal" if kind == 3 else "Linear", f"NI_Scale[{k}]_Linear_Slope": 2.0,
+                   f"NI_Scale[{k}]_Linear_Y_Intercept": 0.0, f"NI_Scale[{k}]_Linear_Input_Source": source}
+    props = {"wf_increment": 1e-5, "NI_Scaling_Status": "unscaled", "NI_Number_Of_Scales": count, **scales}
+    with TdmsWriter(str(target)) as writer:
+        writer.write_segment([ChannelObject("g", "deflection", np.arange(64.0), properties=props)])
+    return target, kind in (0, 1, 2)
+
+
+def _jpk_hostile(folder: Path, rng: np.random.Generator) -> tuple[Path, bool]:
+    """Issue 34: a header declaring tens of thousands of channels; indirections in a cycle or too deep."""
+    import zipfile
+
+    target = folder / "case.jpk-force"
+    kind = int(rng.integers(0, 3))
+    segment = ["force-segment-header.num-points=4", "force-segment-header.duration=0.004"]
+    shared = []
+    if kind == 0:
+        names = [f"c{i}" for i in range(int(rng.integers(1025, 40_000)))]
+        segment += [f"channels.list={' '.join(names)}"] + [f"channel.{n}.data.type=short" for n in names]
+    else:
+        depth = 1 if kind == 1 else int(rng.integers(9, 2000))
+        segment += ["channels.list=h", "channel.h.lcd-info.*=0"]
+        shared = [f"lcd-info.{i}.next.lcd-info.*={(i + 1) % depth if kind == 1 else i + 1}" for i in range(depth)]
+    with zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("header.properties", "file-format-version=2.0\n")
+        archive.writestr("shared-data/header.properties", "\n".join(shared) + "\n")
+        archive.writestr("segments/0/segment-header.properties", "\n".join(segment) + "\n")
+    return target, True
+
+
+def _ibw_hostile(seed: Path, folder: Path, rng: np.random.Generator) -> tuple[Path, bool]:
+    """Issue 34: a note whose Indexes are infinite; a note size claimed far past the file."""
+    import struct
+
+    raw = (_FORMATS / "fmt-igor-fd_SiN_FD_plot.ibw").read_bytes()
+    sizes = list(struct.unpack_from("<hhiiii4i4iiii", raw, 0))
+    note_at, note_size = 64 + sizes[2] + sizes[3], sizes[4]
+    if rng.random() < 0.5:
+        note = b"Indexes: 0," + rng.choice([b"inf", b"1e400", b"-inf", b"nan"]) + b",2015\r"
+        body = raw[384:note_at] + note + raw[note_at + note_size :]
+        sizes[4] = len(note)
+    else:
+        body = raw[384:]
+        sizes[4] = int(rng.integers(1 << 30, 1 << 31))
+    head = bytearray(struct.pack("<hhiiii4i4iiii", *sizes) + raw[64:384])
+    struct.pack_into("<h", head, 2, 0)
+    struct.pack_into("<h", head, 2, ((-sum(struct.unpack("<192h", bytes(head))) + 32768) % 65536) - 32768)
+    target = folder / "case.ibw"
+    target.write_bytes(bytes(head) + body)
+    return target, True
+
+
+def _bag_hostile(reader: str, folder: Path, rng: np.random.Generator) -> tuple[Path, bool]:
+    """Issue 34: a bag whose metadata JSON nests arrays 65-20,000 deep (RecursionError in ROS1, db3, mcap)."""
+    from unittest import mock
+
+    import afmtool.io.rosbag as rosbag
+    from afmtool.io.capture import ChannelSpec
+
+    depth = int(rng.integers(65, 20_000))
+
+    def deep(self, connection, channels, metadata):
+        message = rosbag._TYPESTORE.types[rosbag._STRING](data="[" * depth + "]" * depth)
+        self._bag.write(connection, rosbag._T0_NS, self._serialize(message, rosbag._STRING))
+
+    target = folder / ("case.bag" if reader == "ros1" else "case_bag")
+    shutil.rmtree(target, ignore_errors=True)
+    if target.exists():
+        target.unlink()
+    storage = "sqlite3" if reader == "ros2-sqlite3" else "mcap"
+    with mock.patch.object(rosbag.RosbagWriter, "_write_metadata", deep):
+        writer = rosbag.RosbagWriter(target, 1000.0, [ChannelSpec("deflection", "nm")], None,
+                                     version="ros1" if reader == "ros1" else "ros2", storage=storage)
+        writer.write({"deflection": np.zeros(10)})
+        writer.close()
+    return target, True
+
+
+def _cut_or_doubled(reader: str, seed: Path, folder: Path, rng: np.random.Generator) -> tuple[Path, bool]:
+    """Issue 34: a text file whose last line is cut short; a WAV with two data chunks."""
+    target = folder / ("case" + seed.suffix)
+    raw = seed.read_bytes()
+    if reader == "wav":
+        import struct
+
+        at = raw.index(b"data")
+        doubled = raw[:at] + raw[at:] + raw[at:]
+        target.write_bytes(doubled[:4] + struct.pack("<I", len(doubled) - 8) + doubled[8:])
+        return target, True
+    body = raw.rstrip(b"\r\n")
+    target.write_bytes(body[: len(body) - int(rng.integers(0, 3))])  # ends inside its last line
+    return target, True
+
+
+def _labone_hostile(folder: Path, rng: np.random.Generator) -> tuple[Path, bool]:
+    """Issue 34: demodulator timestamps at the uint64 maximum (OverflowError)."""
+    import h5py
+
+    target = folder / "case.h5"
+    with h5py.File(target, "w") as f:
+        group = f.create_group("000/dev1234/demods/0/sample")
+        stamps = np.arange(100, dtype=np.uint64) * 3000
+        stamps[int(rng.integers(0, 100))] = np.iinfo(np.uint64).max
+        group["timestamp"] = stamps if rng.random() < 0.5 else stamps[::-1].copy()
+        group["x"] = np.zeros(100)
+        group.attrs["clockbase"] = 60e6
+    return target, False  # refused (non-uniform) or read; never an overflow
+
+
 def structural_case(reader: str, seed: Path, folder: Path, rng: np.random.Generator) -> tuple[Path, bool] | None:
-    """A hostile input of the kinds issue 20 lists, or ``None`` where the reader has none.
+    """A hostile input of the kinds issues 20 and 34 list, or ``None`` where the reader has none.
 
     Returns the path and whether it must be refused (data from outside the
-    file, nesting past the limits): reading it cleanly is then a finding.
+    file, nesting past the limits, a chain without end, a misread): reading it
+    cleanly is then a finding.
     """
     if reader == "hdf5":
         return _hdf5_hostile(seed, folder, rng)
     if reader in ("csv", "metadata", "toml"):
+        if reader == "csv" and rng.random() < 0.25:
+            return _cut_or_doubled(reader, seed, folder, rng)
         return _text_hostile(reader, seed, folder, rng)
-    return None
+    hostile = {
+        "tdms": lambda: _tdms_hostile(folder, rng),
+        "jpk": lambda: _jpk_hostile(folder, rng),
+        "ibw": lambda: _ibw_hostile(seed, folder, rng),
+        "ros1": lambda: _bag_hostile(reader, folder, rng),
+        "ros2-sqlite3": lambda: _bag_hostile(reader, folder, rng),
+        "ros2-mcap": lambda: _bag_hostile(reader, folder, rng),
+        "text": lambda: _cut_or_doubled(reader, seed, folder, rng),
+        "wav": lambda: _cut_or_doubled(reader, seed, folder, rng),
+        "labone-hdf5": lambda: _labone_hostile(folder, rng),
+    }
+    return hostile[reader]() if reader in hostile else None
 
 
 # ------------------------------------------------------------------------- targets
 
 def read_target(reader: str) -> Callable[[Path], None]:
     """The code under test for ``reader``: parse everything, raise AfmtoolError on bad input."""
-    if reader in ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", *VENDOR_READERS):
+    if reader in ("csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", *VENDOR_READERS, *LIBRARY_READERS):
+        from afmtool.errors import AfmtoolError, SelectionNeeded
         from afmtool.io.chunks import iter_chunks
         from afmtool.io.registry import open_capture
 
-        segment = "demods" if reader == "labone-hdf5" else None
+        options = {"segment": "demods" if reader == "labone-hdf5" else None,
+                   "sample_rate_hz": 1000.0 if reader in _NO_RATE else None}
 
         def run(path: Path) -> None:
-            with open_capture(path, segment=segment) as capture:
+            try:
+                capture = open_capture(path, **options)
+            except SelectionNeeded as exc:  # several captures in one file: read the first, as a user would choose it
+                capture = open_capture(path, **{**options, exc.option.lstrip("-"): exc.choices[0]})
+            except AfmtoolError as exc:  # a file that records no rate: read it as a user would, with --sample-rate
+                if "give --sample-rate" not in str(exc) or options["sample_rate_hz"] is not None:
+                    raise
+                capture = open_capture(path, **{**options, "sample_rate_hz": 1000.0})
+            with capture:
                 for _ in iter_chunks(capture, capture.info.channel_names, 257):
                     pass
                 capture.truth()
@@ -337,15 +546,19 @@ def _worker(reader: str, seed_dir: str, start: int, stop: int, rng_seed: int, ti
         raise TimeoutError
 
     signal.signal(signal.SIGALRM, on_alarm)
-    seed = seed_input(Path(seed_dir), reader)
-    original = b"" if seed.is_dir() else seed.read_bytes()
-    if seed.is_dir():
-        original = next(p for p in seed.iterdir() if p.suffix in (".mcap", ".db3")).read_bytes()
+    seeds = seed_inputs(Path(seed_dir), reader)
+    originals = []
+    for seed in seeds:
+        if seed.is_dir():
+            originals.append(next(p for p in seed.iterdir() if p.suffix in (".mcap", ".db3")).read_bytes())
+        else:
+            originals.append(seed.read_bytes())
     target = read_target(reader)
     work = Path(tempfile.mkdtemp(prefix=f"fuzz-{reader}-"))
     try:
         for case in range(start, stop):
             case_rng = np.random.default_rng([rng_seed, case])
+            seed, original = seeds[case % len(seeds)], originals[case % len(seeds)]
             structural = structural_case(reader, seed, work, case_rng) if case % STRUCTURAL_EVERY == 0 else None
             if structural is None:
                 data = mutate_zip(original, case_rng) if reader in _ZIP_READERS else mutate(original, case_rng)

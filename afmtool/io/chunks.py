@@ -64,7 +64,9 @@ def iter_chunks(
             # A NaN or inf anywhere makes the sum NaN or inf; a finite sum clears the chunk
             # in one pass (isfinite().all() takes two, and a temporary).  Only a sum that
             # overflows, or a real NaN or inf, needs the exact check.
-            if not math.isfinite(np.add.reduce(values)) and not np.isfinite(values).all():
+            with np.errstate(invalid="ignore", over="ignore"):  # inf + -inf: the NaN is the answer, not a warning
+                total = np.add.reduce(values)
+            if not math.isfinite(total) and not np.isfinite(values).all():
                 first = int(np.flatnonzero(~np.isfinite(values))[0])
                 raise InputError(
                     f"{reader.info.source}: channel {name!r} has NaN or inf at sample {chunk.start + first}"

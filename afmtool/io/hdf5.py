@@ -111,6 +111,25 @@ def check_attributes_terminate(path: Path, timeout_s: float = ATTRIBUTE_TIMEOUT_
         raise InputError(f"{path}: libhdf5 crashed reading its attributes (signal {os.WTERMSIG(status)}); the file is damaged")
 
 
+#: Most attributes the root group may hold (afmtool writes two; every one is read by the child check).
+MAX_ROOT_ATTRIBUTES = 10_000
+
+
+def check_attribute_count(path: Path, h5: h5py.File) -> None:
+    """Refuse a root group of more than :data:`MAX_ROOT_ATTRIBUTES` attributes, from its count alone.
+
+    Reading 100,000 attributes took longer than :func:`check_attributes_terminate` allows, which
+    then called a sound file damaged; the count is one header query.
+    """
+    try:
+        count = h5.attrs.__len__()
+    except (OSError, RuntimeError, KeyError, ValueError) as exc:
+        raise InputError(f"{path}: damaged HDF5 structure ({_first_line(exc)})") from None
+    if count > MAX_ROOT_ATTRIBUTES:
+        raise InputError(f"{path}: the root group holds {count:,} attributes; afmtool reads files of at most "
+                         f"{MAX_ROOT_ATTRIBUTES:,} (metadata belongs in the one 'metadata' attribute)")
+
+
 #: Most soft links followed while resolving one path; more means a loop.
 MAX_LINK_HOPS = 32
 
@@ -263,6 +282,7 @@ class Hdf5Reader(ReaderBase):
         self._path = Path(path)
         self._file = _open_h5(self._path)
         try:
+            check_attribute_count(self._path, self._file)
             check_attributes_terminate(self._path)
         except BaseException:
             self._file.close()

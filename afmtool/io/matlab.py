@@ -130,12 +130,13 @@ class _V5:
 
     def _whos(self) -> list[tuple[str, tuple, str]]:
         from scipy.io import whosmat
+        from scipy.io.matlab import MatReadError
 
         try:
             return whosmat(str(self._path))
         except OSError as exc:
             raise InputError(f"{self._path}: cannot read ({exc.strerror or _first_line(exc)})") from None
-        except _SCIPY_ERRORS as exc:
+        except (*_SCIPY_ERRORS, MatReadError) as exc:
             raise InputError(f"{self._path}: not a readable MATLAB file ({_first_line(exc)})") from None
 
     def variables(self) -> dict[str, Variable]:
@@ -154,6 +155,7 @@ class _V5:
 
     def _load(self, names: Sequence[str]) -> None:
         from scipy.io import loadmat
+        from scipy.io.matlab import MatReadError
 
         wanted = [name for name in names if name not in self._loaded]
         if not wanted:
@@ -162,7 +164,7 @@ class _V5:
             loaded = loadmat(str(self._path), variable_names=wanted, squeeze_me=False, mat_dtype=False)
         except OSError as exc:
             raise InputError(f"{self._path}: cannot read ({exc.strerror or _first_line(exc)})") from None
-        except _SCIPY_ERRORS as exc:
+        except (*_SCIPY_ERRORS, MatReadError) as exc:
             raise InputError(f"{self._path}: not a readable MATLAB file ({_first_line(exc)})") from None
         for name in wanted:
             if name not in loaded:
@@ -223,6 +225,9 @@ class _V73:
         try:
             for name in self._file:
                 obj = _local_object(self._path, self._file, name)
+                if obj is None:  # a link to nothing
+                    variables[name] = Variable(name, None, None, "a link to nothing")
+                    continue
                 kind = _matlab_class(obj)
                 if not isinstance(obj, h5py.Dataset) or kind not in _NUMERIC_CLASSES or obj.dtype.kind not in "fiu":
                     variables[name] = Variable(name, None, None, kind or type(obj).__name__.lower())

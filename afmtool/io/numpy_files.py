@@ -23,6 +23,7 @@ holds (``.npy``) or than deflate can pack into a member (``.npz``).
 from __future__ import annotations
 
 import math
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Iterator, Mapping, Sequence
@@ -66,7 +67,7 @@ def _read_header(stream, where: str) -> _ArrayHeader:
         else:
             raise ValueError(f"unknown .npy version {version}")
     except (ValueError, TypeError, SyntaxError, EOFError, OSError, zlib.error, zipfile.BadZipFile,
-            RecursionError, MemoryError, UnicodeDecodeError) as exc:
+            RecursionError, MemoryError, UnicodeDecodeError, tokenize.TokenError) as exc:
         raise InputError(f"{where}: not a readable .npy array ({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
     return _ArrayHeader(tuple(int(n) for n in shape), np.dtype(dtype), bool(fortran), stream.tell())
 
