@@ -164,3 +164,23 @@ def test_labone_field_that_is_not_a_local_dataset_is_refused(tmp_path, kind):
     with pytest.raises(InputError, match="x"):
         with open_capture(path) as reader:
             _ = reader.info
+
+
+def test_mat5_that_crashes_scipy_is_one_line(tmp_path):
+    """Long run (seed 0), mat5 cases 486, 1490, 1730, 1778, 3104, 3350, 5022, 6368, 7824, 9674: scipy.io.loadmat
+    died with SIGSEGV inside its C reader (the worker 'died').  The variables are read in a child first."""
+    import numpy as np
+
+    from tests.conftest import run_cli
+    from tests.fuzz_harness import mutate, seed_inputs
+
+    seeds = seed_inputs(tmp_path, "mat5")
+    crashed = 0
+    for case in (486, 1730, 3350):
+        path = tmp_path / f"case{case}.mat"
+        path.write_bytes(mutate(seeds[case % len(seeds)].read_bytes(), np.random.default_rng([0, case])))
+        result = run_cli("info", path)
+        err = result.stderr.decode()
+        assert result.returncode == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+        crashed += "crashed (signal" in err
+    assert crashed == 3

@@ -10,7 +10,9 @@ the sample rate, unless ``--sample-rate`` is given.
 **Version 5** files are read by :func:`scipy.io.loadmat`, which reads a
 variable whole: the variable list comes first (:func:`scipy.io.whosmat`,
 headers only), each size is checked against the file's and
-:data:`MAX_V5_BYTES`, and only the variables needed are loaded.
+:data:`MAX_V5_BYTES`, and only the variables needed are loaded, first in a
+forked child (:mod:`afmtool.io.isolated`): scipy's C reader crashes on some
+damaged files, and the child dies in afmtool's place.
 
 **Version 7.3** files are HDF5 with a 512-byte MATLAB header; a variable is a
 dataset with a ``MATLAB_class`` attribute, stored transposed (MATLAB's r x c
@@ -32,6 +34,7 @@ import numpy as np
 
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
+from afmtool.io.isolated import check_survives
 from afmtool.io.variables import INTERVAL_NAMES, RATE_NAMES, ChannelSource, Variable, choose_channels, rate_variable
 
 __all__ = ["MatReader", "MAX_V5_BYTES", "mat_version"]
@@ -160,8 +163,15 @@ class _V5:
         wanted = [name for name in names if name not in self._loaded]
         if not wanted:
             return
+
+        def load():
+            return loadmat(str(self._path), variable_names=wanted, squeeze_me=False, mat_dtype=False)
+
+        # scipy's v5 reader is C code that a damaged file sends into a segmentation fault (the long fuzz
+        # run, mat5 cases 486, 1490, ...): it reads in a child first, which may die instead
+        check_survives(load, str(self._path), "scipy.io reading its variables")
         try:
-            loaded = loadmat(str(self._path), variable_names=wanted, squeeze_me=False, mat_dtype=False)
+            loaded = load()
         except OSError as exc:
             raise InputError(f"{self._path}: cannot read ({exc.strerror or _first_line(exc)})") from None
         except (*_SCIPY_ERRORS, MatReadError) as exc:
