@@ -252,7 +252,7 @@ def _write_array_or_text(fmt: str, folder, fs: float, dither, deflection):
             handle.write(f"AFM export\r\nSampling rate, Hz: {fs!r}\r\nOperator = x\r\n\r\n"
                          "dither (V);deflection (nm)\r\n")
             for a, b in zip(dither, deflection):
-                handle.write(f"{a!r};{b!r}\r\n".replace(".", ","))
+                handle.write(f"{float(a)!r};{float(b)!r}\r\n".replace(".", ","))
         return path, []
     raise AssertionError(fmt)
 
