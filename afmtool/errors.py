@@ -9,7 +9,6 @@ user's file, not a library internal.
 
 __all__ = ["AfmtoolError", "InputError", "ConfigError", "SelectionNeeded", "SegmentsAtDifferentRates", "SampleShareWarning",
            "CaptureWarning", "one_line"]
-           "one_line"]
 
 
 class AfmtoolError(Exception):

@@ -6,7 +6,8 @@ crash in one file cannot take the others down.  A failing input is recorded
 with its reason and the batch goes on; ``summary.csv`` has one row per input.
 Inputs whose output folder already holds a ``report.json`` whose recorded
 input hash still matches the input, and every output file intact, are
-skipped (resume).
+skipped (resume).  A JPK force map or QI data file is one input per curve
+(``--curve N``, output folders ``NAME_curveN``).
 """
 
 from __future__ import annotations
@@ -26,15 +27,25 @@ from afmtool.report.json_report import sha256_file
 
 __all__ = ["BatchItem", "BatchOutcome", "expand_inputs", "plan_batch", "run_one", "headline", "write_summary"]
 
-_CAPTURE_SUFFIXES = {".h5", ".hdf5", ".hdf", ".csv", ".bag"}
+#: Suffixes of the files a folder given as an input contributes: every format afmtool reads.
+_CAPTURE_SUFFIXES = (".h5", ".hdf5", ".hdf", ".csv", ".bag", ".ibw", ".jpk-force", ".jpk-qi-series", ".jpk-force-map",
+                     ".jpk-qi-data", ".tdms", ".wav", ".mat", ".npz", ".npy", ".txt", ".zip")
+#: Suffixes of files that hold many curves: each curve is an input.
+_MAP_SUFFIXES = (".jpk-force-map", ".jpk-qi-data")
 
 
 @dataclass(frozen=True)
 class BatchItem:
-    """One input of a batch and the subfolder its outputs go to."""
+    """One input of a batch and the subfolder its outputs go to; ``selection`` picks a map's curve (``--curve N``)."""
 
     source: str
     out_dir: str
+    selection: tuple[str, ...] = ()
+
+    @property
+    def label(self) -> str:
+        """The input as summary.csv and the messages name it: its path, and its curve if it is one of a map's."""
+        return " ".join([self.source, *self.selection])
 
 
 @dataclass(frozen=True)
@@ -62,7 +73,7 @@ def expand_inputs(patterns: Sequence[str]) -> list[Path]:
             if path.is_dir() and not (path / "metadata.yaml").is_file():
                 found.extend(
                     p for p in sorted(path.iterdir())
-                    if p.suffix.lower() in _CAPTURE_SUFFIXES or (p / "metadata.yaml").is_file()
+                    if p.name.lower().endswith(_CAPTURE_SUFFIXES) or (p / "metadata.yaml").is_file()
                 )
             else:
                 found.append(path)
@@ -87,13 +98,31 @@ def plan_batch(inputs: Sequence[Path], out: Path) -> list[BatchItem]:
             raise InputError(f"{path}: not a capture file or a ROS2 bag folder")
         if real == root or root in real.parents or real in root.parents:
             raise InputError(f"{path}: is, holds or lies inside the batch folder {out}; inputs must be elsewhere")
-        name = (real.name or "input").replace(".", "_")
-        candidate, k = name, 2
-        while candidate in used:
-            candidate, k = f"{name}_{k}", k + 1
-        used.add(candidate)
-        items.append(BatchItem(str(path), str(out / candidate)))
+        base = (real.name or "input").replace(".", "_")
+        for selection in _selections(path):
+            name = f"{base}_curve{selection[1]}" if selection else base
+            candidate, k = name, 2
+            while candidate in used:
+                candidate, k = f"{name}_{k}", k + 1
+            used.add(candidate)
+            items.append(BatchItem(str(path), str(out / candidate), selection))
     return items
+
+
+def _selections(path: Path) -> list[tuple[str, ...]]:
+    """``[()]`` for a capture; ``[("--curve", "0"), ...]``, one per curve, for a JPK map or QI data file."""
+    if not path.name.lower().endswith(_MAP_SUFFIXES):
+        return [()]
+    from afmtool.errors import SelectionNeeded
+    from afmtool.io.registry import open_capture
+
+    try:
+        open_capture(path).close()  # a map of one curve opens as that curve
+    except SelectionNeeded as exc:
+        return [(exc.option, choice) for choice in exc.choices]
+    except InputError:
+        return [()]  # the run reports what is wrong with it
+    return [()]
 
 
 #: Beside each finished output folder: the sha256 of every file in it, written by the batch.
@@ -183,8 +212,11 @@ def capture_options_of(command: Sequence[str], source: str, extra_args: Sequence
         calibration = CaptureCalibration(values.get("units"), values.get("invols"), values.get("z_sensitivity"),
                                          values.get("drive"), values.get("free_air") or None,
                                          accepts_drive=" ".join(command) in _ACCEPTS_DRIVE)
+        from afmtool.io.registry import Selection
+
+        selection = Selection(values.get("segment"), values.get("curve"), values.get("group"))
         return capture_options(values.get("channel"), values.get("topic"), values.get("sample_rate"), calibration,
-                               segment=values.get("segment"))
+                               segment=selection)
     except Exception:  # noqa: BLE001 - click's own usage errors, a bad value: the run reports them; no check here
         return None
 
@@ -226,13 +258,14 @@ def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], 
     Completed inputs are skipped; an input that failed before with the same
     bytes is reported failed again without rerunning unless ``retry_failed``.
     """
+    extra_args = [*item.selection, *extra_args]  # a map's curve: --curve N, for the run and its resume check
     existing = _complete(item, command, extra_args)
     if existing is not None:
-        return BatchOutcome(item.source, item.out_dir, "skipped", "outputs complete", headline(existing))
+        return BatchOutcome(item.label, item.out_dir, "skipped", "outputs complete", headline(existing))
     known = None if retry_failed else _known_failure(item)
     if known is not None:
         # the same line as the run that found it: a rerun reports the same result for the same input
-        return BatchOutcome(item.source, item.out_dir, "failed", known[0], {}, known[1])
+        return BatchOutcome(item.label, item.out_dir, "failed", known[0], {}, known[1])
     args = [sys.executable, "-m", "afmtool", *command, item.source, "--out", item.out_dir, "--quiet", *extra_args]
     _manifest_path(item).unlink(missing_ok=True)
     proc = subprocess.run(args, capture_output=True, text=True)
@@ -244,7 +277,7 @@ def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], 
     (folder / FAILURE_FILE).unlink(missing_ok=True)
     report = json.loads((folder / "report.json").read_text())
     write_text_atomic(_manifest_path(item), json.dumps(_output_hashes(folder, report["outputs"])) + "\n")
-    return BatchOutcome(item.source, item.out_dir, "ok", "", headline(report))
+    return BatchOutcome(item.label, item.out_dir, "ok", "", headline(report))
 
 
 def _failed(item: BatchItem, proc: subprocess.CompletedProcess) -> BatchOutcome:
@@ -252,14 +285,14 @@ def _failed(item: BatchItem, proc: subprocess.CompletedProcess) -> BatchOutcome:
     reason = _reason(proc.stderr, proc.returncode)
     if _is_fault(reason):
         # a full disk is not a verdict on the input: nothing is recorded, the batch stops
-        return BatchOutcome(item.source, item.out_dir, "failed", reason, {}, proc.returncode, fault=True)
+        return BatchOutcome(item.label, item.out_dir, "failed", reason, {}, proc.returncode, fault=True)
     if _killed(proc.returncode):
         # not a verdict on the input: the next batch run tries it again
-        return BatchOutcome(item.source, item.out_dir, "failed", f"killed by a signal ({reason})", {}, proc.returncode)
+        return BatchOutcome(item.label, item.out_dir, "failed", f"killed by a signal ({reason})", {}, proc.returncode)
     Path(item.out_dir).mkdir(parents=True, exist_ok=True)
     record = {"input": item.source, "sha256": _sha_or_none(item.source), "reason": reason, "exit_code": proc.returncode}
     write_text_atomic(Path(item.out_dir) / FAILURE_FILE, json.dumps(record) + "\n")
-    return BatchOutcome(item.source, item.out_dir, "failed", reason, {}, proc.returncode)
+    return BatchOutcome(item.label, item.out_dir, "failed", reason, {}, proc.returncode)
 
 
 def _is_fault(reason: str) -> bool:
@@ -288,7 +321,7 @@ def _outcome(future, item: BatchItem) -> BatchOutcome:
 
         reason = one_line(f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)
         fault = environment_fault(exc) is not None  # the worker could not write (a full disk)
-        return BatchOutcome(item.source, item.out_dir, "failed", f"worker lost ({reason})", {}, -1, fault=fault)
+        return BatchOutcome(item.label, item.out_dir, "failed", f"worker lost ({reason})", {}, -1, fault=fault)
 
 
 def _killed(returncode: int) -> bool:

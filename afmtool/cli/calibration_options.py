@@ -57,15 +57,22 @@ class CaptureCalibration(NamedTuple):
 
 
 def capture_options(channel, topic, sample_rate, calibration: CaptureCalibration | None = None, *,
-                    convert_units: bool = True, segment: str | None = None, hash_samples: bool = False):
-    """The command line's capture options as one :class:`afmtool.io.stack.CaptureOptions`."""
+                    convert_units: bool = True, segment=None, hash_samples: bool = False):
+    """The command line's capture options as one :class:`afmtool.io.stack.CaptureOptions`.
+
+    ``segment`` is ``--segment``'s value, or the :class:`afmtool.io.registry.Selection` of
+    ``--segment``, ``--curve`` and ``--group`` together.
+    """
     from afmtool.cli.options import parse_mapping
+    from afmtool.io.registry import Selection
     from afmtool.io.stack import CaptureOptions
 
+    selection = segment if isinstance(segment, Selection) else Selection(segment=segment)
     calibration = calibration or CaptureCalibration()
     return CaptureOptions(
         channel_map=parse_mapping(channel, "--channel"), topic_map=parse_mapping(topic, "--topic"),
-        sample_rate_hz=sample_rate, segment=segment, units=parse_mapping(calibration.units, "--units"),
+        sample_rate_hz=sample_rate, segment=selection.segment, curve=selection.curve, group=selection.group,
+        units=parse_mapping(calibration.units, "--units"),
         invols_nm_per_v=calibration.invols_nm_per_v, z_sensitivity_nm_per_v=calibration.z_sensitivity_nm_per_v,
         drive=calibration.drive, free_air=calibration.free_air, accepts_drive=calibration.accepts_drive,
         raw_deflection=calibration.raw_deflection, convert_units=convert_units, needs=calibration.needs,

@@ -40,10 +40,13 @@ def stdout_pipe() -> Iterator[None]:
 
 
 def open_calibrated(
-    path, channel, topic, sample_rate, calibration=None, *, convert_units: bool = True, segment: str | None = None,
+    path, channel, topic, sample_rate, calibration=None, *, convert_units: bool = True, segment=None,
     hash_samples: bool = False,
 ):
     """Open a capture through the one reader stack (:func:`afmtool.io.stack.open_capture`).
+
+    ``segment`` is ``--segment``, or the :class:`afmtool.io.registry.Selection` of ``--segment``,
+    ``--curve`` and ``--group``.
 
     Its units are parsed and converted there (``--units``, ``--invols``), a drive not
     recorded is synthesised (``--drive``), and with ``hash_samples`` its samples are hashed as read.
@@ -62,11 +65,11 @@ def open_input(
     topic: list[str] | None,
     sample_rate: float | None,
     calibration=None,
-    segment: str | None = None,
+    segment=None,
     *,
     convert_units: bool = True,
 ):
-    """Open a capture with the shared --channel/--topic/--sample-rate/--segment (and calibration) options.
+    """Open a capture with the shared --channel/--topic/--sample-rate/--segment/--curve/--group (and calibration) options.
 
     ``convert_units=False`` (``info``, ``convert``) applies ``--units`` but keeps the file's scale.
     """

@@ -27,7 +27,9 @@ from afmtool.cli.calibration_options import CaptureCalibration, DriveOpt, Invols
 from afmtool.cli.options import (
     ChannelOpt,
     ConfigOpt,
+    CurveOpt,
     DataFormatOpt,
+    GroupOpt,
     JobsOpt,
     JsonOpt,
     NoHashOpt,
@@ -109,7 +111,8 @@ def with_options(*groups: OptionGroup) -> Callable[[Callable], Callable]:
 
 
 class CaptureSource(NamedTuple):
-    """How to open a capture: ``--channel``, ``--topic``, ``--sample-rate``, ``--segment`` and calibration."""
+    """How to open a capture: ``--channel``, ``--topic``, ``--sample-rate``, ``--segment``, ``--curve``,
+    ``--group`` and calibration."""
 
     channel: list[str] | None = None
     topic: list[str] | None = None
@@ -120,6 +123,15 @@ class CaptureSource(NamedTuple):
     drive: str | None = None
     segment: str | None = None
     stdin_timeout: float | None = None
+    curve: str | None = None
+    group: str | None = None
+
+    @property
+    def selection(self):
+        """``--segment``, ``--curve`` and ``--group`` as one :class:`afmtool.io.registry.Selection`."""
+        from afmtool.io.registry import Selection
+
+        return Selection(self.segment, self.curve, self.group)
 
     def calibration(
         self, free_air: str | None = None, *, accepts_drive: bool = False, raw_deflection: bool = False,
@@ -135,15 +147,15 @@ class CaptureSource(NamedTuple):
         )
 
     def args(self, calibration: CaptureCalibration | None = None) -> tuple:
-        """``(channel, topic, sample_rate, calibration, segment)``, as open_input and run_capture_analysis take them."""
-        return self.channel, self.topic, self.sample_rate, calibration or self.calibration(), self.segment
+        """``(channel, topic, sample_rate, calibration, selection)``, as open_input and run_capture_analysis take them."""
+        return self.channel, self.topic, self.sample_rate, calibration or self.calibration(), self.selection
 
     def open(self, path: str, calibration: CaptureCalibration | None = None, **kwargs):
         """:func:`afmtool.cli.common.open_input` on ``path`` with these options (a context manager)."""
         from afmtool.cli.common import open_input
 
-        channel, topic, sample_rate, calibration, segment = self.args(calibration)
-        return open_input(path, channel, topic, sample_rate, calibration, segment, **kwargs)
+        channel, topic, sample_rate, calibration, selection = self.args(calibration)
+        return open_input(path, channel, topic, sample_rate, calibration, selection, **kwargs)
 
 
 _CAPTURE_OPTIONS = (
@@ -156,6 +168,8 @@ _CAPTURE_OPTIONS = (
     ("drive", DriveOpt),
     ("segment", SegmentOpt),
     ("stdin_timeout", StdinTimeoutOpt),
+    ("curve", CurveOpt),
+    ("group", GroupOpt),
 )
 
 
@@ -167,9 +181,13 @@ def capture_options(
     segment: bool = True,
     keyword: str = "source",
 ) -> OptionGroup:
-    """The capture options (channel, topic, sample-rate, units, invols, z-sensitivity, drive, segment)."""
+    """The capture options (channel, topic, sample-rate, units, invols, z-sensitivity, drive, segment, curve, group).
+
+    ``segment=False`` leaves out the selections (``--segment``, ``--curve``, ``--group``) together.
+    """
     left_out = {name for name, wanted in
-                (("invols", invols), ("z_sensitivity", z_sensitivity), ("drive", drive), ("segment", segment))
+                (("invols", invols), ("z_sensitivity", z_sensitivity), ("drive", drive), ("segment", segment),
+                 ("curve", segment), ("group", segment))
                 if not wanted}
     parameters = tuple(option(name, annotation) for name, annotation in _CAPTURE_OPTIONS if name not in left_out)
     return OptionGroup(keyword, parameters, _capture_source)

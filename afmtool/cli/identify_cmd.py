@@ -31,7 +31,7 @@ def _capture(source: CaptureSource, path: str | None):
     if path is None:
         return None
     return Capture(path, capture_options(source.channel, source.topic, source.sample_rate, source.calibration(),
-                                         segment=source.segment))
+                                         segment=source.selection))
 
 
 @with_options(param_flags(GammaParams), output_options(Path("gamma")), _CH6_CAPTURE)
@@ -130,7 +130,9 @@ def identify_electrostatic(
     param_flags(InvolsParams), output_options(Path("invols")), capture_options(invols=False, drive=False)
 )
 def identify_invols(
-    curve: Annotated[str, typer.Argument(help="Force curve on a hard sample: deflection (V) and z_piezo.")],
+    force_curve: Annotated[
+        str, typer.Argument(metavar="CURVE", help="Force curve on a hard sample: deflection (V) and z_piezo.")
+    ],
     *, flags: dict, output: CommandOutput, source: CaptureSource
 ) -> None:
     """InvOLS (nm/V) from the contact part of a force curve on a hard sample, with its uncertainty.
@@ -143,7 +145,7 @@ def identify_invols(
     """
     from afmtool.api.run import run_identify_invols
 
-    report = run_identify_invols(_capture(source, curve), output.out, flags, output.settings())
+    report = run_identify_invols(_capture(source, force_curve), output.out, flags, output.settings())
     finish_command(report, output.out, output.json_output, output.quiet)
 
 

@@ -59,6 +59,10 @@ class CaptureOptions:
         ``--sample-rate`` (Hz), for formats that do not record it.
     segment : str or None
         ``--segment``: one segment (name or number from 0) of a segmented file.
+    curve : str or None
+        ``--curve``: one curve (``N`` or ``X,Y``) of a JPK force map or QI data file.
+    group : str or None
+        ``--group``: one group (name or number from 0) of a TDMS file.
     units : mapping of str to str
         ``--units NAME=UNIT``: a channel's units, set or overridden.
     invols_nm_per_v : float or None
@@ -86,6 +90,8 @@ class CaptureOptions:
     topic_map: Mapping[str, str] = field(default_factory=dict)
     sample_rate_hz: float | None = None
     segment: str | None = None
+    curve: str | None = None
+    group: str | None = None
     units: Mapping[str, str] = field(default_factory=dict)
     invols_nm_per_v: float | None = None
     z_sensitivity_nm_per_v: float | None = None
@@ -117,7 +123,7 @@ class CaptureOptions:
     def format_keywords(self) -> dict:
         """The keywords of the format layer (:func:`afmtool.io.registry.open_capture` without options)."""
         return {"channel_map": dict(self.channel_map) or None, "topic_map": dict(self.topic_map) or None,
-                "sample_rate_hz": self.sample_rate_hz, "segment": self.segment}
+                "sample_rate_hz": self.sample_rate_hz, "segment": self.segment, "curve": self.curve, "group": self.group}
 
 
 def open_capture(path: Path | str, options: CaptureOptions | None = None) -> CaptureReader:
