@@ -34,12 +34,13 @@ _GRACE_S = 20.0
 READERS = (
     "csv", "hdf5", "ros1", "ros2-sqlite3", "ros2-mcap", "psd", "toml", "metadata",
     "ibw", "jpk", "tdms", "wav", "labone-hdf5", "labone-csv", "chiaro",
-    "jpk-map", "afm-workshop", "ntmdt", "text", "mat5", "mat73", "npz", "npy",
+    "jpk-map", "afm-workshop", "ntmdt", "text", "mat5", "mat73", "npz", "npy", "scheduler",
 )
 _SUFFIX = {"csv": ".csv", "hdf5": ".h5", "ros1": ".bag", "psd": ".csv", "toml": ".toml", "metadata": ".json",
            "ibw": ".ibw", "jpk": ".jpk-force", "tdms": ".tdms", "wav": ".wav", "labone-hdf5": ".h5",
            "labone-csv": ".csv", "chiaro": ".zip", "jpk-map": ".jpk-force-map", "afm-workshop": ".csv",
-           "ntmdt": ".txt", "text": ".txt", "mat5": ".mat", "mat73": ".mat", "npz": ".npz", "npy": ".npy"}
+           "ntmdt": ".txt", "text": ".txt", "mat5": ".mat", "mat73": ".mat", "npz": ".npz", "npy": ".npy",
+           "scheduler": ".bin"}
 #: Readers of instrument formats, whose seeds are real files or their libraries' own output.
 VENDOR_READERS = ("ibw", "jpk", "tdms", "wav", "labone-hdf5", "labone-csv", "chiaro", "jpk-map", "afm-workshop", "ntmdt")
 #: Readers of the issue-32 formats whose seeds their own libraries write (scipy, hdf5storage, numpy, text).
@@ -179,6 +180,8 @@ def seed_input(folder: Path, reader: str) -> Path:
         from afmtool.config.defaults import default_toml
 
         path.write_text(default_toml())
+    elif reader == "scheduler":
+        path.write_bytes(_dask_handshake())
     else:
         path.write_text(json.dumps({"cantilever": {"f0_hz": 7e4, "q": 200}, "free_air": {"start_s": 0, "end_s": 0.01},
                                     "scan": {"lines": 4, "pixels_per_line": 8, "scan_size_m": 1e-6, "line_rate_hz": 2.0}}))
@@ -532,9 +535,56 @@ def read_target(reader: str) -> Callable[[Path], None]:
 
         return run
 
+    if reader == "scheduler":
+        return _probe_target
+
     from afmtool.io.metadata import parse_metadata_json
 
     return lambda path: parse_metadata_json(path.read_bytes().decode("utf-8", errors="replace"), str(path))
+
+
+def _dask_handshake() -> bytes:
+    """What a Dask scheduler sends first on a TCP connection: an 8-byte length, then its handshake's frames."""
+    import struct
+
+    from distributed.protocol.core import dumps
+    from distributed.protocol.utils import pack_frames
+
+    body = pack_frames(dumps({"compression": None, "python": tuple(sys.version_info[:3]), "pickle-protocol": 5}))
+    return struct.pack("Q", len(body)) + body
+
+
+def _probe_target(path: Path) -> None:
+    """Serve ``path``'s bytes as a peer on 127.0.0.1 (then close), and probe it as ``--scheduler`` (issue 34)."""
+    import socket
+    import threading
+
+    from afmtool.io.scheduler import probe_scheduler
+
+    data = path.read_bytes()
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+
+    def serve() -> None:
+        with server:
+            server.settimeout(5)
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            with conn:
+                try:
+                    conn.sendall(data)
+                except OSError:
+                    pass
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        probe_scheduler(f"tcp://127.0.0.1:{server.getsockname()[1]}", 2.0)
+    finally:
+        thread.join(timeout=5)
 
 
 # --------------------------------------------------------------------------- driver

@@ -39,14 +39,14 @@ def _lock_cases() -> list[Case]:
         return prepare
 
     cases = [
-        Case("lock/reep dangling link", "lock", _reep("cap"), "error", planted("dangling"), quick=True),
+        Case("lock/reep dangling link", "lock", _reep("cap"), "error", planted("dangling")),
         Case("lock/reep link to a file", "lock", _reep("cap"), "error", planted("file")),
         Case("lock/freeair dangling link", "lock", lambda f, c: ["identify", "freeair", c["cap"], "--out", f / "out", "-q"],
              "error", planted("dangling")),
         Case("lock/batch dangling link", "lock",
              lambda f, c: ["batch", "reep", c["cap"], "--out", f / "out", "--workers", "1", "-q"], "error", planted("dangling")),
         Case("lock/theory averaging link to a file", "lock", lambda f, c: ["theory", "averaging", "--out", f / "out", "-q"],
-             "error", planted("file")),
+             "error", planted("file"), quick=True),
     ]
     return cases
 
@@ -166,8 +166,7 @@ def _figure_skipped(name: str):
 def _numeric_cases() -> list[Case]:
     cases = []
     for interval in ("0:1e308", "1e300:1e301", "0:1e-320", "1e-320:2e-320", "0:nan", "-1:1", "0.01:0.01", "inf:inf"):
-        cases.append(Case(f"numeric/reep --free-air {interval}", "numeric", _reep("cap", "--free-air", interval), "error",
-                          quick=interval == "0:1e308"))
+        cases.append(Case(f"numeric/reep --free-air {interval}", "numeric", _reep("cap", "--free-air", interval), "error"))
         cases.append(Case(f"numeric/identify freeair --free-air {interval}", "numeric",
                           lambda f, c, i=interval: ["identify", "freeair", c["cap"], "--free-air", i, "--out", f / "out", "-q"],
                           "error"))
@@ -187,8 +186,7 @@ def _numeric_cases() -> list[Case]:
     ):
         cases.append(Case(f"numeric/toml [{section}] {key} = {value}", "numeric",
                           lambda f, c: ["reep", c["cap"], "--config", f / "params.toml", "--out", f / "out", "-q"],
-                          prepare=_toml(f"[{section}]\n{key} = {value}\n"),
-                          quick=(key, value) == ("decimate", "99999999999999")))
+                          prepare=_toml(f"[{section}]\n{key} = {value}\n")))
     for key, value in (("decimate", "99999999999999"), ("rms_window_periods", "1e308"), ("rms_window_periods", "1e-320"),
                        ("drive_frequency_hz", "1e-300")):
         cases.append(Case(f"numeric/toml [kalman-bank] {key} = {value}", "numeric",
@@ -208,9 +206,9 @@ def _numeric_cases() -> list[Case]:
                           lambda f, c, s=setting: ["simulate", "ltv", "-o", f / "s.h5", "--set", s], "error",
                           quick=setting == "duration_s=1e308"))
     for key in ("tiny_all_310", "tiny_all_170", "tiny_defl_300", "tiny_dither_300", "huge_values", "rate_1e12", "rate_1e-3"):
-        cases.append(Case(f"numeric/reep on {key}", "numeric", _reep(key), quick=key == "tiny_all_310"))
+        cases.append(Case(f"numeric/reep on {key}", "numeric", _reep(key)))
         cases.append(Case(f"numeric/identify freeair on {key}", "numeric",
-                          lambda f, c, k=key: ["identify", "freeair", c[k], "--out", f / "out", "-q"], quick=key == "tiny_all_310"))
+                          lambda f, c, k=key: ["identify", "freeair", c[k], "--out", f / "out", "-q"]))
         cases.append(Case(f"numeric/info on {key}", "numeric", lambda f, c, k=key: ["info", c[k]], "ok"))
     for flags in (["--f0", "70000", "--q", "200"], ["--f0", "1e308", "--q", "1e308"], ["--f0", "1e-300", "--q", "1"]):
         for key in ("rate_1e12", "no_free_air", "tiny_all_100"):
@@ -246,7 +244,7 @@ def _scheduler_cases() -> list[Case]:
             cases.append(Case(
                 f"scheduler/{command} with a {kind} peer", "scheduler",
                 lambda f, c, argv=argv: [*argv(f, c), "--scheduler", c["scheduler"], "--scheduler-timeout", "2", "-q"],
-                "error", peer=kind, timeout_s=60, quick=(command, kind) in (("reep", "garbage"), ("batch", "silent")),
+                "error", peer=kind, timeout_s=60, quick=(command, kind) == ("batch", "silent"),
             ))
     return cases
 
@@ -281,7 +279,7 @@ def _disk_cases() -> list[Case]:
     for name, argv in _DISK_RUNS.items():
         for size in _DISK_SIZES:
             cases.append(Case(f"diskfull/{name} on {size // 1024} KiB", "diskfull", argv, tmpfs_bytes=size, timeout_s=240,
-                              quick=(name, size) in (("convert to ros2-sqlite3", 4096), ("reep", 65536))))
+                              quick=(name, size) == ("convert to ros2-sqlite3", 4096)))
     return cases
 
 

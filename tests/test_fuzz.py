@@ -17,6 +17,8 @@ CI_CASES = 120
 def test_reader_survives_mutations(reader):
     if reader in VENDOR_READERS and not _FORMATS.is_dir():
         pytest.skip("../shared/data/formats (the vendor seeds) is not beside the repository")
+    if reader == "scheduler":
+        pytest.importorskip("distributed")
     start = time.monotonic()
     result = fuzz_reader(reader, CI_CASES, seed=20261122, timeout=10.0)
     counts = result["counts"]

@@ -60,7 +60,7 @@ def _write_result_file(path: str, n: int) -> None:
         writer.put("image/f0_hz", np.ones((64, 64)))
 
 
-@pytest.mark.parametrize("size_kib", [8, 136, 808, 812, 816])
+@pytest.mark.parametrize("size_kib", [8, 812])
 def test_an_hdf5_result_file_fails_cleanly_wherever_the_disk_fills(tmp_path, size_kib):
     """At 812 KiB (h5py 3, libhdf5 1.14) the data fit and HDF5's own flush at close is what fails."""
     with Tmpfs(tmp_path / "mnt", size_kib << 10) as mnt:
