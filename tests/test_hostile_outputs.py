@@ -268,3 +268,44 @@ def test_a_refusal_raised_by_the_interrupt_adds_no_line(capfd, fresh_outcome):
     with pytest.raises(SystemExit) as done:
         fresh_outcome._error("x.h5: cannot read (interrupted)", 2)
     assert done.value.code == 130 and capfd.readouterr().err.splitlines() == ["afmtool: interrupted"]
+
+
+# -- 8. batch: one line per failed input, the same result on a rerun ---------------------------------------
+
+
+def test_batch_reruns_report_the_same_line_for_the_same_input(tmp_path, monkeypatch):
+    import afmtool.analyses.batch as batch
+
+    corrupt = tmp_path / "corrupt.h5"
+    corrupt.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 100)
+    (item,) = batch.plan_batch([corrupt], tmp_path / "out")
+    real_run = batch.subprocess.run
+
+    def killed(args, **kwargs):  # the worker's child killed (OOM killer, a stray signal), twice
+        return subprocess.CompletedProcess(args, -9, "", "")
+
+    monkeypatch.setattr(batch.subprocess, "run", killed)
+    lost = batch.run_one(["reep"], item, [])
+    assert lost.status == "failed" and lost.reason.startswith("killed by a signal")
+    monkeypatch.setattr(batch.subprocess, "run", real_run)
+    first = batch.run_one(["reep"], item, [])  # the rerun after the kill: the input's own verdict
+    again = batch.run_one(["reep"], item, [])  # cached: not rerun, the same line
+    assert first.status == again.status == "failed" and first.exit_code == again.exit_code == 2
+    assert again.reason == first.reason and "\n" not in first.reason and "HDF5" in first.reason
+
+
+def test_a_lost_dask_task_is_a_failed_input_not_an_internal_error(tmp_path):
+    from afmtool.analyses.batch import BatchItem, _outcome
+
+    class Lost:
+        def result(self):
+            raise RuntimeError("KilledWorker: ('afmtool-0', <WorkerState 'tcp://127.0.0.1:1'>)\nsecond line")
+
+    class Full:
+        def result(self):
+            raise OSError(28, "No space left on device", "/x")
+
+    item = BatchItem("cap.h5", str(tmp_path / "cap_h5"))
+    lost = _outcome(Lost(), item)
+    assert lost.status == "failed" and lost.reason.startswith("worker lost") and "\n" not in lost.reason and not lost.fault
+    assert _outcome(Full(), item).fault  # the batch then stops and keeps nothing
