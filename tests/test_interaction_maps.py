@@ -75,7 +75,8 @@ def test_force_curve_tables_hold_the_binned_interaction_series(tmp_path):
 def _pixel_means(t: np.ndarray, values: np.ndarray, scan: dict, direction: int) -> np.ndarray:
     """Per-pixel means for one direction, from the scan metadata (trace first in each line)."""
     lines, pixels = int(scan["lines"]), int(scan["pixels_per_line"])
-    elapsed = (t - float(scan.get("start_s", 0.0))) * float(scan["line_rate_hz"])
+    # as ImageAccumulator rounds: elapsed time over the line period (a row at a pixel edge lands alike)
+    elapsed = (t - float(scan.get("start_s", 0.0))) / (1.0 / float(scan["line_rate_hz"]))
     line = np.floor(elapsed).astype(np.int64)
     fraction = elapsed - line
     position = np.where(fraction >= 0.5, 2.0 - 2.0 * fraction, 2.0 * fraction)

@@ -209,8 +209,9 @@ def test_the_in_process_path_is_the_command_line(tmp_path, in_process, argv, tom
 
 def test_bounds_have_open_and_closed_ends_and_an_automatic_value():
     check_value(ReepParams, "lam", 0.5)
-    for bad in (0.0, 1.0):  # (0, 1): both ends open
-        with pytest.raises(ConfigError, match=r"lam=.* must be in \(0, 1\)"):
+    assert check_value(ReepParams, "lam", 0.0) == 0.0  # 0 = from window_us
+    for bad in (1.0, -0.1):  # (0, 1): both ends open, 0 meaning automatic
+        with pytest.raises(ConfigError, match=r"lam=.* must be in \(0, 1\), or 0"):
             check_value(ReepParams, "lam", bad)
     check_value(KalmanBankParams, "adaptive_fraction", 1.0)  # (0, 1]: 1 is in
     with pytest.raises(ConfigError, match=r"must be in \(0, 1\]"):

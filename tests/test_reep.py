@@ -228,9 +228,11 @@ def test_images_from_scan_geometry(tmp_path):
     # line 0 is all before the first switch; lines 1-3: trace after a switch to 69.5 kHz,
     # retrace after the switch back.  The settling inside each half line blurs the pixels
     # next to the switch, so compare the line means.
-    assert np.mean(trace[0]) == pytest.approx(70_000.0, abs=20.0)
+    # the first 2 ms (REEP's warm-up, 5 windows) are flagged not converged: pixel 0 (1.25 ms) and part of pixel 1
+    assert np.isnan(trace[0, 0]) and np.isfinite(trace[0, 1:]).all() and np.isfinite(trace[1:]).all()
+    assert np.mean(trace[0, 1:]) == pytest.approx(70_000.0, abs=20.0)
     for line in (1, 2, 3):
         assert np.mean(trace[line]) < np.mean(retrace[line]) - 250.0
     gsf = read_gsf(out / "f0_hz_trace.gsf")
     assert gsf.data.shape == (4, 8)
-    np.testing.assert_allclose(gsf.data[::-1], trace.astype(np.float32))  # top row = last line
+    np.testing.assert_allclose(gsf.data[::-1], trace.astype(np.float32))  # top row = last line (NaN kept)

@@ -55,7 +55,8 @@ def test_reep_agrees_with_averaging_theory(force_set):
         return compare_binned(
             t, ReepRows(columns["f0_hz"], columns["q"], columns["f0_std_hz"], columns["q_std"]), columns["amplitude"],
             np.asarray(captured.truth["separation_nm"])[index], drive_frequency_hz=drive_hz, cantilever=cantilever,
-            force=force, row_lambda=params.lam ** result.results["decimate"], free_amplitude_nm=FREE_AMPLITUDE_NM,
+            force=force, row_lambda=result.results["forgetting_factor"] ** result.results["decimate"],
+            free_amplitude_nm=FREE_AMPLITUDE_NM,
             beat=beat, flag=columns["flag"],
         )
 

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from afmtool.estimators.reep_validity import (
-    FLAG_HIGH_SIGMA2,
     FLAG_LOW_AMPLITUDE,
+    FLAG_NOT_CONVERGED,
     FLAG_NOT_UNDERDAMPED,
     FLAG_OFFSET_DRIFT,
     FreeAirLevels,
@@ -167,20 +167,23 @@ def test_reference_force_curve_unflagged_f0_within_10_percent(tmp_path, hold):
 
 def test_each_flag_fires_on_its_own_condition():
     levels = FreeAirLevels(amplitude=20.0, sigma2=0.0025, source="free-air segment")
-    limits = ValidityLimits(min_amplitude_fraction=0.01, max_sigma2_ratio=4.0, max_offset_drift=0.1)
-    underdamped = np.array([True, False, True, True, True, True])
-    amplitude = np.array([5.0, 5.0, 0.19, 5.0, 1.0, 1.0])
-    sigma2 = np.array([0.0025, 0.0025, 0.0025, 0.011, np.nan, 0.0025])
-    drift = np.array([0.0, 0.0, 0.0, 0.0, 0.049, 0.051])  # against 0.1 · A²/2 = 0.05
-    flags = validity_flags(underdamped, amplitude, sigma2, levels, limits, drift)
+    limits = ValidityLimits(min_amplitude_fraction=0.01, max_offset_drift=0.1)
+    underdamped = np.array([True, True, False, True, True, True, True])
+    amplitude = np.array([5.0, 5.0, 5.0, 0.19, 5.0, 1.0, 1.0])
+    # σ̂² far above its free-air level (0.11 = 44x) is no reason: only NaN (undefined) is
+    sigma2 = np.array([0.0025, 0.0025, 0.0025, 0.0025, 0.11, np.nan, 0.0025])
+    drift = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.049, 0.051])  # against 0.1 · A²/2 = 0.05
+    flags = validity_flags(underdamped, amplitude, sigma2, levels, limits, drift, settled_from=1)
     np.testing.assert_array_equal(
-        flags, [0, FLAG_NOT_UNDERDAMPED, FLAG_LOW_AMPLITUDE, FLAG_HIGH_SIGMA2, 0, FLAG_OFFSET_DRIFT]
+        flags, [FLAG_NOT_CONVERGED, 0, FLAG_NOT_UNDERDAMPED, FLAG_LOW_AMPLITUDE, 0, FLAG_NOT_CONVERGED,
+                FLAG_OFFSET_DRIFT]
     )
-    # unknown free-air levels or zero limits switch the checks off, never the under-damped one
+    # unknown free-air levels or zero limits switch the checks off, never the under-damped or convergence ones
+    converging = np.where(np.isnan(sigma2), FLAG_NOT_CONVERGED, 0)
     off = validity_flags(underdamped, amplitude, sigma2, FreeAirLevels(None, None, "none"), limits)
-    np.testing.assert_array_equal(off, np.where(underdamped, 0, FLAG_NOT_UNDERDAMPED))
-    off = validity_flags(underdamped, amplitude, sigma2, levels, ValidityLimits(0.0, 0.0, 0.0), drift)
-    np.testing.assert_array_equal(off, np.where(underdamped, 0, FLAG_NOT_UNDERDAMPED))
+    np.testing.assert_array_equal(off, np.where(underdamped, 0, FLAG_NOT_UNDERDAMPED) | converging)
+    off = validity_flags(underdamped, amplitude, sigma2, levels, ValidityLimits(0.0, 0.0), drift)
+    np.testing.assert_array_equal(off, np.where(underdamped, 0, FLAG_NOT_UNDERDAMPED) | converging)
 
 
 def test_offset_drift_is_chunk_independent_and_measures_the_window_variance(rng):
@@ -215,18 +218,19 @@ def test_reep_rows_equals_the_steps_one_after_the_other(rng, with_offset, levels
     sigma2[:5] = np.nan
     amplitude = 5.0 * np.exp(0.5 * rng.standard_normal(n))
     levels = FreeAirLevels(5.0, 0.0025, "free-air segment") if levels_known else FreeAirLevels(None, None, "none")
-    limits = ValidityLimits(0.3, 2.0, 0.01)
+    limits = ValidityLimits(0.3, 0.01)
+    settled = 700
 
     f0, q, valid = resonance_from_denominator(b1, b0, fs)
     offset = c / (1.0 + b1 + b0) if with_offset else None
     variance = OffsetDrift(lam, keep)(offset) if with_offset else None
-    flags = validity_flags(valid, amplitude, sigma2, levels, limits, variance)
+    flags = validity_flags(valid, amplitude, sigma2, levels, limits, variance, settled_from=settled)
 
     drift = OffsetDrift(lam, keep) if with_offset else None
     cuts = (0, 1, 999, 2500, n)
     parts = [
         reep_rows(b1[a:b], b0[a:b], c[a:b] if with_offset else None, sigma2[a:b], amplitude[a:b], fs, levels, limits,
-                  drift)
+                  drift, settled_from=max(0, min(settled, b) - a))
         for a, b in zip(cuts[:-1], cuts[1:])
     ]
     np.testing.assert_array_equal(np.concatenate([p.f0_hz for p in parts]), f0)
@@ -237,17 +241,17 @@ def test_reep_rows_equals_the_steps_one_after_the_other(rng, with_offset, levels
     else:
         assert all(p.offset is None for p in parts)
     # the case exercises every check that is on
-    expected_bits = FLAG_NOT_UNDERDAMPED | (FLAG_LOW_AMPLITUDE | FLAG_HIGH_SIGMA2 if levels_known else 0)
+    expected_bits = FLAG_NOT_UNDERDAMPED | FLAG_NOT_CONVERGED | (FLAG_LOW_AMPLITUDE if levels_known else 0)
     assert np.bitwise_or.reduce(flags) == expected_bits | (FLAG_OFFSET_DRIFT if with_offset else 0)
 
 
 def test_flag_counter_counts_each_bit(rng):
     from afmtool.estimators.reep_validity import FlagCounter
 
-    flags = rng.integers(0, 16, 1000).astype(np.uint8)
+    flags = (rng.integers(0, 16, 1000) & ~4 | 16 * rng.integers(0, 2, 1000)).astype(np.uint8)
     counter = FlagCounter()
     counter.add(flags[:300])
     counter.add(flags[300:])
     assert counter.total == 1000 and counter.flagged == np.count_nonzero(flags)
-    for bit in (FLAG_NOT_UNDERDAMPED, FLAG_LOW_AMPLITUDE, FLAG_HIGH_SIGMA2, FLAG_OFFSET_DRIFT):
+    for bit in (FLAG_NOT_UNDERDAMPED, FLAG_LOW_AMPLITUDE, FLAG_NOT_CONVERGED, FLAG_OFFSET_DRIFT):
         assert counter.by_bit[bit] == np.count_nonzero(flags & bit)

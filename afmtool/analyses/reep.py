@@ -1,11 +1,13 @@
 """``afmtool reep``: equivalent f0′ and Q′ every sample, beside amplitude and phase.
 
-capture → chunks → BCEWRLS kernel (eq. 3.39, θ = [b1, b0], numerator fixed at
-its free-air value, §3.3.3) → f0′, Q′ by eq. 3.48 → decimated series in
-``reep.h5``, force-curve tables and scan images, and a summary for
-``report.json``.  Every filter carries its state across chunks, so the
-output does not depend on the chunk size.  Samples whose fit cannot be
-trusted are flagged (:mod:`afmtool.estimators.reep_validity`) and left out of
+capture → chunks → :class:`~afmtool.estimators.reep_estimator.ReepEstimator`
+(anti-alias filter and decimation to N–2N samples per period, BCEWRLS of
+eq. 3.39 with θ = [b1, b0(, c)] and the numerator fixed at its free-air value,
+§3.3.3, a window in time) → f0′, Q′ by eq. 3.48 with their standard
+deviations → rows in ``reep.h5``, force-curve tables and scan images, and a
+summary for ``report.json``.  Every filter carries its state across chunks,
+so the output does not depend on the chunk size.  Rows whose fit is invalid
+are flagged (:mod:`afmtool.estimators.reep_validity`) and left out of
 everything but ``reep.h5``.
 """
 
@@ -19,11 +21,11 @@ import numpy as np
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
 from afmtool.analyses.reep_timeseries import PLOTTED, SegmentMoments, Thinned, ThinnedRows
 from afmtool.config.params import ReepParams
-from afmtool.config.samples import sample_count
 from afmtool.errors import InputError
 from afmtool.estimators._common import check_resolvable
 from afmtool.estimators.drive_lines import excitation_lines
 from afmtool.estimators.moments import RunningMoments
+from afmtool.estimators.reep_estimator import ReepEstimator
 from afmtool.estimators.reep_validity import (
     FlagCounter,
     FreeAirLevels,
@@ -89,28 +91,9 @@ def _spectral_peak_hz(x: np.ndarray, sample_rate_hz: float) -> float:
     return float(freqs[int(np.argmax(power))])
 
 
-class _Bandpass:
-    """Causal Butterworth band-pass with carried state (output-only mode)."""
-
-    def __init__(self, centre_hz: float, half_width_hz: float, sample_rate_hz: float) -> None:
-        from scipy.signal import butter, sosfilt_zi
-
-        self.design = (centre_hz, half_width_hz, sample_rate_hz)
-        low = max(centre_hz - half_width_hz, 1.0)
-        high = min(centre_hz + half_width_hz, 0.49 * sample_rate_hz)
-        self.sos = butter(2, [low, high], btype="bandpass", fs=sample_rate_hz, output="sos")
-        self.zi = sosfilt_zi(self.sos) * 0.0
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        from scipy.signal import sosfilt
-
-        y, self.zi = sosfilt(self.sos, x, zi=self.zi)
-        return y
-
-
 @dataclass(frozen=True)
 class ReepKernels:
-    """REEP's recursions (BCEWRLS, the lock-in, the output-only band-pass) as a pure function of a chunk.
+    """REEP's recursions (the :class:`ReepEstimator` and the lock-in) as a pure function of a chunk.
 
     The :class:`~afmtool.pipeline.ChunkKernels` of :class:`ReepStage`: on a
     worker, ``estimate`` runs them from their initial state over the lead
@@ -118,52 +101,38 @@ class ReepKernels:
     returns what :meth:`ReepStage.account` takes.
     """
 
-    params: ReepParams
-    numerator: tuple[float, float, float] | None
+    estimator: ReepEstimator
     lockin: object
-    every: int
-    bandpass: tuple[float, float, float] | None
     lead_samples: int
-    drive_cycles_per_sample: float = 0.0
 
     @property
     def alignment(self) -> int:
-        return self.every
+        return self.estimator.row_every
 
     @staticmethod
-    def lead_for(params: ReepParams, lockin, bandpass: _Bandpass | None) -> int | None:
-        """W: the longest of the RLS forgetting and the filters' decay (:mod:`afmtool.estimators.split_lead`)."""
-        from afmtool.estimators.split_lead import forgetting_lead, sos_lead
+    def lead_for(estimator: ReepEstimator, lockin) -> int | None:
+        """W: the longest of the estimator's forgetting and filters and the lock-in's decay (:mod:`afmtool.estimators.split_lead`)."""
+        from afmtool.estimators.split_lead import sos_lead
 
-        leads = [forgetting_lead(params.lam), sos_lead(lockin.sos)]
-        if bandpass is not None:
-            leads.append(sos_lead(bandpass.sos))
+        leads = [estimator.lead_samples(), sos_lead(lockin.sos)]
         return None if any(lead is None for lead in leads) else max(leads)
 
     def estimate(self, lead: Chunk | None, chunk: Chunk):
         """``(ReepBlock, LockInBlock)`` of ``chunk``, from the initial states warmed on ``lead``."""
-        from afmtool.estimators.rls import ReepState, reep_update
-
-        params = self.params
+        estimator = self.estimator
         first = lead.start if lead is not None else chunk.start
-        state = ReepState.initial(lam=params.lam, p0=params.p0, static_offset=params.static_offset)
-        n_signals = 2 if params.use_input else 1
-        lock_state = self.lockin.initial_state(n_signals, first)
-        bandpass = _Bandpass(*self.bandpass) if self.bandpass is not None else None
+        state = estimator.initial(first)
+        lock_state = self.lockin.initial_state(2 if estimator.use_input else 1, first)
         block = demod = None
         for part in (lead, chunk):
             if part is None:
                 continue
             p, g = part.data["deflection"], part.data.get("dither")
-            block, state = reep_update(
-                state, bandpass(p) if bandpass is not None else p, g, self.numerator,
-                bias_compensation=params.bias_compensation, use_input=params.use_input, keep_every=self.every,
-                drive_cycles_per_sample=self.drive_cycles_per_sample,
-            )
-            if params.use_input:
-                demod, lock_state = self.lockin.process_against(p, g, lock_state, self.every)
+            block, state = estimator.run(state, p, g)
+            if estimator.use_input:
+                demod, lock_state = self.lockin.process_against(p, g, lock_state, estimator.row_every)
             else:
-                (demod,), lock_state = self.lockin.process(p, lock_state, self.every)
+                (demod,), lock_state = self.lockin.process(p, lock_state, estimator.row_every)
         return block, demod
 
 
@@ -188,24 +157,17 @@ def _resolve_model(reader: CaptureReader, params: ReepParams, model: FreeAirMode
     return route.model, chunks, segment_s, route
 
 
-def _segment_levels(segment, params: ReepParams, numerator, lockin, bandpass_factory) -> FreeAirLevels:
-    """σ̂² and amplitude in free air, by the run's own estimators over the free-air segment."""
-    from afmtool.estimators.rls import ReepState, reep_update
-
+def _segment_levels(segment, estimator: ReepEstimator, lockin, warmup_samples: int) -> FreeAirLevels:
+    """σ̂² and amplitude in free air, by the run's own estimator and lock-in over the free-air segment."""
     p = segment.data["deflection"]
-    g = segment.data.get("dither") if params.use_input else None
-    bandpass = bandpass_factory()
-    block = reep_update(
-        ReepState.initial(lam=params.lam, p0=params.p0, static_offset=params.static_offset),
-        bandpass(p) if bandpass is not None else p, g, numerator,
-        bias_compensation=params.bias_compensation, use_input=params.use_input,
-    ).block
-    if params.use_input:
-        demod, _ = lockin.process_against(p, g, lockin.initial_state(2))
+    g = segment.data.get("dither") if estimator.use_input else None
+    rows = estimator.with_rows(estimator.factor)
+    block = rows.run(rows.initial(), p, g).block
+    if estimator.use_input:
+        demod, _ = lockin.process_against(p, g, lockin.initial_state(2), estimator.factor)
     else:
-        demod = lockin.process(p, lockin.initial_state(1))[0][0]
-    warmup = Warmup.of_windows(params.warmup_windows, params.lam).samples
-    return free_air_levels(block.sigma2, demod.amplitude, min(warmup, len(p) // 2))
+        demod = lockin.process(p, lockin.initial_state(1), estimator.factor)[0][0]
+    return free_air_levels(block.sigma2, demod.amplitude, min(warmup_samples, len(p) // 2) // estimator.factor)
 
 
 def _metadata_levels(reader: CaptureReader) -> FreeAirLevels:
@@ -270,9 +232,8 @@ class ReepStage:
         return chunks
 
     def prepare(self, head: Head) -> None:
-        """Drive, lock-in, decimation, validity levels and accumulators, from the first chunk."""
+        """Drive, the estimator, lock-in, rows, validity levels and accumulators, from the first chunk."""
         from afmtool.estimators.lockin import LockIn, default_lowpass_hz
-        from afmtool.estimators.rls import ReepState
 
         if not self._resolved:
             raise RuntimeError("ReepStage runs with prologue=stage.free_air_prologue (the free-air route)")
@@ -281,29 +242,49 @@ class ReepStage:
         drive = head.info.capture_metadata.drive
         self.drive_hz = _drive_frequency(params, drive, self.model, head.first.data["deflection"], fs)
         self.lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(self.drive_hz, drive.sideband_offset_hz)
-        self.decimation = Decimation(params.decimate or sample_count(1.0, fs / self.drive_hz, "the drive period", minimum=1, per="drive period"))
-        self.numerator = self.model.numerator_at(fs) if (self.model is not None and params.use_input) else None
+        self.estimator = self._build_estimator()
+        self.decimation = Decimation(self.estimator.row_every)
         self.lines = self._input_checks(head.first.data.get("dither"))
-        self.bandpass = self._make_bandpass()
-        self.state = ReepState.initial(lam=params.lam, p0=params.p0, static_offset=params.static_offset)
+        self.state = self.estimator.initial()
         self.lockin = LockIn(self.drive_hz, fs, self.lowpass_hz)
         self.lock_state = self.lockin.initial_state(2 if params.use_input else 1)
-        self.warmup = Warmup.of_windows(params.warmup_windows, params.lam)
-        self.limits = ValidityLimits(params.min_amplitude_fraction, params.max_sigma2_ratio, params.max_offset_drift)
-        self.offset_drift = OffsetDrift(params.lam, self.decimation.every) if params.static_offset else None
+        self.warmup = Warmup.of_windows(params.warmup_windows, self.estimator.capture_lam)
+        self.limits = ValidityLimits(params.min_amplitude_fraction, params.max_offset_drift)
+        reep_rows_per_row = self.estimator.row_every // self.estimator.factor
+        self.offset_drift = OffsetDrift(self.estimator.lam, reep_rows_per_row) if params.static_offset else None
         self.levels = self._free_air_levels()
+        self.settling = _settling(self.estimator, self.model, head, self.geometry_of(head))
         self.summaries = {name: RunningMoments() for name in ("f0_hz", "q", "amplitude", "phase_deg", "sigma2")}
         # in the stream, so that the command need not read reep.h5 back for them (0.7 s at 1e8 samples)
         self.segment_moments = SegmentMoments(self.warmup.samples / fs, self.segment_s)
         n_samples = head.info.n_samples
         self.plot_rows = ThinnedRows(PLOTTED, self.decimation.count(0, n_samples) if n_samples else None)
         self.flag_counter = FlagCounter()
-        self.geometry = ScanGeometry.from_scan(head.info.capture_metadata.scan)
+        self.geometry = self.geometry_of(head)
         # a raster capture with z also gets its height image: z_piezo per pixel, as recorded
         image_quantities = _IMAGE_QUANTITIES + (("z",) if self.z_mode else ())
         self.image_acc = ImageAccumulator(self.geometry, image_quantities) if self.geometry else None
         self.curve_acc = ForceCurveAccumulator(params.z_bin, _CURVE_QUANTITIES) if self.z_mode and self.force_curves else None
         self._side = head.side
+
+    @staticmethod
+    def geometry_of(head: Head) -> ScanGeometry | None:
+        return ScanGeometry.from_scan(head.info.capture_metadata.scan)
+
+    def _build_estimator(self) -> ReepEstimator:
+        """The one :class:`ReepEstimator` of this run, from the parameters and the resolved model and drive."""
+        params, model = self.params, self.model
+        with_model = model is not None and params.use_input
+        # the segment route's ARX fit is redone at REEP's rate on the same segment
+        segment = None
+        if with_model and self._segment is not None and (self.route or {}).get("route") == "segment":
+            segment = (self._segment.data["deflection"], self._segment.data["dither"])
+        return ReepEstimator.build(
+            params, sample_rate_hz=self.fs, resonance_hz=model.f0_hz if model is not None else self.drive_hz,
+            drive_hz=self.drive_hz, numerator=model.numerator_at(self.fs) if with_model else None,
+            denominator=model.denominator_at(self.fs) if with_model else None,
+            bandpass_half_width_hz=params.bandpass_half_width_hz, segment=segment,
+        )
 
     def _input_checks(self, first_dither: np.ndarray | None) -> list[float]:
         """The dither's lines near resonance, with warnings on too few lines and an unmodelled delay."""
@@ -323,30 +304,19 @@ class ReepStage:
             )
         return lines
 
-    def _make_bandpass(self) -> _Bandpass | None:
-        if not self.params.use_input and self.params.bandpass_half_width_hz > 0:
-            return _Bandpass(self.drive_hz, self.params.bandpass_half_width_hz, self.fs)
-        return None
-
     def _free_air_levels(self) -> FreeAirLevels:
-        """σ̂² and amplitude in free air (segment, else metadata); a warning per check left without one."""
+        """σ̂² and amplitude in free air (segment, else metadata); a warning when the amplitude floor has none."""
         if self._segment is not None:
-            levels = _segment_levels(self._segment, self.params, self.numerator, self.lockin, self._make_bandpass)
+            levels = _segment_levels(self._segment, self.estimator, self.lockin, self.warmup.samples)
         else:
             levels = _metadata_levels(self.reader)
         self._segment = None  # read once; not kept for the run
-        for check, level, name in (
-            (self.limits.min_amplitude_fraction, levels.amplitude, "free amplitude"),
-            (self.limits.max_sigma2_ratio, levels.sigma2, "free-air sigma^2"),
-        ):
-            if check and level is None:
-                self.warnings.append(f"no {name} known (no free-air segment): that validity check is off")
+        if self.limits.min_amplitude_fraction and levels.amplitude is None:
+            self.warnings.append("no free amplitude known (no free-air segment): the amplitude floor is off")
         return levels
 
     def _estimate(self, chunk: Chunk):
         """REEP on this thread, the lock-in on the side thread (both kernels release the GIL)."""
-        from afmtool.estimators.rls import reep_update
-
         params, every = self.params, self.decimation.every
         p = chunk.data["deflection"]
         g = chunk.data.get("dither")
@@ -355,11 +325,7 @@ class ReepStage:
         else:
             demodulating = self._side.submit(self.lockin.process, p, self.lock_state, every)
         try:
-            p_for_rls = self.bandpass(p) if self.bandpass is not None else p
-            block, self.state = reep_update(
-                self.state, p_for_rls, g, self.numerator, bias_compensation=params.bias_compensation,
-                use_input=params.use_input, keep_every=every, drive_cycles_per_sample=self.drive_hz / self.fs,
-            )
+            block, self.state = self.estimator.run(self.state, p, g)
         finally:
             demodulated, self.lock_state = demodulating.result()
         return block, (demodulated if params.use_input else demodulated[0])
@@ -370,12 +336,10 @@ class ReepStage:
 
     def kernels(self) -> ReepKernels | None:
         """The recursions as :class:`ReepKernels`, for a split run; None if one of them never forgets (λ = 1)."""
-        lead = ReepKernels.lead_for(self.params, self.lockin, self.bandpass)
+        lead = ReepKernels.lead_for(self.estimator, self.lockin)
         if lead is None:
             return None
-        bandpass = self.bandpass.design if self.bandpass is not None else None
-        return ReepKernels(self.params, self.numerator, self.lockin, self.decimation.every, bandpass, lead,
-                           self.drive_hz / self.fs)
+        return ReepKernels(self.estimator, self.lockin, lead)
 
     def account(self, chunk: Chunk, estimate) -> dict[str, np.ndarray]:
         """Everything after the kernels, in capture order: f0′, Q′, flags, columns, summaries."""
@@ -383,8 +347,8 @@ class ReepStage:
         # everything below runs on the kept samples only (Decimation)
         kept_index = self.decimation.kept_index(chunk.start, len(chunk))
         rows = reep_rows(
-            block.b1, block.b0, block.c, block.sigma2, demod.amplitude, self.fs, self.levels, self.limits,
-            self.offset_drift, block.covariance,
+            block.b1, block.b0, block.c, block.sigma2, demod.amplitude, self.estimator.rate_hz, self.levels,
+            self.limits, self.offset_drift, block.covariance, self.warmup.first_settled(kept_index),
         )
         columns = {
             "t": kept_index / self.fs,
@@ -444,21 +408,26 @@ class ReepStage:
 
     def _results(self) -> dict:
         params, fs, model, n_total = self.params, self.fs, self.model, self.n_total
-        window = 1.0 / (1.0 - params.lam)
-        limits = self.limits
+        estimator, limits = self.estimator, self.limits
+        described = estimator.describe()
         return {
             "free_air_model": model.to_dict() if model is not None else None,
             "free_air_segment_s": list(self.segment_s) if self.segment_s else None,
             "free_air_route": self.route,
-            "forgetting_factor": params.lam,
-            "window_samples": window,
-            "window_us": window / fs * 1e6,
+            "forgetting_factor": described["forgetting_factor"],
+            "window_samples": described["window_samples"],
+            "window_us": described["window_us"],
+            "estimator": described,
+            "settling": self.settling,
             "bias_compensation": params.bias_compensation,
             "use_input": params.use_input,
+            # without the dither the AR(2) fit sees no input: its damping is the loop's, not the cantilever's
+            "q_identifiable": params.use_input,
             "n_samples": n_total,
             "duration_s": n_total / fs,
             "sample_rate_hz": fs,
             "decimate": self.decimation.every,
+            "row_rate_hz": estimator.row_rate_hz,
             "drive_frequency_hz": self.drive_hz,
             "lockin": {"lowpass_hz": self.lowpass_hz, "order": self.lockin.order,
                        "type": "Butterworth, complex demodulation"},
@@ -467,10 +436,10 @@ class ReepStage:
             "flagged_samples": self.flag_counter.flagged,  # among the decimated output samples after the warm-up
             "validity": {
                 "min_amplitude_fraction": limits.min_amplitude_fraction,
-                "max_sigma2_ratio": limits.max_sigma2_ratio,
                 "max_offset_drift": limits.max_offset_drift,
                 "free_air_levels": self.levels.as_dict(),
                 "flags": self.flag_counter.as_dict(),
+                "mostly_flagged": self.flag_counter.mostly_flagged(limits),
             },
             "summary_after_warmup_samples": self.warmup.samples,
             "summary": {name: _summary_dict(s) for name, s in self.summaries.items()},
@@ -549,3 +518,25 @@ def run_reep(
         progress=progress, prologue=stage.free_air_prologue, split=split, on_start=on_stream_start,
     )
     return result
+
+
+def _settling(estimator: ReepEstimator, model: FreeAirModel | None, head: Head, geometry: ScanGeometry | None) -> dict:
+    """The window, the measured 10–90 % settling of f0′ and Q′, and for a scan the distance the tip covers meanwhile."""
+    from afmtool.estimators.reep_estimator import step_settling
+
+    out: dict = {"window_us": estimator.window_s * 1e6, "f0_settling_10_90_s": None, "q_settling_10_90_s": None}
+    dither = head.first.data.get("dither")
+    if model is None or not estimator.use_input or dither is None:
+        out["note"] = "no step response without the recorded dither and a free-air model"
+        return out
+    fs = estimator.sample_rate_hz
+    step = step_settling(estimator, model.numerator_at(fs), model.denominator_at(fs), dither)
+    out.update(f0_settling_10_90_s=step.f0_s, q_settling_10_90_s=step.q_s, f0_step_hz=step.f0_step_hz, q_step=step.q_step,
+               method="noise-free free-air model, f0 stepped down by half a linewidth and Q by 10 %")
+    if geometry is not None and step.f0_s is not None:
+        # the tip crosses the scan once per line period, twice with trace and retrace
+        speed = geometry.scan_size_m * geometry.line_rate_hz * (2.0 if geometry.trace_retrace else 1.0)
+        out["scan_speed_m_per_s"] = speed
+        out["spatial_resolution_m"] = speed * step.f0_s
+        out["spatial_resolution_pixels"] = speed * step.f0_s / (geometry.scan_size_m / geometry.pixels_per_line)
+    return out

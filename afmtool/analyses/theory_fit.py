@@ -304,10 +304,11 @@ def _load(reep_dir: Path, params) -> ForceFitData:
         if "z" not in reep.series:
             raise InputError(f"{reep.path}: no z series (the capture had no z_piezo): not a force curve")
         series = reep_series(reep, ("t", "f0_hz", "q", "amplitude", "z"))
-        # samples REEP flagged as untrustworthy (reep.h5 'flag' != 0) are not fitted
+        # samples REEP flagged as invalid (reep.h5 'flag' != 0) are not fitted
         flag = reep.series.get("flag")
         series["trusted"] = flag[()] == 0 if flag is not None else np.ones(len(series["t"]), dtype=bool)
         units, reep_results, capture = reep.z_units, reep.report, reep_capture_path(reep)
+        series["trusted"] &= _linear_model_holds(reep, reep_results)
     metadata, _, _ = capture_side(capture, reep_results)
     nm_per_unit = z_sensitivity_nm(units, params.z_sensitivity)
     cantilever = capture_cantilever(metadata, reep_results)
@@ -336,6 +337,26 @@ def _load(reep_dir: Path, params) -> ForceFitData:
     return ForceFitData(s["z"], s["f0_hz"], s["q"], s["amplitude"], thinned, nm_per_unit,
                         reep_results["drive_frequency_hz"], cantilever, free_amplitude,
                         reep_results["forgetting_factor"] ** decimate, sigma)
+
+
+#: The fit leaves out rows whose σ̂² exceeds this multiple of its free-air level.
+_MAX_SIGMA2_RATIO = 4.0
+
+
+def _linear_model_holds(reep, reep_results) -> np.ndarray | bool:
+    """Rows whose σ̂² is within ``_MAX_SIGMA2_RATIO`` of its free-air level (True where it is unknown).
+
+    REEP's flags mark only invalid rows; a σ̂² far above the free-air level
+    (impacts on a stiff wall, where the linear model does not describe the
+    window) is a valid row for REEP but not one averaging theory can be
+    fitted to: the fit leaves those out, as REEP's flags did before issue 27.
+    """
+    level = ((reep_results.get("validity") or {}).get("free_air_levels") or {}).get("sigma2")
+    sigma2 = reep.series.get("sigma2")
+    if not level or sigma2 is None:
+        return True
+    values = sigma2[()]
+    return ~(values > _MAX_SIGMA2_RATIO * level)
 
 
 def _record(fit: ForceFit, data: ForceFitData) -> dict:

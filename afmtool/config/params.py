@@ -193,8 +193,29 @@ def _check_f0_q(f0_hz: float, q: float) -> None:
 class ReepParams:
     """``afmtool reep``: recursive estimation of equivalent parameters (ch. 3)."""
 
+    window_us: float = field(
+        400.0,
+        "Forgetting window 1/(1-λ) of the BCEWRLS (eq. 3.39) in time: the thesis's λ = 0.995 at 500 kHz; "
+        "λ = 1 - 1/(window · REEP's rate)",
+        "µs",
+        bounds="> 0",
+        flag="--window-us",
+    )
     lam: float = field(
-        0.995, "Forgetting factor λ of the BCEWRLS (eq. 3.39); window 1/(1-λ) samples", bounds="(0, 1)", flag="--lambda"
+        0.0,
+        "Forgetting factor λ per capture sample instead of window_us (window 1/(1-λ) samples); 0 = from window_us",
+        bounds="(0, 1)",
+        automatic=0.0,
+        flag="--lambda",
+    )
+    samples_per_period: float = field(
+        4.0,
+        "REEP's rate: deflection and dither pass one anti-alias filter and are decimated by D = floor(fs/(N·f0)), "
+        "so that the regression sees N to 2N samples per period at any oversampling; 0 = the capture's rate",
+        "samples per period",
+        bounds=">= 3",
+        automatic=0.0,
+        flag="--samples-per-period",
     )
     p0: float = field(1.0e6, "Initial covariance P(0) = P0·I (eq. 3.39)", bounds="> 0")
     bias_compensation: bool = field(
@@ -225,15 +246,12 @@ class ReepParams:
         0.0, "Spring constant k for the interaction quantities (e.g. identify freeair --psd); 0 = metadata "
         "cantilever.spring_constant_n_per_m", "N/m", bounds=">= 0", flag="--spring-constant",
     )
-    warmup_windows: float = field(5.0, "Windows 1/(1-λ) left out of summary statistics at the start", bounds=">= 0")
+    warmup_windows: float = field(
+        5.0, "Windows 1/(1-λ) flagged as not converged at the start (and left out of the summaries)", bounds=">= 0"
+    )
     min_amplitude_fraction: float = field(
         0.01,
         "Validity: f0', Q' flagged where the amplitude is below this share of the free amplitude; 0 = off",
-        bounds=">= 0",
-    )
-    max_sigma2_ratio: float = field(
-        4.0,
-        "Validity: f0', Q' flagged where sigma^2 exceeds this multiple of its free-air level; 0 = off",
         bounds=">= 0",
     )
     max_offset_drift: float = field(

@@ -1,20 +1,18 @@
-"""Where REEP's f0′ and Q′ can be trusted: the per-sample validity flags of ``afmtool reep``.
+"""Where REEP's f0′ and Q′ are invalid: the per-row validity flags of ``afmtool reep``.
 
 REEP fits a linear second-order model (eq. 3.40) in a window of 1/(1 − λ)
-samples.  Three things make a fitted (b1, b0) meaningless, each a bit of the
-``flag`` series in ``reep.h5`` (0 = valid):
+samples.  A flag marks a row whose fitted (b1, b0) is *invalid*, not one
+that is merely uncertain: how uncertain every row is, ``f0_std_hz`` and
+``q_std`` say (:mod:`afmtool.estimators.rls`).  Each reason is a bit of
+the ``flag`` series in ``reep.h5`` (0 = valid):
 
 * :data:`FLAG_NOT_UNDERDAMPED` (1): (b1, b0) outside the under-damped region
   0 < b0 < 1, |b1| < 2√b0, where eq. 3.48 has no (f0′, Q′) (docs/conventions.md);
 * :data:`FLAG_LOW_AMPLITUDE` (2): the oscillation amplitude at the drive is
-  below ``min_amplitude_fraction`` of the free amplitude.  The regressors
-  then carry little but noise: the bias compensation subtracts σ²R⁻¹θ with
-  R ≈ A²/2, so its error, and the estimate's variance, grow as (σ/A)²;
-* :data:`FLAG_HIGH_SIGMA2` (4): σ̂² above ``max_sigma2_ratio`` times its
-  free-air level.  σ̂² is the window's residual variance over (1 + θᵀθ)
-  (eq. 3.39); far above the measurement noise it says the linear model does
-  not describe the data (impacts on the repulsive wall, harmonics, a
-  transient faster than the window);
+  below ``min_amplitude_fraction`` of the free amplitude (the stated floor,
+  1 % by default).  The regressors then carry little but noise: the bias
+  compensation subtracts σ²R⁻¹θ with R ≈ A²/2, so its error grows as
+  (σ/A)² faster than the first-order standard deviation says;
 * :data:`FLAG_OFFSET_DRIFT` (8), with the static-offset regressor only: the
   offset p̄ = c/(1 + b1 + b0) moves within REEP's window by more than that
   constant can follow.  Its exponentially weighted variance over the window
@@ -22,13 +20,23 @@ samples.  Three things make a fitted (b1, b0) meaningless, each a bit of the
   model lacks; compared with the power the oscillation gives the AR
   regressors, A²/2, V > ``max_offset_drift``·A²/2 means b1, b0 absorb it
   (a fast approach into the attractive trap, where p̄ changes by tenths of
-  a nm per window beside a 0.3 nm oscillation, and f0′ reads 20–30 % low).
+  a nm per window beside a 0.3 nm oscillation, and f0′ reads 20–30 % low);
+* :data:`FLAG_NOT_CONVERGED` (16): the estimator has not yet forgotten its
+  start, the first ``warmup_windows`` windows of the stream, or its bias
+  compensation has not started (σ̂² undefined, the start-up guard of
+  eq. 3.39).
+
+Bit 4 is not used: it was "σ̂² above 4× its free-air level".  σ̂² is the
+window's residual variance over (1 + θᵀθ); in repulsive tapping it rises
+because the tip–sample force is nonlinear, which is the model mismatch the
+measurement is made of, not a reason to blank f0′ and Q′.  It stays a
+series in ``reep.h5``, with its free-air level in the report.
 
 The free-air levels come from the capture's own free-air segment, by the
-same estimators (REEP with the same λ and regressors, and the lock-in):
-medians after their start-up.  Flagged samples are NaN in the summaries,
-force-curve tables and images of f0′ and Q′; ``reep.h5`` keeps the fitted
-values and the flag.
+same estimator (:class:`~afmtool.estimators.reep_estimator.ReepEstimator`)
+and the lock-in: medians after their start-up.  Flagged rows are NaN in the
+summaries, force-curve tables and images of f0′ and Q′; ``reep.h5`` keeps
+the fitted values and the flag.
 """
 
 from __future__ import annotations
@@ -47,8 +55,8 @@ from afmtool.models.discretisation import resonance_scalar, resonance_std_scalar
 __all__ = [
     "FLAG_NOT_UNDERDAMPED",
     "FLAG_LOW_AMPLITUDE",
-    "FLAG_HIGH_SIGMA2",
     "FLAG_OFFSET_DRIFT",
+    "FLAG_NOT_CONVERGED",
     "OffsetDrift",
     "FLAG_REASONS",
     "FreeAirLevels",
@@ -62,14 +70,14 @@ __all__ = [
 
 FLAG_NOT_UNDERDAMPED = 1
 FLAG_LOW_AMPLITUDE = 2
-FLAG_HIGH_SIGMA2 = 4
 FLAG_OFFSET_DRIFT = 8
+FLAG_NOT_CONVERGED = 16
 
 #: Report keys and the warning text of each flag bit.
 FLAG_REASONS = {
     FLAG_NOT_UNDERDAMPED: ("not_underdamped", "(b1, b0) outside the under-damped region of eq. 3.48"),
     FLAG_LOW_AMPLITUDE: ("low_amplitude", "amplitude below {min_amplitude_fraction:g} of the free amplitude"),
-    FLAG_HIGH_SIGMA2: ("high_sigma2", "sigma^2 above {max_sigma2_ratio:g} times its free-air level"),
+    FLAG_NOT_CONVERGED: ("not_converged", "the estimator had not converged (start-up, or its bias compensation undefined)"),
     FLAG_OFFSET_DRIFT: (
         "offset_drift",
         "the static offset varies within the window by more than {max_offset_drift:g} of the oscillation's power A^2/2",
@@ -84,16 +92,13 @@ class ValidityLimits:
     Attributes
     ----------
     min_amplitude_fraction : float
-        Lowest trusted amplitude, as a share of the free amplitude.
-    max_sigma2_ratio : float
-        Highest trusted σ̂², as a multiple of its free-air level.
+        Lowest valid amplitude, as a share of the free amplitude.
     max_offset_drift : float
-        Highest trusted variance of the static offset over the window, as
+        Highest valid variance of the static offset over the window, as
         a share of A²/2.
     """
 
     min_amplitude_fraction: float
-    max_sigma2_ratio: float
     max_offset_drift: float = 0.0
 
 
@@ -106,7 +111,7 @@ class FreeAirLevels(NamedTuple):
         Free amplitude at the drive, deflection units (None: unknown, the
         amplitude check is off).
     sigma2 : float or None
-        REEP's σ̂² in free air, deflection units² (None: the σ² check is off).
+        REEP's σ̂² in free air, deflection units² (reported beside the σ̂² series; None: unknown).
     source : str
         Where they came from: ``"free-air segment"``, ``"metadata"`` or ``"none"``.
     """
@@ -187,9 +192,9 @@ class OffsetDrift:
 
 def validity_flags(
     underdamped: np.ndarray, amplitude: np.ndarray, sigma2: np.ndarray, levels: FreeAirLevels, limits: ValidityLimits,
-    offset_variance: np.ndarray | None = None,
+    offset_variance: np.ndarray | None = None, settled_from: int = 0,
 ) -> np.ndarray:
-    """The flag bits of every sample (uint8, 0 = f0′ and Q′ valid).
+    """The flag bits of every row (uint8, 0 = f0′ and Q′ valid), one array operation per reason.
 
     Parameters
     ----------
@@ -199,20 +204,22 @@ def validity_flags(
     amplitude : numpy.ndarray
         Lock-in amplitude at the drive, deflection units.
     sigma2 : numpy.ndarray
-        REEP's σ̂², deflection units² (NaN in the start-up: not flagged).
+        REEP's σ̂², deflection units² (NaN in the start-up: not converged).
     levels : FreeAirLevels
     limits : ValidityLimits
     offset_variance : numpy.ndarray, optional
         V(n) of :class:`OffsetDrift`, deflection units² (static-offset
         regressor only; None skips that check).
+    settled_from : int, optional
+        Rows before this one are in the warm-up (not converged).
     """
     flags = np.where(underdamped, 0, FLAG_NOT_UNDERDAMPED).astype(np.uint8)
     if levels.amplitude and limits.min_amplitude_fraction > 0:
         flags |= np.where(amplitude < limits.min_amplitude_fraction * levels.amplitude, FLAG_LOW_AMPLITUDE, 0).astype(
             np.uint8
         )
-    if levels.sigma2 and limits.max_sigma2_ratio > 0:
-        flags |= np.where(sigma2 > limits.max_sigma2_ratio * levels.sigma2, FLAG_HIGH_SIGMA2, 0).astype(np.uint8)
+    warming = np.isnan(sigma2) | (np.arange(len(flags)) < settled_from)
+    flags |= np.where(warming, FLAG_NOT_CONVERGED, 0).astype(np.uint8)
     if offset_variance is not None and limits.max_offset_drift > 0:
         drifting = offset_variance > limits.max_offset_drift * 0.5 * np.square(amplitude)
         flags |= np.where(drifting, FLAG_OFFSET_DRIFT, 0).astype(np.uint8)
@@ -232,7 +239,7 @@ class ReepRows(NamedTuple):
 
 @njit(**JIT_OPTIONS)
 def _rows_kernel(
-    b1, b0, c, sigma2, amplitude, covariance, period, min_amplitude, max_sigma2, max_drift, drift_lam, drift_state,
+    b1, b0, c, sigma2, amplitude, covariance, period, min_amplitude, settled_from, max_drift, drift_lam, drift_state,
     f0_out, q_out, offset_out, flags_out, f0_std_out, q_std_out,
 ):
     """Eq. 3.48 with its standard deviations, the offset p̄ = c/(1 + b1 + b0), its EW variance and the flags."""
@@ -251,8 +258,8 @@ def _rows_kernel(
             flag |= FLAG_NOT_UNDERDAMPED
         if amp < min_amplitude:
             flag |= FLAG_LOW_AMPLITUDE
-        if sigma2[i] > max_sigma2:
-            flag |= FLAG_HIGH_SIGMA2
+        if i < settled_from or math.isnan(sigma2[i]):
+            flag |= FLAG_NOT_CONVERGED
         if has_offset:
             offset = c[i] / (1.0 + b1[i] + b0[i])
             offset_out[i] = offset
@@ -268,7 +275,7 @@ def _rows_kernel(
 def reep_rows(
     b1: np.ndarray, b0: np.ndarray, c: np.ndarray | None, sigma2: np.ndarray, amplitude: np.ndarray,
     sample_rate_hz: float, levels: FreeAirLevels, limits: ValidityLimits, drift: OffsetDrift | None = None,
-    covariance: np.ndarray | None = None,
+    covariance: np.ndarray | None = None, settled_from: int = 0,
 ) -> ReepRows:
     """f0′, Q′ (eq. 3.48), the static offset and the flag bits of REEP's kept rows, in one pass.
 
@@ -296,6 +303,8 @@ def reep_rows(
     covariance : numpy.ndarray, shape (K, 3), optional
         (var b1, cov(b1, b0), var b0) of each row (:class:`~afmtool.estimators.rls.ReepBlock`):
         gives ``f0_std_hz`` and ``q_std`` (None without it).
+    settled_from : int, optional
+        Rows before this one are in the warm-up (:data:`FLAG_NOT_CONVERGED`).
     """
     n = len(b1)
     signals = [np.ascontiguousarray(x, dtype=np.float64) for x in (b1, b0, sigma2, amplitude)]
@@ -303,9 +312,7 @@ def reep_rows(
         raise ValueError("reep_rows needs an OffsetDrift with the offset coefficient c")
     offset_c = np.ascontiguousarray(c, dtype=np.float64) if c is not None else np.empty(0)
     amplitude_on = bool(levels.amplitude) and limits.min_amplitude_fraction > 0
-    sigma2_on = bool(levels.sigma2) and limits.max_sigma2_ratio > 0
     min_amplitude = limits.min_amplitude_fraction * levels.amplitude if amplitude_on else -math.inf
-    max_sigma2 = limits.max_sigma2_ratio * levels.sigma2 if sigma2_on else math.inf
     max_drift = limits.max_offset_drift if limits.max_offset_drift > 0 else math.inf
     drift_lam, drift_state = (drift._lam, drift._state) if drift is not None else (1.0, np.zeros(3))
     f0, q, offset = np.empty(n), np.empty(n), np.empty(n if c is not None else 0)
@@ -314,7 +321,7 @@ def reep_rows(
     flags = np.empty(n, dtype=np.uint8)
     _rows_kernel(
         signals[0], signals[1], offset_c, signals[2], signals[3], cov, 1.0 / sample_rate_hz, min_amplitude,
-        max_sigma2, max_drift, drift_lam, drift_state, f0, q, offset, flags, f0_std, q_std,
+        int(settled_from), max_drift, drift_lam, drift_state, f0, q, offset, flags, f0_std, q_std,
     )
     stds = (f0_std, q_std) if covariance is not None else (None, None)
     return ReepRows(f0, q, offset if c is not None else None, flags, *stds)
@@ -332,8 +339,8 @@ class FlagCounter:
         self.by_bit = {bit: 0 for bit in FLAG_REASONS}
 
     def add(self, flags: np.ndarray) -> None:
-        # one pass: how many rows carry each combination of the four bits
-        per_value = np.bincount(np.asarray(flags, dtype=np.uint8), minlength=16)
+        # one pass: how many rows carry each combination of the bits
+        per_value = np.bincount(np.asarray(flags, dtype=np.uint8), minlength=32)
         values = np.arange(per_value.size)
         self.total += int(flags.size)
         self.flagged += int(flags.size - per_value[0])
@@ -348,20 +355,34 @@ class FlagCounter:
             **{FLAG_REASONS[bit][0]: count for bit, count in self.by_bit.items()},
         }
 
+    def reason(self, bit: int, limits: ValidityLimits) -> str:
+        """The words of one flag bit, with its threshold."""
+        return FLAG_REASONS[bit][1].format(
+            min_amplitude_fraction=limits.min_amplitude_fraction, max_offset_drift=limits.max_offset_drift
+        )
+
+    def mostly_flagged(self, limits: ValidityLimits) -> SampleShareWarning | None:
+        """A warning that most rows are invalid, naming the commonest reason; None if at most half are."""
+        if not self.total or self.flagged * 2 <= self.total:
+            return None
+        bit, count = max(self.by_bit.items(), key=lambda item: item[1])
+        return SampleShareWarning(
+            f"most of REEP's rows are invalid: {self.flagged / self.total:.0%} flagged after the warm-up, "
+            f"mostly ({count / self.total:.0%} of the rows) because {self.reason(bit, limits)}",
+            self.flagged, self.total,
+        )
+
     def warnings(self, limits: ValidityLimits) -> list[str]:
-        """One warning per reason that flagged something, saying why and how many."""
-        out = []
+        """One warning per reason that flagged something, saying why and how many; first, if most are flagged, why."""
+        mostly = self.mostly_flagged(limits)
+        out = [mostly] if mostly else []
         for bit, count in self.by_bit.items():
             if count:
-                reason = FLAG_REASONS[bit][1].format(
-                    min_amplitude_fraction=limits.min_amplitude_fraction, max_sigma2_ratio=limits.max_sigma2_ratio,
-                    max_offset_drift=limits.max_offset_drift,
-                )
                 samples = "output sample" if self.total == 1 else "output samples"
                 out.append(SampleShareWarning(
                     f"{count} of {self.total} {samples} after the warm-up ({100 * count / self.total:.2g} %) "
-                    f"flagged: {reason}; "
-                    "their f0' and Q' cannot be trusted and are NaN in the summary, force curves and images "
+                    f"flagged: {self.reason(bit, limits)}; "
+                    "their f0' and Q' are invalid and NaN in the summary, force curves and images "
                     "(reep.h5 keeps them, with 'flag')", count, self.total,
                 ))
         return out

@@ -23,7 +23,7 @@ from afmtool.models.free_air import FreeAirModel, load_free_air_model
 __all__ = ["ReepResults", "open_reep_results"]
 
 _SERIES = ("t", "b1", "b0")
-_OPTIONAL_SERIES = ("z", "f0_hz", "q", "amplitude", "phase_deg", "f0_std_hz", "q_std", FLAG_COLUMN)
+_OPTIONAL_SERIES = ("z", "f0_hz", "q", "f0_std_hz", "q_std", "sigma2", "amplitude", "phase_deg", FLAG_COLUMN)
 
 
 @dataclass

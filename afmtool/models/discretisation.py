@@ -85,6 +85,7 @@ __all__ = [
     "classify_hold",
     "line_numerator",
     "sampled_numerator",
+    "rate_numerator",
     "sampled_response",
     "is_underdamped",
     "resonance_scalar",
@@ -393,6 +394,50 @@ def line_numerator(
     target *= 1.0 + b1 * zinv + b0 * zinv * zinv
     system = np.array([[1.0, 1.0, 1.0], [1.0, zinv.real, (zinv * zinv).real], [0.0, zinv.imag, (zinv * zinv).imag]])
     rhs = np.array([1.0 + b1 + b0, target.real, target.imag])
+    a2, a1, a0 = np.linalg.solve(system, rhs)
+    return DiscreteNumerator(float(a2), float(a1), float(a0))
+
+
+def rate_numerator(
+    numerator, denominator, sample_rate_hz: float, rate_hz: float, match_hz: float
+) -> DiscreteNumerator:
+    r"""The numerator at a lower rate that keeps a capture-rate model's response at one line and at DC.
+
+    REEP may run on the capture filtered and decimated to ``rate_hz``
+    (:mod:`afmtool.estimators.rate_reduction`).  One filter on both
+    signals leaves the response at each line as the capture-rate model
+    H(z) = N(z)/D(z) has it, whatever the hold.  At the new rate the
+    denominator is the pole map of the same poles, z' = z^D (eq. 3.48 at
+    the capture's rate, then :func:`discrete_denominator` at ``rate_hz``),
+    and the numerator solves, as :func:`line_numerator` does,
+
+    .. math:: a_2 + a_1 z_m'^{-1} + a_0 z_m'^{-2} = H(e^{j\omega_m T}) D'(z_m'),
+              \qquad a_2 + a_1 + a_0 = H(1)\,D'(1),
+
+    with z_m' = e^{jω_m T'}: exact at the match line and at DC, and smooth
+    between (D′ cancels H's poles).
+
+    Parameters
+    ----------
+    numerator, denominator : sequences of floats
+        (a2, a1, a0) and (b1, b0) at ``sample_rate_hz``; under-damped.
+    sample_rate_hz, rate_hz : float
+        The capture's rate and the lower rate, Hz.
+    match_hz : float
+        The match line (the drive), below both Nyquist frequencies, Hz.
+    """
+    f0_hz, q, valid = resonance_from_denominator(denominator[0], denominator[1], sample_rate_hz)
+    if not valid:
+        raise ConfigError(f"the free-air denominator {tuple(denominator)!r} is not an under-damped mode")
+    if not (0 < match_hz < rate_hz / 2):
+        raise ConfigError(f"the match line {match_hz:g} Hz is not below the Nyquist frequency {rate_hz / 2:g} Hz")
+    b1, b0 = discrete_denominator(f0_hz, q, rate_hz)
+    target = complex(sampled_response(numerator, denominator, match_hz, sample_rate_hz))
+    dc = complex(sampled_response(numerator, denominator, 0.0, sample_rate_hz)).real
+    zinv = complex(np.exp(-2j * np.pi * match_hz / rate_hz))
+    target *= 1.0 + b1 * zinv + b0 * zinv * zinv
+    system = np.array([[1.0, 1.0, 1.0], [1.0, zinv.real, (zinv * zinv).real], [0.0, zinv.imag, (zinv * zinv).imag]])
+    rhs = np.array([dc * (1.0 + b1 + b0), target.real, target.imag])
     a2, a1, a0 = np.linalg.solve(system, rhs)
     return DiscreteNumerator(float(a2), float(a1), float(a0))
 
