@@ -63,3 +63,26 @@ def test_bad_config_file_is_a_clean_error(tmp_path):
     assert result.returncode == 2
     assert "not valid TOML" in result.stderr.decode()
     assert not (tmp_path / "out").exists()
+
+
+def test_kalman_bank_nests_a_reep_block():
+    """[kalman-bank.reep] is a ReepParams table over its own defaults; the bank's own fields stay the bank's."""
+    from afmtool.config.params import KalmanBankParams, ReepParams
+
+    params = resolve_from(KalmanBankParams, "kalman-bank", {"kalman-bank": {"reep": {"window_us": 300.0}}}, {})
+    assert params.reep == ReepParams(window_us=300.0)
+    assert resolve_from(KalmanBankParams, "kalman-bank", None, {}).reep == ReepParams()
+    with pytest.raises(ConfigError, match=r"\[kalman-bank\] reep\.unknown parameter 'lamda'"):
+        resolve_from(KalmanBankParams, "kalman-bank", {"kalman-bank": {"reep": {"lamda": 0.9}}}, {})
+    with pytest.raises(ConfigError, match=r"reep\.window_us=-1\.0 must be > 0"):
+        resolve_from(KalmanBankParams, "kalman-bank", {"kalman-bank": {"reep": {"window_us": -1.0}}}, {})
+    with pytest.raises(ConfigError, match=r"\[kalman-bank.reep\] free_air: kalman-bank sets it"):
+        resolve_from(KalmanBankParams, "kalman-bank", {"kalman-bank": {"reep": {"free_air": "0:0.01"}}}, {})
+    with pytest.raises(ConfigError, match="must be a table"):
+        resolve_from(KalmanBankParams, "kalman-bank", {"kalman-bank": {"reep": 0.995}}, {})
+    # the config.toml a run writes reads back to the same parameters
+    from afmtool.config import section_to_toml
+
+    text = section_to_toml("kalman-bank", params)
+    assert "[kalman-bank.reep]" in text
+    assert resolve_from(KalmanBankParams, "kalman-bank", tomllib.loads(text), {}) == params

@@ -181,7 +181,8 @@ def test_held_reep_coefficients():
     fs = 1000.0
     t = (np.arange(5) * 3 + 2) / fs  # kept samples 2, 5, 8, 11, 14
     held = HeldReepCoefficients(t, np.arange(5.0), 10 + np.arange(5.0), fs)
-    b1, b0 = held.block(Chunk(0, {"deflection": np.zeros(17)}))
+    b1, b0, reep_b1, reep_b0 = held.block(Chunk(0, {"deflection": np.zeros(17)}))
+    np.testing.assert_array_equal(reep_b1, b1)  # at the capture's rate (D = 1) they are REEP's own
     expected = [np.nan, np.nan, 0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4]
     np.testing.assert_array_equal(b1, expected)
     np.testing.assert_array_equal(b0, np.array(expected) + 10)

@@ -14,7 +14,8 @@ least innovation RMS):
 3. Pass 2 streams the capture once more through the fused bank kernel and
    an adaptive observer whose model follows REEP's (b1, b0) sample by
    sample (REEP runs again beside it, chunk by chunk, bit for bit as in
-   pass 1; or its decimated estimates are held).  Each innovation's window
+   pass 1, the same :class:`~afmtool.estimators.reep_estimator.ReepEstimator`;
+   or its decimated estimates are held).  Each innovation's window
    RMS is binned against z, approach and retract apart.
 4. The verdict (:mod:`afmtool.estimators.kalman_bank_verdict`): every
    filter's least RMS lies in its design bin, and the adaptive observer has
@@ -65,6 +66,8 @@ from afmtool.analyses.freeair_source import drive_frequency
 from afmtool.analyses.kalman_bank_reep import (
     HeldReepCoefficients,
     InternalReep,
+    ReepTiming,
+    bank_reep_params,
     reep_delay,
     reep_pass_one,
     reep_tables_from_file,
@@ -195,8 +198,8 @@ class BankSetup:
         The free-air model (numerator of every observer, start model of the adaptive one).
     segment_s : tuple of 2 floats or None
         The free-air segment it came from.
-    lam : float
-        REEP's forgetting factor.
+    timing : ReepTiming
+        REEP's window and rate.
     drive_hz : float
         Drive frequency, Hz.
     window : int
@@ -215,7 +218,7 @@ class BankSetup:
 
     model: FreeAirModel
     segment_s: tuple[float, float] | None
-    lam: float
+    timing: ReepTiming
     drive_hz: float
     window: int
     decimate: int
@@ -253,7 +256,7 @@ def _design_points(params: KalmanBankParams, tables: dict[str, ModelTable] | Non
 def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: Iterator[Chunk]):
     """The free-air model by :func:`~afmtool.analyses.freeair_route.resolve_free_air`, as REEP does.
 
-    Returns (model, chunks, segment seconds or None, route report, route warnings).
+    Returns (:class:`~afmtool.analyses.freeair_route.FreeAirRoute`, chunks).
     """
     from afmtool.analyses.freeair_route import resolve_free_air
 
@@ -265,11 +268,10 @@ def _identify_free_air(reader: CaptureReader, params: KalmanBankParams, chunks: 
     except ConfigError as exc:
         raise ConfigError(f"kalman-bank needs the free-air model ({exc}); or give --reep REEP_DIR with its "
                           "free_air.json") from None
-    segment_s = route.segment.interval_s if route.segment is not None else None
-    return route.model, chunks, segment_s, route.report, route.warnings
+    return route, chunks
 
 
-def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
+def _setup(reader, params, model, segment_s, timing: ReepTiming, tables, row_every: int | None) -> BankSetup:
     fs = reader.info.sample_rate_hz
     drive_hz = drive_frequency(reader, params.drive_frequency_hz, model)
     window = sample_count(params.rms_window_periods, fs / drive_hz, "rms_window_periods", minimum=1, per="drive period")
@@ -279,9 +281,11 @@ def _setup(reader, params, model, segment_s, lam, tables) -> BankSetup:
         f0_scale=params.f0_scale,
     )
     radius = float(np.mean([np.abs(d.error_poles).mean() for d in designs]))
+    # with REEP inside, the bank keeps REEP's own rows, so pass 2's f0′ is pass 1's row for row
+    decimate = row_every or params.decimate or sample_count(1.0, fs / drive_hz, "the drive period", minimum=1)
     return BankSetup(
-        model, segment_s, lam, drive_hz, window, params.decimate or sample_count(1.0, fs / drive_hz, "the drive period", minimum=1, per="drive period"),
-        warmup_samples(params, lam) + window, points, designs, radius,
+        model, segment_s, timing, drive_hz, window, decimate, warmup_samples(params.reep, timing) + window, points,
+        designs, radius,
     )
 
 
@@ -295,10 +299,10 @@ class BankKernels:
     """Pass 2's recursions as a pure function of a chunk: :class:`_PassTwo`'s
     :class:`~afmtool.pipeline.ChunkKernels`.
 
-    REEP (θ̂_C per sample), the bank of N observers and the adaptive observer
+    REEP (held per sample), the bank of N observers and the adaptive observer
     fed by REEP start from their initial states a lead ahead: REEP's
-    forgetting, then the slowest observer's settling (error poles and one
-    RMS window).  Returns the kept samples only, so the hand-back is small.
+    forgetting and filters, then the slowest observer's settling (error poles
+    and one RMS window).  Returns the kept samples only, so the hand-back is small.
     """
 
     reep: object
@@ -311,16 +315,16 @@ class BankKernels:
 
     @property
     def alignment(self) -> int:
-        return 1  # REEP runs at every sample here; the kept ones are taken by capture index
+        return self.reep.factor  # REEP's samples; the kept ones are taken by capture index
 
     def estimate(self, lead: Chunk | None, chunk: Chunk):
-        """``(rms (N, K), adaptive rms (K,), b1 (K,), b0 (K,), held)`` at the chunk's kept samples.
+        """``(rms (N, K), adaptive rms (K,), REEP's b1 (K,), b0 (K,), held)`` at the chunk's kept samples.
 
         ``held``: the chunk's samples on which the adaptive observer kept its model (no valid REEP model).
         """
         from afmtool.estimators.observer import AdaptiveState, BankState, adaptive_update, bank_update
 
-        reep = self.reep.fresh()
+        reep = self.reep.fresh(lead.start if lead is not None else chunk.start)
         bank = BankState.initial(self.designs, self.window)
         adaptive = AdaptiveState.initial(*self.adaptive_model, self.radius, self.window)
         out = None
@@ -330,11 +334,11 @@ class BankKernels:
                 continue
             held_before = adaptive.held_samples
             y, g = part.data["deflection"], part.data["dither"]
-            b1, b0 = reep.block(part)
+            model = reep.block(part)
             bank_step = bank_update(bank, y, g)
-            adaptive_step = adaptive_update(adaptive, y, g, b1, b0)
+            adaptive_step = adaptive_update(adaptive, y, g, model.b1, model.b0)
             bank, adaptive = bank_step.state, adaptive_step.state
-            out = bank_step.block.rms, adaptive_step.block.rms, b1, b0
+            out = bank_step.block.rms, adaptive_step.block.rms, model.reep_b1, model.reep_b0
         keep = Decimation(self.every).keep(chunk.start)
         rms, adaptive_rms, b1, b0 = out
         return rms[:, keep], adaptive_rms[keep], b1[keep], b0[keep], adaptive.held_samples - held_before
@@ -350,12 +354,14 @@ class _PassTwo:
     25 MB above pass 1's, for no gain a loaded 2-core machine could show.
     """
 
-    def __init__(self, reader: CaptureReader, params: KalmanBankParams, *, model: FreeAirModel | None, lam: float,
-                 tables, segment_s, route, reep_results) -> None:
+    def __init__(self, reader: CaptureReader, params: KalmanBankParams, *, model: FreeAirModel | None,
+                 estimator, timing: ReepTiming | None, tables, segment_s, route, reep_results) -> None:
         self.reader = reader
         self.params = params
         self.model = model
-        self.lam = lam
+        self.estimator = estimator  # pass 1's REEP, or built in prepare
+        self.timing = timing
+        self._route = None
         self.tables = tables
         self.segment_s = segment_s
         self.route = route
@@ -367,9 +373,9 @@ class _PassTwo:
     def free_air_prologue(self, chunks: Iterator[Chunk]) -> Iterator[Chunk]:
         """Identify the free-air model when none is known yet (its segment read ahead)."""
         if self.model is None:
-            self.model, chunks, self.segment_s, self.route, self.route_warnings = _identify_free_air(
-                self.reader, self.params, chunks
-            )
+            self._route, chunks = _identify_free_air(self.reader, self.params, chunks)
+            self.model, self.route, self.route_warnings = self._route.model, self._route.report, self._route.warnings
+            self.segment_s = self._route.segment.interval_s if self._route.segment is not None else None
         return chunks
 
     def prepare(self, head: Head) -> None:
@@ -377,12 +383,17 @@ class _PassTwo:
         from afmtool.estimators.observer import AdaptiveState, BankState
 
         fs, params, model, reep_results = self.fs, self.params, self.model, self.reep_results
-        setup = _setup(self.reader, params, model, self.segment_s, self.lam, self.tables)
+        if reep_results is None and self.estimator is None:  # --models: REEP runs here only, built as its stage builds it
+            self.estimator = self._reep_estimator(head)
+            self.timing = ReepTiming.of(self.estimator)
+        setup = _setup(self.reader, params, model, self.segment_s, self.timing, self.tables,
+                       self.estimator.row_every if self.estimator is not None else None)
         self.setup = setup
         self.coefficients = (
-            HeldReepCoefficients(reep_results.series["t"], reep_results.series["b1"], reep_results.series["b0"], fs)
+            HeldReepCoefficients(reep_results.series["t"], reep_results.series["b1"], reep_results.series["b0"], fs,
+                                 self.timing.factor)
             if reep_results is not None
-            else InternalReep(self.lam, model.numerator_at(fs))
+            else InternalReep(self.estimator)
         )
         self.decimation = Decimation(setup.decimate)
         self.warmup = Warmup(setup.warmup)
@@ -394,7 +405,7 @@ class _PassTwo:
         self.accumulator = ForceCurveAccumulator(params.z_bin, names)
         # REEP's model against z comes from pass 1 or --reep; pass 2 bins it only when neither gave it (--models)
         self.reep_binner = (
-            ReepBinner(params.z_bin, reep_delay(setup.lam, setup.decimate), setup.warmup / fs)
+            ReepBinner(params.z_bin, reep_delay(setup.timing, setup.decimate), setup.warmup / fs)
             if self.tables is None else None
         )
         self.split_held = 0
@@ -409,12 +420,24 @@ class _PassTwo:
         from afmtool.estimators.observer import adaptive_update, bank_update
 
         y, g = chunk.data["deflection"], chunk.data["dither"]
-        b1, b0 = self.coefficients.block(chunk)
+        reep = self.coefficients.block(chunk)
         bank_step = bank_update(self.bank, y, g)
-        adaptive_step = adaptive_update(self.adaptive, y, g, b1, b0)
+        adaptive_step = adaptive_update(self.adaptive, y, g, reep.b1, reep.b0)
         self.bank, self.adaptive = bank_step.state, adaptive_step.state
         keep = self.decimation.keep(chunk.start)  # the samples REEP keeps
-        return self.account(chunk, (bank_step.block.rms[:, keep], adaptive_step.block.rms[keep], b1[keep], b0[keep], 0))
+        return self.account(chunk, (bank_step.block.rms[:, keep], adaptive_step.block.rms[keep], reep.reep_b1[keep],
+                                    reep.reep_b0[keep], 0))
+
+    def _reep_estimator(self, head: Head):
+        """REEP as ``reep``'s stage would build it on this route (``--models``: there is no pass 1)."""
+        from afmtool.analyses.reep import build_reep_estimator
+
+        route = self._route
+        return build_reep_estimator(
+            bank_reep_params(self.params), self.model, self.fs, drive_frequency(self.reader, self.params.drive_frequency_hz,
+                                                                                self.model),
+            route.report if route is not None else self.route, route.segment if route is not None else None,
+        )
 
     def kernels(self) -> BankKernels | None:
         """The internal REEP, the bank and the adaptive observer as :class:`BankKernels`, for a split run.
@@ -423,12 +446,12 @@ class _PassTwo:
         a recursion never forgets.
         """
         from afmtool.estimators.reliability import settle_samples
-        from afmtool.estimators.split_lead import DEFAULT_RESIDUAL, forgetting_lead, pole_lead
+        from afmtool.estimators.split_lead import DEFAULT_RESIDUAL, pole_lead
 
         if not isinstance(self.coefficients, InternalReep):
             return None
         setup = self.setup
-        reep_lead = forgetting_lead(self.lam)
+        reep_lead = self.estimator.lead_samples()
         adaptive_lead = pole_lead([setup.radius], DEFAULT_RESIDUAL)
         if reep_lead is None or adaptive_lead is None:
             return None
@@ -450,7 +473,7 @@ class _PassTwo:
         index = self.decimation.kept_index(chunk.start, len(y))
         t = index / self.fs
         z = chunk.data["z_piezo"][keep]
-        f0, q, _ = resonance_from_denominator(b1, b0, self.fs)
+        f0, q, _ = resonance_from_denominator(b1, b0, self.fs / self.setup.timing.factor)
         settled = self.warmup.settled(index)
         lowest = adaptive < rms.min(axis=0)
         self.counted += int(np.count_nonzero(settled))
@@ -512,12 +535,12 @@ def _pass_progress(progress, n_passes: int, total: int | None):
 # ---------------------------------------------------------------------------
 
 
-def _check_reep_file(reep_results, fs: float) -> float:
-    """The file's λ; its sample rate must be the capture's."""
+def _check_reep_file(reep_results, fs: float) -> ReepTiming:
+    """The file's window and rate; its sample rate must be the capture's."""
     rate = reep_results.report.get("sample_rate_hz", fs)
     if rate != fs:
         raise InputError(f"--reep {reep_results.path}: REEP ran at {rate:g} Hz, the capture is {fs:g} Hz")
-    return float(reep_results.report.get("forgetting_factor", 0.0))
+    return ReepTiming.from_report(reep_results.report)
 
 
 def run_kalman_bank(
@@ -541,9 +564,8 @@ def run_kalman_bank(
     params : KalmanBankParams
         Effective parameters.
     writer
-        Receives ``t``, ``z`` (where each RMS value belongs),
-        ``rms`` (N, T), ``adaptive_rms``, ``reep_f0_hz``, ``reep_q``,
-        decimated, chunk by chunk.
+        Receives ``t``, ``z`` (where each RMS value belongs), ``rms`` (N, T),
+        ``adaptive_rms``, ``reep_f0_hz``, ``reep_q``, decimated, chunk by chunk.
     model : FreeAirModel, optional
         The free-air model; else that of ``reep_results``, else identified from the free-air segment.
     reep_results : afmtool.io.reep_results.ReepResults, optional
@@ -572,11 +594,11 @@ def run_kalman_bank(
     info = reader.info
     fs = info.sample_rate_hz
     require_channels(info, _CHANNELS)
-    lam, segment_s, tables, route, route_warnings = params.lam, None, None, None, ()
+    timing, estimator, segment_s, tables, route, route_warnings = None, None, None, None, None, ()
     if reep_results is not None:
         model = model or reep_results.free_air_model
-        lam = _check_reep_file(reep_results, fs) or lam
-        tables = reep_tables_from_file(reep_results, params, lam, fs)
+        timing = _check_reep_file(reep_results, fs)
+        tables = reep_tables_from_file(reep_results, params, timing, fs)
     two_passes = reep_results is None and not params.models
     progress_one, progress_two = _pass_progress(progress, 2 if two_passes else 1, info.n_samples)
     source = reader
@@ -584,9 +606,10 @@ def run_kalman_bank(
         first = reep_pass_one(reader, params, model, progress_one, split, on_stream_start)
         on_stream_start = None
         tables, model, segment_s, route = first.tables, first.model, first.segment_s, first.route
+        estimator, timing = first.estimator, ReepTiming.of(first.estimator)
         source = reopen() if reopen is not None else reader
-    stream = _PassTwo(source, params, model=model, lam=lam, tables=tables, segment_s=segment_s, route=route,
-                      reep_results=reep_results)
+    stream = _PassTwo(source, params, model=model, estimator=estimator, timing=timing, tables=tables,
+                      segment_s=segment_s, route=route, reep_results=reep_results)
     try:
         run_stream(source, [stream], writer, channels=_CHANNELS, chunk_samples=params.chunk_samples,
                    progress=progress_two, prologue=stream.free_air_prologue, read_ahead=_PASS_TWO_READ_AHEAD,
@@ -604,13 +627,14 @@ def run_kalman_bank(
 
 def _adaptive_hint(stream: _PassTwo, params: KalmanBankParams, z_units: str) -> str:
     """Why the adaptive observer may lose: REEP's window measured in z along the ramp."""
-    reep_window_z = stream.z_per_sample / (1.0 - stream.setup.lam)
+    window = stream.setup.timing.window_samples
+    reep_window_z = stream.z_per_sample * window
     if not reep_window_z > 0.25 * params.z_bin:
         return ""
     return (
-        f"; REEP's window 1/(1-lambda) = {1.0 / (1.0 - stream.setup.lam):.0f} samples spans {reep_window_z:.3g}"
+        f"; REEP's window 1/(1-lambda) = {window:.0f} samples spans {reep_window_z:.3g}"
         f"{' ' + z_units if z_units else ''} of z on this ramp ({reep_window_z / params.z_bin:.2g} bins), so the "
-        "adaptive observer's model lags the cantilever: a slower force curve (or a smaller lambda) is needed"
+        "adaptive observer's model lags the cantilever: a slower force curve (or a shorter window) is needed"
     )
 
 
@@ -687,8 +711,12 @@ def _results(params, setup: BankSetup, stream: _PassTwo, points, verdict, tol, z
         "free_air_segment_s": list(setup.segment_s) if setup.segment_s else None,
         "reep": {
             "source": str(reep_results.path) if reep_results is not None else "internal",
-            "forgetting_factor": setup.lam,
-            "coefficients": "held per sample from the decimated series" if reep_results is not None else "every sample",
+            "forgetting_factor": setup.timing.capture_lam,
+            "reep_forgetting_factor": setup.timing.lam,
+            "rate_reduction": setup.timing.factor,
+            "window_samples": setup.timing.window_samples,
+            "coefficients": ("held per sample from the decimated series" if reep_results is not None
+                             else "every REEP sample, held between them"),
         },
         "n_samples": stream.n_total,
         "duration_s": stream.n_total / fs,
@@ -700,7 +728,7 @@ def _results(params, setup: BankSetup, stream: _PassTwo, points, verdict, tol, z
         "rms_binned_delay_samples": setup.rms_delay,
         "warmup_samples": setup.warmup,
         "ramp_z_per_sample": stream.z_per_sample,
-        "reep_window_z": stream.z_per_sample / (1.0 - setup.lam),
+        "reep_window_z": stream.z_per_sample * setup.timing.window_samples,
         "z_units": z_units,
         "design": {
             "method": points[0].source,

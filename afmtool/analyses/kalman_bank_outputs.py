@@ -35,7 +35,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
 
     reader = run.reader
     params = run.params(KalmanBankParams, "kalman-bank")
-    if run.capture == "-" and not (params.reep or params.models):
+    if run.capture == "-" and not (params.reep_run or params.models):
         raise ConfigError(
             "kalman-bank reads a capture twice (REEP first, then the bank); stdin cannot be re-read: "
             "give --reep REEP_DIR (a finished 'afmtool reep' run) or --models"
@@ -46,7 +46,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
     units = {**SERIES_UNITS, "z": z_units, "rms": deflection_units, "adaptive_rms": deflection_units}
     capture_record = run.input_record()
     inputs = [*model_input_records(params.model)]
-    reep_results = open_reep_results(params.reep) if params.reep else None
+    reep_results = open_reep_results(params.reep_run) if params.reep_run else None
     try:
         if reep_results is not None:
             inputs.append(input_record(reep_results.path, "reep series"))

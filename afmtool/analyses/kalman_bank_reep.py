@@ -3,17 +3,23 @@
 Two sources, one interface:
 
 * internal: pass 1 runs REEP's stage (:class:`afmtool.analyses.reep.ReepStage`;
-  its columns go to a :class:`ReepBinner`), and pass 2 runs the same REEP kernel again
-  chunk by chunk (:class:`InternalReep`), which reproduces pass 1 bit for
-  bit;
+  its columns go to a :class:`ReepBinner`), and pass 2 runs the very
+  :class:`~afmtool.estimators.reep_estimator.ReepEstimator` pass 1 built,
+  chunk by chunk, with a row at every REEP sample (:class:`InternalReep`):
+  at pass 1's rows the two agree bit for bit (``tests/test_kalman_bank_reep.py``);
 * a finished run (``--reep``): its decimated series are binned the same way
   (:func:`reep_tables_from_file`) and its (b1, b0) are held per sample
   (:class:`HeldReepCoefficients`).
 
+The adaptive observer runs at the capture's rate; REEP may run at fs/D
+(:mod:`afmtool.estimators.rate_reduction`).  Its (b1, b0) are carried to the
+capture's rate by the pole map (z = z_D^{1/D}) and held between REEP's
+samples; f0′ and Q′ are taken from REEP's own (b1, b0) at its rate.
+
 Binning at the window centroid
 ------------------------------
 REEP's estimate at sample n weighs sample n − k by λᵏ(1 − λ); its centroid
-is λ/(1 − λ) samples back (199 at λ = 0.995), and along a ramp the
+is λ/(1 − λ) REEP samples back (199 at λ = 0.995 and D = 1), and along a ramp the
 estimate describes the cantilever there.  Each estimate is therefore binned
 against z that many samples earlier, as the bank's innovation RMS is
 binned where its own window and error dynamics put it.  Without this, a
@@ -35,26 +41,87 @@ from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
 
 __all__ = [
+    "CoefficientBlock",
     "HeldReepCoefficients",
     "InternalReep",
     "PassOne",
+    "ReepTiming",
     "reep_pass_one",
     "reep_tables_from_file",
     "reep_delay",
     "warmup_samples",
 ]
 
+class ReepTiming(NamedTuple):
+    """REEP's window as kalman-bank needs it: from the estimator, or from a finished run's report.
 
-def reep_delay(lam: float, decimate: int) -> int:
-    """λ/(1 − λ), REEP's window centroid, in kept (decimated) samples."""
-    return round(lam / (1.0 - lam) / max(decimate, 1))
+    Attributes
+    ----------
+    lam : float
+        Forgetting factor per REEP sample.
+    factor : int
+        Capture samples per REEP sample (D).
+    """
+
+    lam: float
+    factor: int = 1
+
+    @classmethod
+    def of(cls, estimator) -> ReepTiming:
+        return cls(estimator.lam, estimator.factor)
+
+    @classmethod
+    def from_report(cls, results: dict) -> ReepTiming:
+        """A finished run's: ``estimator`` (since issue 27) or the older per-sample ``forgetting_factor``."""
+        estimator = results.get("estimator") or {}
+        if "reep_forgetting_factor" in estimator:
+            return cls(float(estimator["reep_forgetting_factor"]), int(estimator.get("rate_reduction", 1)))
+        return cls(float(results.get("forgetting_factor", 0.995)), 1)
+
+    @property
+    def window_samples(self) -> float:
+        """The window 1/(1 − λ) in capture samples."""
+        return self.factor / (1.0 - self.lam)
+
+    @property
+    def centroid_samples(self) -> float:
+        """λ/(1 − λ), the window's centroid, in capture samples."""
+        return self.lam / (1.0 - self.lam) * self.factor
+
+    @property
+    def capture_lam(self) -> float:
+        """The forgetting factor per capture sample with the same window."""
+        return 1.0 - 1.0 / self.window_samples
 
 
-def warmup_samples(params: KalmanBankParams, lam: float) -> int:
-    """REEP's start-up left out of the statistics: ``warmup_windows`` windows 1/(1 − λ)."""
+def reep_delay(timing: ReepTiming, decimate: int) -> int:
+    """REEP's window centroid in kept (decimated) rows."""
+    return round(timing.centroid_samples / max(decimate, 1))
+
+
+def warmup_samples(reep_params: ReepParams, timing: ReepTiming) -> int:
+    """REEP's start-up left out of the statistics: ``warmup_windows`` windows, in capture samples."""
     from afmtool.config.samples import check_count
 
-    return int(check_count(params.warmup_windows / (1.0 - lam), "warmup_windows", params.warmup_windows))
+    windows = reep_params.warmup_windows
+    return int(check_count(windows * timing.window_samples, "warmup_windows", windows))
+
+
+class CoefficientBlock(NamedTuple):
+    """REEP's model for each sample of a chunk, held from its last estimate (NaN before the first).
+
+    Attributes
+    ----------
+    b1, b0 : numpy.ndarray
+        At the capture's rate, for the adaptive observer.
+    reep_b1, reep_b0 : numpy.ndarray
+        As REEP estimated them, at its rate (f0′ and Q′ come from these).
+    """
+
+    b1: np.ndarray
+    b0: np.ndarray
+    reep_b1: np.ndarray
+    reep_b0: np.ndarray
 
 
 class HeldReepCoefficients:
@@ -72,6 +139,8 @@ class HeldReepCoefficients:
         of any length stream.
     sample_rate_hz : float
         The capture's rate; t·fs must be whole samples at a uniform step.
+    factor : int, optional
+        The run's rate reduction D: its (b1, b0) are at fs/D.
 
     Raises
     ------
@@ -79,8 +148,9 @@ class HeldReepCoefficients:
         If the times are not uniform whole samples at this rate.
     """
 
-    def __init__(self, t, b1, b0, sample_rate_hz: float) -> None:
+    def __init__(self, t, b1, b0, sample_rate_hz: float, factor: int = 1) -> None:
         self._b1, self._b0 = b1, b0
+        self.factor = int(factor)
         self.length = len(t)
         if self.length == 0 or len(b1) != self.length or len(b0) != self.length:
             raise InputError("REEP series t, b1, b0 must be non-empty and of one length")
@@ -96,8 +166,8 @@ class HeldReepCoefficients:
                 "(a REEP run of another capture or sample rate?)"
             )
 
-    def block(self, chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
-        """(b1, b0) for the chunk's samples; NaN before the first estimate."""
+    def block(self, chunk: Chunk) -> CoefficientBlock:
+        """REEP's model for the chunk's samples; NaN before the first estimate."""
         n = chunk.start + np.arange(len(chunk))
         k = np.minimum(np.floor_divide(n - self.first_sample, self.step), self.length - 1)
         lo, hi = max(int(k.min()), 0), max(int(k.max()), 0)
@@ -108,30 +178,51 @@ class HeldReepCoefficients:
         out0 = np.full(n.shape, np.nan)
         out1[inside] = b1[k[inside] - lo]
         out0[inside] = b0[k[inside] - lo]
-        return out1, out0
+        from afmtool.estimators.reep_estimator import capture_rate_coefficients
+
+        return CoefficientBlock(*capture_rate_coefficients(out1, out0, self.factor), out1, out0)
 
 
 class InternalReep:
-    """REEP run chunk by chunk beside the bank, as ``run_reep`` runs it (same kernel, same state)."""
+    """REEP run chunk by chunk beside the bank: pass 1's :class:`ReepEstimator`, a row at every REEP sample.
 
-    def __init__(self, lam: float, numerator) -> None:
-        from afmtool.estimators.rls import ReepState
+    Parameters
+    ----------
+    estimator : ReepEstimator
+        The one REEP of the run (pass 1's, or built as its stage builds it).
+    start : int, optional
+        The capture sample it starts at (a split chunk's lead, on REEP's grid).
+    """
 
-        self.state = ReepState.initial(lam=lam)
-        self.lam = lam
-        self.numerator = numerator
+    def __init__(self, estimator, start: int = 0) -> None:
+        self.estimator = estimator.with_rows(estimator.factor)
+        self.state = self.estimator.initial(start)
+        self._held = (np.nan, np.nan)
 
-    def fresh(self) -> InternalReep:
-        """The same REEP from its initial state (a split chunk's warm-up)."""
-        return InternalReep(self.lam, self.numerator)
+    @property
+    def factor(self) -> int:
+        return self.estimator.factor
 
-    def block(self, chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
-        """(b1, b0) for every sample of the chunk (θ̂_C of eq. 3.39)."""
-        from afmtool.estimators.rls import reep_update
+    def fresh(self, start: int = 0) -> InternalReep:
+        """The same REEP from its initial state at ``start`` (a split chunk's warm-up)."""
+        return InternalReep(self.estimator, start)
 
-        step = reep_update(self.state, chunk.data["deflection"], chunk.data["dither"], self.numerator)
-        self.state = step.state
-        return step.block.b1, step.block.b0
+    def block(self, chunk: Chunk) -> CoefficientBlock:
+        """REEP's model for every sample of the chunk: each REEP sample's (b1, b0) held until the next."""
+        from afmtool.estimators.decimation import Decimation
+        from afmtool.estimators.reep_estimator import capture_rate_coefficients
+
+        run = self.estimator.run(self.state, chunk.data["deflection"], chunk.data["dither"])
+        self.state = run.state
+        n = len(chunk)
+        # REEP sample k of this chunk is capture sample first + k·D; sample n takes the last one at or before it
+        first = Decimation(self.factor).first_kept(chunk.start)
+        k = np.floor_divide(np.arange(n) - first, self.factor)
+        reep_b1 = np.concatenate(([self._held[0]], run.block.b1))[k + 1]
+        reep_b0 = np.concatenate(([self._held[1]], run.block.b0))[k + 1]
+        if len(run.block.b1):
+            self._held = (float(run.block.b1[-1]), float(run.block.b0[-1]))
+        return CoefficientBlock(*capture_rate_coefficients(reep_b1, reep_b0, self.factor), reep_b1, reep_b0)
 
 
 class _ReepTables:
@@ -149,9 +240,9 @@ class _ReepTables:
 
     def prepare(self, head) -> None:
         self.reep.prepare(head)
-        lam = self.params.lam
-        warmup_s = warmup_samples(self.params, lam) / self.fs
-        self.binner = ReepBinner(self.params.z_bin, reep_delay(lam, self.reep.decimation.every), warmup_s)
+        timing = ReepTiming.of(self.reep.estimator)
+        warmup_s = warmup_samples(self.params.reep, timing) / self.fs
+        self.binner = ReepBinner(self.params.z_bin, reep_delay(timing, self.reep.decimation.every), warmup_s)
 
     def step(self, chunk: Chunk) -> None:
         self.binner.append(self.reep.step(chunk))
@@ -179,18 +270,22 @@ class PassOne(NamedTuple):
         The free-air model REEP ran beside (given or identified).
     segment_s : tuple of 2 floats or None
         The free-air segment it was identified from.
+    estimator : ReepEstimator
+        The REEP that ran: pass 2's adaptive observer follows the same one.
+    route : dict or None
+        REEP's free-air route and drive hold (report.json ``free_air_route``).
     """
 
     tables: dict[str, ModelTable]
     model: FreeAirModel
     segment_s: tuple[float, float] | None
-    #: REEP's free-air route and drive hold (report.json ``free_air_route``).
+    estimator: object
     route: dict | None = None
 
 
 def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAirModel | None, progress,
                   split=None, on_start=None) -> PassOne:
-    """Run REEP (its stage, with the bank's λ, z bin and decimation) and bin its model against z.
+    """Run REEP (its stage, with ``[kalman-bank.reep]`` and the bank's route, z bin and decimation) and bin its model against z.
 
     ``split`` (a :class:`~afmtool.pipeline.Split`) runs REEP's kernels on several chunks at once;
     ``on_start`` is called as the stream starts.
@@ -198,19 +293,7 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
     from afmtool.analyses.reep import ReepStage
     from afmtool.pipeline import run_stream
 
-    reep_params = ReepParams(
-        lam=params.lam,
-        free_air=params.free_air,
-        f0_hz=params.f0_hz,
-        q=params.q,
-        drive_hold=params.drive_hold,
-        decimate=params.decimate,
-        drive_frequency_hz=params.drive_frequency_hz,
-        vs="z",
-        z_bin=params.z_bin,
-        warmup_windows=params.warmup_windows,
-        chunk_samples=params.chunk_samples,
-    )
+    reep_params = bank_reep_params(params)
     reep = ReepStage(reader, reep_params, model=model, force_curves=False)  # _ReepTables bins at the centroid
     ((result, tables),) = run_stream(
         reader, [_ReepTables(reep, params, reader.info.sample_rate_hz)], channels=reep.channels,
@@ -222,12 +305,23 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
     # the model REEP ran beside: a given one as the route refined it (gain and phase fitted at the drive)
     used = FreeAirModel.from_dict(result.results["free_air_model"], "identified free-air model")
     segment = result.results["free_air_segment_s"]
-    return PassOne(tables, used, tuple(segment) if segment else None,
+    return PassOne(tables, used, tuple(segment) if segment else None, reep.estimator,
                    result.results.get("free_air_route"))
 
 
+def bank_reep_params(params: KalmanBankParams) -> ReepParams:
+    """``[kalman-bank.reep]`` with the bank's own route, drive, decimation, z bin and chunking."""
+    import dataclasses
+
+    return dataclasses.replace(
+        params.reep, free_air=params.free_air, model=params.model, f0_hz=params.f0_hz, q=params.q,
+        drive_hold=params.drive_hold, decimate=params.decimate, drive_frequency_hz=params.drive_frequency_hz,
+        vs="z", z_bin=params.z_bin, chunk_samples=params.chunk_samples,
+    )
+
+
 def reep_tables_from_file(
-    reep_results, params: KalmanBankParams, lam: float, sample_rate_hz: float
+    reep_results, params: KalmanBankParams, timing: ReepTiming, sample_rate_hz: float
 ) -> dict[str, ModelTable]:
     """REEP's model against z from a finished run's decimated series (streamed in slices).
 
@@ -243,7 +337,7 @@ def reep_tables_from_file(
     t = series["t"]
     n = len(t)
     decimate = round((float(t[1]) - float(t[0])) * sample_rate_hz) if n > 1 else 1
-    binner = ReepBinner(params.z_bin, reep_delay(lam, decimate), warmup_samples(params, lam) / sample_rate_hz)
+    binner = ReepBinner(params.z_bin, reep_delay(timing, decimate), warmup_samples(params.reep, timing) / sample_rate_hz)
     names = ("t", "z", "f0_hz", "q") + (("amplitude",) if "amplitude" in series else ())
     step = 1 << 16
     for start in range(0, n, step):

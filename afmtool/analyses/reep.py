@@ -41,7 +41,7 @@ from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Split, Warmup, run_stream
 from afmtool.report.results import JsonResults
 
-__all__ = ["SERIES_UNITS", "ReepKernels", "ReepResult", "ReepStage", "run_reep"]
+__all__ = ["SERIES_UNITS", "ReepKernels", "ReepResult", "ReepStage", "build_reep_estimator", "run_reep"]
 
 #: Quantities kept per decimated sample, with their units ("" = dimensionless).
 SERIES_UNITS = {
@@ -272,19 +272,8 @@ class ReepStage:
         return ScanGeometry.from_scan(head.info.capture_metadata.scan)
 
     def _build_estimator(self) -> ReepEstimator:
-        """The one :class:`ReepEstimator` of this run, from the parameters and the resolved model and drive."""
-        params, model = self.params, self.model
-        with_model = model is not None and params.use_input
-        # the segment route's ARX fit is redone at REEP's rate on the same segment
-        segment = None
-        if with_model and self._segment is not None and (self.route or {}).get("route") == "segment":
-            segment = (self._segment.data["deflection"], self._segment.data["dither"])
-        return ReepEstimator.build(
-            params, sample_rate_hz=self.fs, resonance_hz=model.f0_hz if model is not None else self.drive_hz,
-            drive_hz=self.drive_hz, numerator=model.numerator_at(self.fs) if with_model else None,
-            denominator=model.denominator_at(self.fs) if with_model else None,
-            bandpass_half_width_hz=params.bandpass_half_width_hz, segment=segment,
-        )
+        """The one :class:`ReepEstimator` of this run (:func:`build_reep_estimator`)."""
+        return build_reep_estimator(self.params, self.model, self.fs, self.drive_hz, self.route, self._segment)
 
     def _input_checks(self, first_dither: np.ndarray | None) -> list[float]:
         """The dither's lines near resonance, with warnings on too few lines and an unmodelled delay."""
@@ -348,7 +337,7 @@ class ReepStage:
         kept_index = self.decimation.kept_index(chunk.start, len(chunk))
         rows = reep_rows(
             block.b1, block.b0, block.c, block.sigma2, demod.amplitude, self.estimator.rate_hz, self.levels,
-            self.limits, self.offset_drift, block.covariance, self.warmup.first_settled(kept_index),
+            self.limits, self.offset_drift, block.covariance, self.warmup.first_settled(kept_index), self.levels.sigma2,
         )
         columns = {
             "t": kept_index / self.fs,
@@ -462,6 +451,26 @@ def _free_air_check(segment: dict | None, model: FreeAirModel | None, metadata_f
     # REEP's own per-row standard deviation of f0' where it has one, else the rows' spread over the segment
     std = segment.get("f0_row_std_hz") or stats.get("std") or 0.0
     return free_air_f0_check(float(stats["mean"]), float(std), references)
+
+
+def build_reep_estimator(params: ReepParams, model: FreeAirModel | None, sample_rate_hz: float, drive_hz: float,
+                         route: dict | None, segment) -> ReepEstimator:
+    """REEP for a run from its parameters, its free-air model and route, and the drive: what every REEP runs.
+
+    ``reep``'s stage and kalman-bank's pass 2 (``--models``, no pass 1) build it here.
+    The ``segment`` route's ARX fit is redone at REEP's rate on the same free-air segment
+    (:meth:`ReepEstimator.build`).
+    """
+    with_model = model is not None and params.use_input
+    arrays = None
+    if with_model and segment is not None and (route or {}).get("route") == "segment":
+        arrays = (segment.data["deflection"], segment.data["dither"])
+    return ReepEstimator.build(
+        params, sample_rate_hz=sample_rate_hz, resonance_hz=model.f0_hz if model is not None else drive_hz,
+        drive_hz=drive_hz, numerator=model.numerator_at(sample_rate_hz) if with_model else None,
+        denominator=model.denominator_at(sample_rate_hz) if with_model else None,
+        bandpass_half_width_hz=params.bandpass_half_width_hz, segment=arrays,
+    )
 
 
 def _drive_frequency(params: ReepParams, drive: DriveMetadata, model: FreeAirModel | None, first_deflection, fs: float) -> float:

@@ -31,6 +31,7 @@ from afmtool.errors import ConfigError
 __all__ = [
     "field",
     "check_value",
+    "nested_section",
     "describe_bounds",
     "describe_field",
     "parse_bounds",
@@ -278,13 +279,26 @@ def _coerce(cls: type, name: str, kind: Any, value: Any, where: str) -> Any:
     raise ConfigError(f"{where}{name}={value!r} must be of type {getattr(kind, '__name__', kind)}")
 
 
+def nested_section(kind: Any) -> bool:
+    """Whether a field's type is a parameter model of its own: a sub-table (``[kalman-bank.reep]``)."""
+    return isinstance(kind, type) and dataclasses.is_dataclass(kind)
+
+
 def check_value(cls: type, name: str, value: Any, where: str = "", hints: Mapping | None = None) -> Any:
     """``value`` for parameter ``name`` of ``cls``, type-checked, finite and within its declared bounds.
 
     The one check every layer goes through (TOML file, flags, :func:`resolve`);
-    its :class:`ConfigError` names the parameter and the value.
+    its :class:`ConfigError` names the parameter and the value.  A nested
+    parameter model takes a table (resolved over its own defaults) or an
+    instance of itself.
     """
     hints = typing.get_type_hints(cls) if hints is None else hints
+    if nested_section(hints[name]):
+        if isinstance(value, hints[name]):
+            return value
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}{name}={value!r} must be a table of {hints[name].__name__} parameters")
+        return resolve(hints[name], value, where=f"{where}{name}.")
     coerced = _coerce(cls, name, hints[name], value, where)
     metadata = {f.name: f for f in dataclasses.fields(cls)}[name].metadata
     if not within_bounds(coerced, metadata):
@@ -300,12 +314,19 @@ def resolve(cls: type[P], *layers: Mapping | None, where: str = "") -> P:
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     values: dict[str, Any] = {}
+    nested: dict[str, list] = {}
     for layer in layers:
         for key, value in (layer or {}).items():
             if key not in names:
                 raise ConfigError(f"{where}unknown parameter {key!r} (known: {', '.join(sorted(names))})")
-            if value is not None:
+            if value is None:
+                continue
+            if nested_section(hints[key]) and isinstance(value, Mapping):
+                nested.setdefault(key, []).append(value)  # the layers of a sub-table merge key by key
+            else:
                 values[key] = check_value(cls, key, value, where, hints)
+    for key, tables in nested.items():
+        values[key] = resolve(hints[key], *tables, where=f"{where}{key}.")
     instance = cls(**values)
     check = getattr(instance, "validate", None)
     if callable(check):
@@ -353,14 +374,22 @@ def _toml_value(value: Any) -> str:
 
 
 def section_to_toml(section: str, instance: Any, *, comments: bool = True) -> str:
-    """One ``[section]`` table; ``None`` values are written as comments (unset)."""
+    """One ``[section]`` table, then one ``[section.name]`` table per nested model; ``None`` values are comments."""
     lines = [f"[{section}]"]
+    tables = []
     for f in dataclasses.fields(instance):
         value = getattr(instance, f.name)
+        if dataclasses.is_dataclass(value):
+            tables.append((f, value))
+            continue
         if comments and f.metadata.get("help"):
             units = f" [{f.metadata['units']}]" if f.metadata.get("units") else ""
             choices = f" (one of: {', '.join(f.metadata['choices'])})" if f.metadata.get("choices") else ""
             bounds = f" ({describe_bounds(f.metadata)})" if describe_bounds(f.metadata) else ""
             lines.append(f"# {f.metadata['help']}{units}{choices}{bounds}")
         lines.append(f"# {f.name} = (unset)" if value is None else f"{f.name} = {_toml_value(value)}")
-    return "\n".join(lines) + "\n"
+    text = "\n".join(lines) + "\n"
+    for f, value in tables:
+        heading = f"# {f.metadata['help']}\n" if comments and f.metadata.get("help") else ""
+        text += "\n" + heading + section_to_toml(f"{section}.{f.name}", value, comments=comments)
+    return text

@@ -209,7 +209,7 @@ class ReepParams:
         flag="--lambda",
     )
     samples_per_period: float = field(
-        4.0,
+        5.0,
         "REEP's rate: deflection and dither pass one anti-alias filter and are decimated by D = floor(fs/(N·f0)), "
         "so that the regression sees N to 2N samples per period at any oversampling; 0 = the capture's rate",
         "samples per period",
@@ -483,6 +483,11 @@ class TheoryControllersParams:
             raise ConfigError(f"line_rates_hz={self.line_rates_hz!r} must all be finite and > 0")
 
 
+#: The fields of ``[kalman-bank.reep]`` that kalman-bank sets from its own section.
+_BANK_OWNED_REEP_FIELDS = ("free_air", "model", "f0_hz", "q", "drive_hold", "decimate", "drive_frequency_hz", "vs",
+                           "z_bin", "chunk_samples")
+
+
 @dataclass(frozen=True)
 class KalmanBankParams:
     """``afmtool kalman-bank``: validate REEP by a bank of Kalman filters and an adaptive observer (§3.4.2)."""
@@ -497,13 +502,12 @@ class KalmanBankParams:
     design_leg: str = field(
         "approach", "Force-curve leg the design points and verdict refer to", choices=("approach", "retract")
     )
-    reep: str = field("", "REEP output folder or reep.h5 to use; empty = run REEP internally", flag="--reep")
+    reep_run: str = field("", "REEP output folder or reep.h5 to use; empty = run REEP internally", flag="--reep")
     free_air: str = _free_air_segment_field("Off-sample segment START:END for the free-air model; empty = metadata")
     model: str = _free_air_model_file_field("Free-air model file (free_air.json); overrides free_air")
     f0_hz: float = _free_air_f0_field()
     q: float = _free_air_q_field()
     drive_hold: str = _drive_hold_field()
-    lam: float = field(0.995, "Internal REEP: forgetting factor λ (eq. 3.39)", bounds="(0, 1)")
     noise_ratio: float = field(
         0.03,
         "Kalman gains: process-noise rms (as static deflection) over measurement-noise rms, σ_w/σ_v",
@@ -543,8 +547,12 @@ class KalmanBankParams:
     )
     drive_frequency_hz: float = _lockin_frequency_field("Drive frequency; 0 = metadata drive, else the free-air f0")
     decimate: int = _decimation_field(flag=None)
-    warmup_windows: float = field(5.0, "REEP windows 1/(1-λ) left out of the statistics at the start", bounds=">= 0")
     chunk_samples: int = _chunk_samples_field(1 << 18)
+    reep: ReepParams = field(
+        ReepParams(),
+        "REEP inside kalman-bank (pass 1 and the adaptive observer): window, rate, P0, offset regressor, bias "
+        "compensation, warm-up; the free-air route, drive, decimation, z bin and chunking are kalman-bank's own",
+    )
 
     def validate(self) -> None:
         """Cross-field and format checks; the bounds are checked from the declarations."""
@@ -552,6 +560,11 @@ class KalmanBankParams:
             raise ConfigError("give at_z or models, not both")
         parse_interval(self.free_air, "free_air")
         _check_f0_q(self.f0_hz, self.q)
+        for name in _BANK_OWNED_REEP_FIELDS:
+            if getattr(self.reep, name) != getattr(ReepParams, name):
+                raise ConfigError(f"[kalman-bank.reep] {name}: kalman-bank sets it; give it in [kalman-bank]")
+        if not self.reep.use_input:
+            raise ConfigError("[kalman-bank.reep] use_input = false: the bank's observers need the dither")
 
 
 @dataclass(frozen=True)

@@ -54,6 +54,11 @@ def _bounds(metadata: typing.Mapping) -> dict:
 
 def _property(f: dataclasses.Field, kind: Any) -> dict:
     meta = f.metadata
+    if isinstance(kind, type) and dataclasses.is_dataclass(kind):  # a nested table (``[kalman-bank.reep]``)
+        hints = typing.get_type_hints(kind)
+        return {"description": meta.get("help", ""), "type": "object", "additionalProperties": False,
+                "default": dataclasses.asdict(f.default),
+                "properties": {g.name: _property(g, hints[g.name]) for g in dataclasses.fields(kind)}}
     prop: dict[str, Any] = {"description": meta.get("help", ""), **_json_type(kind)}
     default = f.default
     prop["default"] = list(default) if isinstance(default, tuple) else default

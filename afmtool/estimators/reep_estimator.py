@@ -28,7 +28,15 @@ from afmtool.errors import ConfigError
 from afmtool.estimators.rate_reduction import ANTI_ALIAS_ROLLOFF, anti_alias_taps, decimate_block, reduction_factor
 from afmtool.estimators.rls import ReepBlock, ReepState, reep_update
 
-__all__ = ["ReepEstimator", "ReepEstimatorState", "ReepRun", "Settling", "forgetting_factor", "step_settling"]
+__all__ = [
+    "ReepEstimator",
+    "ReepEstimatorState",
+    "ReepRun",
+    "Settling",
+    "capture_rate_coefficients",
+    "forgetting_factor",
+    "step_settling",
+]
 
 
 def forgetting_factor(window_s: float, rate_hz: float) -> float:
@@ -222,6 +230,8 @@ class ReepEstimator:
         if start % self.row_every:
             raise ConfigError(f"a REEP stream must start on its row grid (a multiple of {self.row_every}), not at {start}")
         rls = ReepState.initial(lam=self.lam, p0=self.p0, static_offset=self.static_offset)
+        # the held-back samples count as seen, so that the recursion keeps its rows on the stream's grid
+        rls = dataclasses.replace(rls, n_samples=self.filter_start)
         past = np.zeros(len(self.taps) - 1)
         zi = np.zeros((self.bandpass_sos.shape[0], 2)) if self.bandpass_sos is not None else None
         return ReepEstimatorState(rls, int(start), past, past.copy(), zi, self.filter_start)
@@ -237,12 +247,10 @@ class ReepEstimator:
         (D = 12) on a noise-free free-air capture, Q′ read +40 after 0.5 ms
         and +0.8 after 2 ms.  Those samples are held back; their rows are
         the initial state's (θ = 0, σ̂² undefined: flagged not converged).
+        The count does not depend on the row spacing, so estimators that
+        differ only in it agree at their common rows.
         """
-        if self.factor == 1:
-            return 0
-        per_row = self.row_every // self.factor
-        filling = -(-(len(self.taps) - 1) // self.factor)
-        return per_row * -(-filling // per_row)
+        return 0 if self.factor == 1 else -(-(len(self.taps) - 1) // self.factor)
 
     def run(self, state: ReepEstimatorState, deflection, dither=None) -> ReepRun:
         """REEP over the next chunk: its rows (every ``row_every`` capture samples) and the next state.
@@ -275,21 +283,6 @@ class ReepEstimator:
         next_state = ReepEstimatorState(rls, state.start + len(deflection), p_history, g_history, zi, state.skip - held)
         return ReepRun(block, next_state)
 
-    def capture_rate_coefficients(self, b1: np.ndarray, b0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(b1, b0) at the capture's rate with the same poles: z = z_D^{1/D} (NaN where not under-damped)."""
-        b1 = np.asarray(b1, dtype=np.float64)
-        b0 = np.asarray(b0, dtype=np.float64)
-        if self.factor == 1:
-            return b1, b0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            radius = np.sqrt(b0)
-            angle = np.arccos(np.clip(-b1 / (2.0 * radius), -1.0, 1.0))
-            underdamped = (b0 > 0) & (b0 < 1) & (b1 * b1 < 4.0 * b0)
-            radius_fs = radius ** (1.0 / self.factor)
-            b1_fs = np.where(underdamped, -2.0 * radius_fs * np.cos(angle / self.factor), np.nan)
-            b0_fs = np.where(underdamped, radius_fs * radius_fs, np.nan)
-        return b1_fs, b0_fs
-
     def describe(self) -> dict:
         """The estimator's settings for report.json."""
         return {
@@ -307,6 +300,27 @@ class ReepEstimator:
             "row_rate_hz": self.row_rate_hz,
         }
 
+
+
+def capture_rate_coefficients(b1, b0, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """(b1, b0) at the capture's rate with the poles of REEP's at fs/D: z = z_D^{1/D} (NaN where not under-damped).
+
+    With z_D = r·e^{±jθ} (b0 = r², b1 = −2r cos θ), the capture-rate poles are
+    r^{1/D}·e^{±jθ/D}, the principal roots: θ < π at REEP's rate, so θ/D is the
+    capture's own angle.
+    """
+    b1 = np.asarray(b1, dtype=np.float64)
+    b0 = np.asarray(b0, dtype=np.float64)
+    if factor == 1:
+        return b1, b0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        radius = np.sqrt(b0)
+        angle = np.arccos(np.clip(-b1 / (2.0 * radius), -1.0, 1.0))
+        underdamped = (b0 > 0) & (b0 < 1) & (b1 * b1 < 4.0 * b0)
+        radius_fs = radius ** (1.0 / factor)
+        b1_fs = np.where(underdamped, -2.0 * radius_fs * np.cos(angle / factor), np.nan)
+        b0_fs = np.where(underdamped, radius_fs * radius_fs, np.nan)
+    return b1_fs, b0_fs
 
 
 def _with_held_rows(block: ReepBlock, n_rows: int, static_offset: bool) -> ReepBlock:
