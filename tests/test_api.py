@@ -228,12 +228,12 @@ def test_help_reep_is_numpydoc_with_parameters_units_and_an_example():
     text = pydoc.render_doc(afmtool.reep, renderer=pydoc.plaintext)
     for section in ("Parameters\n", "Returns\n", "Examples\n", ">>> "):
         assert section in text, section
-    assert "lam : float, default 0.995" in text
+    assert "window_us : float, default 400.0 [µs]" in text and "lam : float, default 0.0" in text
     assert "f0_hz : float, default 0.0 [Hz]" in text
     assert "free_air : str, default '' [s]" in text
     import inspect
 
-    assert inspect.signature(afmtool.reep).parameters["lam"].default == 0.995
+    assert inspect.signature(afmtool.reep).parameters["window_us"].default == 400.0
     assert set(afmtool.__all__) >= {"reep", "probeloss", "kalman_bank", "decode", "identify_freeair", "identify_invols",
                                     "identify_gamma", "identify_thermal", "identify_electrostatic", "design_excitation",
                                     "theory_averaging", "theory_compare", "theory_fit", "open", "Capture"}
