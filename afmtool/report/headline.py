@@ -100,15 +100,6 @@ class Item:
     text: bool = False
     scores: bool = False
 
-#: ``name`` of a headline entry that states the run's state instead of a number.
-STATE_NAME = "warning"
-#: Above this free-air phase misfit (degrees) the headline shows the misfit, not scores.
-_PHASE_MISFIT_DEG = 30.0
-#: Above this loss fraction probeloss's headline shows the state, not scores.
-_MOSTLY_LOSS = 0.5
-#: Event and time-weighted precision farther apart than this disagree.
-_SCORE_AGREEMENT = 0.1
-
 
 def lookup(results: Mapping, path: str) -> Any:
     """The value at the dotted ``path`` of ``results`` (``"truth.index.recall"``), or None."""
