@@ -88,7 +88,11 @@ def test_closed_pipe_is_quiet_success():
     out = result.stdout.splitlines()
     assert out[0].startswith("t,f0_hz,q")
     assert out[-1] == "status 0 0"
-    assert result.stderr == ""
+    # a loaded machine can take the 5 s of stdin_watch.NOTICE_S to simulate the first chunk: the notice
+    # is then right to say so, and it is the only line allowed
+    from afmtool.io.stdin_watch import WAITING_MESSAGE
+
+    assert result.stderr in ("", WAITING_MESSAGE + "\n")
 
 
 @pytest.mark.parametrize(
