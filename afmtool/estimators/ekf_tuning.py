@@ -15,6 +15,9 @@ deflection recorded together.
   filter consistent on the segment: mean ε²/S = 1 (the normalised innovation
   squared; larger process noise makes S larger and ε smaller, so the mean
   is monotone and bisection on log σ_F finds it).
+* :func:`tune_ekf` — the three together, as ``decode`` runs them: each
+  level given or estimated on the nominal segment, with where it came from
+  (moved out of :mod:`afmtool.analyses.decode`, issue 29 item 6).
 """
 
 from __future__ import annotations
@@ -24,8 +27,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from afmtool.config.params import DecodeParams, parse_bracket_nm
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.ekf import EkfDesign, EkfModel, InnovationStats, discretise, ekf_run
+from afmtool.estimators.ekf import EkfDesign, EkfModel, InnovationStats, discretise, ekf_run, thermal_force_asd
+from afmtool.models.electrostatic import ElectrostaticParams
 
 __all__ = [
     "L0Search",
@@ -34,6 +39,8 @@ __all__ = [
     "estimate_measurement_noise",
     "ProcessNoiseFit",
     "estimate_process_noise",
+    "EkfTuning",
+    "tune_ekf",
 ]
 
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
@@ -41,6 +48,8 @@ _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 _MIN_DIP_RATIO = 1.05
 #: Other local minima of the grid within this factor of the best make the minimum non-unique.
 _RIVAL_RATIO = 1.10
+#: Smallest measurement noise the EKF assumes, nm (a noise-free capture would make R = 0).
+MIN_MEASUREMENT_NOISE_NM = 1e-4
 
 
 def _check_segment(y, v) -> tuple[np.ndarray, np.ndarray]:
@@ -241,3 +250,131 @@ def estimate_process_noise(
             high = middle
     best = 0.5 * (low + high)
     return ProcessNoiseFit(math.exp(best), nis(best), False)
+
+
+# --------------------------------------------------------------------------- decode's tuning
+
+
+class EkfTuning(NamedTuple):
+    """The tuned EKF model and what the report says about each level."""
+
+    model: EkfModel
+    results: dict  #: ``l0`` and ``noise``: each value and its source
+    l0_curve_nm: tuple[np.ndarray, np.ndarray] | None  #: (ℓ0, innovation RMS), nm, when ℓ0 was searched
+    warnings: list
+
+
+def tune_ekf(electrostatic: ElectrostaticParams, f0_hz: float, q: float, params: DecodeParams,
+             sample_rate_hz: float, segment: tuple[np.ndarray, np.ndarray] | None, warmup: int,
+             l0_bracket_m: tuple[float, float, bool]) -> EkfTuning:
+    """Measurement noise, ℓ0 and process noise: given in ``params``, or from the nominal segment.
+
+    Parameters
+    ----------
+    electrostatic : ElectrostaticParams
+        The actuation model; its ``l0_m`` is the guess.
+    f0_hz, q : float
+        The lever's resonance, Hz, and quality factor.
+    params : DecodeParams
+        ``l0_nm``, ``measurement_noise_nm``, ``process_noise_n_per_rthz``
+        (0: estimate), ``temperature_k``, ``l0_bracket_nm``, ``l0_grid_points``.
+    sample_rate_hz : float
+        f_s, Hz.
+    segment : (deflection nm, voltage V) or None
+        The nominal segment; without it every level must be given.
+    warmup : int
+        Samples of the segment left out of every statistic.
+    l0_bracket_m : (low, high, geometric)
+        The ℓ0 search bracket when ``params.l0_bracket_nm`` gives none.
+    """
+    warnings: list[str] = []
+    fs = sample_rate_hz
+    thermal = thermal_force_asd(electrostatic.spring_constant_n_per_m, f0_hz, q, params.temperature_k) \
+        if params.temperature_k > 0 else 0.0
+    noise: dict = {"thermal_force_asd_n_per_rthz": thermal, "temperature_k": params.temperature_k}
+    if segment is None:
+        missing = [n for n, v in (("l0_nm", params.l0_nm), ("measurement_noise_nm", params.measurement_noise_nm),
+                                  ("process_noise_n_per_rthz", params.process_noise_n_per_rthz)) if not v]
+        if missing:
+            raise ConfigError(
+                f"no nominal segment (give --nominal START:END or capture metadata nominal) to estimate "
+                f"{', '.join(missing)}; or give them"
+            )
+    y, v = segment if segment is not None else (None, None)
+    r_nm = _measurement_noise(f0_hz, params, fs, y, noise, warnings)
+    q_start = params.process_noise_n_per_rthz or thermal
+    if not q_start > 0:
+        raise ConfigError("the process noise is 0: give --process-noise or a temperature_k > 0")
+    model = EkfModel(f0_hz, q, electrostatic, q_start, r_nm)
+    if params.l0_nm:
+        l0_result: dict = {"estimate_nm": params.l0_nm, "source": "parameter"}
+        curve = None
+    else:
+        model, l0_result, curve = _search_l0(model, params, l0_bracket_m, segment, fs, warmup, warnings)
+    if params.process_noise_n_per_rthz:
+        noise["process_noise_n_per_rthz"], noise["process_source"] = params.process_noise_n_per_rthz, "parameter"
+    else:
+        fit = estimate_process_noise(model, y, v, fs, warmup=warmup)
+        model = model.with_noise(fit.asd_n_per_rthz, r_nm)
+        noise["process_noise_n_per_rthz"] = fit.asd_n_per_rthz
+        noise["process_source"] = "mean NIS = 1 on the nominal segment"
+        if fit.clamped:
+            warnings.append(
+                f"process noise: no consistent level in the search range (mean NIS {fit.mean_nis:.3g}); "
+                f"using {fit.asd_n_per_rthz:.3g} N/sqrt(Hz)"
+            )
+    if segment is not None:
+        stats = innovation_stats(model, y, v, fs, warmup)
+        noise["nominal_innovation_rms_nm"] = stats.rms_nm
+        noise["nominal_mean_nis"] = stats.mean_nis
+    return EkfTuning(model, {"l0": l0_result, "noise": noise}, curve, warnings)
+
+
+def _measurement_noise(f0_hz: float, params: DecodeParams, fs: float, y, noise: dict, warnings: list) -> float:
+    """R of the EKF, nm: given, or the PSD floor of the nominal segment (recorded in ``noise``)."""
+    if params.measurement_noise_nm:
+        r_nm, noise["measurement_source"] = params.measurement_noise_nm, "parameter"
+    else:
+        if 0.3 * fs < 3.0 * f0_hz:
+            raise ConfigError(
+                f"the PSD floor above 0.3·fs = {0.3 * fs:g} Hz is not clear of the resonance f0 = {f0_hz:g} Hz; "
+                "give --measurement-noise"
+            )
+        r_nm, noise["measurement_source"] = estimate_measurement_noise(y, fs), "PSD floor of the nominal segment"
+        if not r_nm >= MIN_MEASUREMENT_NOISE_NM:
+            warnings.append(
+                f"the deflection's noise floor is {r_nm:.3g} nm (a noise-free capture?); the EKF assumes "
+                f"{MIN_MEASUREMENT_NOISE_NM:g} nm"
+            )
+            r_nm = MIN_MEASUREMENT_NOISE_NM
+    noise["measurement_noise_nm"] = r_nm
+    return r_nm
+
+
+def _search_l0(model: EkfModel, params: DecodeParams, l0_bracket_m: tuple[float, float, bool], segment,
+               fs: float, warmup: int, warnings: list) -> tuple:
+    """ℓ0 by §7.4 on the nominal segment: (model with it, the report's ``l0``, the RMS curve in nm)."""
+    y, v = segment
+    geometric = False
+    if params.l0_bracket_nm:
+        low, high = parse_bracket_nm(params.l0_bracket_nm)
+    else:
+        low_m, high_m, geometric = l0_bracket_m
+        low, high = max(low_m, 1.01 * model.electrostatic.tip_height_m) * 1e9, high_m * 1e9
+    search = estimate_l0(
+        model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup,
+        geometric=geometric,
+    )
+    l0_result = {
+        "estimate_nm": search.l0_m * 1e9,
+        "source": "innovation RMS minimum on the nominal segment (§7.4)",
+        "rms_at_minimum_nm": search.rms_nm,
+        "bracket_nm": [low, high],
+        "grid_points": search.grid_points,
+        "evaluations": int(search.curve_l0_m.size),
+        "unique_minimum": search.unique,
+        "process_noise_used_n_per_rthz": model.process_noise_n_per_rthz,
+    }
+    if not search.unique:
+        warnings.append(f"l0: no unique minimum of the innovation RMS: {search.note}")
+    return model.with_l0(search.l0_m), l0_result, (search.curve_l0_m * 1e9, search.curve_rms_nm)
