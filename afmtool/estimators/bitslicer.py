@@ -60,11 +60,23 @@ __all__ = [
 #: Fewest transitions from which a clock is acquired.
 MIN_TRANSITIONS = 8
 
-# Slots of the carried slicer state.
+# Slots of the carried slicer state (SlicerState.vector).
 (
-    _NEXT, _PERIOD, _ACC_P, _ACC_A, _CNT, _LEVEL,
-    _SSUM, _SPOS, _SFILL, _PREV_S, _LAST_MID,
-    _N, _DPOS_P, _DPOS_A, _STARTED,
+    _CELL_END,  # b_k + T: end of the current cell, samples of the delayed primary
+    _PERIOD,  # T: the clock's period, samples
+    _PRIMARY_SUM,  # Σ primary over the integrated part of the current cell
+    _AUX_SUM,  # Σ aux over the same samples
+    _INTEGRATED,  # samples integrated so far in the current cell
+    _LOGIC_LEVEL,  # hysteresis output: 1, 0, or -1 before the first flip
+    _SMOOTH_SUM,  # Σ of the moving-average ring
+    _SMOOTH_POS,  # next slot of the moving-average ring
+    _SMOOTH_FILL,  # samples in the moving-average ring (≤ its length)
+    _PREVIOUS_SMOOTHED,  # s[n−1] (NaN before the first sample)
+    _LAST_MID_CROSSING,  # τ of the latest crossing of `mid`, samples (NaN before one)
+    _SAMPLE,  # n: samples of the delayed primary seen so far
+    _DELAY_POS_PRIMARY,  # next slot of the primary's delay ring
+    _DELAY_POS_AUX,  # next slot of the aux's delay ring
+    _STARTED,  # 1 once the delay rings hold the first sample
     _STATE_LEN,
 ) = range(16)
 
@@ -327,11 +339,11 @@ class SlicerState:
     @classmethod
     def _new(cls, config: SlicerConfig, next_boundary: float, period: float, locked: bool) -> SlicerState:
         vector = np.zeros(_STATE_LEN)
-        vector[_NEXT] = next_boundary
+        vector[_CELL_END] = next_boundary
         vector[_PERIOD] = period
-        vector[_LEVEL] = -1.0
-        vector[_LAST_MID] = math.nan
-        vector[_PREV_S] = math.nan
+        vector[_LOGIC_LEVEL] = -1.0
+        vector[_LAST_MID_CROSSING] = math.nan
+        vector[_PREVIOUS_SMOOTHED] = math.nan
         return cls(
             vector, np.zeros(config.smooth), np.zeros(config.delay_primary + 1), np.zeros(config.delay_aux + 1),
             locked,
@@ -363,7 +375,7 @@ class SlicerState:
     @property
     def next_boundary(self) -> float:
         """End of the current cell, samples of the (delayed) stream."""
-        return float(self.vector[_NEXT])
+        return float(self.vector[_CELL_END])
 
 
 class SlicerBlock(NamedTuple):
@@ -381,129 +393,147 @@ class SlicerStep(NamedTuple):
 
 
 @njit(**JIT_OPTIONS)
-def _slicer_kernel(  # noqa: C901, PLR0915 - numba kernel: one scalar recursion
-    primary, aux, coef, locked, state, sring, dring_p, dring_a, out_c, out_p, out_a, out_t
+def _delayed(ring, position, value):
+    """Push ``value`` into a delay ring; (the value written len(ring) − 1 samples ago, next position)."""
+    ring[position] = value
+    position += 1
+    if position == ring.shape[0]:
+        position = 0
+    return ring[position], position
+
+
+@njit(**JIT_OPTIONS)
+def _hysteresis(logic_level, smoothed, level_low, level_high):
+    """(new level, flipped): 1 above ``level_high``, 0 below ``level_low``, else held; -1 is no level yet."""
+    if logic_level != 1.0 and smoothed > level_high:
+        return 1.0, logic_level == 0.0
+    if logic_level != 0.0 and smoothed < level_low:
+        return 0.0, logic_level == 1.0
+    return logic_level, False
+
+
+@njit(**JIT_OPTIONS)
+def _slicer_kernel(  # noqa: PLR0915 - numba kernel: one scalar recursion, the equations line by line
+    primary, aux, coefficients, locked, state, smooth_ring, delay_ring_primary, delay_ring_aux,
+    out_centres, out_soft_primary, out_soft_aux, out_transitions,
 ):
     """Delay, smooth, detect transitions, track the clock and integrate cells, per sample.
 
-    Returns (cells written, transitions written).  Sample indices are those
-    of the delayed streams, counted from the stream start.
+    The equations are the module docstring's, one above each line.  Returns
+    (cells written, transitions written).  Sample indices are those of the
+    delayed streams, counted from the stream start.  The procedural twin
+    is ``tests/naive_slicer.py``.
     """
-    lo = coef[0]
-    mid = coef[1]
-    hi = coef[2]
-    frac = coef[3]
-    kp = coef[4]
-    ki = coef[5]
-    nxt = state[_NEXT]
+    level_low = coefficients[0]
+    level_mid = coefficients[1]
+    level_high = coefficients[2]
+    integrate_fraction = coefficients[3]
+    phase_gain = coefficients[4]  # k_p
+    rate_gain = coefficients[5]  # k_i
+    cell_end = state[_CELL_END]
     period = state[_PERIOD]
-    acc_p = state[_ACC_P]
-    acc_a = state[_ACC_A]
-    cnt = state[_CNT]
-    level = state[_LEVEL]
-    ssum = state[_SSUM]
-    spos = int(state[_SPOS])
-    sfill = int(state[_SFILL])
-    prev_s = state[_PREV_S]
-    last_mid = state[_LAST_MID]
-    n = int(state[_N])
-    dpos_p = int(state[_DPOS_P])
-    dpos_a = int(state[_DPOS_A])
+    primary_sum = state[_PRIMARY_SUM]
+    aux_sum = state[_AUX_SUM]
+    integrated = state[_INTEGRATED]
+    logic_level = state[_LOGIC_LEVEL]
+    smooth_sum = state[_SMOOTH_SUM]
+    smooth_pos = int(state[_SMOOTH_POS])
+    smooth_fill = int(state[_SMOOTH_FILL])
+    previous_smoothed = state[_PREVIOUS_SMOOTHED]
+    last_mid_crossing = state[_LAST_MID_CROSSING]
+    sample = int(state[_SAMPLE])
+    delay_pos_primary = int(state[_DELAY_POS_PRIMARY])
+    delay_pos_aux = int(state[_DELAY_POS_AUX])
     started = state[_STARTED]
-    slen = sring.shape[0]
-    dlen_p = dring_p.shape[0]
-    dlen_a = dring_a.shape[0]
-    half_smooth = 0.5 * (slen - 1)
-    lo_frac = 0.5 * (1.0 - frac)
-    hi_frac = 0.5 * (1.0 + frac)
+    smooth_length = smooth_ring.shape[0]
+    # the centred moving average's delay: (L − 1)/2
+    smooth_delay = 0.5 * (smooth_length - 1)
+    # the integrated part of a cell: phase u in [(1 − fraction)/2, (1 + fraction)/2)
+    integrate_from = 0.5 * (1.0 - integrate_fraction)
+    integrate_until = 0.5 * (1.0 + integrate_fraction)
     n_cells = 0
-    n_trans = 0
+    n_transitions = 0
     for i in range(primary.shape[0]):
-        # delay lines: the value written dlen − 1 samples ago (the first value before that)
         if started == 0.0:
-            for j in range(dlen_p):
-                dring_p[j] = primary[i]
-            for j in range(dlen_a):
-                dring_a[j] = aux[i]
+            # the delay rings start full of the first sample: x[n − D] = x[0] for n < D
+            delay_ring_primary[:] = primary[i]
+            delay_ring_aux[:] = aux[i]
             started = 1.0
-        dring_p[dpos_p] = primary[i]
-        dpos_p += 1
-        if dpos_p == dlen_p:
-            dpos_p = 0
-        pd = dring_p[dpos_p]
-        dring_a[dpos_a] = aux[i]
-        dpos_a += 1
-        if dpos_a == dlen_a:
-            dpos_a = 0
-        ad = dring_a[dpos_a]
-        # s = moving average of the delayed primary over `slen` samples
-        if sfill < slen:
-            sfill += 1
+        # p[n] = primary[n − D_p], a[n] = aux[n − D_a]
+        primary_delayed, delay_pos_primary = _delayed(delay_ring_primary, delay_pos_primary, primary[i])
+        aux_delayed, delay_pos_aux = _delayed(delay_ring_aux, delay_pos_aux, aux[i])
+        # s[n] = (1/L) Σ_{j<L} p[n − j]  (fewer terms while the ring fills)
+        if smooth_fill < smooth_length:
+            smooth_fill += 1
         else:
-            ssum -= sring[spos]
-        sring[spos] = pd
-        ssum += pd
-        spos += 1
-        if spos == slen:
-            spos = 0
-        s = ssum / sfill
-        # most recent crossing of `mid`, interpolated, in delayed-primary samples
-        if prev_s == prev_s and (prev_s - mid) * (s - mid) <= 0.0 and prev_s != s:
-            last_mid = n - 1 + (prev_s - mid) / (prev_s - s) - half_smooth
-        prev_s = s
-        # hysteresis: a flip is a transition, timed at the last mid crossing
-        flipped = False
-        if level != 1.0 and s > hi:
-            flipped = level == 0.0
-            level = 1.0
-        elif level != 0.0 and s < lo:
-            flipped = level == 1.0
-            level = 0.0
-        if flipped and last_mid == last_mid:
-            if n_trans < out_t.shape[0]:
-                out_t[n_trans] = last_mid
-                n_trans += 1
+            smooth_sum -= smooth_ring[smooth_pos]
+        smooth_ring[smooth_pos] = primary_delayed
+        smooth_sum += primary_delayed
+        smooth_pos += 1
+        if smooth_pos == smooth_length:
+            smooth_pos = 0
+        smoothed = smooth_sum / smooth_fill
+        # τ_mid = n − 1 + (s[n−1] − mid)/(s[n−1] − s[n]) − (L − 1)/2: the crossing of mid, interpolated
+        crosses = (previous_smoothed - level_mid) * (smoothed - level_mid) <= 0.0
+        if previous_smoothed == previous_smoothed and crosses and previous_smoothed != smoothed:
+            last_mid_crossing = (sample - 1 + (previous_smoothed - level_mid) / (previous_smoothed - smoothed)
+                                 - smooth_delay)
+        previous_smoothed = smoothed
+        # hysteresis: level ← 1 when s > hi, 0 when s < lo; a change of level is a transition at τ_mid
+        logic_level, flipped = _hysteresis(logic_level, smoothed, level_low, level_high)
+        if flipped and last_mid_crossing == last_mid_crossing:
+            if n_transitions < out_transitions.shape[0]:
+                out_transitions[n_transitions] = last_mid_crossing
+                n_transitions += 1
             if locked:
-                # e = τ − nearest boundary; b ← b + k_p e; T ← T + k_i e
-                cell_start = nxt - period
-                e = last_mid - (cell_start + period * math.floor((last_mid - cell_start) / period + 0.5))
-                nxt += kp * e
-                period += ki * e
+                cell_start = cell_end - period
+                # e = τ − (b_k + T·round((τ − b_k)/T)): the transition's distance from the nearest boundary
+                timing_error = last_mid_crossing - (
+                    cell_start + period * math.floor((last_mid_crossing - cell_start) / period + 0.5)
+                )
+                # b ← b + k_p·e
+                cell_end += phase_gain * timing_error
+                # T ← T + k_i·e
+                period += rate_gain * timing_error
         if locked:
-            cell_start = nxt - period
-            if n >= cell_start:
-                u = (n - cell_start) / period
-                if lo_frac <= u < hi_frac:
-                    acc_p += pd
-                    acc_a += ad
-                    cnt += 1.0
-                if n + 1 >= nxt:
-                    if n_cells < out_c.shape[0]:
-                        out_c[n_cells] = nxt - 0.5 * period
-                        out_p[n_cells] = acc_p / cnt if cnt > 0 else math.nan
-                        out_a[n_cells] = acc_a / cnt if cnt > 0 else math.nan
+            cell_start = cell_end - period
+            if sample >= cell_start:
+                # u = (n − b_k)/T: the phase within the cell
+                cell_phase = (sample - cell_start) / period
+                if integrate_from <= cell_phase < integrate_until:
+                    # Σp += p[n], Σa += a[n], N += 1 over the central fraction of the cell
+                    primary_sum += primary_delayed
+                    aux_sum += aux_delayed
+                    integrated += 1.0
+                if sample + 1 >= cell_end:
+                    if n_cells < out_centres.shape[0]:
+                        # centre b_k + T/2; soft values Σp/N and Σa/N (NaN for a cell with no samples)
+                        out_centres[n_cells] = cell_end - 0.5 * period
+                        out_soft_primary[n_cells] = primary_sum / integrated if integrated > 0 else math.nan
+                        out_soft_aux[n_cells] = aux_sum / integrated if integrated > 0 else math.nan
                         n_cells += 1
-                    acc_p = 0.0
-                    acc_a = 0.0
-                    cnt = 0.0
-                    nxt += period
-        n += 1
-    state[_NEXT] = nxt
+                    primary_sum = 0.0
+                    aux_sum = 0.0
+                    integrated = 0.0
+                    # b_{k+1} = b_k + T
+                    cell_end += period
+        sample += 1
+    state[_CELL_END] = cell_end
     state[_PERIOD] = period
-    state[_ACC_P] = acc_p
-    state[_ACC_A] = acc_a
-    state[_CNT] = cnt
-    state[_LEVEL] = level
-    state[_SSUM] = ssum
-    state[_SPOS] = spos
-    state[_SFILL] = sfill
-    state[_PREV_S] = prev_s
-    state[_LAST_MID] = last_mid
-    state[_N] = n
-    state[_DPOS_P] = dpos_p
-    state[_DPOS_A] = dpos_a
+    state[_PRIMARY_SUM] = primary_sum
+    state[_AUX_SUM] = aux_sum
+    state[_INTEGRATED] = integrated
+    state[_LOGIC_LEVEL] = logic_level
+    state[_SMOOTH_SUM] = smooth_sum
+    state[_SMOOTH_POS] = smooth_pos
+    state[_SMOOTH_FILL] = smooth_fill
+    state[_PREVIOUS_SMOOTHED] = previous_smoothed
+    state[_LAST_MID_CROSSING] = last_mid_crossing
+    state[_SAMPLE] = sample
+    state[_DELAY_POS_PRIMARY] = delay_pos_primary
+    state[_DELAY_POS_AUX] = delay_pos_aux
     state[_STARTED] = started
-    return n_cells, n_trans
+    return n_cells, n_transitions
 
 
 def slicer_update(config: SlicerConfig, state: SlicerState, primary, aux=None) -> SlicerStep:
@@ -535,23 +565,25 @@ def slicer_update(config: SlicerConfig, state: SlicerState, primary, aux=None) -
     if state.smooth_ring.shape[0] != config.smooth or state.delay_primary.shape[0] != config.delay_primary + 1:
         raise ConfigError("the slicer state was built for another configuration")
     vector = state.vector.copy()
-    sring = state.smooth_ring.copy()
-    dring_p = state.delay_primary.copy()
-    dring_a = state.delay_aux.copy()
+    smooth_ring = state.smooth_ring.copy()
+    delay_ring_primary = state.delay_primary.copy()
+    delay_ring_aux = state.delay_aux.copy()
     period = max(float(vector[_PERIOD]), 1.0)
     capacity = int(p.size / (0.5 * period)) + 2 if state.locked else 0
-    out_c = np.empty(capacity)
-    out_p = np.empty(capacity)
-    out_a = np.empty(capacity)
-    out_t = np.empty(p.size + 1)
-    n_cells, n_trans = _slicer_kernel(
-        p, a, config.coefficients(), state.locked, vector, sring, dring_p, dring_a, out_c, out_p, out_a, out_t
+    centres = np.empty(capacity)
+    soft_primary = np.empty(capacity)
+    soft_aux = np.empty(capacity)
+    transitions = np.empty(p.size + 1)
+    n_cells, n_transitions = _slicer_kernel(
+        p, a, config.coefficients(), state.locked, vector, smooth_ring, delay_ring_primary, delay_ring_aux,
+        centres, soft_primary, soft_aux, transitions,
     )
     shift = float(config.delay_primary)
     # copies, not views: a caller that keeps the cells of every chunk would otherwise
-    # keep each chunk's whole out_* buffers (twice the cells, and a sample per transition slot)
-    block = SlicerBlock(out_c[:n_cells] - shift, out_p[:n_cells].copy(), out_a[:n_cells].copy(), out_t[:n_trans] - shift)
-    return SlicerStep(block, SlicerState(vector, sring, dring_p, dring_a, state.locked))
+    # keep each chunk's whole buffers (twice the cells, and a sample per transition slot)
+    block = SlicerBlock(centres[:n_cells] - shift, soft_primary[:n_cells].copy(), soft_aux[:n_cells].copy(),
+                        transitions[:n_transitions] - shift)
+    return SlicerStep(block, SlicerState(vector, smooth_ring, delay_ring_primary, delay_ring_aux, state.locked))
 
 
 def moving_average(x, length: int) -> np.ndarray:
