@@ -97,7 +97,7 @@ from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Split, Warmup, run_stream
 from afmtool.report.results import JsonResults
 
-__all__ = ["SERIES_UNITS", "KalmanBankResult", "BankSetup", "build_bank", "run_kalman_bank"]
+__all__ = ["SERIES_UNITS", "KalmanBankResult", "BankSetup", "BankStage", "BankOutcome", "build_bank", "run_kalman_bank"]
 
 #: Units of the per-sample series written (decimated), "" = dimensionless.
 SERIES_UNITS = {
@@ -296,7 +296,7 @@ def _setup(reader, params, model, segment_s, timing: ReepTiming, tables, row_eve
 
 @dataclass(frozen=True)
 class BankKernels:
-    """Pass 2's recursions as a pure function of a chunk: :class:`_PassTwo`'s
+    """Pass 2's recursions as a pure function of a chunk: :class:`BankStage`'s
     :class:`~afmtool.pipeline.ChunkKernels`.
 
     REEP (held per sample), the bank of N observers and the adaptive observer
@@ -344,7 +344,25 @@ class BankKernels:
         return rms[:, keep], adaptive_rms[keep], b1[keep], b0[keep], adaptive.held_samples - held_before
 
 
-class _PassTwo:
+@dataclass(frozen=True)
+class BankOutcome:
+    """What pass 2 found: :meth:`BankStage.finish`'s typed result, all the verdict and the report read."""
+
+    setup: BankSetup
+    coefficients: object  #: InternalReep or HeldReepCoefficients: where the adaptive observer's model came from
+    route: object  #: how the free-air model was chosen (the report's ``free_air_route``)
+    route_warnings: tuple[str, ...]
+    n_total: int  #: samples read
+    counted: int  #: kept samples after the warm-up
+    lowest: int  #: ... where the adaptive observer had the least RMS
+    held_samples: int  #: samples on which the adaptive observer had no valid REEP model and kept the previous one
+    z_per_sample: float  #: mean |dz| per input sample while z moves (the ramp speed)
+    rms_tables: dict  #: leg -> RmsTable
+    reep_tables: dict | None  #: REEP's model against z binned in pass 2 (``--models``), else None
+    fs: float  #: the capture's sample rate, Hz
+
+
+class BankStage:
     """Pass 2 as a :mod:`afmtool.pipeline` stage: observers, REEP, delay lines, accumulators, counters.
 
     Everything runs in the consumer thread, with no read-ahead
@@ -489,9 +507,13 @@ class _PassTwo:
         self.n_total = chunk.start + len(y)
         return {"t": t, "z": z_rms[keep], "rms": rms, "adaptive_rms": adaptive, "reep_f0_hz": f0, "reep_q": q}
 
-    def finish(self) -> _PassTwo:
-        """The stage itself: its counters, accumulators and setup are the pass's result."""
-        return self
+    def finish(self) -> BankOutcome:
+        """The pass's counters, tables and setup as one record."""
+        return BankOutcome(
+            self.setup, self.coefficients, self.route, tuple(self.route_warnings), self.n_total, self.counted,
+            self.lowest, self.held_samples, self.z_per_sample, self.rms_tables(),
+            self.reep_binner.tables(amplitude_known=False) if self.reep_binner is not None else None, self.fs,
+        )
 
     def _travel(self, z: np.ndarray) -> None:
         steps = np.abs(np.diff(np.concatenate(([self.last_z], z))))
@@ -594,7 +616,7 @@ def run_kalman_bank(
     info = reader.info
     fs = info.sample_rate_hz
     require_channels(info, _CHANNELS)
-    timing, estimator, segment_s, tables, route, route_warnings = None, None, None, None, None, ()
+    timing, estimator, segment_s, tables, route = None, None, None, None, None
     if reep_results is not None:
         model = model or reep_results.free_air_model
         timing = _check_reep_file(reep_results, fs)
@@ -608,24 +630,23 @@ def run_kalman_bank(
         tables, model, segment_s, route = first.tables, first.model, first.segment_s, first.route
         estimator, timing = first.estimator, ReepTiming.of(first.estimator)
         source = reopen() if reopen is not None else reader
-    stream = _PassTwo(source, params, model=model, estimator=estimator, timing=timing, tables=tables,
+    stream = BankStage(source, params, model=model, estimator=estimator, timing=timing, tables=tables,
                       segment_s=segment_s, route=route, reep_results=reep_results)
     try:
-        run_stream(source, [stream], writer, channels=_CHANNELS, chunk_samples=params.chunk_samples,
+        (outcome,) = run_stream(source, [stream], writer, channels=_CHANNELS, chunk_samples=params.chunk_samples,
                    progress=progress_two, prologue=stream.free_air_prologue, read_ahead=_PASS_TWO_READ_AHEAD,
                    split=split, on_start=on_stream_start)
     finally:
         if source is not reader:
             source.close()
-    setup, coefficients, route, route_warnings = stream.setup, stream.coefficients, stream.route, stream.route_warnings
-    if reep_results is not None and coefficients.last_sample >= stream.n_total:
-        raise InputError(f"--reep {reep_results.path}: REEP's series runs past the capture's {stream.n_total} samples")
-    result = _judge(params, setup, stream, tables, info.units("z_piezo"), reep_results)
-    result.results["free_air_route"] = route  # how the model was chosen, and the drive's hold
-    return dataclasses.replace(result, warnings=tuple(route_warnings) + result.warnings)
+    if reep_results is not None and outcome.coefficients.last_sample >= outcome.n_total:
+        raise InputError(f"--reep {reep_results.path}: REEP's series runs past the capture's {outcome.n_total} samples")
+    result = _judge(params, outcome, tables, info.units("z_piezo"), reep_results)
+    result.results["free_air_route"] = outcome.route  # how the model was chosen, and the drive's hold
+    return dataclasses.replace(result, warnings=outcome.route_warnings + result.warnings)
 
 
-def _adaptive_hint(stream: _PassTwo, params: KalmanBankParams, z_units: str) -> str:
+def _adaptive_hint(stream: BankOutcome, params: KalmanBankParams, z_units: str) -> str:
     """Why the adaptive observer may lose: REEP's window measured in z along the ramp."""
     window = stream.setup.timing.window_samples
     reep_window_z = stream.z_per_sample * window
@@ -638,12 +659,12 @@ def _adaptive_hint(stream: _PassTwo, params: KalmanBankParams, z_units: str) -> 
     )
 
 
-def _judge(params, setup: BankSetup, stream: _PassTwo, tables, z_units: str, reep_results) -> KalmanBankResult:
+def _judge(params, stream: BankOutcome, tables, z_units: str, reep_results) -> KalmanBankResult:
     """Bin, locate each filter's minimum, count the adaptive observer's wins, and write the results."""
-    rms_tables = stream.rms_tables()
+    setup, rms_tables = stream.setup, stream.rms_tables
     points = setup.points
     if tables is None:  # --models with REEP alongside: REEP's model against z from pass 2
-        tables = stream.reep_binner.tables(amplitude_known=False)
+        tables = stream.reep_tables
         points = _design_points(params, tables, setup.model)
     if params.design_leg not in rms_tables:
         raise InputError(f"the capture has no {params.design_leg} leg after the warm-up")
@@ -703,7 +724,7 @@ def _filter_rows(params, setup: BankSetup, points, verdict: BankVerdict, minima)
     return rows
 
 
-def _results(params, setup: BankSetup, stream: _PassTwo, points, verdict, tol, z_units, reep_results, rms_tables):
+def _results(params, setup: BankSetup, stream: BankOutcome, points, verdict, tol, z_units, reep_results, rms_tables):
     fs = stream.fs
     adaptive = verdict.adaptive
     return {
