@@ -14,18 +14,10 @@ import pytest
 import scipy.signal
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.frequency_response import (
-    FrequencyResponse,
-    H1Accumulator,
-    SineSegment,
-    detect_segments,
-    fit_second_order,
-    fit_transfer_function,
-    free_air_from_sweep,
-    frf_table,
-    h1_estimate,
-    stepped_sine_response,
-)
+from afmtool.estimators.frequency_response import FrequencyResponse, H1Accumulator, frf_table, h1_estimate
+from afmtool.estimators.stepped_sine import SineSegment, detect_segments, stepped_sine_response
+from afmtool.estimators.sweep_record import free_air_from_sweep
+from afmtool.estimators.transfer_function_fit import fit_second_order, fit_transfer_function
 from afmtool.models.discretisation import discrete_denominator, zoh_numerator
 from afmtool.models.free_air import FreeAirModel
 from afmtool.sim.excitation import LinearChirp, SteppedSine

@@ -266,8 +266,8 @@ def test_stepped_segments_are_detected_when_the_metadata_lacks_them():
 
 
 def test_split_steps_are_merged():
-    from afmtool.estimators.frequency_response import SineSegment
     from afmtool.estimators.sensing_gamma import merge_split_steps
+    from afmtool.estimators.stepped_sine import SineSegment
 
     pieces = [SineSegment(0.0, 0.1, 100.0), SineSegment(0.1, 0.102, 103.0), SineSegment(0.1025, 0.2, 101.0),
               SineSegment(0.2, 0.3, 126.0)]

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from afmtool.errors import InputError
-from afmtool.estimators.frequency_response import SteppedSineAccumulator, h1_estimate, stepped_sine_response
+from afmtool.estimators.frequency_response import h1_estimate
 from afmtool.estimators.stages import RecordStage, ResponseStage, SegmentStage, run_stages
+from afmtool.estimators.stepped_sine import SteppedSineAccumulator, stepped_sine_response
 from afmtool.io.capture import ChannelSpec, Chunk
 from afmtool.io.memory import ArrayReader
 from afmtool.pipeline import run_stream

@@ -24,16 +24,14 @@ import numpy as np
 import pytest
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.frequency_response import (
-    free_air_from_sweep,
-    spectral_sweep_fit,
-)
 from afmtool.estimators.sweep_record import (
     drive_switch_times,
     fit_record_response,
+    free_air_from_sweep,
     identify_sweep,
     record_start_values,
 )
+from afmtool.estimators.sweep_spectral import spectral_sweep_fit
 from tests import reference_sim as ref
 from tests.conftest import run_cli, validate_report
 

@@ -146,7 +146,7 @@ def _sweep_stage(reader: CaptureReader, params: FreeAirParams):
     the dither and deflection records: memory two float64 arrays of the
     capture's length.
     """
-    from afmtool.estimators.frequency_response import default_nperseg
+    from afmtool.estimators.sweep_spectral import default_nperseg
 
     method, n = params.sweep_method, reader.info.n_samples
     segments = reader.info.metadata.get("segments") if method == "stepped" else None

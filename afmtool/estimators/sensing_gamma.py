@@ -30,15 +30,11 @@ from typing import NamedTuple
 import numpy as np
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.frequency_response import (
-    FrequencyResponse,
-    SineSegment,
-    TransferFunctionFit,
-    default_nperseg,
-    detect_segments,
-    fit_transfer_function,
-)
+from afmtool.estimators.frequency_response import FrequencyResponse
 from afmtool.estimators.stages import ResponseStage, run_stages
+from afmtool.estimators.stepped_sine import SineSegment, detect_segments
+from afmtool.estimators.sweep_spectral import default_nperseg
+from afmtool.estimators.transfer_function_fit import TransferFunctionFit, fit_transfer_function
 from afmtool.io.capture import Chunk
 
 __all__ = [

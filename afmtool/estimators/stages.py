@@ -10,7 +10,7 @@ Each class here follows :class:`afmtool.pipeline.Stage` (``prepare(head)``,
   several outputs, by H1 (Welch cross spectra accumulated per segment,
   memory O(nperseg + chunk)) or stepped-sine lock-in (sums per step, memory
   O(steps)); only a stepped sine whose steps must be found from the drive
-  keeps the records (:func:`~afmtool.estimators.frequency_response.detect_segments`
+  keeps the records (:func:`~afmtool.estimators.stepped_sine.detect_segments`
   needs the whole drive);
 * :class:`RecordStage`: the whole record of a few channels, for the methods
   that truly need it (the whole-record sweep fit, quasi-static ramps and
@@ -31,13 +31,8 @@ from typing import Any
 import numpy as np
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.frequency_response import (
-    FrequencyResponse,
-    H1Accumulator,
-    SineSegment,
-    SteppedSineAccumulator,
-    stepped_sine_response,
-)
+from afmtool.estimators.frequency_response import FrequencyResponse, H1Accumulator
+from afmtool.estimators.stepped_sine import SineSegment, SteppedSineAccumulator, stepped_sine_response
 from afmtool.io.capture import Chunk
 
 __all__ = [
@@ -185,7 +180,7 @@ class ResponseStage:
         per output, fed chunk by chunk (memory O(nperseg + chunk)).
         ``"stepped"``: lock-in per step.  With ``segments`` the sums run per
         step as the chunks pass
-        (:class:`~afmtool.estimators.frequency_response.SteppedSineAccumulator`,
+        (:class:`~afmtool.estimators.stepped_sine.SteppedSineAccumulator`,
         memory O(steps)); without, the records of ``x`` and ``ys`` are kept
         (memory one float64 array per channel) and the steps found by
         ``find_steps`` at the end.
@@ -197,7 +192,7 @@ class ResponseStage:
         ``(x_record, sample_rate_hz) -> steps`` when ``segments`` is None
         (``"stepped"`` only; required then).
     settle_fraction, min_periods
-        As :func:`~afmtool.estimators.frequency_response.stepped_sine_response`.
+        As :func:`~afmtool.estimators.stepped_sine.stepped_sine_response`.
 
     ``finish()`` returns ``{y: FrequencyResponse}`` in the capture's units.
 

@@ -65,13 +65,17 @@ bursts, noise.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import scipy.optimize
 
 from afmtool.errors import ConfigError, InputError
+
+if TYPE_CHECKING:
+    from afmtool.models.free_air import FreeAirModel
 
 __all__ = [
     "HOLDS",
@@ -83,6 +87,7 @@ __all__ = [
     "fit_record_response",
     "check_sweep_options",
     "identify_sweep",
+    "free_air_from_sweep",
     "identify_sweep_response",
     "record_response_model",
     "record_start_values",
@@ -90,7 +95,7 @@ __all__ = [
 
 #: How the drive reached the cantilever (see the module docstring).
 HOLDS = ("continuous", "zoh")
-#: ``record``: the whole-record fit; ``h1``, ``stepped``: the spectral fits of frequency_response.
+#: ``record``: the whole-record fit; ``h1``, ``stepped``: the spectral fits of sweep_spectral.
 SWEEP_METHODS = ("record", "h1", "stepped")
 #: Fewest bins a band may hold: the fit has 3 + 1 + 2·(order + 1) real unknowns.
 _MIN_BAND_BINS = 8
@@ -219,7 +224,7 @@ def record_start_values(dither, deflection, sample_rate_hz: float) -> StartValue
     unlike a Welch estimate, so its peak is near f0 even for a fast chirp or
     a short record; the transient only blurs it.  The delayed second-order
     model is fitted to Ĥ where |Ĥ| > |Ĥ|max/10 (:func:`~afmtool.estimators.
-    frequency_response.fit_second_order`, weights Σ_M |U_k|²).  Q may be
+    transfer_function_fit.fit_second_order`, weights Σ_M |U_k|²).  Q may be
     far off; :func:`fit_record_response` refines all four.
 
     Raises
@@ -228,7 +233,7 @@ def record_start_values(dither, deflection, sample_rate_hz: float) -> StartValue
         If the dither drives no band, or the peak region has fewer than
         3 points.
     """
-    from afmtool.estimators.frequency_response import fit_second_order
+    from afmtool.estimators.transfer_function_fit import fit_second_order
 
     fs = _check_positive("sample_rate_hz", sample_rate_hz)
     x, y, x_scale, y_scale = _records(dither, deflection)
@@ -841,7 +846,7 @@ def identify_sweep(
         (:func:`fit_record_response` from :func:`record_start_values`),
         exact for any drive and any sweep rate.  ``"h1"``, ``"stepped"``:
         the spectral fits of
-        :func:`afmtool.estimators.frequency_response.spectral_sweep_fit`,
+        :func:`afmtool.estimators.sweep_spectral.spectral_sweep_fit`,
         which need each Welch segment or step to be in steady state.
     segments, nperseg : optional
         Only for the spectral methods (see there).
@@ -882,7 +887,7 @@ def identify_sweep(
     """
     check_sweep_options(method, hold)
     if method != "record":
-        from afmtool.estimators.frequency_response import sweep_frequency_response
+        from afmtool.estimators.sweep_spectral import sweep_frequency_response
 
         fr = sweep_frequency_response(
             dither, deflection, sample_rate_hz, method=method, segments=segments, nperseg=nperseg
@@ -911,11 +916,11 @@ def identify_sweep_response(fr, *, band: tuple[float, float] | None = None, dela
     ``fr`` is an H1 or stepped-sine :class:`~afmtool.estimators.frequency_response.FrequencyResponse`
     of the sweep (e.g. accumulated chunk by chunk); the delayed second-order
     model is fitted to it by
-    :func:`~afmtool.estimators.frequency_response.free_air_from_response`.
+    :func:`~afmtool.estimators.sweep_spectral.free_air_from_response`.
     ``band`` and ``delay`` as in :func:`identify_sweep`.  The result carries
     ``fr`` as its ``response``.
     """
-    from afmtool.estimators.frequency_response import free_air_from_response
+    from afmtool.estimators.sweep_spectral import free_air_from_response
 
     fit = free_air_from_response(fr, band=band, delay=delay)
     return SweepIdentification(
@@ -937,3 +942,41 @@ def _sweep_model(fit):
         source="sweep",
         delay_s=fit.delay_s,
     )
+
+
+def free_air_from_sweep(
+    dither,
+    deflection,
+    sample_rate_hz: float,
+    *,
+    method: str = "record",
+    segments: Sequence | None = None,
+    band: tuple[float, float] | None = None,
+    nperseg: int | None = None,
+    delay: bool | float = True,
+    hold: str = "auto",
+) -> FreeAirModel:
+    """Free-air model from a frequency sweep of the dither (the "sweep" route).
+
+    Parameters
+    ----------
+    dither, deflection : array_like
+        Drive (e.g. V) and deflection (e.g. nm) records, equal length.
+    sample_rate_hz : float
+        Sampling rate, Hz.
+    method, segments, band, nperseg, delay, hold
+        As :func:`identify_sweep`: by
+        default the whole-record fit (exact at any sweep rate) with the
+        drive's hold told from its half-sample delay; ``method="h1"`` or
+        ``"stepped"`` for :func:`~afmtool.estimators.sweep_spectral.spectral_sweep_fit`.
+
+    Returns
+    -------
+    FreeAirModel
+        ``source="sweep"``, f0, Q, gain (deflection units per dither unit)
+        and ``delay_s`` with standard errors; no discrete numerator.
+    """
+    return identify_sweep(
+        dither, deflection, sample_rate_hz, method=method, segments=segments, band=band, nperseg=nperseg,
+        delay=delay, hold=hold,
+    ).model
