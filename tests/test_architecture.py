@@ -142,3 +142,139 @@ def test_the_repeat_check_can_fail():
     one = f"def a(options, offset):\n    '''doc'''\n{block}\n    return value_0\n"
     assert repeated_blocks({"a.py": one, "b.py": one.replace("def a", "def b")}) != []
     assert repeated_blocks({"a.py": one, "b.py": one.replace("value_3", "other")}) == []
+
+
+# --------------------------------------------------------------------------- floors
+
+#: The floors of the package, lowest first (issue 29, item 4; docs/architecture.md, "Floors").
+#: A module may import from its own floor and from any floor below it, never from one above.
+FLOORS: tuple[tuple[str, ...], ...] = (
+    ("errors", "jit"),  # the ground: exceptions and the numba options; they import nothing of afmtool
+    ("config",),  # parameters, defaults, sample counts
+    ("runtime",),  # atomic outputs, the input registry, faults, deferred signals
+    ("models",),  # cantilever, forces, thermal sensor, discretisation
+    ("estimators",),  # RLS, observers, Kalman filters, EKF, fits, detectors
+    ("io",),  # readers and writers
+    ("pipeline", "sim"),  # the stream machinery; the simulator's scenarios
+    ("report",),  # JSON, headlines, figures, images, HTML
+    ("analyses",),  # one module per command
+    ("api",),  # the Python API
+    ("cli",),  # typer wiring
+)
+#: The package root (``afmtool/__init__.py``, ``__main__.py``) is the façade above every floor; what
+#: it defines (``__version__``) counts as the ground when a floor imports it.
+_ROOT = "afmtool"
+#: Arrows allowed up a floor, each with its reason.  Keep this short; every entry is a debt.
+FLOOR_EXCEPTIONS: dict[tuple[str, str], str] = {
+    ("config/defaults.py", "afmtool.sim"): (
+        "the generator of defaults.toml and the parameter schemas lists the simulator's scenarios' "
+        "parameters beside the commands'; it runs when the file is regenerated, not in a command"
+    ),
+    ("analyses/batch.py", "afmtool.cli"): (
+        "batch drives the CLI (one `afmtool COMMAND` process per input) and parses each run's own "
+        "arguments with the command's click options for its resume check; it moves under cli/ with "
+        "the command table (issue 29, item 3)"
+    ),
+}
+
+
+def _floor_of(module: str) -> int | None:
+    """The floor of ``afmtool.<package>...``; None for a name outside afmtool."""
+    parts = module.split(".")
+    if parts[0] != _ROOT:
+        return None
+    if len(parts) == 1 or not ((PACKAGE / parts[1]).is_dir() or (PACKAGE / f"{parts[1]}.py").is_file()):
+        return 0  # the root's own names (__version__)
+    for level, names in enumerate(FLOORS):
+        if parts[1] in names:
+            return level
+    raise AssertionError(f"{module}: afmtool.{parts[1]} is on no floor; add it to FLOORS (and docs/architecture.md)")
+
+
+def _type_checking_lines(tree: ast.Module) -> set[int]:
+    """Lines under ``if TYPE_CHECKING:``: annotations only, nothing is imported at run time."""
+    lines: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and getattr(node.test, "id", getattr(node.test, "attr", None)) == "TYPE_CHECKING":
+            for child in node.body:
+                lines.update(range(child.lineno, child.end_lineno + 1))
+    return lines
+
+
+def upward_imports(source: str, relative: Path) -> list[tuple[str, str]]:
+    """Every import in ``source`` (module ``relative``) that runs up a floor: ``(line: statement, target)``.
+
+    Imports inside functions count (a lazy import is still an arrow); those under
+    ``if TYPE_CHECKING:`` do not (they load nothing).
+    """
+    if relative.parts[0] in ("__init__.py", "__main__.py"):
+        return []
+    own = _floor_of(".".join([_ROOT, relative.parts[0].removesuffix(".py")]))
+    tree = ast.parse(source)
+    annotations = _type_checking_lines(tree)
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            module = _absolute(node.module, node.level, relative)
+            targets = [f"{module}.{alias.name}" if module == _ROOT else module for alias in node.names]
+        elif isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        else:
+            continue
+        if node.lineno in annotations:
+            continue
+        for target in targets:
+            floor = _floor_of(target)
+            if floor is not None and floor > own:
+                found.append((f"{node.lineno}: {ast.unparse(node)}", ".".join(target.split(".")[:2])))
+    return found
+
+
+def test_no_import_runs_up_a_floor() -> None:
+    offenders = []
+    excused = set()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        relative = path.relative_to(PACKAGE)
+        for where, target in upward_imports(path.read_text(encoding="utf-8"), relative):
+            if (relative.as_posix(), target) in FLOOR_EXCEPTIONS:
+                excused.add((relative.as_posix(), target))
+            else:
+                offenders.append(f"{relative}:{where}")
+    assert not offenders, "imports that run up a floor (docs/architecture.md, 'Floors'):\n" + "\n".join(offenders)
+    assert excused == set(FLOOR_EXCEPTIONS), f"exceptions no longer needed: {set(FLOOR_EXCEPTIONS) - excused}"
+
+
+def test_every_package_is_on_a_floor_and_the_docs_draw_them() -> None:
+    packages = {p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    packages |= {p.stem for p in PACKAGE.glob("*.py") if p.stem not in ("__init__", "__main__")}
+    placed = {name for floor in FLOORS for name in floor}
+    assert packages == placed
+    architecture = (PACKAGE.parent / "docs" / "architecture.md").read_text(encoding="utf-8")
+    for floor in FLOORS:
+        assert " · ".join(floor) in architecture, f"docs/architecture.md does not draw the floor {floor}"
+
+
+@pytest.mark.parametrize(
+    "source, relative",
+    [
+        ("from afmtool.report.images import write_png\n", "io/x.py"),  # io/ -> report/
+        ("from afmtool.estimators.rls import run\n", "models/x.py"),  # models/ -> estimators/
+        ("def f():\n    from afmtool.analyses.reep import run_reep\n", "estimators/x.py"),  # lazily, still up
+        ("from ..report import headline\n", "io/x.py"),  # relative
+        ("import afmtool.cli.main\n", "report/x.py"),
+        ("from afmtool import sim\n", "config/x.py"),
+        ("from afmtool.io.capture import Chunk\n", "runtime/x.py"),
+    ],
+)
+def test_the_floor_rule_finds_an_upward_import(source: str, relative: str) -> None:
+    assert upward_imports(source, Path(relative))
+
+
+def test_the_floor_rule_passes_downward_sideways_and_annotation_imports() -> None:
+    assert upward_imports("from afmtool.runtime.atomic import write_text_atomic\n", Path("io/x.py")) == []
+    assert upward_imports("from afmtool.estimators.rls import run\n", Path("estimators/x.py")) == []
+    assert upward_imports("from afmtool.sim import simulate\n", Path("pipeline.py")) == []
+    assert upward_imports("from afmtool import __version__\n", Path("report/x.py")) == []
+    assert upward_imports("import numpy as np\nfrom typing import TYPE_CHECKING\n", Path("models/x.py")) == []
+    typed = "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from afmtool.io.capture import Chunk\n"
+    assert upward_imports(typed, Path("estimators/x.py")) == []

@@ -47,7 +47,7 @@ def test_the_helper_draws_the_same_png_as_this_process(tmp_path):
 
 def test_an_error_in_the_helper_is_raised_here_with_its_type(tmp_path):
     result = _run(tmp_path, """
-        from afmtool.report.atomic import OutputError
+        from afmtool.runtime.atomic import OutputError
         with FigureProcess.start() as figures:
             figures.draw(write_multi_panel_png, out / "no-such-folder" / "f.png", panels, x_label="t (s)")
             try:
@@ -132,7 +132,7 @@ def test_with_another_thread_running_figures_are_drawn_here(tmp_path):
 def test_a_failed_run_stops_the_helper_before_its_folder_is_removed(tmp_path):
     # the helper keeps writing into the staging folder; the run fails at once: nothing may be left
     result = _run(tmp_path, """
-        from afmtool.report.outputs import OutputDir
+        from afmtool.runtime.outputs import OutputDir
 
         def keep_writing(folder, seconds):
             end = time.monotonic() + seconds

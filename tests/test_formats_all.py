@@ -15,7 +15,7 @@ from afmtool.analyses.convert import convert_capture
 from afmtool.io.chunks import iter_chunks
 from afmtool.io.memory import ArrayReader
 from afmtool.io.registry import FORMATS, open_capture
-from afmtool.report.atomic import atomic_path
+from afmtool.runtime.atomic import atomic_path
 from tests.conftest import REPO, run_cli
 
 SUFFIX = {"hdf5": ".h5", "csv": ".csv", "ros1": ".bag", "ros2-mcap": "_mcap", "ros2-sqlite3": "_sqlite3"}

@@ -51,7 +51,7 @@ def _functions(tree: ast.Module):
 
 
 def test_jit_options_keep_nan_and_the_cache():
-    from afmtool.estimators._common import JIT_OPTIONS
+    from afmtool.jit import JIT_OPTIONS
 
     assert JIT_OPTIONS["cache"] is True and JIT_OPTIONS["nogil"] is True
     # fastmath would let NaN vanish and reorder sums away from the plain-Python references
@@ -66,11 +66,11 @@ def _jit_misuses(path: Path) -> list[str]:
         return []
     found = []
     imported = any(
-        isinstance(n, ast.ImportFrom) and n.module == "afmtool.estimators._common" and any(a.name == "JIT_OPTIONS" and a.asname is None for a in n.names)
+        isinstance(n, ast.ImportFrom) and n.module == "afmtool.jit" and any(a.name == "JIT_OPTIONS" and a.asname is None for a in n.names)
         for n in ast.walk(tree)
     )
     if not imported:
-        found.append(f"{_shown(path)}: JIT_OPTIONS is not imported from afmtool.estimators._common")
+        found.append(f"{_shown(path)}: JIT_OPTIONS is not imported from afmtool.jit")
     for function, decorator in kernels:
         one_constant = (
             isinstance(decorator, ast.Call)

@@ -66,7 +66,7 @@ def test_an_hdf5_result_file_fails_cleanly_wherever_the_disk_fills(tmp_path, siz
     with Tmpfs(tmp_path / "mnt", size_kib << 10) as mnt:
         code = (
             "import sys; sys.path.insert(0, sys.argv[3]); from tests.test_hostile_diskfull import _write_result_file\n"
-            "from afmtool.report.faults import environment_fault\n"
+            "from afmtool.runtime.faults import environment_fault\n"
             "try:\n    _write_result_file(sys.argv[1], int(sys.argv[2]))\n"
             "except BaseException as exc:\n"
             "    print('fault' if environment_fault(exc) == 28 else f'other {type(exc).__name__}: {exc}', flush=True)\n"

@@ -93,7 +93,7 @@ def test_a_figure_that_is_wrong_is_still_an_error(tmp_path):
 def test_a_skipped_figure_is_not_listed_among_the_outputs(tmp_path):
     from afmtool.report.figure_process import FigureProcess
     from afmtool.report.images import write_line_plot_png
-    from afmtool.report.outputs import OutputDir
+    from afmtool.runtime.outputs import OutputDir
 
     with OutputDir(tmp_path / "out") as staged, warnings.catch_warnings():
         warnings.simplefilter("ignore")

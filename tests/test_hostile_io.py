@@ -770,8 +770,8 @@ def test_warnings_go_into_the_report():
 
 
 def test_input_guard_compares_real_paths_and_inodes(tmp_path, monkeypatch):
-    from afmtool.report import input_guard
-    from afmtool.report.input_guard import InputOverwriteError, refuse_output_over_inputs, register_input
+    from afmtool.runtime import input_guard
+    from afmtool.runtime.input_guard import InputOverwriteError, refuse_output_over_inputs, register_input
 
     monkeypatch.setattr(input_guard, "_inputs", [])
     capture = tmp_path / "data" / "cap.h5"
@@ -809,7 +809,7 @@ def test_input_guard_compares_real_paths_and_inodes(tmp_path, monkeypatch):
     ],
 )
 def test_environment_faults_are_recognised(exc, code):
-    from afmtool.report.faults import environment_fault, fault_message
+    from afmtool.runtime.faults import environment_fault, fault_message
 
     assert environment_fault(exc) == code
     if code is not None:

@@ -28,8 +28,8 @@ from tests.test_hostile_io import _one_line_exit_2, _state, _write_capture
 
 @pytest.mark.parametrize("kind", ["dangling", "to a file", "to a folder", "fifo"])
 def test_a_planted_lock_creates_nothing_outside_out(tmp_path, kind):
-    from afmtool.report.atomic import OutputError
-    from afmtool.report.outputs import OutputDir
+    from afmtool.runtime.atomic import OutputError
+    from afmtool.runtime.outputs import OutputDir
 
     parent = tmp_path / "parent"
     parent.mkdir()
@@ -84,7 +84,7 @@ def _labone_export(folder: Path) -> list[Path]:
 
 def test_convert_onto_any_file_of_a_labone_export_is_refused(tmp_path, monkeypatch):
     from afmtool.io.registry import open_capture
-    from afmtool.report import input_guard
+    from afmtool.runtime import input_guard
 
     files = _labone_export(tmp_path / "export")
     source = files[0]
@@ -195,7 +195,7 @@ def _memory_capture(rate: float, n: int = 3000):
 def test_convert_refuses_a_rate_no_writer_can_carry(tmp_path, rate, fmt):
     from afmtool.analyses.convert import convert_capture
     from afmtool.errors import InputError
-    from afmtool.report.atomic import atomic_path
+    from afmtool.runtime.atomic import atomic_path
 
     target = tmp_path / f"out{_FORMAT_SUFFIX[fmt]}"
     with pytest.raises(InputError, match="sample rate"):
@@ -211,7 +211,7 @@ def test_what_convert_writes_reads_back_at_its_rate(tmp_path, rate, fmt):
     from afmtool.errors import InputError
     from afmtool.io.chunks import iter_chunks
     from afmtool.io.registry import open_capture
-    from afmtool.report.atomic import atomic_path
+    from afmtool.runtime.atomic import atomic_path
 
     target = tmp_path / f"out{_FORMAT_SUFFIX[fmt]}"
     try:

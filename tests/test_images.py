@@ -12,13 +12,6 @@ import numpy as np
 import pytest
 
 from afmtool.errors import InputError
-from afmtool.report.atomic import (
-    OutputError,
-    PendingPath,
-    atomic_path,
-    write_bytes_atomic,
-    write_text_atomic,
-)
 from afmtool.report.images import (
     APPROACH_STYLE,
     NAN_COLOUR,
@@ -33,6 +26,13 @@ from afmtool.report.images import (
     write_line_plot_png,
     write_multi_panel_png,
     write_side_by_side_png,
+)
+from afmtool.runtime.atomic import (
+    OutputError,
+    PendingPath,
+    atomic_path,
+    write_bytes_atomic,
+    write_text_atomic,
 )
 
 MAGIC = b"Gwyddion Simple Field 1.0\n"
@@ -343,7 +343,7 @@ def test_shared_colour_scale_spans_all_images():
 
 def test_import_does_not_load_matplotlib():
     code = (
-        "import sys, afmtool.report.images, afmtool.report.atomic\n"
+        "import sys, afmtool.report.images, afmtool.runtime.atomic\n"
         "loaded = sorted(m for m in sys.modules if m == 'matplotlib' or m.startswith('matplotlib.'))\n"
         "assert not loaded, loaded\n"
     )

@@ -6,9 +6,9 @@ import errno
 
 import pytest
 
-from afmtool.report import outputs
-from afmtool.report.atomic import OutputError
-from afmtool.report.outputs import OutputDir
+from afmtool.runtime import outputs
+from afmtool.runtime.atomic import OutputError
+from afmtool.runtime.outputs import OutputDir
 
 
 def test_a_file_flushed_early_and_changed_later_is_committed_whole(tmp_path):

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from afmtool.errors import ConfigError, InputError, one_line
-from afmtool.report.atomic import write_text_atomic
 from afmtool.report.json_report import sha256_file
+from afmtool.runtime.atomic import write_text_atomic
 
 __all__ = ["BatchItem", "BatchOutcome", "expand_inputs", "plan_batch", "run_one", "headline", "write_summary"]
 
@@ -317,7 +317,7 @@ def _outcome(future, item: BatchItem) -> BatchOutcome:
     try:
         return future.result()
     except Exception as exc:  # noqa: BLE001 - whatever ended the task, the batch goes on and reports it
-        from afmtool.report.faults import environment_fault
+        from afmtool.runtime.faults import environment_fault
 
         reason = one_line(f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)
         fault = environment_fault(exc) is not None  # the worker could not write (a full disk)

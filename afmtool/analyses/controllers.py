@@ -293,8 +293,8 @@ def run_controllers_command(
     """The three-controller table and its images, written atomically into ``out``; returns the report."""
     from afmtool.config import load_toml, resolve_from
     from afmtool.config.params import TheoryControllersParams
-    from afmtool.report.outputs import OutputDir
     from afmtool.report.run import finish_run
+    from afmtool.runtime.outputs import OutputDir
 
     params = resolve_from(TheoryControllersParams, "theory.controllers", load_toml(config) if config else None, flags)
     rates = params.rates()

@@ -34,8 +34,8 @@ from afmtool.models.excitation_design import (
 )
 from afmtool.models.free_air import load_free_air_model
 from afmtool.report.json_report import input_record
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["design_record", "run_design_excitation_command", "write_wav_float32"]
 

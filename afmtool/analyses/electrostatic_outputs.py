@@ -21,8 +21,8 @@ from afmtool.io.units import calibration_record
 from afmtool.models.thermal_model import THERMAL_MODEL_FILE, load_thermal_model
 from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_electrostatic_command"]
 

@@ -33,8 +33,8 @@ from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
 from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_gamma_command", "GAMMA_UNITS"]
 

@@ -25,8 +25,8 @@ from afmtool.io.capture import CaptureReader
 from afmtool.io.units import calibration_record, parse_unit
 from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["identify_invols", "run_invols_command"]
 

@@ -20,8 +20,8 @@ from afmtool.io.matrix_results import MatrixResultWriter
 from afmtool.io.units import calibration_record
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.json_report import input_record
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_kalman_bank_command"]
 

@@ -30,8 +30,8 @@ from afmtool.estimators.observer_design import (
 )
 from afmtool.io.results import ResultWriter
 from afmtool.report.json_report import input_record
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_observer_theory_command", "parse_cycles"]
 

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.report.outputs import OutputDir
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["FORCE_CURVE_QUANTITIES", "OverlayRun", "TIME_QUANTITIES", "read_runs", "run_overlay_command"]
 

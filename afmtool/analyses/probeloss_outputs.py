@@ -14,8 +14,8 @@ from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.images import ImageStyle
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_probeloss_command", "run_probeloss_stream"]
 

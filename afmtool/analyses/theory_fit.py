@@ -388,8 +388,8 @@ def run_theory_fit_command(reep_dir: Path, out: Path, config: Path | None, flags
     from afmtool.io.results import ResultWriter
     from afmtool.report.images import write_multi_panel_png
     from afmtool.report.json_report import input_record
-    from afmtool.report.outputs import OutputDir
     from afmtool.report.run import finish_run
+    from afmtool.runtime.outputs import OutputDir
 
     params = resolve_from(TheoryFitParams, "theory.fit", load_toml(config) if config else None, flags)
     data = _load(Path(reep_dir), params)

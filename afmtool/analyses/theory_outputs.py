@@ -24,8 +24,8 @@ from afmtool.models.cantilever import Cantilever
 from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
 from afmtool.report.json_report import input_record, to_jsonable
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["FittedForce", "TheoryCompareResult", "capture_drive_lines", "chosen_force", "load_fitted_force",
            "run_averaging_command", "run_compare_command"]

@@ -37,8 +37,8 @@ from afmtool.io.results import ResultWriter
 from afmtool.models.thermal_model import THERMAL_MODEL_FILE, ThermalModel, load_thermal_model
 from afmtool.pipeline import run_stream
 from afmtool.report.json_report import input_record
-from afmtool.report.outputs import OutputDir
 from afmtool.report.run import finish_run
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_thermal_command", "load_thermal_model", "read_gamma_ir_ts", "GammaFile", "THERMAL_MODEL_FILE"]
 

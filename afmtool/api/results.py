@@ -141,7 +141,7 @@ class Result:
 
     def save(self, out_dir: str | Path) -> Path:
         """Write the CLI's output folder for this run to ``out_dir`` (atomically; an existing run there is replaced)."""
-        from afmtool.report.outputs import OutputDir
+        from afmtool.runtime.outputs import OutputDir
 
         with OutputDir(Path(out_dir)) as staged:
             for name in self.outputs:

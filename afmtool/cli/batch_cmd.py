@@ -49,8 +49,8 @@ def batch(
     """
     from afmtool.analyses.batch import expand_inputs, plan_batch, write_summary
     from afmtool.errors import ConfigError
-    from afmtool.report.atomic import OutputError, atomic_path
-    from afmtool.report.outputs import FolderLock
+    from afmtool.runtime.atomic import OutputError, atomic_path
+    from afmtool.runtime.outputs import FolderLock
 
     if command not in _COMMANDS:
         raise ConfigError(f"batch command {command!r} must be one of {', '.join(_COMMANDS)}")

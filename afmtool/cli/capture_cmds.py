@@ -194,8 +194,8 @@ def report(
     Only regular files inside FOLDER are read (no symbolic links, no FIFOs).
     """
     from afmtool.cli.progress import stderr_console
-    from afmtool.report.atomic import write_text_atomic
     from afmtool.report.html import report_pages
+    from afmtool.runtime.atomic import write_text_atomic
 
     _check_report_folder(folder, output or folder / "report.html")
     pages = report_pages(folder, output)
@@ -213,7 +213,7 @@ def _check_report_folder(folder: Path, target: Path) -> None:
     """
     from afmtool.errors import ConfigError, InputError
     from afmtool.io.metadata import MAX_JSON_DEPTH, json_depth
-    from afmtool.report.input_guard import register_input
+    from afmtool.runtime.input_guard import register_input
 
     if target.suffix.lower() not in (".html", ".htm"):
         raise ConfigError(f"--output {target}: must end in .html or .htm (refusing to overwrite other files)")

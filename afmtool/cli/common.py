@@ -89,7 +89,7 @@ def output_target(output: str, fmt: str) -> Iterator[Path | object]:
         with stdout_pipe():
             yield sys.stdout
         return
-    from afmtool.report.atomic import atomic_path
+    from afmtool.runtime.atomic import atomic_path
 
     with atomic_path(Path(output), directory=fmt.startswith("ros2")) as temp:
         yield temp

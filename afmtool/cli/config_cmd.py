@@ -20,7 +20,7 @@ def init(
     """Write every command's defaults, with help and units, to edit and pass as --config."""
     from afmtool.config.defaults import default_toml
     from afmtool.errors import ConfigError
-    from afmtool.report.atomic import write_text_atomic
+    from afmtool.runtime.atomic import write_text_atomic
 
     if path.exists() and not force:
         raise ConfigError(f"{path} exists; use --force to overwrite")

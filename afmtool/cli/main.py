@@ -159,8 +159,8 @@ def _give_up(state: _Signals) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point with afmtool's exit-code contract."""
-    from afmtool.report.faults import environment_fault
-    from afmtool.report.interrupts import interrupt_now
+    from afmtool.runtime.faults import environment_fault
+    from afmtool.runtime.interrupts import interrupt_now
 
     global _OUTCOME
     _OUTCOME = threading.Lock()  # one outcome line per run (main runs more than once in a test process)
@@ -190,8 +190,8 @@ def main(argv: list[str] | None = None) -> None:
         # Deliver the signal again a moment later, where it can unwind the run.
         if info.exc_value is not None and environment_fault(info.exc_value) is not None:
             # h5py dropping an object of a file the disk has no room for: remembered, so the
-            # file is never flushed again (report.faults.close_hdf5), and reported as one line
-            from afmtool.report.faults import note_swallowed
+            # file is never flushed again (runtime.faults.close_hdf5), and reported as one line
+            from afmtool.runtime.faults import note_swallowed
 
             note_swallowed(info.exc_value)
             return
@@ -354,7 +354,7 @@ def _run(argv: list[str] | None, signals: _Signals) -> None:
         os.dup2(devnull, sys.stdout.fileno())
         sys.exit(0)
     except Exception as exc:  # the one place unexpected errors are reported
-        from afmtool.report.faults import environment_fault, fault_message
+        from afmtool.runtime.faults import environment_fault, fault_message
 
         code = environment_fault(exc)
         if code is not None:  # disk full, read-only, permissions: the environment, not a bug

@@ -1,4 +1,4 @@
-"""Shared helpers of the estimator kernels: compile options and input checks."""
+"""Shared helpers of the estimator kernels: input checks (the compile options are :data:`afmtool.jit.JIT_OPTIONS`)."""
 
 from __future__ import annotations
 
@@ -8,26 +8,7 @@ import numpy as np
 
 from afmtool.errors import ConfigError, InputError
 
-__all__ = ["JIT_OPTIONS", "as_signal", "check_numerator"]
-
-#: Compile options of every kernel in the tree, kept in one constant (a test
-#: checks that every ``@njit`` uses it, and only it).
-#:
-#: * ``cache``: compiled kernels are kept on disk, so a command starts in
-#:   a fraction of a second after the first run.
-#: * ``nogil``: kernels release the GIL, so the read-ahead and side-kernel
-#:   threads of the streaming commands run beside them.
-#: * ``error_model="numpy"``: a division by zero gives inf or NaN, as IEEE 754
-#:   and numpy say, instead of raising ZeroDivisionError from inside a
-#:   kernel; the wrappers validate their arguments, and a NaN sample must
-#:   flow through a recursion the way it does through the plain-Python
-#:   references.
-#: * No ``fastmath``: NaN and inf must propagate, and ``contract``/``reassoc``
-#:   would make the numba results differ from the plain-Python references.
-#:
-#: Never change it at run time: the on-disk cache is keyed on these options.
-JIT_OPTIONS = {"cache": True, "nogil": True, "error_model": "numpy"}
-
+__all__ = ["as_signal", "check_numerator"]
 
 def as_signal(name: str, x) -> np.ndarray:
     """A 1-D float64 C-contiguous view or copy of ``x``; the input is never modified."""

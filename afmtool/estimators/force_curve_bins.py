@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = ["ChunkLegs", "force_curve_legs", "leg_sums"]
 

@@ -36,7 +36,6 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.estimators.detectability import (
     REFERENCE_EVENTS,
     LossEvents,
@@ -52,6 +51,7 @@ from afmtool.estimators.forcing_observer import (
     forcing_phasors,
     memory_periods,
 )
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = [
     "MEMORY_PERIODS",

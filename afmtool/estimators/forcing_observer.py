@@ -85,9 +85,10 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
-from afmtool.estimators._common import JIT_OPTIONS, check_numerator
+from afmtool.estimators._common import check_numerator
 from afmtool.estimators.decimation import Decimation
 from afmtool.estimators.observer import _check_denominator, _check_signals
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = [
     "ForcingModel",

@@ -17,9 +17,9 @@ from numba import njit
 
 from afmtool.config.samples import MAX_SAMPLES
 from afmtool.errors import ConfigError
-from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.estimators.decimation import Decimation
 from afmtool.estimators.filters import butterworth_lowpass_sos
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = ["LockIn", "LockInState", "LockInBlock", "default_lowpass_hz"]
 

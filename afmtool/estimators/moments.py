@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
-from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = ["RunningMoments"]
 

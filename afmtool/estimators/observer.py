@@ -136,7 +136,8 @@ import scipy.linalg
 from numba import njit
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators._common import JIT_OPTIONS, as_signal, check_numerator
+from afmtool.estimators._common import as_signal, check_numerator
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = [
     "DiscreteStateSpace",

@@ -58,8 +58,8 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
-from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.estimators.decimation import Decimation
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = ["ANTI_ALIAS_ROLLOFF", "ANTI_ALIAS_SPAN", "anti_alias_taps", "decimate_block", "reduction_factor"]
 

@@ -49,7 +49,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import SampleShareWarning
-from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.jit import JIT_OPTIONS
 from afmtool.models.discretisation import resonance_scalar, resonance_std_scalar
 
 __all__ = [

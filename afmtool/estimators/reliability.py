@@ -106,7 +106,7 @@ from numba import njit
 
 from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators._common import JIT_OPTIONS, as_signal
+from afmtool.estimators._common import as_signal
 from afmtool.estimators.decimation import Decimation
 
 # the detector's design (issue 29, item 6): which index, its parameters, its predicted performance
@@ -128,6 +128,7 @@ from afmtool.estimators.observer import (
     _window_resync,
     _window_rms,
 )
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = [
     "DesignInputs",

@@ -75,8 +75,9 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators._common import JIT_OPTIONS, as_signal, channel_rms, check_numerator, check_resolvable
+from afmtool.estimators._common import as_signal, channel_rms, check_numerator, check_resolvable
 from afmtool.estimators.decimation import Decimation
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = [
     "DEFAULT_FORGETTING_FACTOR",

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -35,7 +35,9 @@ from afmtool.estimators.stages import ResponseStage, run_stages
 from afmtool.estimators.stepped_sine import SineSegment, detect_segments
 from afmtool.estimators.sweep_spectral import default_nperseg
 from afmtool.estimators.transfer_function_fit import TransferFunctionFit, fit_transfer_function
-from afmtool.io.capture import Chunk
+
+if TYPE_CHECKING:  # an annotation only: estimators take chunks, they do not read captures
+    from afmtool.io.capture import Chunk
 
 __all__ = [
     "UNIT_SCALES",

@@ -26,14 +26,16 @@ arrays), exactly as ``run_stream`` steps them.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.frequency_response import FrequencyResponse, H1Accumulator
 from afmtool.estimators.stepped_sine import SineSegment, SteppedSineAccumulator, stepped_sine_response
-from afmtool.io.capture import Chunk
+
+if TYPE_CHECKING:  # an annotation only: estimators take chunks, they do not read captures
+    from afmtool.io.capture import Chunk
 
 __all__ = [
     "ChannelMeans",

@@ -568,7 +568,7 @@ class Hdf5Writer:
 
     @contextmanager
     def _failing(self, *, close: bool = False) -> Iterator[None]:
-        """A write that raises marks the file failed: it is then never closed (afmtool.report.faults.close_hdf5).
+        """A write that raises marks the file failed: it is then never closed (afmtool.runtime.faults.close_hdf5).
 
         ``close``: the constructor's writes; nobody else will call :meth:`close` if they fail.
         """
@@ -610,8 +610,8 @@ class Hdf5Writer:
                 )
 
     def close(self) -> None:
-        """Close the file; after a failed write it is left unclosed (afmtool.report.faults.close_hdf5)."""
-        from afmtool.report.faults import close_hdf5
+        """Close the file; after a failed write it is left unclosed (afmtool.runtime.faults.close_hdf5)."""
+        from afmtool.runtime.faults import close_hdf5
 
         handle, self._file = self._file, None
         if handle is not None:

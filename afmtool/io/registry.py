@@ -183,7 +183,7 @@ def open_capture(
         return open_stack(path, options)
     fmt = input_format(path)
     entry = _BY_FORMAT[fmt]
-    from afmtool.report.input_guard import register_input
+    from afmtool.runtime.input_guard import register_input
 
     register_input(path)  # so that no output of this run can overwrite it
     for companion in companion_files(path, fmt):

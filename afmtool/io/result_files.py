@@ -158,14 +158,14 @@ class ResultFile:
 
     def close(self, *, failed: bool = False) -> None:
         """Close the file; one written to (``r+``) is flushed first, and left unclosed if a write failed
-        (:func:`afmtool.report.faults.close_hdf5`)."""
+        (:func:`afmtool.runtime.faults.close_hdf5`)."""
         if self._file is None:
             return
         handle, self._file = self._file, None
         if handle.mode == "r":
             handle.close()
             return
-        from afmtool.report.faults import close_hdf5
+        from afmtool.runtime.faults import close_hdf5
 
         close_hdf5(handle, failed=failed)
 

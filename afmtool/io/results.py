@@ -102,9 +102,9 @@ class ResultWriter:
 
         ``failed``: the run failed while writing (the file is thrown away);
         it is left unclosed, out of reach of every finaliser
-        (:func:`afmtool.report.faults.close_hdf5`).
+        (:func:`afmtool.runtime.faults.close_hdf5`).
         """
-        from afmtool.report.faults import close_hdf5
+        from afmtool.runtime.faults import close_hdf5
 
         if self._file is None:
             return

@@ -474,7 +474,7 @@ def _remove_placeholder(path: Path) -> None:
     """Remove an empty regular file at ``path`` so that rosbags can create it.
 
     Callers that write atomically hand over a freshly created, empty
-    temporary file (``afmtool.report.atomic``); rosbags only creates new
+    temporary file (``afmtool.runtime.atomic``); rosbags only creates new
     paths.  Anything else that exists is left alone, and refused by rosbags.
     """
     if path.is_file() and not path.is_symlink() and path.stat().st_size == 0:

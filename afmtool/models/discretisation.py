@@ -74,7 +74,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.jit import JIT_OPTIONS
 
 #: How the drive reached the plant between samples (module docstring).
 HOLDS = ("zoh", "continuous")

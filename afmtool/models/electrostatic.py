@@ -51,7 +51,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import ConfigError
-from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.jit import JIT_OPTIONS
 
 __all__ = [
     "ElectrostaticParams",

@@ -108,7 +108,7 @@ class FreeAirModel:
         return data
 
     def save(self, path: Path) -> None:
-        from afmtool.report.atomic import write_text_atomic
+        from afmtool.runtime.atomic import write_text_atomic
 
         write_text_atomic(Path(path), json.dumps(self.to_dict(), indent=2) + "\n")
 

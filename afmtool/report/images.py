@@ -4,7 +4,7 @@ Images are 2-D arrays with rows along y, top row first (row 0 is drawn at
 the top, as in Gwyddion), values in ``z_units``; the scan size is given in
 metres.  PNG figures use matplotlib, imported inside the writers only, so
 that ``import afmtool.report.images`` (and the CLI start-up) stays free of
-it.  Every file is written through :func:`afmtool.report.atomic.atomic_path`.
+it.  Every file is written through :func:`afmtool.runtime.atomic.atomic_path`.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from afmtool.errors import InputError
-from afmtool.report.atomic import OutputError, atomic_path
 from afmtool.report.figure_process import FigureProcess, NothingToDraw, skipped_when_empty
+from afmtool.runtime.atomic import OutputError, atomic_path
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

@@ -48,7 +48,7 @@ def input_record(path: Path | str, role: str = "capture") -> dict:
     """``{"path", "role", "hash"}`` with the sha256 of the file's bytes; stdin has no hash."""
     if str(path) == "-":
         return {"path": "-", "role": role, "hash": None}
-    from afmtool.report.input_guard import register_input
+    from afmtool.runtime.input_guard import register_input
 
     register_input(path)  # no output of this run may overwrite what it hashed
     return {"path": str(path), "role": role, "hash": file_hash(path)}
@@ -70,7 +70,7 @@ class SampleInputRecord:
     def __init__(self, path: Path | str, reader=None, role: str = "capture") -> None:
         self._path, self._reader, self._role = str(path), reader, role
         if self._path != "-":
-            from afmtool.report.input_guard import register_input
+            from afmtool.runtime.input_guard import register_input
 
             register_input(path)  # no output of this run may overwrite what it read
 

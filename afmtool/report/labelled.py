@@ -236,7 +236,7 @@ def write_dataset(dataset: xarray.Dataset, path: Path | str, data_format: str) -
 def convert_result_files(staged, report_stub: Mapping, data_format: str) -> None:
     """In a staged output folder, replace the result HDF5 files by one ``<stem>.nc`` or ``<stem>.zarr`` each.
 
-    ``staged`` is the run's :class:`~afmtool.report.outputs.OutputDir`; ``report_stub``
+    ``staged`` is the run's :class:`~afmtool.runtime.outputs.OutputDir`; ``report_stub``
     the report so far (command, parameters, inputs) for the attrs.
     """
     import shutil

@@ -9,7 +9,7 @@ from typing import Any
 
 from afmtool.config import parameters_dict, section_to_toml
 from afmtool.report.json_report import build_report, dumps
-from afmtool.report.outputs import OutputDir
+from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["finish_run", "result_format"]
 

@@ -31,7 +31,7 @@ from numba import njit
 
 from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
-from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.jit import JIT_OPTIONS
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.electrostatic import ElectrostaticParams, electrostatic_force_scalar
 

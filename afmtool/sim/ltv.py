@@ -46,8 +46,8 @@ from scipy import signal
 
 from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
-from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.io.capture import ChannelSpec
+from afmtool.jit import JIT_OPTIONS
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.discretisation import DiscreteNumerator, discrete_denominator, sampled_numerator
 from afmtool.sim import SimulatedCapture, param, validate_parameters

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.jit import JIT_OPTIONS
 from afmtool.models.electrostatic import electrostatic_force_scalar
 from afmtool.models.forces import force_per_mass
 

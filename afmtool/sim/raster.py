@@ -135,7 +135,6 @@ from numba import njit
 
 from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
-from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.estimators.observer import (
     ObserverDesign,
     _predict,
@@ -152,6 +151,7 @@ from afmtool.estimators.reliability import (
     settle_samples,
 )
 from afmtool.io.capture import ChannelSpec
+from afmtool.jit import JIT_OPTIONS
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce, force_per_mass
 from afmtool.models.free_air import FreeAirModel

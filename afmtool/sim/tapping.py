@@ -40,8 +40,8 @@ from numba import njit
 
 from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
-from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.io.capture import ChannelSpec
+from afmtool.jit import JIT_OPTIONS
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce, force_per_mass
 from afmtool.sim import SimulatedCapture, param, validate_parameters

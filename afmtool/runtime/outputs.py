@@ -32,10 +32,10 @@ import threading
 from pathlib import Path
 
 from afmtool.errors import AfmtoolError
-from afmtool.report.atomic import OutputError, _fsync_dir, _fsync_path, _fsync_tree
-from afmtool.report.faults import environment_fault
-from afmtool.report.input_guard import refuse_output_over_inputs
-from afmtool.report.interrupts import signals_deferred
+from afmtool.runtime.atomic import OutputError, _fsync_dir, _fsync_path, _fsync_tree
+from afmtool.runtime.faults import environment_fault
+from afmtool.runtime.input_guard import refuse_output_over_inputs
+from afmtool.runtime.interrupts import signals_deferred
 
 __all__ = ["FolderLock", "OutputDir", "WAIT_ENV"]
 

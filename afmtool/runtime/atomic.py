@@ -30,7 +30,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from afmtool.errors import AfmtoolError
-from afmtool.report.input_guard import refuse_output_over_inputs
+from afmtool.runtime.input_guard import refuse_output_over_inputs
 
 __all__ = ["OutputError", "PendingPath", "atomic_path", "write_bytes_atomic", "write_text_atomic"]
 
