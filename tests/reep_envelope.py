@@ -50,10 +50,15 @@ FREE_AMPLITUDE_NM = 20.0
 SIDE_OFFSET = 0.075  # side lines at ±7.5 % of f0
 
 
-def scaled_force(kind: str, f0_hz: float) -> rs.PiecewiseLinearForce:
-    """The §3.4.3 set for a lever at ``f0_hz``: stiffness with ω0², damping with ω0 (the same dimensionless force)."""
+def scaled_force(kind: str, f0_hz: float, wall: bool = True) -> rs.PiecewiseLinearForce:
+    """The §3.4.3 set for a lever at ``f0_hz``: stiffness with ω0², damping with ω0 (the same dimensionless force).
+
+    ``wall=False`` leaves out the repulsive wall (ω_b², c_b): the attraction alone.
+    """
     d, wa2, wb2, ca, cb = FORCE_SETS[kind]
     s = f0_hz / 80318.0
+    if not wall:
+        wb2 = cb = 0.0
     return rs.PiecewiseLinearForce(d, wa2 * s * s, wb2 * s * s, ca * s, cb * s)
 
 
@@ -85,6 +90,12 @@ class Cell:
     regime: str  # "free", "attractive", "mixed", "repulsive"
     noise_nm: float
     seed: int = 1
+    #: Free amplitude A0, nm (40 nm for repulsive tapping at Q ≥ 400: at 20 nm the lever stays in the attractive
+    #: branch at every separation with A ≥ 0.45 A0).
+    free_amplitude_nm: float = FREE_AMPLITUDE_NM
+    #: Hold separation over A0 (None: the regime's, HOLD_SEPARATION).  Attractive tapping at Q 20 holds at 0.9:
+    #: at 0.8 the weakly damped amplitude barely drops and the tip grazes the wall (0.4 nm into it).
+    hold_fraction: float | None = None
     #: Tolerances: |mean f0′ − truth| (Hz), |mean Q′/truth − 1|, flagged share, ±2σ coverage band.
     f0_tol_hz: float = 2.0
     q_tol: float = 0.02
@@ -105,7 +116,7 @@ def _lever_time_constant(f0: float, q: float) -> float:
 def free_air_capture(cell: Cell, duration_s: float | None = None) -> rs.Capture:
     gain = 1.0
     duration = duration_s or 0.06
-    drive = rs.three_sine(cell.f0, SIDE_OFFSET * cell.f0, FREE_AMPLITUDE_NM / (gain * cell.q), 0.5)
+    drive = rs.three_sine(cell.f0, SIDE_OFFSET * cell.f0, cell.free_amplitude_nm / (gain * cell.q), 0.5)
     return rs.simulate(f0_hz=cell.f0, q=cell.q, gain_nm_per_v=gain, sample_rate_hz=cell.fs, duration_s=duration,
                        drive=drive, noise_nm=cell.noise_nm, seed=cell.seed)
 
@@ -117,8 +128,8 @@ def tapping_capture(cell: Cell) -> tuple[rs.Capture, float]:
     ramp_s = max(3 * tau, 0.005)
     settle_s = 8 * tau + 0.004  # the amplitude settles, then REEP's window (400 µs) follows
     hold_s = settle_s + 0.03
-    top = FREE_AMPLITUDE_NM + FORCE_SETS[cell.regime][0] + 5.0
-    low = HOLD_SEPARATION[cell.regime] * FREE_AMPLITUDE_NM
+    top = cell.free_amplitude_nm + FORCE_SETS[cell.regime][0] + 5.0
+    low = (cell.hold_fraction or HOLD_SEPARATION[cell.regime]) * cell.free_amplitude_nm
 
     def separation(t):
         t = np.asarray(t, dtype=float)
@@ -127,7 +138,7 @@ def tapping_capture(cell: Cell) -> tuple[rs.Capture, float]:
 
     # side lines beating the amplitude by at most 0.5 % (module docstring)
     side = min(0.25, 0.005 * SIDE_OFFSET * cell.q)
-    drive = rs.three_sine(cell.f0, SIDE_OFFSET * cell.f0, FREE_AMPLITUDE_NM / cell.q, side)
+    drive = rs.three_sine(cell.f0, SIDE_OFFSET * cell.f0, cell.free_amplitude_nm / cell.q, side)
     cap = rs.simulate(f0_hz=cell.f0, q=cell.q, gain_nm_per_v=1.0, sample_rate_hz=cell.fs,
                       duration_s=free_s + ramp_s + hold_s, drive=drive, noise_nm=cell.noise_nm, seed=cell.seed,
                       force=scaled_force(cell.regime, cell.f0), separation_nm=separation, free_air_s=free_s)
@@ -171,6 +182,7 @@ def _free_cell(cell: Cell) -> dict:
         "f0_bias_hz": float(np.mean(f0[good]) - cell.f0), "q_bias": float(np.mean(q[good]) / cell.q - 1.0),
         "f0_scatter_hz": float(np.std(f0[good])), "q_scatter": float(np.std(q[good]) / cell.q),
         "f0_std_hz": float(np.median(columns["f0_std_hz"][rows][good])),
+        "q_std": float(np.median(columns["q_std"][rows][good]) / cell.q),
         "f0_coverage": coverage(f0[good], cell.f0, columns["f0_std_hz"][rows][good]),
         "q_coverage": coverage(q[good], cell.q, columns["q_std"][rows][good]),
         "flagged": float(np.mean(~good)),
@@ -192,8 +204,13 @@ def _tapping_cell(cell: Cell) -> dict:
     recent = _touched(cap, index, period)
     steady = (t >= hold_from) & (columns["amplitude"] >= 0.45 * free_amplitude) & recent
     clean_min = _min_separation(cap, index[steady], period)
+    drive_hz = result.results["drive_frequency_hz"]
     f0_e, q_e = first_harmonic(columns["amplitude"][steady], separation[steady], cell.f0, cell.q,
-                               scaled_force(cell.regime, cell.f0), result.results["drive_frequency_hz"])
+                               scaled_force(cell.regime, cell.f0), drive_hz)
+    # the attraction's and the wall's shares of the theory's shift: its first-harmonic error scales with
+    # each part, not with their sum (in mixed tapping they cancel)
+    f0_a, q_a = first_harmonic(columns["amplitude"][steady], separation[steady], cell.f0, cell.q,
+                               scaled_force(cell.regime, cell.f0, wall=False), drive_hz)
     good = columns["flag"][steady] == 0
     f0, q = columns["f0_hz"][steady][good], columns["q"][steady][good]
     f0_std, q_std = columns["f0_std_hz"][steady][good], columns["q_std"][steady][good]
@@ -204,9 +221,12 @@ def _tapping_cell(cell: Cell) -> dict:
         "amplitude_share": float(np.mean(columns["amplitude"][steady]) / free_amplitude),
         "min_separation_nm": float(np.median(clean_min)),
         "f0_shift_hz": float(np.mean(f0_e) - cell.f0),
+        "f0_shift_scale_hz": float(abs(np.mean(f0_a) - cell.f0) + abs(np.mean(f0_e - f0_a))),
+        "q_shift": float(np.mean(q_e) / cell.q - 1.0),
+        "q_shift_scale": float(abs(np.mean(q_a) / cell.q - 1.0) + abs(np.mean(q_e - q_a)) / cell.q),
         "f0_bias_hz": float(np.mean(f0 - f0_e[good])), "q_bias": float(np.mean(q / q_e[good]) - 1.0),
         "f0_scatter_hz": float(np.std(f0 - f0_clean)), "q_scatter": float(np.std(q / q_clean - 1.0)),
-        "f0_std_hz": float(np.median(f0_std)),
+        "f0_std_hz": float(np.median(f0_std)), "q_std": float(np.median(q_std / q_clean)),
         "f0_coverage": coverage(f0, f0_clean, f0_std), "q_coverage": coverage(q, q_clean, q_std),
         "f0_theory_coverage": coverage(f0, f0_e[good], f0_std),
         "flagged": float(np.mean(~good)),

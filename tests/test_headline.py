@@ -70,6 +70,39 @@ def test_a_headline_reads_its_declaration_and_skips_what_a_run_lacks():
     assert headline("no such command", results) == []
 
 
+def test_reep_without_the_dither_shows_no_q_and_says_why():
+    """Issue 27 item 3: an output-only run says Q' is not identifiable and shows no Q' item (with it, it does)."""
+    results = {
+        "segments": {"settled": {"f0_hz": {"mean": 60627.8, "std": 0.7}, "q": {"mean": 1e5, "std": 1.5e7}}},
+        "force_curve": {"approach": {"z_units": "nm", "smallest_q": 21.5, "smallest_q_z": -26.75,
+                                     "largest_energy_per_cycle_ev": 3.0, "largest_energy_per_cycle_z": -20.0}},
+        "q_identifiable": False,
+    }
+    entries = headline("reep", results)
+    assert entries[0]["name"] == "warning" and "Q' is not identifiable" in entries[0]["text"]
+    assert entries[0]["source"] == "q_identifiable"
+    names = [e["name"] for e in entries[1:]]
+    assert names == ["f0' after the warm-up"]
+    assert not any("Q'" in n or "energy" in n for n in names)
+    shown = [e["name"] for e in headline("reep", dict(results, q_identifiable=True))]
+    assert shown == ["f0' after the warm-up", "Q' after the warm-up", "smallest Q' on approach",
+                     "largest energy dissipated per cycle"]
+
+
+def test_reep_mostly_flagged_says_why_first():
+    """Issue 27 item 3: a run with most rows flagged opens its headline with why; at half or less it does not."""
+    why = ("most of REEP's rows are invalid: 80% flagged after the warm-up, mostly (80% of the rows) because "
+           "the amplitude is below 1 % of the free amplitude")
+    results = {"segments": {"settled": {"f0_hz": {"mean": 70000.0, "std": 2.0}}},
+               "validity": {"mostly_flagged": why, "flags": {"fraction": 0.8}}}
+    entries = headline("reep", results)
+    assert entries[0]["name"] == "warning" and entries[0]["text"].startswith(why)
+    assert entries[0]["source"] == "validity.flags.fraction"
+    assert [e["name"] for e in entries[1:]] == ["f0' after the warm-up"]
+    results["validity"] = {"mostly_flagged": None, "flags": {"fraction": 0.3}}
+    assert [e["name"] for e in headline("reep", results)] == ["f0' after the warm-up"]
+
+
 def test_a_fit_parameter_carries_its_standing():
     results = {"parameters": {"omega_a2": {"value": 6.9e10, "std": 2.6e9, "status": "poorly identifiable"}}}
     (entry,) = headline("theory fit", results)

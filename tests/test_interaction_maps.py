@@ -142,3 +142,26 @@ def test_raster_without_k_writes_no_interaction_images(tmp_path):
         f"{q}_{d}.gsf" for q in ("f0_hz", "q", "amplitude", "phase_deg", "height") for d in ("trace", "retrace"))
     with h5py.File(tmp_path / "reep" / "reep.h5") as f:
         assert "interaction" not in f and "k_e_n_per_m" not in f["images"]
+
+
+def test_raster_keeps_its_on_sample_pixels(raster_outputs):
+    """Issue 27 item 3: ≥ 90 % of the on-sample pixels of the f0' and energy images hold a value (not NaN).
+
+    A pixel is on the sample where the simulator's truth has the probe on it
+    (``/truth/switch`` = 0, probe loss 1) for most of the pixel's time; σ̂²
+    rising in tapping is no longer a flag, so these pixels keep their numbers.
+    """
+    with h5py.File(raster_outputs / "raster_k.h5") as f:
+        scan = json.loads(f.attrs["metadata"])["scan"]
+        fs = float(f.attrs["sample_rate_hz"])
+        lost = f["truth/switch"][()].astype(float)
+    t_all = np.arange(lost.size) / fs
+    with h5py.File(raster_outputs / "reep" / "reep.h5") as f:
+        for direction, label in enumerate(("trace", "retrace")):
+            on_sample = _pixel_means(t_all, lost, scan, direction) < 0.5
+            assert on_sample.sum() >= 10
+            for name in ("f0_hz", "energy_per_cycle_ev"):
+                image = f[f"images/{name}/{label}"][()]
+                kept = float(np.isfinite(image[on_sample]).mean())
+                print(f"{name} {label}: {kept:.1%} of {on_sample.sum()} on-sample pixels kept")
+                assert kept >= 0.90

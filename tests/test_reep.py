@@ -14,7 +14,6 @@ from afmtool.config import resolve
 from afmtool.config.params import ReepParams
 from afmtool.errors import InputError
 from afmtool.io.memory import ArrayReader
-from afmtool.io.registry import open_capture
 from afmtool.models.free_air import FreeAirModel
 from tests.conftest import run_cli, validate_report
 
@@ -181,18 +180,33 @@ def test_needs_free_air_model(tmp_path):
     assert not out.exists()
 
 
-def test_real_kpfm_record_output_only(shared, tmp_path):
-    """Regression on the real 1.15 MHz record: the resonance tracks near 60.6 kHz."""
-    path = shared / "data" / "fm_kpfm_displacement.h5"
-    with open_capture(path, channel_map={"deflection": "/s"}, sample_rate_hz=1.15e6) as reader:
-        params = resolve(ReepParams, {"use_input": False, "decimate": 1})
-        columns = _Columns()
-        result = run_reep(reader, params, columns)
-    f0 = columns["f0_hz"][columns["t"] > 0.01]
-    mean = float(np.nanmean(f0))
-    print(f"KPFM record, output-only REEP: f0' = {mean:.2f} Hz (std {np.nanstd(f0):.2f} Hz)")
-    assert result.results["drive_frequency_hz"] == pytest.approx(60_630, abs=200)
-    assert mean == pytest.approx(60_630.0, abs=15.0)
+def test_real_kpfm_record_reports_f0_and_says_q_is_not_identifiable(shared, tmp_path):
+    """Issue 27 item 3: output-only REEP on the real FM-KPFM record from the CLI.
+
+    The loop holds the oscillation, so REEP's poles sit on the unit circle
+    (b0 ≈ 1, on either side): half the rows were flagged "not under-damped"
+    and the Q' card read (0.0 ± 1.5)e+07.  f0' is the frequency the poles
+    oscillate at, defined on either side; Q' is not identifiable and has no card.
+    """
+    out = tmp_path / "kpfm"
+    result = run_cli("reep", shared / "data" / "fm_kpfm_displacement.h5", "--channel", "deflection=/s",
+                     "--sample-rate", "1.15e6", "--no-input", "--out", out, "--json", "-q")
+    assert result.returncode == 0, result.stderr.decode()
+    report = json.loads(result.stdout)
+    results = report["results"]
+    assert results["q_identifiable"] is False
+    assert results["drive_frequency_hz"] == pytest.approx(60_630, abs=200)
+    assert results["validity"]["flags"]["fraction"] <= 0.10
+    assert results["segments"]["settled"]["f0_hz"]["mean"] == pytest.approx(60_630.0, abs=15.0)
+    entries = report["headline"]
+    assert entries[0]["name"] == "warning" and "not identifiable" in entries[0]["text"]
+    assert [e["name"] for e in entries[1:] if e["name"].startswith("f0'")] == ["f0' after the warm-up"]
+    assert not any("Q'" in e["name"] for e in entries[1:])
+    with h5py.File(out / "reep.h5") as f:
+        flag, q, f0_std = f["flag"][()], f["q"][()], f["f0_std_hz"][()]
+    assert np.isnan(q).all()
+    settled = flag == 0
+    assert np.isfinite(f0_std[settled]).all() and np.median(f0_std[settled]) < 5.0
 
 
 def test_images_from_scan_geometry(tmp_path):

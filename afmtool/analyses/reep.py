@@ -338,6 +338,7 @@ class ReepStage:
         rows = reep_rows(
             block.b1, block.b0, block.c, block.sigma2, demod.amplitude, self.estimator.rate_hz, self.levels,
             self.limits, self.offset_drift, block.covariance, self.warmup.first_settled(kept_index), self.levels.sigma2,
+            output_only=not self.estimator.use_input,
         )
         columns = {
             "t": kept_index / self.fs,

@@ -7,7 +7,13 @@ that is merely uncertain: how uncertain every row is, ``f0_std_hz`` and
 the ``flag`` series in ``reep.h5`` (0 = valid):
 
 * :data:`FLAG_NOT_UNDERDAMPED` (1): (b1, b0) outside the under-damped region
-  0 < b0 < 1, |b1| < 2√b0, where eq. 3.48 has no (f0′, Q′) (docs/conventions.md);
+  0 < b0 < 1, |b1| < 2√b0, where eq. 3.48 has no (f0′, Q′) (docs/conventions.md).
+  Output-only (no dither: FM-KPFM, self-oscillation) the damping is the
+  loop's, not the cantilever's, and Q′ is not identifiable: f0′ is the
+  frequency the poles oscillate at, arccos(−b1/(2√b0))/(2πT), defined
+  wherever the poles are a complex pair (b0 > 0, |b1| < 2√b0), and only
+  rows without one are flagged (a loop that holds the oscillation puts the
+  poles on the unit circle, b0 ≈ 1, on either side of it);
 * :data:`FLAG_LOW_AMPLITUDE` (2): the oscillation amplitude at the drive is
   below ``min_amplitude_fraction`` of the free amplitude (the stated floor,
   1 % by default).  The regressors then carry little but noise: the bias
@@ -238,22 +244,48 @@ class ReepRows(NamedTuple):
 
 
 @njit(**JIT_OPTIONS)
+def oscillation_scalar(b1, b0, var_b1, cov_b1b0, var_b0, period):
+    """Output-only f0′: the poles' frequency arccos(u)/(2πT), u = −b1/(2√b0), and its std; NaN without complex poles.
+
+    With ∂θ/∂b1 = 1/(2√b0·√(1 − u²)) and ∂θ/∂b0 = −b1/(4·b0^{3/2}·√(1 − u²))
+    (θ = arccos u), Var f = ∇θᵀ C ∇θ/(2πT)²; the std is NaN when the
+    covariance is not finite.
+    """
+    if not (b0 > 0.0 and b1 * b1 < 4.0 * b0):
+        return np.nan, np.nan
+    root_b0 = math.sqrt(b0)
+    ratio = min(max(-b1 / (2.0 * root_b0), -1.0), 1.0)
+    sine = math.sqrt(max(1.0 - ratio * ratio, 1e-300))
+    scale = 1.0 / (2.0 * math.pi * period)
+    d1 = scale / (2.0 * root_b0 * sine)
+    d0 = -scale * b1 / (4.0 * b0 * root_b0 * sine)
+    variance = d1 * d1 * var_b1 + 2.0 * d1 * d0 * cov_b1b0 + d0 * d0 * var_b0
+    return math.acos(ratio) * scale, (math.sqrt(variance) if variance >= 0.0 else np.nan)
+
+
+@njit(**JIT_OPTIONS)
 def _rows_kernel(
     b1, b0, c, sigma2, amplitude, covariance, noise_variance, period, min_amplitude, settled_from, max_drift,
-    drift_lam, drift_state, f0_out, q_out, offset_out, flags_out, f0_std_out, q_std_out,
+    drift_lam, drift_state, output_only, f0_out, q_out, offset_out, flags_out, f0_std_out, q_std_out,
 ):
     """Eq. 3.48 with its standard deviations, the offset p̄ = c/(1 + b1 + b0), its EW variance and the flags."""
     has_offset = c.shape[0] > 0
     has_covariance = covariance.shape[0] > 0
     s0, s1, s2 = drift_state[0], drift_state[1], drift_state[2]
     for i in range(b1.shape[0]):
-        f0, q = resonance_scalar(b1[i], b0[i], period)
+        # the covariance is σ̂²(n)·(…): with the measurement noise known, σ̂²(n) gives way to it
+        scale = noise_variance / sigma2[i] if noise_variance > 0.0 else 1.0
+        var1 = scale * covariance[i, 0] if has_covariance else np.nan
+        cov10 = scale * covariance[i, 1] if has_covariance else np.nan
+        var0 = scale * covariance[i, 2] if has_covariance else np.nan
+        if output_only:  # the loop's damping, not the cantilever's: Q' not identifiable (module docstring)
+            f0, f0_std = oscillation_scalar(b1[i], b0[i], var1, cov10, var0, period)
+            q, q_std = np.nan, np.nan
+        else:
+            f0, q = resonance_scalar(b1[i], b0[i], period)
+            f0_std, q_std = resonance_std_scalar(b1[i], b0[i], var1, cov10, var0, period)
         if has_covariance:
-            # the covariance is σ̂²(n)·(…): with the measurement noise known, σ̂²(n) gives way to it
-            scale = noise_variance / sigma2[i] if noise_variance > 0.0 else 1.0
-            f0_std_out[i], q_std_out[i] = resonance_std_scalar(
-                b1[i], b0[i], scale * covariance[i, 0], scale * covariance[i, 1], scale * covariance[i, 2], period
-            )
+            f0_std_out[i], q_std_out[i] = f0_std, q_std
         amp = amplitude[i]
         flag = 0
         if math.isnan(f0):
@@ -278,6 +310,7 @@ def reep_rows(
     b1: np.ndarray, b0: np.ndarray, c: np.ndarray | None, sigma2: np.ndarray, amplitude: np.ndarray,
     sample_rate_hz: float, levels: FreeAirLevels, limits: ValidityLimits, drift: OffsetDrift | None = None,
     covariance: np.ndarray | None = None, settled_from: int = 0, noise_variance: float | None = None,
+    output_only: bool = False,
 ) -> ReepRows:
     """f0′, Q′ (eq. 3.48), the static offset and the flag bits of REEP's kept rows, in one pass.
 
@@ -318,6 +351,9 @@ def reep_rows(
         σ̂²(n) the stated std covered REEP's own noise-free estimate in 98–99.9 %
         of tapping rows; with the measurement noise, in 94–95 % (as in free air).
         None (no free-air segment): σ̂²(n), which errs on the wide side.
+    output_only : bool, optional
+        REEP ran without the dither: f0′ is the poles' oscillation frequency
+        and Q′ NaN (not identifiable; module docstring).
     """
     n = len(b1)
     signals = [np.ascontiguousarray(x, dtype=np.float64) for x in (b1, b0, sigma2, amplitude)]
@@ -334,8 +370,8 @@ def reep_rows(
     flags = np.empty(n, dtype=np.uint8)
     _rows_kernel(
         signals[0], signals[1], offset_c, signals[2], signals[3], cov, float(noise_variance or 0.0),
-        1.0 / sample_rate_hz, min_amplitude, int(settled_from), max_drift, drift_lam, drift_state, f0, q, offset, flags,
-        f0_std, q_std,
+        1.0 / sample_rate_hz, min_amplitude, int(settled_from), max_drift, drift_lam, drift_state, bool(output_only), f0,
+        q, offset, flags, f0_std, q_std,
     )
     stds = (f0_std, q_std) if covariance is not None else (None, None)
     return ReepRows(f0, q, offset if c is not None else None, flags, *stds)

@@ -32,7 +32,10 @@ entry named ``"warning"`` whose ``source`` is the number that says so
   and recall against ``/truth`` that disagree with the time-weighted
   precision (more than 0.1 apart) are left out, with the reason;
 * reep: a free-air f0′ more than 5 of its standard deviations from the
-  lever's f0 (``free_air_check``) comes first.
+  lever's f0 (``free_air_check``) comes first; then, when more than half of
+  REEP's rows are flagged, why (``validity.mostly_flagged``); and an
+  output-only run (no dither: FM-KPFM, self-oscillation) says that Q′ is not
+  identifiable, and shows no Q′ item (``q_identifiable``).
 """
 
 from __future__ import annotations
@@ -87,6 +90,9 @@ class Item:
         The value may be text or a yes/no (a verdict), not only a number.
     scores : bool
         A score that a failed premise undermines: left out when a :class:`State` says so.
+    needs : str, optional
+        Dotted path of a flag in ``results``: the item is left out when it is False
+        (Q′ items need ``q_identifiable``).
     """
 
     label: str
@@ -99,6 +105,7 @@ class Item:
     note: str | None = None
     text: bool = False
     scores: bool = False
+    needs: str | None = None
 
 
 def lookup(results: Mapping, path: str) -> Any:
@@ -161,6 +168,23 @@ def _free_air_check_state(results: Mapping, held: bool) -> State | None:
                  "wrong", "free_air_check.deviation_std", hides_scores=False)
 
 
+def _mostly_flagged_state(results: Mapping, held: bool) -> State | None:
+    """reep: more than half of the rows flagged, with the commonest reason (the run's first warning)."""
+    text = lookup(results, "validity.mostly_flagged")
+    if not isinstance(text, str) or not text:
+        return None
+    return State(f"{text}: the numbers below are from the remaining rows", "validity.flags.fraction",
+                 hides_scores=False)
+
+
+def _q_identifiable_state(results: Mapping, held: bool) -> State | None:
+    """reep without the dither: the damping is the loop's, Q′ is not identifiable (no Q′ item is shown)."""
+    if results.get("q_identifiable") is not False:
+        return None
+    return State("Q' is not identifiable without the dither (output-only: the damping is the loop's, not the "
+                 "cantilever's); f0' is the frequency the motion oscillates at", "q_identifiable", hides_scores=False)
+
+
 def _detectability_state(results: Mapping, held: bool) -> State | None:
     detectability = results.get("detectability") or {}
     if not detectability.get("beyond_limit"):
@@ -188,7 +212,7 @@ def _scores_disagree_state(results: Mapping, held: bool) -> State | None:
 
 #: Each command's states, checked in order before its numbers (issue 28).
 STATES: Mapping[str, tuple[Callable[[Mapping, bool], State | None], ...]] = {
-    "reep": (_phase_state, _free_air_check_state),
+    "reep": (_phase_state, _free_air_check_state, _mostly_flagged_state, _q_identifiable_state),
     "probeloss": (_phase_state, _detectability_state, _mostly_loss_state, _scores_disagree_state),
     "kalman-bank": (_phase_state,),
 }
@@ -210,7 +234,8 @@ def _reep_segments() -> tuple[Item, ...]:
     items = []
     for segment, label in labels.items():
         items.append(Item(f"f0' {label}", f"segments.{segment}.f0_hz.mean", "Hz", f"segments.{segment}.f0_hz.std"))
-        items.append(Item(f"Q' {label}", f"segments.{segment}.q.mean", "", f"segments.{segment}.q.std"))
+        items.append(Item(f"Q' {label}", f"segments.{segment}.q.mean", "", f"segments.{segment}.q.std",
+                          needs="q_identifiable"))
     return tuple(items)
 
 
@@ -220,9 +245,10 @@ def _reep_force_curve() -> tuple[Item, ...]:
     z_units = f"@{leg}.z_units"
     return (
         Item("largest Δf0' on approach", f"{leg}.largest_df0_hz", "Hz", at=f"{leg}.largest_df0_z", at_units=z_units),
-        Item("smallest Q' on approach", f"{leg}.smallest_q", "", at=f"{leg}.smallest_q_z", at_units=z_units),
+        Item("smallest Q' on approach", f"{leg}.smallest_q", "", at=f"{leg}.smallest_q_z", at_units=z_units,
+             needs="q_identifiable"),
         Item("largest energy dissipated per cycle", f"{leg}.largest_energy_per_cycle_ev", "eV",
-             at=f"{leg}.largest_energy_per_cycle_z", at_units=z_units),
+             at=f"{leg}.largest_energy_per_cycle_z", at_units=z_units, needs="q_identifiable"),
         Item("largest force gradient", f"{leg}.largest_force_gradient_n_per_m", "N/m",
              at=f"{leg}.largest_force_gradient_z", at_units=z_units),
     )
@@ -233,8 +259,8 @@ _REEP = (
     *_reep_force_curve(),
     Item("|f0' − f0| median vs truth", "truth_tracking.f0_hz.median_abs", "Hz"),
     Item("|f0' − f0| 95th percentile vs truth", "truth_tracking.f0_hz.p95_abs", "Hz"),
-    Item("|Q' − Q| median vs truth", "truth_tracking.q.median_abs", ""),
-    Item("|Q' − Q| 95th percentile vs truth", "truth_tracking.q.p95_abs", ""),
+    Item("|Q' − Q| median vs truth", "truth_tracking.q.median_abs", "", needs="q_identifiable"),
+    Item("|Q' − Q| 95th percentile vs truth", "truth_tracking.q.p95_abs", "", needs="q_identifiable"),
     Item("flagged output samples", "flagged_samples", "samples"),
 )
 
@@ -475,7 +501,8 @@ def headline(command: str, results: Mapping) -> list[dict]:
         if state is not None:
             states.append(state)
     hide_scores = any(s.hides_scores for s in states)
-    items = [item for item in HEADLINES.get(command, ()) if not (item.scores and hide_scores)]
+    items = [item for item in HEADLINES.get(command, ())
+             if not (item.scores and hide_scores) and not (item.needs and lookup(results, item.needs) is False)]
     entries = [entry for entry in (_entry(item, results) for item in items) if entry is not None]
     said = [{"name": STATE_NAME, "value": s.text, "std": None, "units": "", "source": s.source, "std_source": None,
              "at": None, "note": None, "text": s.text} for s in states]
