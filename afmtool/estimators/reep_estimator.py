@@ -413,7 +413,8 @@ def step_settling(estimator: ReepEstimator, numerator, denominator, dither: np.n
     if not valid:
         raise ConfigError(f"the free-air denominator {tuple(denominator)!r} is not an under-damped mode")
     window = int(math.ceil(estimator.window_s * fs))
-    step_at = estimator.row_every * -(-_SETTLE_BEFORE * window // estimator.row_every)
+    # the step on a REEP sample (the rows below are every REEP sample), whatever --decimate asks of the output
+    step_at = estimator.factor * -(-_SETTLE_BEFORE * window // estimator.factor)
     total = step_at + _SETTLE_AFTER * window
     g = np.resize(np.ascontiguousarray(dither, dtype=np.float64), total)
     after = (f0 - f0 / (2.0 * q), 0.9 * q)
