@@ -124,6 +124,26 @@ def _summary(fr: FrequencyResponse, mask: np.ndarray, scale: float, key: str, wa
     }
 
 
+def _without_lever_motion(ir_vr: FrequencyResponse, gamma_file, responses: dict, deflection_scale: float):
+    """Γ_IR,VR with the lever's own motion removed when ``--gamma`` and a deflection allow it.
+
+    Returns (Γ_IR,VR in µA/V, Γ_IR,ts in µA/nm or None, whether the motion was removed).
+    """
+    if gamma_file is None:
+        return ir_vr, None, False
+    ir_ts = resample_response(gamma_file.ir_ts, ir_vr.frequency_hz)  # µA/nm
+    if "deflection" not in responses:
+        return ir_vr, ir_ts, False
+    ts_vr = scale_response(responses["deflection"], deflection_scale)  # nm/V
+    # Γ_IR,VR = ΔI/ΔV_R − Γ_IR,ts·Δt_s/ΔV_R: the lever moves with α_R·ΔV_R
+    lever = ir_ts.response * ts_vr.response
+    ir_vr = FrequencyResponse(
+        ir_vr.frequency_hz, ir_vr.response - np.where(np.isfinite(lever), lever, 0.0), ir_vr.coherence,
+        ir_vr.magnitude_std, ir_vr.phase_std_rad, ir_vr.method, ir_vr.n_averages,
+    )
+    return ir_vr, ir_ts, True
+
+
 def _vr_route(
     reader: CaptureReader, g_fit, gamma_path: Path | None, params: ThermalParams, progress, warnings: list
 ) -> tuple[ThermalDynamics, dict, FrequencyResponse]:
@@ -144,20 +164,8 @@ def _vr_route(
     responses, chunks = run_stream(reader, [stage, ChannelMeans()], channels=("v_r", *outputs),
                                    chunk_samples=params.chunk_samples, progress=progress)
     ir_vr = scale_response(responses["thermal_current"], i_scale / v_scale)  # µA/V
-    ir_ts = None
-    removed = False
-    if gamma_path is not None:
-        gamma_file = read_gamma_ir_ts(gamma_path)
-        ir_ts = resample_response(gamma_file.ir_ts, ir_vr.frequency_hz)  # µA/nm
-        if "deflection" in responses:
-            ts_vr = scale_response(responses["deflection"], d_scale / v_scale)  # nm/V
-            # Γ_IR,VR = ΔI/ΔV_R − Γ_IR,ts·Δt_s/ΔV_R: the lever moves with α_R·ΔV_R
-            lever = ir_ts.response * ts_vr.response
-            ir_vr = FrequencyResponse(
-                ir_vr.frequency_hz, ir_vr.response - np.where(np.isfinite(lever), lever, 0.0), ir_vr.coherence,
-                ir_vr.magnitude_std, ir_vr.phase_std_rad, ir_vr.method, ir_vr.n_averages,
-            )
-            removed = True
+    gamma_file = read_gamma_ir_ts(gamma_path) if gamma_path is not None else None
+    ir_vr, ir_ts, removed = _without_lever_motion(ir_vr, gamma_file, responses, d_scale / v_scale)
     if not removed:
         warnings.append(
             "C(jw) includes the lever's motion under alpha_R*dV_R (give --gamma and a deflection channel to remove it)"

@@ -653,6 +653,38 @@ class _BandFit(NamedTuple):
     delay_s: float
 
 
+def _parameter_std(data: _Band, physical: list[float], tau: float, linear: np.ndarray, design: np.ndarray,
+                   resid: np.ndarray, fs: float, hold: str, delay_step: float) -> tuple[np.ndarray, float]:
+    """Standard errors of (f0, Q, [τ], gain, c…) at the optimum, and the residual variance s².
+
+    The Jacobian of the residual in the physical unknowns: the linear ones are
+    −design; the nonlinear ones (``physical``: f0, Q and τ when estimated) by
+    central differences at fixed linear unknowns (τ's step ``delay_step``).
+    """
+    estimate_delay = len(physical) == 3
+    steps = [1e-7 * physical[0], 1e-6 * physical[1], delay_step][: len(physical)]
+
+    def model_at(values: list[float]) -> np.ndarray:
+        tau_v = values[2] if estimate_delay else tau
+        return _design(data, values[0], values[1], tau_v, fs, hold) @ linear
+
+    columns = []
+    for i, step in enumerate(steps):
+        up, down = list(physical), list(physical)
+        up[i] += step
+        down[i] -= step
+        columns.append(-(model_at(up) - model_at(down)) / (2.0 * step))
+    jac = np.column_stack(columns + [-design])
+    dof = max(resid.size - jac.shape[1], 1)
+    s2 = float(resid @ resid) / dof
+    # scale the columns before inverting (f0 in Hz next to transient coefficients of any size)
+    col_norm = np.linalg.norm(jac, axis=0)
+    col_norm[col_norm == 0] = 1.0
+    jn = jac / col_norm
+    cov = s2 * np.linalg.pinv(jn.T @ jn) / np.outer(col_norm, col_norm)
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None)), s2
+
+
 def _fit_band(
     data: _Band, fs: float, hold: str, f0s: float, qs: float, tau_s: float, tau0: float, fixed_delay, n: int
 ) -> _BandFit:
@@ -685,30 +717,8 @@ def _fit_band(
     design = _design(data, f0, q, tau, fs, hold)
     linear = _solve_linear(design, data.y_stacked)
     resid = data.y_stacked - design @ linear
-    # Jacobian of the residual in the physical unknowns (f0, Q, [τ], gain, c…) at the optimum:
-    # the linear ones are −design; the nonlinear ones by central differences at fixed linear unknowns
     physical = [f0, q] + ([tau] if estimate_delay else [])
-    steps = [1e-7 * f0, 1e-6 * q, 1e-4 / w0s][: len(physical)]
-
-    def model_at(values: list[float]) -> np.ndarray:
-        tau_v = values[2] if estimate_delay else tau
-        return _design(data, values[0], values[1], tau_v, fs, hold) @ linear
-
-    columns = []
-    for i, step in enumerate(steps):
-        up, down = list(physical), list(physical)
-        up[i] += step
-        down[i] -= step
-        columns.append(-(model_at(up) - model_at(down)) / (2.0 * step))
-    jac = np.column_stack(columns + [-design])
-    dof = max(resid.size - jac.shape[1], 1)
-    s2 = float(resid @ resid) / dof
-    # scale the columns before inverting (f0 in Hz next to transient coefficients of any size)
-    col_norm = np.linalg.norm(jac, axis=0)
-    col_norm[col_norm == 0] = 1.0
-    jn = jac / col_norm
-    cov = s2 * np.linalg.pinv(jn.T @ jn) / np.outer(col_norm, col_norm)
-    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    std, s2 = _parameter_std(data, physical, tau, linear, design, resid, fs, hold, 1e-4 / w0s)
     n_nl = len(physical)
     result = RecordFit(
         f0_hz=float(f0),

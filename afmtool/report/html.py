@@ -368,6 +368,36 @@ def _short_name(path: str) -> str:
     return name or path
 
 
+def _batch_cell(folder: Path, row: dict, names: list[str]) -> tuple[dict | None, str, str, dict]:
+    """One run of a batch page: its report (None if unreadable), link, main figure and headline values.
+
+    Headline names not yet in ``names`` are appended (the page's columns, in order of appearance).
+    """
+    sub = _subfolder(folder, row.get("output", ""))
+    report, figure = None, ""
+    if sub is not None and os.path.lexists(sub / "report.json"):
+        try:
+            report = _load_report(sub)
+        except InputError:
+            report = None
+    if report is not None:
+        ordered = _ordered_figures(str(report["command"]), _pngs(sub))
+        if ordered:
+            figure = _img(*ordered[0], css="thumb")
+    values = {}
+    for entry in ((report or {}).get("headline") or [])[:BATCH_COLUMNS]:
+        name = str(entry.get("name"))
+        if name not in names:
+            names.append(name)
+        number, units = format_measurement(entry.get("value"), entry.get("std"), str(entry.get("units", "")))
+        values[name] = f"{number} {units}".strip()
+    link = (
+        f'<a href="{html.escape(sub.name)}/report.html">{html.escape(sub.name)}</a>' if report is not None
+        else html.escape(row.get("output", ""))
+    )
+    return report, link, figure, values
+
+
 def render_batch_html(folder: Path) -> str:
     """The page of a batch folder: a row per input, with its headline, main figure and a link."""
     folder = Path(folder)
@@ -379,29 +409,9 @@ def render_batch_html(folder: Path) -> str:
     for row in rows:
         status = row.get("status", "")
         counts[status] = counts.get(status, 0) + 1
-        sub = _subfolder(folder, row.get("output", ""))
-        report, figure = None, ""
-        if sub is not None and os.path.lexists(sub / "report.json"):
-            try:
-                report = _load_report(sub)
-            except InputError:
-                report = None
+        report, link, figure, values = _batch_cell(folder, row, names)
         if report is not None:
             command = command or str(report["command"])
-            ordered = _ordered_figures(str(report["command"]), _pngs(sub))
-            if ordered:
-                figure = _img(*ordered[0], css="thumb")
-        values = {}
-        for entry in ((report or {}).get("headline") or [])[:BATCH_COLUMNS]:
-            name = str(entry.get("name"))
-            if name not in names:
-                names.append(name)
-            number, units = format_measurement(entry.get("value"), entry.get("std"), str(entry.get("units", "")))
-            values[name] = f"{number} {units}".strip()
-        link = (
-            f'<a href="{html.escape(sub.name)}/report.html">{html.escape(sub.name)}</a>' if report is not None
-            else html.escape(row.get("output", ""))
-        )
         cells.append((row, status, link, figure, values))
     head = "".join(f"<th>{html.escape(n)}</th>" for n in names)
     body = []
