@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import numbers
 import os
 import stat
 import tomllib
@@ -31,6 +32,7 @@ from afmtool.errors import ConfigError
 __all__ = [
     "field",
     "check_value",
+    "coerce_value",
     "nested_section",
     "describe_bounds",
     "describe_field",
@@ -42,7 +44,6 @@ __all__ = [
     "resolve_from",
     "section_to_toml",
     "parameters_dict",
-    "help_for",
 ]
 
 P = TypeVar("P")
@@ -160,12 +161,6 @@ def within_bounds(value: Any, metadata: Mapping) -> bool:
     return True
 
 
-def help_for(cls: type, name: str) -> str:
-    """``--help`` text for parameter ``name`` of ``cls``: help, units, range and default."""
-    f = {f.name: f for f in dataclasses.fields(cls)}[name]
-    return describe_field(f)
-
-
 def describe_field(f: dataclasses.Field) -> str:
     """A declaration in one line: ``help (units; default D; range R; one of: ...)``."""
     meta = f.metadata
@@ -252,31 +247,66 @@ def _section(document: Mapping, dotted: str) -> Mapping:
     return node
 
 
-def _coerce(cls: type, name: str, kind: Any, value: Any, where: str) -> Any:
-    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+def _is_real(value: Any) -> bool:
+    """A real number that is not a bool (numpy's numbers included; numpy's bool is not a Real)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _is_bool(value: Any) -> bool:
+    return isinstance(value, bool) or type(value).__name__ == "bool_"  # numpy's bool, without importing numpy
+
+
+def _kind_name(kind: Any) -> str:
+    return getattr(kind, "__name__", None) if typing.get_origin(kind) is None else repr(kind).replace("typing.", "")
+
+
+def coerce_value(name: str, kind: Any, value: Any, where: str = "", choices: tuple[str, ...] | None = None) -> Any:
+    """``value`` for a parameter ``name`` of type ``kind``, checked and normalised: the one coercer.
+
+    Parameter models (:func:`check_value`, TOML, flags) and the simulator's
+    scenarios (:mod:`afmtool.sim`) both go through it, so a value means the
+    same wherever it is given:
+
+    * ``bool``: a bool (numpy's too);
+    * ``int``: an integer, or a float with an integer value (``4.0`` is 4; ``2.5`` is refused);
+    * ``float``: any finite real (an int becomes a float);
+    * ``str``: a string, one of ``choices`` when there are any;
+    * ``tuple[float, ...]``: a list, tuple or array of finite reals;
+    * ``X | None``: None, or an ``X``.
+
+    Raises
+    ------
+    ConfigError
+        ``{where}{name}={value!r} must be ...``.
+    """
+    if kind is bool and _is_bool(value):
+        return bool(value)
+    if kind is int and _is_real(value) and math.isfinite(value) and float(value).is_integer():
+        return value if isinstance(value, int) else int(value)  # a Python int past 2**53 stays exact
+    if kind is float and _is_real(value):
         if not math.isfinite(value):
             raise ConfigError(f"{where}{name}={value!r} must be a finite number")
         return float(value)
-    if kind is int and isinstance(value, int) and not isinstance(value, bool):
-        return value
-    if kind is bool and isinstance(value, bool):
-        return value
     if kind is str and isinstance(value, str):
-        choices = {f.name: f for f in dataclasses.fields(cls)}[name].metadata.get("choices")
         if choices and value not in choices:
             raise ConfigError(f"{where}{name}={value!r} must be one of {', '.join(choices)}")
         return value
     origin = typing.get_origin(kind)
+    if origin is tuple and typing.get_args(kind) == (float, ...):
+        if (isinstance(value, (list, tuple)) or hasattr(value, "__array__")) and all(
+            _is_real(v) and math.isfinite(v) for v in value
+        ):
+            return tuple(float(v) for v in value)
+        raise ConfigError(f"{where}{name}={value!r} must be a list of finite numbers")
     if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(kind) if a is not type(None)]
         if value is None:
             return None
-        for arg in args:
+        for arg in (a for a in typing.get_args(kind) if a is not type(None)):
             try:
-                return _coerce(cls, name, arg, value, where)
+                return coerce_value(name, arg, value, where, choices)
             except ConfigError:
                 continue
-    raise ConfigError(f"{where}{name}={value!r} must be of type {getattr(kind, '__name__', kind)}")
+    raise ConfigError(f"{where}{name}={value!r} must be of type {_kind_name(kind)}")
 
 
 def nested_section(kind: Any) -> bool:
@@ -299,7 +329,8 @@ def check_value(cls: type, name: str, value: Any, where: str = "", hints: Mappin
         if not isinstance(value, Mapping):
             raise ConfigError(f"{where}{name}={value!r} must be a table of {hints[name].__name__} parameters")
         return resolve(hints[name], value, where=f"{where}{name}.")
-    coerced = _coerce(cls, name, hints[name], value, where)
+    choices = {f.name: f for f in dataclasses.fields(cls)}[name].metadata.get("choices")
+    coerced = coerce_value(name, hints[name], value, where, choices)
     metadata = {f.name: f for f in dataclasses.fields(cls)}[name].metadata
     if not within_bounds(coerced, metadata):
         raise ConfigError(f"{where}{name}={value!r} must be {describe_bounds(metadata)}")

@@ -18,7 +18,6 @@ Built-in scenarios: ``tapping`` (:mod:`afmtool.sim.tapping`), ``ltv``
 from __future__ import annotations
 
 import dataclasses
-import math
 import numbers
 import typing
 from collections.abc import Callable, Mapping
@@ -28,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from afmtool.config import describe_bounds, within_bounds
+from afmtool.config import coerce_value, describe_bounds, within_bounds
 from afmtool.config import field as declare_parameter
 from afmtool.errors import ConfigError
 from afmtool.io.capture import CaptureInfo, ChannelSpec
@@ -171,38 +170,6 @@ def _field_types(params_cls: type) -> dict[str, str]:
     return {f.name: _type_name(hints[f.name]) for f in dataclasses.fields(params_cls)}
 
 
-def _is_real(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-
-
-def _coerce(name: str, kind: str, value: Any) -> Any:
-    """Check ``value`` against the field type and return it normalised."""
-    bad = ConfigError(f"parameter {name}={value!r} must be {'a' if kind != 'int' else 'an'} {kind}")
-    if kind == "bool":
-        if isinstance(value, (bool, np.bool_)):
-            return bool(value)
-        raise bad
-    if kind == "int":
-        if _is_real(value) and float(value).is_integer():
-            return int(value)
-        raise bad
-    if kind == "float":
-        if _is_real(value) and math.isfinite(float(value)):
-            return float(value)
-        raise ConfigError(f"parameter {name}={value!r} must be a finite number")
-    if kind == "str":
-        if isinstance(value, str):
-            return value
-        raise bad
-    if kind == "tuple[float, ...]":
-        if isinstance(value, (list, tuple, np.ndarray)) and all(
-            _is_real(v) and math.isfinite(float(v)) for v in value
-        ):
-            return tuple(float(v) for v in value)
-        raise ConfigError(f"parameter {name}={value!r} must be a list of finite numbers")
-    raise ConfigError(f"parameter {name} has unsupported type {kind}")
-
-
 def _check_bounds(name: str, value: Any, meta: Mapping) -> None:
     if meta.get("choices") and value not in meta["choices"]:
         raise ConfigError(f"parameter {name}={value!r} must be one of {', '.join(map(repr, meta['choices']))}")
@@ -222,9 +189,9 @@ def validate_parameters(params: Any) -> None:
     ConfigError
         Naming the first bad field and its value.
     """
-    kinds = _field_types(type(params))
+    hints = typing.get_type_hints(type(params))
     for f in dataclasses.fields(params):
-        value = _coerce(f.name, kinds[f.name], getattr(params, f.name))
+        value = coerce_value(f.name, hints[f.name], getattr(params, f.name), "parameter ")
         _check_bounds(f.name, value, f.metadata)
         object.__setattr__(params, f.name, value)
 
@@ -365,14 +332,14 @@ def simulate(name: str, overrides: Mapping[str, Any] | None = None, seed: int = 
     if not isinstance(overrides, Mapping):
         raise ConfigError(f"overrides must be a mapping of parameter names to values, got {type(overrides).__name__}")
     fields = {f.name: f for f in dataclasses.fields(info.params_cls)}
-    kinds = _field_types(info.params_cls)
+    hints = typing.get_type_hints(info.params_cls)
     checked: dict[str, Any] = {}
     for key, value in overrides.items():
         if key not in fields:
             raise ConfigError(
                 f"unknown parameter {key!r}={value!r} for scenario {name!r}; known: {', '.join(sorted(fields))}"
             )
-        checked[key] = _coerce(key, kinds[key], value)
+        checked[key] = coerce_value(key, hints[key], value, "parameter ")
         _check_bounds(key, checked[key], fields[key].metadata)
     _check_size(name, {f: checked.get(f, fields[f].default) for f in ("sample_rate_hz", "duration_s", "capture_s") if f in fields})
     try:
