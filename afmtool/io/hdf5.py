@@ -526,10 +526,6 @@ def unit_attribute(path: Path, name: str, attrs) -> str:
     return ""
 
 
-def _decode_attr(value) -> str:
-    return value.decode() if isinstance(value, bytes) else str(value)
-
-
 class Hdf5Writer:
     """Write a capture in the afmtool HDF5 layout, block by block.
 

@@ -11,17 +11,10 @@ in one place.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Protocol
 
 from afmtool.report.json_report import to_jsonable
 
-__all__ = ["JsonResults", "ReportResults"]
-
-
-class ReportResults(Protocol):
-    """A result record that gives the ``results`` section of report.json."""
-
-    def to_json(self) -> dict: ...
+__all__ = ["JsonResults"]
 
 
 class JsonResults:

@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 from afmtool.errors import AfmtoolError
 
-__all__ = ["InputOverwriteError", "register_input", "refuse_output_over_inputs", "forget_inputs", "registered_inputs"]
+__all__ = ["InputOverwriteError", "register_input", "refuse_output_over_inputs", "forget_inputs"]
 
 
 class InputOverwriteError(AfmtoolError):
@@ -60,12 +60,6 @@ def register_input(path: Path | str) -> None:
     with _lock:
         if record not in _inputs:
             _inputs.append(record)
-
-
-def registered_inputs() -> tuple[Path, ...]:
-    """The real paths recorded so far."""
-    with _lock:
-        return tuple(i.real for i in _inputs)
 
 
 def forget_inputs() -> None:
