@@ -52,29 +52,12 @@ from afmtool.models.electrostatic import (
 from afmtool.sim.vphi import VphiParams
 from tests.conftest import SAMPLE_DATA, run_cli, validate_report
 from tests.golden import assert_matches_golden
+from tests.memory_sink import MemorySink
 from tests.naive_ekf import naive_ekf
 
 FS = 2e6
 F0, Q0 = 57185.0, 1.0148
 ALPHA_R = THESIS_CH7_PARAMS.alpha_r
-
-
-class _Columns:
-    """A ResultWriter stand-in that keeps what is written in memory."""
-
-    def __init__(self) -> None:
-        self.parts: dict[str, list[np.ndarray]] = {}
-        self.arrays: dict[str, np.ndarray] = {}
-
-    def append(self, columns):
-        for name, values in columns.items():
-            self.parts.setdefault(name, []).append(np.asarray(values))
-
-    def put(self, name, values, units="", attrs=None):
-        self.arrays[name] = np.asarray(values)
-
-    def __getitem__(self, name):
-        return np.concatenate(self.parts[name]) if name in self.parts else self.arrays[name]
 
 
 def _reader(captured, name="bits"):
@@ -84,7 +67,7 @@ def _reader(captured, name="bits"):
 
 
 def _decode(captured, **overrides):
-    columns = _Columns()
+    columns = MemorySink()
     result = run_decode(_reader(captured), resolve(DecodeParams, overrides), columns)
     return result, columns
 
@@ -344,7 +327,7 @@ def test_voltage_channel_gives_the_same_bits(short_bits):
 
     reader = ArrayReader(FS, (ChannelSpec("deflection", "nm"), ChannelSpec("voltage", "V")), data,
                          short_bits.metadata, short_bits.truth)
-    columns = _Columns()
+    columns = MemorySink()
     run_decode(reader, resolve(DecodeParams, {"bit_rate_hz": 30e3, "voltage_channel": "voltage"}), columns)
     np.testing.assert_array_equal(columns["bits"], by_channels["bits"])
     np.testing.assert_allclose(columns["soft"], by_channels["soft"], rtol=1e-12, atol=1e-15)
@@ -512,5 +495,5 @@ def test_decode_command_errors(tmp_path, short_bits):
     metadata = {k: v for k, v in short_bits.metadata.items() if k != "nominal"}
     reader = ArrayReader(FS, short_bits.channels, short_bits.data, metadata, {})
     with pytest.raises(ConfigError, match="nominal segment"):
-        run_decode(reader, resolve(DecodeParams, {}), _Columns())
+        run_decode(reader, resolve(DecodeParams, {}), MemorySink())
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
 from afmtool import sim
@@ -28,22 +27,11 @@ from afmtool.errors import ConfigError
 from afmtool.io.hdf5 import Hdf5Writer
 from afmtool.io.memory import ArrayReader
 from tests.conftest import run_cli
+from tests.memory_sink import MemorySink
 
 #: The bits lever (eq. 7.10) that the approach curve below shares.
 LEVER = {"f0_hz": 57185.0, "q": 1.0148, "spring_constant_n_per_m": 0.1404, "k_esf_f_m": 1.66e-21,
          "alpha_r": 0.2549, "tip_height_nm": 768.3, "l0_nm": 1081.8}
-
-
-class _Columns:
-    def __init__(self) -> None:
-        self.parts: dict[str, list[np.ndarray]] = {}
-
-    def append(self, columns):
-        for name, values in columns.items():
-            self.parts.setdefault(name, []).append(np.asarray(values))
-
-    def put(self, name, values, units="", attrs=None):
-        pass
 
 
 def _reader(captured, metadata=None):
@@ -67,7 +55,7 @@ def bits():
 def test_missing_electrostatic_parameters_are_named_not_guessed(bits, tmp_path):
     bare = {k: v for k, v in bits.metadata.items() if k != "electrostatic"}
     with pytest.raises(ConfigError, match="k_esf_f_m.*--alpha-r.*--electrostatic"):
-        run_decode(_reader(bits, bare), resolve(DecodeParams, {"bit_rate_hz": 30e3}), _Columns())
+        run_decode(_reader(bits, bare), resolve(DecodeParams, {"bit_rate_hz": 30e3}), MemorySink())
     path = _write(tmp_path / "bare.h5", bits, bare)
     result = run_cli("decode", path, "--out", tmp_path / "out", "--bit-rate", "30000", "--quiet")
     message = result.stderr.decode()
@@ -88,7 +76,7 @@ def test_electrostatic_from_identify_electrostatic(bits, tmp_path):
     print(f"identified: K_esf/k {fit['k_esf_over_k_m3_per_v2']['value']:.4g} m^3/V^2, "
           f"alpha_R {fit['alpha_r']['value']:.4f}, l0 {fit['l0_m']['value'] * 1e9:.1f} nm")
     bare = {k: v for k, v in bits.metadata.items() if k != "electrostatic"}
-    columns = _Columns()
+    columns = MemorySink()
     result = run_decode(_reader(bits, bare), resolve(DecodeParams, {"bit_rate_hz": 30e3,
                                                                     "electrostatic": str(tmp_path / "es")}), columns)
     model, l0 = result.results["model"], result.results["l0"]
@@ -106,7 +94,7 @@ def test_alpha_r_zero_decodes(tmp_path):
     captured = sim.simulate("bits", {"duration_s": 0.006, "bit_rate_hz": 30e3, "alpha_r": 0.0,
                                      "substrate_dc_v": -2.8}, seed=4)
     assert captured.metadata["electrostatic"]["alpha_r"] == 0.0
-    result = run_decode(_reader(captured), resolve(DecodeParams, {"bit_rate_hz": 30e3}), _Columns())
+    result = run_decode(_reader(captured), resolve(DecodeParams, {"bit_rate_hz": 30e3}), MemorySink())
     truth = result.results["truth"]
     print(f"alpha_R = 0: l0 error {truth['l0_error_percent']:+.3f} %, BER {truth['decoder']['ber']}")
     assert result.results["model"]["alpha_r"] == 0.0 and result.results["model"]["sources"]["alpha_r"] == "metadata"
@@ -125,7 +113,7 @@ def test_vphi_step_across_q_as_figs_7_9_to_7_12():
     """§7.7 through decode: the amplitude's settling grows with Q, the innovation's does not."""
     settling = {}
     for q in (1.0148, 100.0148, 1000.0148):
-        result = run_decode(_reader(_step_capture(q)), resolve(DecodeParams, {}), _Columns())
+        result = run_decode(_reader(_step_capture(q)), resolve(DecodeParams, {}), MemorySink())
         step = result.results["step"]
         assert result.results["mode"] == "step" and result.step is not None
         settling[q] = {name: step[name]["settling_periods"] for name in ("deflection", "amplitude", "innovation")}

@@ -42,6 +42,7 @@ from afmtool.io.memory import ArrayReader
 from afmtool.models.discretisation import discrete_denominator, zoh_numerator
 from afmtool.sim.raster import CONTROLLERS, RasterParams, capture_from_run, run_raster
 from tests.conftest import SAMPLE_DATA, run_cli, validate_report
+from tests.memory_sink import MemorySink
 from tests.raster_cache import table_runs
 
 FS = 500e3
@@ -92,26 +93,6 @@ def _free_air_signals(rng, n, noise=0.05):
     g = 0.125 * np.sin(2 * np.pi * F0 * t)
     y = lfilter(design.numerator, (1.0, *design.denominator), g) + noise * rng.standard_normal(n)
     return y, g
-
-
-class _Columns:
-    """A ResultWriter stand-in that keeps the appended series in memory."""
-
-    def __init__(self) -> None:
-        self.parts: dict[str, list[np.ndarray]] = {}
-
-    def append(self, columns):
-        for name, values in columns.items():
-            self.parts.setdefault(name, []).append(np.asarray(values))
-
-    def put(self, *args, **kwargs):
-        pass
-
-    def __getitem__(self, name):
-        return np.concatenate(self.parts[name])
-
-
-# --------------------------------------------------------------------------- kernels
 
 
 @pytest.mark.parametrize("loss_when", ["below", "above"])
@@ -314,7 +295,7 @@ def one_line_capture():
 def test_chunk_size_independence(one_line_capture):
     outputs = []
     for chunk in (997, 1 << 15, 1 << 22):
-        columns = _Columns()
+        columns = MemorySink()
         result = run_probeloss(_reader(one_line_capture), resolve(ProbeLossParams, {"chunk_samples": chunk}), columns)
         outputs.append((columns, result.results))
     for columns, results in outputs[1:]:
@@ -331,7 +312,7 @@ def test_offline_index_reproduces_the_in_loop_switch(one_line_capture):
     params = _P(line_rate_hz=12.0, lines=1, pixels_per_line=32)
     meta = one_line_capture.metadata["controller"]
     flags = {"on": meta["index_on"], "off": meta["index_off"], "decimate": 1}
-    columns = _Columns()
+    columns = MemorySink()
     result = run_probeloss(_reader(one_line_capture), resolve(ProbeLossParams, flags), columns,
                            model=params.free_air_model())
     assert result.results["index"]["level"] == meta["index_level_nm"]
@@ -395,7 +376,7 @@ def test_probeloss_stream_rows(tmp_path, one_line_capture):
 
 def test_kalman_gain_design(one_line_capture):
     params = resolve(ProbeLossParams, {"gain": "kalman", "process_noise": 0.002, "measurement_noise": 0.02})
-    result = run_probeloss(_reader(one_line_capture), params, _Columns())
+    result = run_probeloss(_reader(one_line_capture), params, MemorySink())
     assert result.results["observer"]["gain_design"] == "kalman"
     assert result.results["truth"]["index"]["recall"] is not None
 
@@ -404,17 +385,17 @@ def test_missing_model_and_amplitude_threshold(tmp_path, one_line_capture):
     metadata = {k: v for k, v in one_line_capture.metadata.items() if k not in ("free_air", "controller")}
     bare = ArrayReader(FS, one_line_capture.channels, one_line_capture.data, metadata, {}, "bare")
     with pytest.raises(ConfigError, match="free-air model"):
-        run_probeloss(bare, resolve(ProbeLossParams, {}), _Columns())
+        run_probeloss(bare, resolve(ProbeLossParams, {}), MemorySink())
     no_setpoint = dict(one_line_capture.metadata)
     no_setpoint.pop("controller")
     reader = ArrayReader(FS, one_line_capture.channels, one_line_capture.data, no_setpoint, {}, "x")
     # without A_upper or a set point the baseline (only a comparison) is skipped, with a warning
-    skipped = run_probeloss(reader, resolve(ProbeLossParams, {}), _Columns())
+    skipped = run_probeloss(reader, resolve(ProbeLossParams, {}), MemorySink())
     assert skipped.results["amplitude_baseline"]["skipped"] is True
     assert skipped.results["amplitude_baseline"]["loss_fraction"] is None
     assert any("amplitude baseline skipped" in w for w in skipped.warnings)
     assert skipped.results["loss_fraction"] > 0
-    result = run_probeloss(reader, resolve(ProbeLossParams, {"setpoint": 21.0}), _Columns())
+    result = run_probeloss(reader, resolve(ProbeLossParams, {"setpoint": 21.0}), MemorySink())
     assert result.results["amplitude_baseline"]["setpoint"] == 21.0
     out = tmp_path / "out"
     capture = tmp_path / "plain.csv"
@@ -436,7 +417,7 @@ def scored():
     for rate, runs in table_runs().items():
         for controller in CONTROLLERS:
             captured = capture_from_run(runs[controller])
-            result = run_probeloss(_reader(captured), resolve(ProbeLossParams, {}), _Columns())
+            result = run_probeloss(_reader(captured), resolve(ProbeLossParams, {}), MemorySink())
             out[(rate, controller)] = result.results["truth"]
     return out
 

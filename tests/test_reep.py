@@ -16,6 +16,7 @@ from afmtool.errors import InputError
 from afmtool.io.memory import ArrayReader
 from afmtool.models.free_air import FreeAirModel
 from tests.conftest import run_cli, validate_report
+from tests.memory_sink import MemorySink
 
 FS = 500e3
 
@@ -26,26 +27,9 @@ def _reader(captured, name="ltv"):
     )
 
 
-class _Columns:
-    """A ResultWriter stand-in that keeps the appended series in memory."""
-
-    def __init__(self) -> None:
-        self.parts: dict[str, list[np.ndarray]] = {}
-
-    def append(self, columns):
-        for name, values in columns.items():
-            self.parts.setdefault(name, []).append(np.asarray(values))
-
-    def put(self, *args, **kwargs):
-        pass
-
-    def __getitem__(self, name):
-        return np.concatenate(self.parts[name])
-
-
 def _run(captured, **overrides):
     params = resolve(ReepParams, overrides)
-    columns = _Columns()
+    columns = MemorySink()
     result = run_reep(_reader(captured), params, columns)
     return result, columns
 
@@ -157,15 +141,15 @@ def test_single_sine_warns_not_persistently_exciting():
     bare = {k: v for k, v in captured.metadata.items() if k != "cantilever"}
     with pytest.raises(InputError, match="--model"):
         run_reep(ArrayReader(FS, captured.channels, captured.data, bare, captured.truth, "bare"),
-                 resolve(ReepParams, {}), _Columns())
+                 resolve(ReepParams, {}), MemorySink())
     # with metadata f0/Q it takes the f0/Q route (issue 14 item 3) and still warns
-    routed = run_reep(_reader(captured), resolve(ReepParams, {}), _Columns())
+    routed = run_reep(_reader(captured), resolve(ReepParams, {}), MemorySink())
     assert routed.results["free_air_route"]["route"] == "f0-q"
     assert any("persistently exciting" in w for w in routed.warnings)
     # given a model, REEP runs and warns in its report
     model = FreeAirModel(f0_hz=70_000.0, q=200.0, gain=1.0)
     params = resolve(ReepParams, {})
-    result = run_reep(_reader(captured), params, _Columns(), model=model)
+    result = run_reep(_reader(captured), params, MemorySink(), model=model)
     assert any("persistently exciting" in w for w in result.warnings)
     assert len(result.results["excitation_lines_hz"]) == 1
 

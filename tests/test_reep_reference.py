@@ -18,25 +18,11 @@ from afmtool.config.params import ReepParams
 from afmtool.io.capture import ChannelSpec
 from afmtool.io.memory import ArrayReader
 from tests import reference_sim as rs
+from tests.memory_sink import MemorySink
 
 FS = 500e3
 F0, Q, GAIN = 70_000.0, 200.0, 0.1
 AMPLITUDE_NM = 25.0
-
-
-class _Columns:
-    def __init__(self) -> None:
-        self.parts: dict[str, list[np.ndarray]] = {}
-
-    def append(self, columns):
-        for name, values in columns.items():
-            self.parts.setdefault(name, []).append(np.asarray(values))
-
-    def put(self, *args, **kwargs):
-        pass
-
-    def __getitem__(self, name):
-        return np.concatenate(self.parts[name])
 
 
 def reference_reader(cap: rs.Capture, name: str = "reference") -> ArrayReader:
@@ -63,7 +49,7 @@ def _source(kind: str, duration_s: float, seed: int, **kwargs):
 
 
 def _run(reader, **overrides):
-    columns = _Columns()
+    columns = MemorySink()
     result = run_reep(reader, resolve(ReepParams, overrides), columns)
     return result, columns
 
