@@ -328,7 +328,8 @@ def test_voltage_channel_gives_the_same_bits(short_bits):
     reader = ArrayReader(FS, (ChannelSpec("deflection", "nm"), ChannelSpec("voltage", "V")), data,
                          short_bits.metadata, short_bits.truth)
     columns = MemorySink()
-    run_decode(reader, resolve(DecodeParams, {"bit_rate_hz": 30e3, "voltage_channel": "voltage"}), columns)
+    run_decode(reader, resolve(DecodeParams, {"bit_rate_hz": 30e3, "voltage_channel": "voltage", "rows": "per-period"}),
+               columns)
     np.testing.assert_array_equal(columns["bits"], by_channels["bits"])
     np.testing.assert_allclose(columns["soft"], by_channels["soft"], rtol=1e-12, atol=1e-15)
 
@@ -468,6 +469,17 @@ def test_decode_command_and_golden_report(tmp_path):
         "config.toml", "decode.h5", "decode_time_series.png", "eye.png", "l0_search.png", "psd.png", "report.json"]
     truth = report["results"]["truth"]
     assert truth["decoder"]["errors"] == 0 and abs(truth["l0_error_percent"]) < 1
+    with h5py.File(out / "decode.h5") as h5:  # rows at the bit stream's resolution (issue 33): no per-sample innovation
+        window = report["results"]["ekf"]["mean_window_samples"]
+        assert "innovation" not in h5 and h5.attrs["rows"] == "resolution" and h5.attrs["row_every_samples"] == window
+        assert h5.attrs["row_rate_hz"] == pytest.approx(h5.attrs["sample_rate_hz"] / window)
+    for name in ("eye.png", "psd.png", "l0_search.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert_matches_golden(report, "decode_bits_30khz")
+    out = tmp_path / "decode_per_period"
+    result = run_cli("decode", capture, "--out", out, "--bit-rate", "30000", "--rows", "per-period", "--quiet")
+    assert result.returncode == 0, result.stderr.decode()
+    report = json.loads((out / "report.json").read_text())
     with h5py.File(out / "decode.h5") as h5:
         n = report["results"]["n_samples"]
         assert h5["innovation"].shape == (n,) and "t" not in h5
@@ -481,9 +493,6 @@ def test_decode_command_and_golden_report(tmp_path):
         # innovation is stored as float32 (resolution ~1e-7 of the value), the running mean as float64
         assert h5["innovation"].dtype == np.float32
         np.testing.assert_allclose(h5["innovation_mean"][:10], expected[:10], rtol=1e-6, atol=1e-6)
-    for name in ("eye.png", "psd.png", "l0_search.png"):
-        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert_matches_golden(report, "decode_bits_30khz")
 
 
 def test_decode_command_errors(tmp_path, short_bits):

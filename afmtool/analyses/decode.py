@@ -165,6 +165,11 @@ def _common_results(decoding: DecodeStage, totals: DecodeTotals, fs: float) -> d
             "mean_window_samples": decoding.mean_window,
             "bit_stream_innovation_rms_nm": totals.bit_stream_rms_nm,
         },
+        # the series' density and what set it (issue 33): innovation_mean's rows; per-period adds every sample's
+        "rows": decoding.params.rows,
+        "row_every_samples": decoding.mean_window,
+        "row_rate_hz": fs / decoding.mean_window,
+        "innovation_every_sample": decoding.params.rows == "per-period",
         "n_samples": totals.n_samples,
         "duration_s": totals.n_samples / fs,
     }

@@ -10,7 +10,7 @@ from afmtool.analyses.decode import SERIES_UNITS, DecodeResult, run_decode
 from afmtool.analyses.stream import run_stream
 from afmtool.config.params import DecodeParams
 from afmtool.io.capture import CaptureReader
-from afmtool.io.results import ResultWriter
+from afmtool.io.results import ResultWriter, row_attrs
 from afmtool.io.units import calibration_record
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.run import finish_run
@@ -30,6 +30,7 @@ def run_decode_command(run: CommandRun) -> dict:
             # matplotlib, for the eye, PSD and ℓ0 figures at the end, loads while the EKF streams
             result = run_decode(reader, params, writer, progress=run.progress, on_stream_start=run.figures.on_stream_start,
                                 split=run.split)
+            writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))
             if result.psd:
                 for name in ("frequency_hz", "deflection", "innovation"):
                     units = "Hz" if name == "frequency_hz" else "nm^2/Hz"

@@ -230,10 +230,11 @@ class DecodeStage:
         # resolution (~1e-7 of the value) is far below the measurement noise, and at 1e8 samples
         # a float64 series with its t column was 1.6 GB to write.
         columns = {
-            "innovation": innovation.astype(np.float32),
             "t_mean": kept / self.fs,
             "innovation_mean": self.mean_kept.take(mean, chunk.start),
         }
+        if self.params.rows == "per-period":  # the innovation at every sample, as before issue 33
+            columns["innovation"] = innovation.astype(np.float32)
         self.psd.feed(chunk.start, y, innovation)
         held = self.held(chunk.start, n, amplitude)
         if self.step_window is not None:

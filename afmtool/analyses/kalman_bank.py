@@ -404,8 +404,7 @@ class BankStage:
         if reep_results is None and self.estimator is None:  # --models: REEP runs here only, built as its stage builds it
             self.estimator = self._reep_estimator(head)
             self.timing = ReepTiming.of(self.estimator)
-        setup = _setup(self.reader, params, model, self.segment_s, self.timing, self.tables,
-                       self.estimator.row_every if self.estimator is not None else None)
+        setup = _setup(self.reader, params, model, self.segment_s, self.timing, self.tables, self._row_every())
         self.setup = setup
         self.coefficients = (
             HeldReepCoefficients(reep_results.series["t"], reep_results.series["b1"], reep_results.series["b0"], fs,
@@ -432,6 +431,14 @@ class BankStage:
         self.z_travel = 0.0  # Σ|Δz| between kept samples
         self.moving = 0  # kept samples whose z moved
         self.last_z = math.nan
+
+    def _row_every(self) -> int | None:
+        """REEP's row spacing: the internal estimator's, or with ``--reep`` (rows at resolution) the file's."""
+        if self.estimator is not None:
+            return self.estimator.row_every
+        if self.params.rows == "resolution" and not self.params.decimate and self.reep_results is not None:
+            return (self.reep_results.results.get("estimator") or {}).get("row_every_samples")
+        return None
 
     def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
         """One chunk: observers; the kept samples' columns for the writer; statistics."""
@@ -744,6 +751,10 @@ def _results(params, setup: BankSetup, stream: BankOutcome, points, verdict, tol
         "sample_rate_hz": fs,
         "drive_frequency_hz": setup.drive_hz,
         "decimate": setup.decimate,
+        # the series' density and what set it (issue 33)
+        "rows": f"decimate {params.decimate}" if params.decimate else params.rows,
+        "row_every_samples": setup.decimate,
+        "row_rate_hz": fs / setup.decimate,
         "rms_window_samples": setup.window,
         "rms_window_periods": setup.window * setup.drive_hz / fs,
         "rms_binned_delay_samples": setup.rms_delay,

@@ -17,6 +17,7 @@ from afmtool.analyses.kalman_bank import SERIES_UNITS, KalmanBankResult, run_kal
 from afmtool.config.params import KalmanBankParams
 from afmtool.errors import ConfigError
 from afmtool.io.matrix_results import MatrixResultWriter
+from afmtool.io.results import row_attrs
 from afmtool.io.units import calibration_record
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.json_report import input_record
@@ -57,6 +58,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
                     reader, params, writer, model=model, reep_results=reep_results, reopen=run.reopen,
                     progress=run.progress, split=run.split, on_stream_start=run.figures.on_stream_start,
                 )
+                writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))
                 _write_tables(writer, result, deflection_units)
             staged.flush_early("bank.h5")  # to disk while the figures are drawn
             _plot_rms_vs_z(run.figures, staged.path("bank_rms_vs_z.png"), result, deflection_units)

@@ -315,7 +315,8 @@ def bank_reep_params(params: KalmanBankParams) -> ReepParams:
 
     return dataclasses.replace(
         params.reep, free_air=params.free_air, model=params.model, f0_hz=params.f0_hz, q=params.q,
-        drive_hold=params.drive_hold, decimate=params.decimate, drive_frequency_hz=params.drive_frequency_hz,
+        drive_hold=params.drive_hold, rows=params.rows, decimate=params.decimate,
+        drive_frequency_hz=params.drive_frequency_hz,
         vs="z", z_bin=params.z_bin, chunk_samples=params.chunk_samples,
     )
 

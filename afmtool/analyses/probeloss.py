@@ -261,10 +261,27 @@ def prepare_probeloss(
     detector = _design_detector(params, reader, model, drive_hz, segment, survey, lowpass_hz, free)
     setup = ProbeLossSetup(
         model, source, detector, drive_hz, period, upper, free[0], setpoint, lowpass_hz,
-        params.decimate or max(1, round(period)), segment.interval_s if segment is not None else None, route.report,
+        _row_every(params, detector, period), segment.interval_s if segment is not None else None, route.report,
         tuple(_setup_warnings(route.warnings, upper, detector, _setpoint(params, reader))),
     )
     return setup, chunks
+
+
+def _row_every(params: ProbeLossParams, detector, period: float) -> int:
+    """Capture samples per row: ``--decimate``, else one per drive period or one per index window (issue 33).
+
+    The index at sample n is a statistic of its window (the RMS or coherent
+    index's W samples, the forcing filter's memory), so rows one window apart
+    tile the capture and hold all it resolves; the events come from every
+    sample's switch, whatever the rows.
+    """
+    if params.decimate:
+        return params.decimate
+    if params.rows == "per-period":
+        return max(1, round(period))
+    if detector.memory_periods:
+        return max(1, round(detector.memory_periods * period))
+    return max(1, int(detector.window_samples))
 
 
 # --------------------------------------------------------------------------- pass
@@ -536,6 +553,10 @@ def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
         "free_air_segment_s": list(setup.segment_s) if setup.segment_s else None,
         "drive_frequency_hz": setup.drive_hz,
         "decimate": setup.decimate,
+        # the series' density and what set it (issue 33)
+        "rows": f"decimate {params.decimate}" if params.decimate else params.rows,
+        "row_every_samples": setup.decimate,
+        "row_rate_hz": setup.drive_hz * setup.period_samples / setup.decimate,
         "observer": detector.observer_dict(params.gain),
         "index": detector.index_dict(),
         "detectability": detector.detectability_dict(),

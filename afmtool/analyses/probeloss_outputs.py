@@ -10,7 +10,7 @@ from afmtool.analyses.probeloss import SERIES_UNITS, ProbeLossResult, run_probel
 from afmtool.analyses.stream import run_stream_with_model
 from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
-from afmtool.io.results import ResultWriter
+from afmtool.io.results import ResultWriter, row_attrs
 from afmtool.io.units import calibration_record
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.images import ImageStyle
@@ -41,6 +41,7 @@ def run_probeloss_command(run: CommandRun) -> dict:
             # matplotlib, for the figures at the end, loads while the observer streams
             result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split,
                                    on_stream_start=run.figures.on_stream_start)
+            writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))
             _write_images(staged, writer, result, run.figures)
         staged.flush_early("probeloss.h5")  # to disk while the figures are drawn
         results = dict(result.results)

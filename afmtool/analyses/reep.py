@@ -418,6 +418,9 @@ class ReepStage:
             "sample_rate_hz": fs,
             "decimate": self.decimation.every,
             "row_rate_hz": estimator.row_rate_hz,
+            # what set the rows' density: --decimate N, else --rows (issue 33)
+            "rows": f"decimate {params.decimate}" if params.decimate else params.rows,
+            "row_every_samples": estimator.row_every,
             "drive_frequency_hz": self.drive_hz,
             "lockin": {"lowpass_hz": self.lowpass_hz, "order": self.lockin.order,
                        "type": "Butterworth, complex demodulation"},

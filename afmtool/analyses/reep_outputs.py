@@ -36,6 +36,7 @@ def run_reep_command(run: CommandRun) -> dict:
         with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
             result = run_reep(reader, params, writer, model=model, progress=run.progress, split=run.split,
                               on_stream_start=run.figures.on_stream_start)
+            writer.set_attrs(_row_attrs(result.results))
             _write_force_curves(staged, writer, result, deflection_units, run.figures)
             _write_images(staged, writer, result, deflection_units, run.figures)
         staged.flush_early("reep.h5")  # to disk while the figures are drawn
@@ -62,6 +63,15 @@ def run_reep_command(run: CommandRun) -> dict:
         inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_records]
         run.figures.wait()
         return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
+
+
+def _row_attrs(results: Mapping) -> dict:
+    """reep.h5's root attributes: the rows' spacing and rate, what set them, and REEP's own rate (issue 33)."""
+    from afmtool.io.results import row_attrs
+
+    estimator = results["estimator"]
+    return {**row_attrs(results, results["sample_rate_hz"]), "reep_rate_hz": estimator["reep_rate_hz"],
+            "rate_reduction": estimator["rate_reduction"]}
 
 
 def _given_spring_constant(params: ReepParams, model) -> tuple[float, str]:

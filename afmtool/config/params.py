@@ -111,8 +111,24 @@ def _drive_hold_field():
 
 
 def _decimation_field(flag: str | None = "--decimate"):
-    """``decimate``: one output sample kept in N."""
-    return field(0, "Keep one output sample in N; 0 = one per drive period", bounds="[1, 1000000000000000]", automatic=0, flag=flag)
+    """``decimate``: one output sample kept in N (overrides ``rows``)."""
+    return field(0, "Keep one output sample in N capture samples; 0 = as --rows says", bounds="[1, 1000000000000000]",
+                 automatic=0, flag=flag)
+
+
+#: ``rows``: what sets the density of the written series (issue 33).
+ROW_DENSITIES = ("resolution", "per-period")
+
+
+def _rows_field(resolution: str, per_period: str = "one row per drive period", flag: str | None = "--rows"):
+    """``rows``: series at what the estimator resolves (default) or at the old density."""
+    return field(
+        "resolution",
+        f"Density of the written series: resolution = {resolution} (what the estimator resolves); "
+        f"per-period = {per_period}; --decimate N overrides both",
+        choices=ROW_DENSITIES,
+        flag=flag,
+    )
 
 
 def _lockin_frequency_field(help_text: str):
@@ -234,6 +250,7 @@ class ReepParams:
     f0_hz: float = _free_air_f0_field()
     q: float = _free_air_q_field()
     drive_hold: str = _drive_hold_field()
+    rows: str = _rows_field("at least 8 rows per forgetting window (50 us at 400 us)")
     decimate: int = _decimation_field()
     drive_frequency_hz: float = _lockin_frequency_field("Lock-in frequency; 0 = metadata drive, else the free-air f0")
     lockin_lowpass_hz: float = _lockin_lowpass_field()
@@ -357,6 +374,8 @@ class ProbeLossParams:
     upper_fraction: float = field(0.25, "Automatic A_upper = A_sp + upper_fraction·(A0 − A_sp)", bounds=">= 0")
     drive_frequency_hz: float = _lockin_frequency_field("Drive frequency; 0 = metadata drive, else the free-air f0")
     lockin_lowpass_hz: float = _lockin_lowpass_field()
+    rows: str = _rows_field("one row per index window (the RMS or coherent index's window, the forcing filter's "
+                            "memory); events use every sample")
     decimate: int = _decimation_field()
     min_event_periods: float = field(5.0, "Truth scores count events at least this long", "drive periods", bounds="> 0")
     truth_gap_periods: float = field(
@@ -484,8 +503,8 @@ class TheoryControllersParams:
 
 
 #: The fields of ``[kalman-bank.reep]`` that kalman-bank sets from its own section.
-_BANK_OWNED_REEP_FIELDS = ("free_air", "model", "f0_hz", "q", "drive_hold", "decimate", "drive_frequency_hz", "vs",
-                           "z_bin", "chunk_samples")
+_BANK_OWNED_REEP_FIELDS = ("free_air", "model", "f0_hz", "q", "drive_hold", "rows", "decimate", "drive_frequency_hz",
+                           "vs", "z_bin", "chunk_samples")
 
 
 @dataclass(frozen=True)
@@ -546,6 +565,8 @@ class KalmanBankParams:
         flag="--f0-scale",
     )
     drive_frequency_hz: float = _lockin_frequency_field("Drive frequency; 0 = metadata drive, else the free-air f0")
+    rows: str = _rows_field("REEP's rows (at least 8 per REEP window, finer than the RMS window at the defaults), "
+                            "the RMS of every observer beside them")
     decimate: int = _decimation_field(flag=None)
     chunk_samples: int = _chunk_samples_field(1 << 18)
     reep: ReepParams = field(
@@ -788,6 +809,10 @@ class DecodeParams:
     step_time_s: float = field(
         0.0, "Time of the V_phi step; 0 = metadata vphi_step.time_s, else the end of the nominal segment", "s",
         bounds=">= 0", flag="--step-time",
+    )
+    rows: str = _rows_field(
+        "the innovation's running mean once per actuation period (bits are never faster than the actuation), no "
+        "per-sample innovation", per_period="also the innovation at every sample (float32)",
     )
     eye_traces: int = field(200, "Bit cells drawn in the eye diagram", bounds=">= 1")
     # 1 Mi samples: each chunk costs ~2 ms of hand-offs between the reading, computing and

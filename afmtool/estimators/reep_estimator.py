@@ -175,9 +175,7 @@ class ReepEstimator:
         window_s = 1.0 / ((1.0 - params.lam) * fs) if params.lam else params.window_us / 1e6
         # at D = 1 a given λ is used as it is, bit for bit
         lam = params.lam if (params.lam and factor == 1) else forgetting_factor(window_s, rate)
-        wanted = row_every or params.decimate or sample_count(1.0, fs / drive_hz, "the drive period", minimum=1,
-                                                              per="drive period")
-        rows = factor * max(1, round(wanted / factor))
+        rows = _row_spacing(params, row_every, fs, drive_hz, window_s, factor)
         reep_numerator = None
         if params.use_input:
             if numerator is None or denominator is None:
@@ -298,8 +296,58 @@ class ReepEstimator:
             },
             "row_every_samples": self.row_every,
             "row_rate_hz": self.row_rate_hz,
+            "row_every_s": self.row_every / self.sample_rate_hz,
+            "rows_per_window": self.window_s * self.sample_rate_hz / self.row_every,
         }
 
+
+
+#: Rows per forgetting window at the default density (``rows = "resolution"``, issue 33): the
+#: estimator cannot resolve anything shorter than its window, and 8 rows per window keep its
+#: 10-90 % step response (about 1.1 windows) sampled by 8 rows and stay finer than an image pixel.
+ROWS_PER_WINDOW = 8
+
+
+def _row_spacing(params, row_every: int | None, fs: float, drive_hz: float, window_s: float, factor: int) -> int:
+    """Capture samples per row, a multiple of D: ``row_every``, ``--decimate``, else ``rows``'s rule.
+
+    ``resolution``: at least :data:`ROWS_PER_WINDOW` rows per window, spaced to walk
+    through the drive's phase (:func:`_phase_spreading`; 23 samples at 500 kHz, 70 kHz, 400 µs);
+    ``per-period``: one row per drive period (rounded to the nearest multiple of D).
+    """
+    if row_every or params.decimate:
+        return factor * max(1, round((row_every or params.decimate) / factor))
+    if getattr(params, "rows", "resolution") == "per-period":
+        wanted = sample_count(1.0, fs / drive_hz, "the drive period", minimum=1, per="drive period")
+        return factor * max(1, round(wanted / factor))
+    longest = max(1, int(window_s * fs / ROWS_PER_WINDOW) // factor)
+    return factor * _phase_spreading(range(max(1, (3 * longest) // 4), longest + 1), factor * drive_hz / fs)
+
+
+#: Rows whose drive phase repeats within this many rows are avoided (:func:`_phase_spreading`).
+_PHASE_ORDERS = 6
+
+
+def _phase_spreading(candidates: range, cycles_per_unit: float) -> int:
+    """The candidate spacing (in REEP samples) whose rows walk through the drive's phase; the largest on ties.
+
+    REEP's per-sample estimate and its stated std carry a small ripple at the
+    drive and its harmonic.  Rows an integer or half-integer number of drive
+    periods apart sample that ripple at one or two phases only, and the rows'
+    means and stated stds are then biased (at 500 kHz and 70 kHz, 25 samples are
+    3.5 periods: the free-air stated std read 0.65 Hz for 1.0 Hz, the mean f0′
+    moved 0.07 Hz).  The spacing is taken from the top quarter of the allowed
+    range (8 to 11 rows per window then) where q·(phase step) is farthest
+    from a whole cycle for every q up to :data:`_PHASE_ORDERS`.
+    """
+    if not cycles_per_unit > 0:
+        return candidates[-1]
+
+    def spread(n: int) -> float:
+        step = n * cycles_per_unit
+        return min(abs(q * step - round(q * step)) for q in range(1, _PHASE_ORDERS + 1))
+
+    return max(reversed(candidates), key=lambda n: (round(spread(n), 3), n))
 
 
 def capture_rate_coefficients(b1, b0, factor: int) -> tuple[np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-__all__ = ["ResultWriter"]
+__all__ = ["ResultWriter", "row_attrs"]
 
 _CHUNK = 1 << 14
 
@@ -85,6 +85,13 @@ class ResultWriter:
             _write_at_end(ds, values[..., :whole])
         self._pending[name] = values[..., whole:].copy()
 
+    def set_attrs(self, attrs: Mapping) -> None:
+        """Set attributes of the file's root (e.g. the series' row rate, once the run knows it)."""
+        if self._behind is not None:
+            self._behind.drain()
+        for key, value in attrs.items():
+            self._file.attrs[key] = value
+
     def put(self, name: str, values, units: str = "", attrs: Mapping | None = None) -> None:
         """Store a whole array (an image, a table column) at ``name`` (may contain '/')."""
         if self._behind is not None:
@@ -128,6 +135,15 @@ class ResultWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         self.close(failed=exc_type is not None)
+
+
+def row_attrs(results: Mapping, sample_rate_hz: float) -> dict:
+    """A series file's root attributes: the rows' spacing, their rate and what set them (issue 33)."""
+    attrs = {"sample_rate_hz": float(sample_rate_hz)}
+    for key in ("rows", "row_every_samples", "row_rate_hz"):
+        if results.get(key) is not None:
+            attrs[key] = results[key]
+    return attrs
 
 
 def _write_at_end(ds: h5py.Dataset, block: np.ndarray) -> None:
