@@ -242,14 +242,12 @@ def test_convert_of_a_subnormal_rate_is_one_line(tmp_path):
 @pytest.fixture
 def fresh_outcome():
     import signal
-    import threading
 
-    from afmtool.cli import main as cli_main
+    from afmtool.runtime import process
 
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    cli_main._OUTCOME = threading.Lock()
-    cli_main._ERROR_CODE.clear()
-    yield cli_main
+    process.new_run()
+    yield process
     for s, handler in handlers.items():
         signal.signal(s, handler)
 
@@ -257,16 +255,16 @@ def fresh_outcome():
 def test_an_interrupt_after_the_error_line_adds_no_line(capfd, fresh_outcome):
     """A huge_claim capture refused while a SIGTERM arrived printed its refusal and 'interrupted'."""
     with pytest.raises(SystemExit) as done:
-        fresh_outcome._error("huge_claim.h5: claims 1e15 samples", 2)
-    fresh_outcome._Signals().report()  # what the SIGTERM handler (or its deadline) does
+        fresh_outcome.error("huge_claim.h5: claims 1e15 samples", 2)
+    fresh_outcome.Signals().report()  # what the SIGTERM handler (or its deadline) does
     err = capfd.readouterr().err
     assert done.value.code == 2 and err.splitlines() == ["afmtool: error: huge_claim.h5: claims 1e15 samples"]
 
 
 def test_a_refusal_raised_by_the_interrupt_adds_no_line(capfd, fresh_outcome):
-    fresh_outcome._Signals().report()
+    fresh_outcome.Signals().report()
     with pytest.raises(SystemExit) as done:
-        fresh_outcome._error("x.h5: cannot read (interrupted)", 2)
+        fresh_outcome.error("x.h5: cannot read (interrupted)", 2)
     assert done.value.code == 130 and capfd.readouterr().err.splitlines() == ["afmtool: interrupted"]
 
 

@@ -129,7 +129,7 @@ def in_process(monkeypatch, capsys):
     from afmtool.cli import main as cli_main
 
     # main() ends a failed run without interpreter teardown while a helper thread lives; pytest has some
-    monkeypatch.setattr(cli_main, "_exit_now_if_teardown_unsafe", lambda code: None)
+    monkeypatch.setattr("afmtool.runtime.process.exit_now_if_teardown_unsafe", lambda code: None)
     # main() builds the same click tree from the typer app on every call; build it once here
     monkeypatch.setattr(cli_main.typer.main, "get_command", _command_tree)
     saved = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM), sys.unraisablehook, sys.excepthook)
