@@ -437,7 +437,7 @@ class BankStage:
         if self.estimator is not None:
             return self.estimator.row_every
         if self.params.rows == "resolution" and not self.params.decimate and self.reep_results is not None:
-            return (self.reep_results.results.get("estimator") or {}).get("row_every_samples")
+            return (self.reep_results.report.get("estimator") or {}).get("row_every_samples")
         return None
 
     def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
