@@ -72,7 +72,8 @@ def test_reep_file_route_matches_internal(internal, tmp_path):
     # the same REEP estimates and the same binning give the same design points and models
     for a, b in zip(report["results"]["filters"], inner["results"]["filters"], strict=True):
         assert a["design_z"] == b["design_z"]
-        assert a["f0_hz"] == pytest.approx(b["f0_hz"], rel=1e-12)
+        # reep.h5 stores f0' and Q' as float32 (issue 33): the binned model agrees to float32's 6e-8
+        assert a["f0_hz"] == pytest.approx(b["f0_hz"], rel=1e-6)
     assert report["results"]["reep"]["coefficients"].startswith("held")
     # holding the decimated estimates changes the adaptive observer's RMS only a little
     assert report["results"]["adaptive"]["fraction_lowest"] == pytest.approx(

@@ -125,3 +125,44 @@ def test_one_nm_feature_survives_the_default_rows():
         assert abs(shift_rows - shift_dense) <= 0.25 * scatter
         near = (t > 0.024) & (t < 0.028)
         assert np.sqrt(np.mean((_resolved(rows) - _resolved(dense[name]))[near] ** 2)) <= 0.5 * scatter
+
+
+class _Tee:
+    """The run's columns both in memory (float64, as computed) and in a reep.h5 written as the command writes it."""
+
+    def __init__(self, writer) -> None:
+        self.writer, self.columns = writer, MemorySink()
+
+    def append(self, columns):
+        self.columns.append(columns)
+        self.writer.append(columns)
+
+    def put(self, *args, **kwargs):
+        self.writer.put(*args, **kwargs)
+
+
+def test_float32_storage_round_trips_f0_and_q(tmp_path):
+    """Issue 33, item 2: float32 series keep f0′ and Q′ within 1e-6 relative; b1, b0 and t stay float64."""
+    import h5py
+
+    from afmtool.analyses.reep_outputs import FLOAT64_SERIES
+    from afmtool.io.results import ResultWriter
+
+    cap = _three_sine(duration_s=0.02, seed=2, free_air_s=0.02)
+    with ResultWriter(tmp_path / "reep.h5", {}, float64=FLOAT64_SERIES) as writer:
+        tee = _Tee(writer)
+        run_reep(reference_reader(cap), resolve(ReepParams, {}), tee)
+    with h5py.File(tmp_path / "reep.h5") as f:
+        for name in ("f0_hz", "q", "f0_std_hz", "amplitude", "sigma2"):
+            assert f[name].dtype == np.float32, name
+        for name in FLOAT64_SERIES:
+            assert f[name].dtype == np.float64, name
+            np.testing.assert_array_equal(f[name][()], tee.columns[name])
+        for name in ("f0_hz", "q"):
+            stored, computed = f[name][()].astype(np.float64), tee.columns[name]
+            finite = np.isfinite(computed)
+            assert finite.sum() > 0.9 * len(computed)
+            np.testing.assert_array_equal(np.isfinite(stored), finite)
+            relative = np.abs(stored[finite] / computed[finite] - 1.0)
+            print(f"{name}: float32 round trip, worst relative error {relative.max():.2e}")
+            assert relative.max() <= 1e-6

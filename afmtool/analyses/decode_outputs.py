@@ -26,7 +26,8 @@ def run_decode_command(run: CommandRun) -> dict:
     record = run.input_record()
     with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
         attrs = {"afmtool_command": "decode", "sample_rate_hz": reader.info.sample_rate_hz}
-        with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs, write_behind=True) as writer:
+        with ResultWriter(staged.path("decode.h5"), SERIES_UNITS, attrs, write_behind=True,
+                          float64=("t_mean",)) as writer:
             # matplotlib, for the eye, PSD and ℓ0 figures at the end, loads while the EKF streams
             result = run_decode(reader, params, writer, progress=run.progress, on_stream_start=run.figures.on_stream_start,
                                 split=run.split)

@@ -53,7 +53,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
             inputs.append(input_record(reep_results.path, "reep series"))
         with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
             with MatrixResultWriter(staged.path("bank.h5"), units, {"afmtool_command": "kalman-bank"},
-                                    write_behind=True) as writer:
+                                    write_behind=True, float64=("t",)) as writer:
                 result = run_kalman_bank(
                     reader, params, writer, model=model, reep_results=reep_results, reopen=run.reopen,
                     progress=run.progress, split=run.split, on_stream_start=run.figures.on_stream_start,

@@ -37,7 +37,7 @@ def run_probeloss_command(run: CommandRun) -> dict:
     capture_record = run.input_record()
     with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
         with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"},
-                          write_behind=True) as writer:
+                          write_behind=True, float64=("t",)) as writer:
             # matplotlib, for the figures at the end, loads while the observer streams
             result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split,
                                    on_stream_start=run.figures.on_stream_start)

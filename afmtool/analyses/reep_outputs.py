@@ -20,6 +20,10 @@ from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_reep_command", "run_reep_stream"]
 
+#: reep.h5's series kept in float64 (issue 33): time, and b1, b0, whose poles lie within 1e-4 of the
+#: unit circle (f0′ and Q′ follow from them by a square root and a log); the rest is float32.
+FLOAT64_SERIES = ("t", "b1", "b0")
+
 _IMAGE_TITLES = {"f0_hz": ("f0'", "Hz"), "q": ("Q'", ""), "amplitude": ("amplitude", None), "phase_deg": ("phase", "deg")}
 
 
@@ -33,7 +37,8 @@ def run_reep_command(run: CommandRun) -> dict:
     capture_record = run.input_record()
     model_records = model_input_records(params.model)
     with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
-        with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True) as writer:
+        with ResultWriter(staged.path("reep.h5"), units, {"afmtool_command": "reep"}, write_behind=True,
+                          float64=FLOAT64_SERIES) as writer:
             result = run_reep(reader, params, writer, model=model, progress=run.progress, split=run.split,
                               on_stream_start=run.figures.on_stream_start)
             writer.set_attrs(_row_attrs(result.results))

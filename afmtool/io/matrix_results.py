@@ -39,5 +39,6 @@ class MatrixResultWriter(ResultWriter):
             return super()._create(name, values)
         rows = values.shape[0]
         return self._file.create_dataset(
-            name, shape=(rows, 0), maxshape=(rows, None), dtype=values.dtype, chunks=(rows, _CHUNK_COLUMNS)
+            name, shape=(rows, 0), maxshape=(rows, None), dtype=self._stored_dtype(name, values),
+            chunks=(rows, _CHUNK_COLUMNS)
         )

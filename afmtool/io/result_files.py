@@ -148,11 +148,14 @@ class ResultFile:
         self._h5.flush()  # while ``ds`` is alive, so a full disk raises here (see io.results.ResultWriter.put)
 
     def create_columns(self, group: str, units: Mapping[str, str], n_rows: int) -> dict[str, h5py.Dataset]:
-        """Empty float64 columns ``group/<name>`` of ``n_rows``, each with its units, to be filled in blocks."""
+        """Empty float32 columns ``group/<name>`` of ``n_rows``, each with its units, to be filled in blocks.
+
+        float32, as the series they derive from (issue 33): 7 digits are far below their uncertainty.
+        """
         parent = self._h5.create_group(group)
         columns = {}
         for name, unit in units.items():
-            columns[name] = parent.create_dataset(name, shape=(n_rows,), dtype="f8")
+            columns[name] = parent.create_dataset(name, shape=(n_rows,), dtype="f4")
             columns[name].attrs["units"] = unit
         return columns
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from pathlib import Path
 
 import h5py
@@ -23,9 +23,16 @@ class ResultWriter:
     """Append-only writer of named 1-D series plus whole arrays and attributes."""
 
     def __init__(
-        self, path: Path, units: Mapping[str, str], attrs: Mapping | None = None, *, write_behind: bool = False
+        self, path: Path, units: Mapping[str, str], attrs: Mapping | None = None, *, write_behind: bool = False,
+        float64: Collection[str] | None = None,
     ) -> None:
         """Open ``path`` for writing.
+
+        With ``float64`` (names), every other float64 series is stored as
+        float32 (issue 33: f0′ at 70 kHz resolves 0.008 Hz in float32, far
+        below any estimator's noise), while the named ones (time, REEP's b1 and
+        b0, whose poles sit 1e-4 from the unit circle) keep float64.  The
+        caller computes in float64 either way; HDF5 converts as it writes.
 
         With ``write_behind``, :meth:`append` hands its blocks to a writer
         thread and returns at once, so the file is written while the caller
@@ -37,6 +44,7 @@ class ResultWriter:
         # and appends are no slower.
         self._file = h5py.File(path, "w", track_order=True, rdcc_nbytes=0)
         self._units = dict(units)
+        self._float64 = None if float64 is None else frozenset(float64)
         self._series: dict[str, h5py.Dataset] = {}
         self._pending: dict[str, np.ndarray] = {}  # per series, less than one chunk not yet written
         self._behind = None
@@ -67,7 +75,14 @@ class ResultWriter:
 
     def _create(self, name: str, values: np.ndarray) -> h5py.Dataset:
         """A resizable dataset for the series ``name``, from its first block."""
-        return self._file.create_dataset(name, shape=(0,), maxshape=(None,), dtype=values.dtype, chunks=(_CHUNK,))
+        return self._file.create_dataset(name, shape=(0,), maxshape=(None,), dtype=self._stored_dtype(name, values),
+                                         chunks=(_CHUNK,))
+
+    def _stored_dtype(self, name: str, values: np.ndarray) -> np.dtype:
+        """float32 for a float64 series not kept in float64 (``float64`` given), else the values' own."""
+        if self._float64 is not None and values.dtype == np.float64 and name not in self._float64:
+            return np.dtype(np.float32)
+        return values.dtype
 
     def _extend(self, name: str, ds: h5py.Dataset, values: np.ndarray) -> None:
         """Append along the last axis in whole HDF5 chunks; the rest (< 1 chunk) waits for the next block.
