@@ -21,6 +21,7 @@ MODULES = [
     "bench.bench_kalman_bank",
     "bench.bench_probeloss",
     "bench.bench_split",
+    "bench.bench_targets",
 ]
 
 #: (bench.json section, key path, criterion, test) rows of the closing table.
