@@ -174,7 +174,8 @@ def test_metadata_drive_lines(tmp_path):
     result = run_cli("reep", tmp_path / "meta.h5", "--out", tmp_path / "out", "-q")
     assert result.returncode == 0, result.stderr.decode()
     report = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert report["inputs"][0]["synthetic_drive"]["response"]["from"] == "line magnitudes"
+    # the capture's metadata gives f0 and Q: the phases are fitted against them (issue 27 item 6)
+    assert report["inputs"][0]["synthetic_drive"]["response"]["from"] == "metadata cantilever f0_hz, q"
 
 
 def test_bad_drive_is_one_line_exit_2(tmp_path):

@@ -1,14 +1,15 @@
-"""``afmtool theory fit`` (issue 17 item 3) on reference-simulator force curves with known forces.
+"""``afmtool theory fit`` (issue 27 item 4): intervals that cover the truth, over five force sets.
 
-Five force sets (eq. 4.1 magnitudes, written out here from the thesis §3.4.3
-and §4.2): the attractive-repulsive set and the attractive set at Q = 168,
-the attractive-repulsive force and the thesis's repulsive set on a low-Q (38)
-lever driven by the excitation ``design excitation`` designs for it (side
-lines scaled down), and the chapter-4 set, the only one with c_b > 0.  Each
-parameter the fit calls identified must be within 10 % of the truth (the
-contact point: the separation offset l(0) within 10 %), every other one must be
-named with a reason, and where d and the contact point are not separated their
-onset d + s·z_c must be within 10 %.
+Reference-simulator force curves (tests/reference_sim.py, which shares no code with afmtool) of
+the five thesis force sets (eq. 4.1 magnitudes, written out here from §3.4.3 and §4.2) on their
+thesis cantilevers, the Q-38 one driven by the excitation ``design excitation`` designs for it
+(side lines scaled down). ``theory fit`` states for each parameter a 2σ interval from the profile
+likelihood widened by its systematic part (estimators/force_fit.py). Coverage: over every
+(curve, parameter) whose interval is closed, the truth lies inside in at least 90 % of cases,
+and the onset d + s·z_c likewise; a parameter the curve cannot bound is named, with the reason.
+
+The full version (slow) runs four seeds of each set; CI runs one curve. The same samples from an
+HDF5 capture and from a scope CSV in volts give the same fit.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 
 from afmtool.models.excitation_design import design_three_sine
@@ -24,60 +26,124 @@ from tests.conftest import run_cli, validate_report
 from tests.test_kalman_bank_reference import _force_curve
 
 F0, FS, START_NM = 80318.0, 500e3, 30.0
-AR = rs.PiecewiseLinearForce(4.0, 0.1e6**2, 0.303e6**2, 0.0092e6, 0.0)
-ATT = rs.PiecewiseLinearForce(4.0, 0.31e6**2, 3.03e6**2, 0.042e6, 0.0)
-REP_Q38 = rs.PiecewiseLinearForce(5.0, 0.11e6**2, 1.83e6**2, 0.0012e6, 0.0)  # §3.4.3, Fig. 3.14
-CH4 = rs.PiecewiseLinearForce(1.65, 0.18e6**2, 4.03e6**2, 0.042e6, 1.45e6)  # §4.2, the one set with c_b > 0
-CASES = {
-    # name: (Q, force, designed excitation?, parameters this curve must identify)
-    "attractive-repulsive": (168.0, AR, False, {"d_nm", "omega_a2", "omega_b2", "c_a", "contact_z"}),
-    "attractive": (168.0, ATT, False, {"omega_a2"}),
-    "attractive-repulsive-q38": (38.0, AR, True, {"omega_b2"}),
-    # a stiff wall the tip barely enters: ω_b² (and with it d) is only poorly determined, and must be named so
-    "repulsive-q38": (38.0, REP_Q38, True, {"omega_a2"}),
-    "ch4-default": (168.0, CH4, False, set()),
+#: name: (Q, (d, ω_a², ω_b², c_a, c_b)).
+FORCE_SETS = {
+    "attractive": (168.0, (4.0, 0.31e6**2, 3.03e6**2, 0.042e6, 0.0)),
+    "attractive-repulsive": (168.0, (4.0, 0.1e6**2, 0.303e6**2, 0.0092e6, 0.0)),
+    "repulsive": (168.0, (5.0, 0.11e6**2, 0.63e6**2, 0.0042e6, 0.0)),
+    "repulsive-q38": (38.0, (5.0, 0.11e6**2, 1.83e6**2, 0.0012e6, 0.0)),
+    "ch4-default": (168.0, (1.65, 0.18e6**2, 4.03e6**2, 0.042e6, 1.45e6)),
 }
+COVERAGE = 0.90
+#: Sizes below which a parameter counts as 0 (estimators/force_fit.py).
+PARAMETER_SCALES = {"d_nm": 0.1, "omega_a2": 1e8, "omega_b2": 1e9, "c_a": 1e2, "c_b": 1e3, "contact_z": 0.1}
 
 
-def _drive(q, designed):
-    if not designed:
-        return rs.three_sine(F0, 6000.0, 20.0 / q, 0.25)
+def _drive(q: float):
+    if q >= 100:
+        return rs.three_sine(F0, 6000.0, 20.0 / q, 0.5)
     design = design_three_sine(F0, q, 1.0, 20.0, dac_rate_hz=2e6)
     return rs.MultiSine(tuple(rs.Sine(ln.frequency_hz, ln.amplitude_v, ln.phase_rad - math.pi / 2)
                               for ln in design.lines))
 
 
-@pytest.mark.long
-@pytest.mark.parametrize("name", sorted(CASES))
-def test_fit_recovers_identifiable_force_parameters(tmp_path, name):
-    q, force, designed, must = CASES[name]
-    cap = rs.simulate(f0_hz=F0, q=q, gain_nm_per_v=1.0, sample_rate_hz=FS, duration_s=0.2, drive=_drive(q, designed),
-                      noise_nm=0.05, seed=7, force=force, separation_nm=_force_curve(0.2, start_nm=START_NM),
-                      record_z_piezo=True)
-    capture = rs.write_capture_h5(tmp_path / "curve.h5", cap)
-    assert run_cli("reep", capture, "--out", tmp_path / "reep", "-q").returncode == 0
-    result = run_cli("theory", "fit", tmp_path / "reep", "--out", tmp_path / "fit", "--json")
+def _capture(name: str, seed: int, duration_s: float) -> rs.Capture:
+    q, force = FORCE_SETS[name]
+    return rs.simulate(f0_hz=F0, q=q, gain_nm_per_v=1.0, sample_rate_hz=FS, duration_s=duration_s, drive=_drive(q),
+                       noise_nm=0.05, seed=seed, force=rs.PiecewiseLinearForce(*force),
+                       separation_nm=_force_curve(duration_s, start_nm=START_NM), record_z_piezo=True)
+
+
+def _fit(tmp_path, capture_path, *reep_args) -> dict:
+    result = run_cli("reep", capture_path, *reep_args, "--out", tmp_path / "reep", "-q")
+    assert result.returncode == 0, result.stderr.decode()
+    result = run_cli("theory", "fit", tmp_path / "reep", "--out", tmp_path / "fit", "--json", "-q")
     assert result.returncode == 0, result.stderr.decode()
     report = json.loads(result.stdout)
     validate_report(report)
+    return report
+
+
+def _covered(report: dict, name: str) -> list[tuple[str, bool]]:
+    """(parameter, truth inside its closed 2σ interval) for every closed interval, and the onset."""
+    _, force = FORCE_SETS[name]
+    truth = dict(zip(("d_nm", "omega_a2", "omega_b2", "c_a", "c_b"), force))
+    truth["contact_z"] = -START_NM  # z_piezo = l − l(0): the contact point (l = 0) is at z = −l(0)
+    results = report["results"]
+    out = []
+    for pname, entry in results["parameters"].items():
+        low, high = entry["interval_2sigma"]
+        if entry["status"] != "identified":
+            assert entry["reason"] and any(w.startswith(pname) for w in report["warnings"])
+        if low is not None and high is not None:
+            out.append((pname, low <= truth[pname] <= high))
+    low, high = results["onset_d_plus_s_contact_z_nm"]["interval_2sigma"]
+    out.append(("onset", low <= force[0] - START_NM <= high))
+    return out
+
+
+def _describe(report: dict, name: str) -> str:
+    results = report["results"]
+    parts = [f"{name} ({results['model']} model)"]
+    for pname, entry in results["parameters"].items():
+        low, high = entry["interval_2sigma"]
+        parts.append(f"{pname} {entry['value']:.4g} [{low if low is None else f'{low:.3g}'}, "
+                     f"{high if high is None else f'{high:.3g}'}] {entry['status']}")
+    return "; ".join(parts)
+
+
+@pytest.mark.slow
+def test_fit_intervals_cover_the_truth_over_five_force_sets(tmp_path):
+    cases = []
+    for name in FORCE_SETS:
+        for seed in (1, 2, 3, 4):
+            folder = tmp_path / f"{name}-{seed}"
+            folder.mkdir()
+            path = rs.write_capture_h5(folder / "curve.h5", _capture(name, seed, 0.3))
+            report = _fit(folder, path)
+            covered = _covered(report, name)
+            print(_describe(report, name), "| missed:", [p for p, ok in covered if not ok])
+            cases.append(covered)
+    flat = [ok for case in cases for _, ok in case]
+    share = float(np.mean(flat))
+    print(f"coverage over {len(flat)} closed intervals of {len(cases)} curves: {share:.3f} (needed {COVERAGE})")
+    assert share >= COVERAGE
+
+
+@pytest.mark.long
+def test_fit_covers_the_truth_on_one_curve(tmp_path):
+    path = rs.write_capture_h5(tmp_path / "curve.h5", _capture("attractive-repulsive", 7, 0.2))
+    report = _fit(tmp_path, path)
+    print(_describe(report, "attractive-repulsive"))
     assert {"fit.json", "fit.h5", "fit.png"} <= set(report["outputs"])
-    fitted = report["results"]
-    truth = {"d_nm": force.d_nm, "omega_a2": force.wa2, "omega_b2": force.wb2, "c_a": force.ca, "c_b": force.cb}
-    lines = []
-    for pname, entry in fitted["parameters"].items():
-        if pname == "contact_z":
-            value, true = fitted["separation_offset_nm"], START_NM  # z_piezo = l − l(0): l(z = 0) = −s·z_c
-        else:
-            value, true = entry["value"], truth[pname]
-        error = value / true - 1.0 if true else math.inf
-        lines.append(f"{pname} {entry['status']} {value:.4g} (truth {true:.4g}, {100 * error:+.1f} %)")
-        if entry["status"] == "identified":
-            assert abs(error) <= 0.10, lines[-1]
-        else:
-            assert pname in fitted["not_identified"] and entry["reason"]
-            assert any(w.startswith(pname) for w in report["warnings"])
-    onset = fitted["onset_d_plus_s_contact_z_nm"]["value"]
-    onset_error = onset / (force.d_nm - START_NM) - 1.0
-    print(name, "; ".join(lines), f"; onset {onset:.3f} nm ({100 * onset_error:+.1f} %)")
-    assert abs(onset_error) <= 0.10
-    assert must <= set(fitted["identified"])
+    covered = _covered(report, "attractive-repulsive")
+    assert len(covered) >= 3 and all(ok for _, ok in covered), covered
+
+
+@pytest.mark.long
+def test_the_same_samples_from_csv_and_hdf5_give_the_same_fit(tmp_path):
+    """One record in volts, without metadata, as HDF5 and as a scope CSV (10 significant digits)."""
+    capture = _capture("attractive-repulsive", 5, 0.2)
+    invols, z_sensitivity = 50.0, 20.0  # nm/V
+    volts = {"dither": capture.channels["dither"], "deflection": capture.channels["deflection"] / invols,
+             "z_piezo": capture.channels["z_piezo"] / z_sensitivity}
+    h5_path = rs.write_capture_h5(tmp_path / "curve.h5", rs.Capture(FS, volts, dict.fromkeys(volts, "V"), {}, {}))
+    csv_path = tmp_path / "scope.csv"
+    t = np.arange(volts["dither"].size) / FS
+    table = np.column_stack([t, volts["dither"], volts["deflection"], volts["z_piezo"]])
+    np.savetxt(csv_path, table, delimiter=",", fmt="%.10g", header="Time (s),CH1 [V],CH2 [V],CH3 [V]", comments="")
+    common = ["--invols", str(invols), "--z-sensitivity", str(z_sensitivity), "--free-air", "0:0.04",
+              "--f0", str(F0), "--q", "168"]
+    (tmp_path / "h5").mkdir()
+    (tmp_path / "csv").mkdir()
+    from_h5 = _fit(tmp_path / "h5", h5_path, *common)["results"]
+    from_csv = _fit(tmp_path / "csv", csv_path, "--channel", "dither=CH1", "--channel", "deflection=CH2",
+                    "--channel", "z_piezo=CH3", *common)["results"]
+    assert from_h5["model"] == from_csv["model"]
+    for pname, a in from_h5["parameters"].items():
+        b = from_csv["parameters"][pname]
+        print(f"{pname}: HDF5 {a['value']:.6g} ({a['status']}), CSV {b['value']:.6g} ({b['status']})")
+        assert a["status"] == b["status"]
+        # 5 % of the std; an open interval (no std): the parameter's own scale (a value at its bound 0)
+        scale = a["std"] if a["std"] else max(abs(a["value"]), PARAMETER_SCALES[pname])
+        assert b["value"] == pytest.approx(a["value"], abs=0.05 * scale)

@@ -46,6 +46,11 @@ def run_reep_command(run: CommandRun) -> dict:
             _write_images(staged, writer, result, deflection_units, run.figures)
         staged.flush_early("reep.h5")  # to disk while the figures are drawn
         results = dict(result.results)
+        drive_fit = getattr(reader, "drive_fit", None)
+        if drive_fit is not None:
+            # the synthesised drive's phase uncertainty is REEP's too (eq. D.3)
+            results["synthetic_drive_uncertainty"] = _widen_reep_std(staged.path("reep.h5"), drive_fit,
+                                                                    float(result.results["drive_frequency_hz"]))
         results.update(_time_series(staged, reader, result, deflection_units, run.figures))
         from afmtool.analyses.interaction_outputs import add_interaction_series
 
@@ -77,6 +82,37 @@ def _row_attrs(results: Mapping) -> dict:
     estimator = results["estimator"]
     return {**row_attrs(results, results["sample_rate_hz"]), "reep_rate_hz": estimator["reep_rate_hz"],
             "rate_reduction": estimator["rate_reduction"]}
+
+
+def _widen_reep_std(path, fit, drive_hz: float, block: int = 1 << 20) -> dict:
+    """Add a synthesised drive's share to reep.h5's ``f0_std_hz`` and ``q_std`` in quadrature.
+
+    ``fit`` is the drive's :class:`~afmtool.estimators.drive_lines.DrivePhaseFit`; the share per row is
+    :func:`afmtool.estimators.drive_lines.drive_std_rows` (eq. D.3).
+
+    Returns what the report records: σ_φ and the largest shares added.
+    """
+    import math
+
+    from afmtool.estimators.drive_lines import drive_phase_std, drive_std_rows
+    from afmtool.io.result_files import open_result_file
+
+    phase_std = drive_phase_std(fit, drive_hz)
+    record = {"main_line_phase_std_deg": math.degrees(phase_std), "added_to": ["f0_std_hz", "q_std"],
+              "formula": "df0' = f0' dphi/(2Q'), dQ'/Q' = 2Q'|f0' - f_d|/f_d dphi + dphi^2/2"}
+    if phase_std <= 0:
+        return {**record, "added_to": []}
+    largest = [0.0, 0.0]
+    with open_result_file(path, mode="r+", required=("f0_hz", "q", "f0_std_hz", "q_std"), what="reep output") as f:
+        n = f["f0_hz"].shape[0]
+        for start in range(0, n, block):
+            stop = min(n, start + block)
+            f0_add, q_add = drive_std_rows(f["f0_hz"][start:stop], f["q"][start:stop], drive_hz, phase_std)
+            for k, (name, add) in enumerate((("f0_std_hz", f0_add), ("q_std", q_add))):
+                f[name][start:stop] = np.hypot(f[name][start:stop], add)
+                if np.isfinite(add).any():
+                    largest[k] = max(largest[k], float(np.nanmax(add)))
+    return {**record, "largest_f0_std_added_hz": largest[0], "largest_q_std_added": largest[1]}
 
 
 def _given_spring_constant(params: ReepParams, model) -> tuple[float, str]:

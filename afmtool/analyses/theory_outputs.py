@@ -177,22 +177,21 @@ def load_fitted_force(fit_dir: Path) -> FittedForce:
         data = json.loads(path.read_text(encoding="utf-8"))
         values = {name: float(data["parameters"][name]["value"]) for name in
                   ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b", "contact_z")}
-        contact_std = float(data["parameters"]["contact_z"].get("std") or 0.0)
         nm_per_unit = float(data["nm_per_unit"])
+        contact_std = data["parameters"]["contact_z"].get("std")
+        onset_std = (data.get("onset_d_plus_s_contact_z_nm") or {}).get("std")
+        # an open contact interval (no std): the onset's, which the curve always pins, in z units
+        contact_std = float(contact_std if contact_std is not None else (onset_std or 0.0) / abs(nm_per_unit))
     except FileNotFoundError:
         raise InputError(f"--fit {fit_dir}: no fit.json there (the output folder of 'afmtool theory fit')") from None
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise InputError(f"--fit {path}: not a fit.json of 'afmtool theory fit' ({type(exc).__name__}: {exc})") from None
-    record = {"source": "fit", "fit": str(path)}
-    identified = set(data.get("identified") or ())
-    if not identified & {"omega_b2", "c_b"}:
-        # the curve did not reach a wall the fit could see: its ω_b², c_b (and so where the wall
-        # would be) are arbitrary, and only the attraction is compared
-        values["omega_b2"] = values["c_b"] = 0.0
-        record["note"] = "omega_b2 and c_b not identified by the fit: the theory has no repulsive wall"
-        # the attraction sees only d − l = (d + s·z_c) − s·z: the separation is as certain as the onset
+    record = {"source": "fit", "fit": str(path), "model": data.get("model", "")}
+    if data.get("model") == "attractive" or not values["omega_b2"] and not values["c_b"]:
+        # no wall: the attraction sees only d − l = (d + s·z_c) − s·z, so the separation is as
+        # certain as the onset, whatever the split between d and z_c
         onset = data.get("onset_d_plus_s_contact_z_nm") or {}
-        contact_std = float(onset.get("std") or contact_std) / abs(nm_per_unit)
+        contact_std = float(onset.get("std") or contact_std * abs(nm_per_unit)) / abs(nm_per_unit)
     force = PiecewiseLinearForce(*(max(0.0, values[k]) for k in ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b")))
     record.update({k: values[k] for k in ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b")})
     return FittedForce(force, values["contact_z"], contact_std if math.isfinite(contact_std) else 0.0, nm_per_unit,

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
 __all__ = ["RunSettings", "CAPTURE_COMMANDS", "run_capture_command", "run_identify_freeair", "run_identify_gamma",
            "run_identify_thermal", "run_identify_electrostatic", "run_identify_invols", "run_folder_command",
-           "capture_options_for"]
+           "capture_options_for", "drive_response_from_flags"]
 
 
 def _no_progress(name: str, total: int | None) -> AbstractContextManager[Callable[[int], None]]:
@@ -125,9 +125,28 @@ def capture_options_for(command: str, capture: Capture, flags: Mapping, *, hash_
         channels = ("deflection",)
     return capture.options.replace(
         free_air=(flags.get("free_air") or capture.options.free_air) if accepts_drive else capture.options.free_air,
+        drive_response=(drive_response_from_flags(flags) or capture.options.drive_response) if accepts_drive
+        else capture.options.drive_response,
         accepts_drive=accepts_drive or capture.options.accepts_drive,
         needs=needs_from_flags(command, flags, channels), hash_samples=hash_input,
     )
+
+
+def drive_response_from_flags(flags: Mapping):
+    """The free-air f0 and Q a synthesised drive is fitted against: ``--model``, else ``--f0``/``--q``; None without.
+
+    The same resonance the command itself then uses (:class:`~afmtool.estimators.drive_lines.DriveResponse`).
+    """
+    from afmtool.estimators.drive_lines import DriveResponse
+
+    if flags.get("model"):
+        from afmtool.models.free_air import load_free_air_model
+
+        model = load_free_air_model(Path(flags["model"]))
+        return DriveResponse(model.f0_hz, model.q, model.f0_std_hz or 0.0, model.q_std or 0.0, f"--model {flags['model']}")
+    if flags.get("f0_hz") and flags.get("q"):
+        return DriveResponse(float(flags["f0_hz"]), float(flags["q"]), 0.0, 0.0, "--f0/--q")
+    return None
 
 
 def run_capture_command(command: str, capture: Capture | str | Path, out: Path, flags: Mapping,

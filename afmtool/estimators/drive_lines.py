@@ -30,6 +30,9 @@ __all__ = [
     "fit_drive_phases",
     "synthesize_drive",
     "excitation_lines",
+    "DriveResponse",
+    "drive_phase_std",
+    "drive_std_rows",
 ]
 
 
@@ -53,9 +56,15 @@ class DrivePhaseFit(NamedTuple):
         hold, from the lines' magnitudes (``gain`` in deflection units per V);
         from the metadata when fewer than three lines.
     response_source : str
-        ``"line magnitudes"`` or ``"metadata cantilever f0_hz, q"``.
+        ``"line magnitudes"``, or where the given f0 and Q came from.
     deflection_amplitudes : tuple of float
         |D_i|, deflection units.
+    f0_std_hz, q_std : float
+        One-standard-deviation uncertainty of f0 and Q: from the line
+        amplitudes' noise through the magnitude fit, or the given ones (0
+        when the metadata gives none).
+    phase_std_rad : tuple of float
+        Each fitted phase's standard deviation (eq. D.2), rad.
     """
 
     lines: tuple[DriveLine, ...]
@@ -64,6 +73,19 @@ class DrivePhaseFit(NamedTuple):
     gain: float
     response_source: str
     deflection_amplitudes: tuple[float, ...]
+    f0_std_hz: float = 0.0
+    q_std: float = 0.0
+    phase_std_rad: tuple[float, ...] = ()
+
+
+class DriveResponse(NamedTuple):
+    """A free-air resonance given for the phase fit (``--model``, ``--f0/--q``): f0 (Hz), Q, their std, where from."""
+
+    f0_hz: float
+    q: float
+    f0_std_hz: float = 0.0
+    q_std: float = 0.0
+    source: str = ""
 
 
 def parse_drive_lines(text: str) -> tuple[DriveLine, ...]:
@@ -230,6 +252,9 @@ def fit_drive_phases(
     f0_hz: float | None = None,
     q: float | None = None,
     hold: str = "none",
+    f0_std_hz: float | None = None,
+    q_std: float | None = None,
+    given_from: str = "metadata cantilever f0_hz, q",
 ) -> DrivePhaseFit:
     """Each drive line's phase at t = 0 from the free-air deflection.
 
@@ -243,7 +268,11 @@ def fit_drive_phases(
     lines : tuple of DriveLine
         Frequencies (Hz) and amplitudes (V); phases are ignored.
     f0_hz, q : float, optional
-        Free-air resonance, used only with fewer than three lines.
+        Free-air resonance (metadata or ``--model``): when given, the phases
+        are fitted against it; without them the lines' magnitudes (three or
+        more) give f0 and Q.
+    f0_std_hz, q_std, given_from : float, float, str, optional
+        Their uncertainties (0 when not given) and where they came from.
     hold : {"none", "zero-order"}
         How the drive reached the cantilever: a continuous signal (the
         default, a real instrument's drive) or held between samples by a DAC
@@ -260,19 +289,16 @@ def fit_drive_phases(
     (ω0/Q)s + ω0²) of eq. 3.1 (:func:`continuous_response`; with
     ``hold="zero-order"`` discretised with a zero-order hold,
     :func:`zoh_response`), |D_i|/A_i = |H(ω_i)| fixes g, ω0, Q from three or
-    more lines, and
+    more lines (or ω0, Q are given: metadata or ``--model``), and
 
-        φ_i = ∠D_i − ∠H(ω_i).
+        φ_i = ∠D_i − ∠H(ω_i).                                   (D.2)
 
-    Only the magnitudes carry ω0 and Q: the lines' phases are what is being
-    fitted.  So the side lines must stand clear of the noise (their
-    amplitudes set ω0 to about Δf times their relative error), and the
-    response must be the right one: the magnitudes of a held and of a
-    continuous drive differ by a few % at f/fs ≈ 0.15, which moves the
-    fitted f0 by tens of Hz, and the main line's phase, at resonance, with
-    it (2Q/f0 rad per Hz).  A pure delay between drive and deflection cannot
-    be told from a phase of the drive; it ends up in φ_i, and the free-air
-    model identified from the synthesised dither is then delay-free.
+    Only the magnitudes carry ω0 and Q: the side lines must stand clear of
+    the noise (they set ω0 to about Δf times their relative error, and the
+    main line's phase at resonance with it, 2Q/f0 rad per Hz:
+    :func:`_phase_uncertainty`), and the response must be the right one (a
+    held and a continuous drive differ by a few % at f/fs ≈ 0.15).  A pure
+    delay between drive and deflection ends up in φ_i.
     """
     fs = float(sample_rate_hz)
     frequencies = np.array([line.frequency_hz for line in lines])
@@ -288,24 +314,75 @@ def fit_drive_phases(
     magnitude = np.abs(d) / amplitudes
     if np.any(magnitude <= 0):
         raise InputError("a drive line has no response in the deflection on the free-air segment")
-    f0, qf, gain, source = _free_air_of_lines(frequencies, magnitude, fs, hold, f0_hz, q)
+    f0, qf, gain, source = _free_air_of_lines(frequencies, magnitude, fs, hold, f0_hz, q, given_from)
     phases = np.angle(d) - np.angle(response(frequencies, f0, qf, fs))
     fitted = tuple(DriveLine(float(f), float(a), float(p)) for f, a, p in zip(frequencies, amplitudes, phases))
-    return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)))
+    given = (f0_std_hz or 0.0, q_std or 0.0) if source != "line magnitudes" else None
+    f0_std, q_std_fit, phase_std = _phase_uncertainty(
+        frequencies, _line_noise(deflection, fs, start_sample, frequencies, d) / np.abs(d), f0, qf, fs, hold, given)
+    return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)),
+                         f0_std, q_std_fit, tuple(float(v) for v in phase_std))
 
 
-def _free_air_of_lines(frequencies, magnitude, fs: float, hold: str, f0_hz, q) -> tuple[float, float, float, str]:
-    """(f0, Q, g, source) of H: from |D_i|/A_i with three or more lines, else from the metadata's f0 and Q."""
-    if len(frequencies) >= 3:
+def _line_noise(x: np.ndarray, fs: float, start_sample: int, frequencies: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """σ of each |D_i| (deflection units): σ_n·√(2/N), σ_n the rms of the deflection about the lines' fit (eq. D.1)."""
+    t = (start_sample + np.arange(x.size)) / fs
+    model = np.real(np.exp(1j * np.outer(t, 2.0 * np.pi * frequencies)) @ d)
+    residual = x - model
+    residual -= residual.mean()
+    return np.full(frequencies.size, float(np.sqrt(np.mean(residual * residual))) * math.sqrt(2.0 / x.size))
+
+
+def _phase_uncertainty(frequencies, relative, f0, q, fs, hold, given) -> tuple[float, float, np.ndarray]:
+    """(σ_f0, σ_Q, σ_φi) of the fit (eq. D.2): φ_i = ∠D_i − ∠H(f_i; f0, Q).
+
+    σ(∠D_i) = σ(|D_i|)/|D_i| (``relative``, eq. D.1).  With f0, Q from the
+    magnitudes, their covariance is (JᵀWJ)⁻¹ over (f0, ln Q, ln g), J the
+    derivatives of ln g|H(f_i)| and W = diag(1/relative²); with f0, Q
+    given, their given std.  Then σ_φi² = σ(∠D_i)² + g_iᵀ·cov·g_i with
+    g_i = ∂∠H(f_i)/∂(f0, ln Q): at the main line near resonance ∂∠H/∂f0 ≈
+    2Q/f0, so an f0 off by δ shifts the main line's phase by 2Qδ/f0.
+    """
+    response = _response(hold)
+    steps = np.array([1e-6 * f0, 1e-6])
+
+    def derivative(fun, k):
+        plus = np.array([f0, math.log(q)])
+        minus = plus.copy()
+        plus[k] += steps[k]
+        minus[k] -= steps[k]
+        return (fun(*plus) - fun(*minus)) / (2 * steps[k])
+
+    def log_mag(f0_, ln_q):
+        return np.log(np.abs(response(frequencies, f0_, math.exp(ln_q), fs)))
+
+    def phase(f0_, ln_q):
+        return np.unwrap(np.angle(response(frequencies, f0_, math.exp(ln_q), fs)))
+
+    if given is None:
+        jac = np.column_stack([derivative(log_mag, 0), derivative(log_mag, 1), np.ones(frequencies.size)])
+        weights = 1.0 / np.maximum(relative, 1e-300) ** 2
+        cov = np.linalg.pinv(jac.T @ (weights[:, None] * jac))[:2, :2]
+    else:
+        cov = np.diag([given[0] ** 2, (given[1] / q) ** 2])
+    grad = np.column_stack([derivative(phase, 0), derivative(phase, 1)])
+    phase_var = relative**2 + np.einsum("ij,jk,ik->i", grad, cov, grad)
+    return float(math.sqrt(max(cov[0, 0], 0.0))), float(q * math.sqrt(max(cov[1, 1], 0.0))), np.sqrt(phase_var)
+
+
+def _free_air_of_lines(frequencies, magnitude, fs: float, hold: str, f0_hz, q,
+                       given_from: str) -> tuple[float, float, float, str]:
+    """(f0, Q, g, source) of H: the given f0 and Q (metadata or --model), else from |D_i|/A_i of three or more lines."""
+    if not (f0_hz and q) and len(frequencies) >= 3:
         f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs, hold)
         return f0, qf, gain, "line magnitudes"
     if f0_hz and q:
         f0, qf = float(f0_hz), float(q)
         gain = float(np.mean(magnitude / np.abs(_response(hold)(frequencies, f0, qf, fs))))
-        return f0, qf, gain, "metadata cantilever f0_hz, q"
+        return f0, qf, gain, given_from
     raise InputError(
         f"--drive gives {len(frequencies)} line(s): fitting their phases needs three lines around the resonance, "
-        "or metadata cantilever f0_hz and q"
+        "or the resonance: metadata cantilever f0_hz and q, --model or --f0/--q"
     )
 
 
@@ -351,3 +428,40 @@ def excitation_lines(dither: np.ndarray, sample_rate_hz: float, f0_hz: float) ->
         if all(abs(index - other) >= min_bins for other in kept):
             kept.append(index)
     return [float(freqs[i]) for i in sorted(kept)]
+
+
+def drive_phase_std(fit: DrivePhaseFit, drive_hz: float) -> float:
+    """σ_φ of eq. D.3, rad: the main line's (nearest the lock-in frequency) and the side lines' mean in quadrature.
+
+    The main line's phase error moves f0′ and Q′ directly (eq. D.3); a side
+    line's moves REEP's free-air numerator and through it Q′ on a detuned
+    tip by about as much per radian (measured on the reference captures).
+    0 without a phase fit.
+    """
+    if fit is None or not fit.phase_std_rad:
+        return 0.0
+    main = min(range(len(fit.lines)), key=lambda i: abs(fit.lines[i].frequency_hz - drive_hz))
+    sides = [v for i, v in enumerate(fit.phase_std_rad) if i != main]
+    side_var = float(np.mean(np.square(sides))) if sides else 0.0
+    return math.sqrt(fit.phase_std_rad[main] ** 2 + side_var)
+
+
+def drive_std_rows(f0_hz: np.ndarray, q: np.ndarray, drive_hz: float, phase_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """REEP's f0′ and Q′ uncertainty from a synthesised drive's main-line phase uncertainty σ_φ (eq. D.3).
+
+    REEP reads f0′ and Q′ from the deflection's response at the drive,
+    g/R = 1 − f_d²/f0′² + j·f_d/(f0′Q′); a phase error δφ of the
+    synthesised main line rotates it by −δφ, which moves
+
+        δf0′ = f0′·δφ/(2Q′),   δQ′/Q′ = 2Q′|f0′ − f_d|/f_d·δφ + δφ²/2
+
+    (first order off resonance; the second term the rotation's cosine at
+    resonance, where the first vanishes: in free air a phase error leaves Q′
+    nearly unchanged, and a detuned tip shows it most).
+    """
+    f0 = np.asarray(f0_hz, dtype=np.float64)
+    qq = np.asarray(q, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f0_std = f0 * phase_std / (2.0 * qq)
+        q_std = qq * (2.0 * qq * np.abs(f0 - drive_hz) / drive_hz * phase_std + 0.5 * phase_std**2)
+    return f0_std, q_std

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 from afmtool.io.capture import CaptureInfo, CaptureReader
 
 if TYPE_CHECKING:
+    from afmtool.estimators.drive_lines import DriveResponse
     from afmtool.io.units import Calibration
 
 __all__ = ["CaptureOptions", "open_capture", "stack_reader"]
@@ -73,6 +74,9 @@ class CaptureOptions:
         ``--drive F1:A1,F2:A2`` (Hz:V): a dither that was not recorded, synthesised.
     free_air : str or None
         ``START:END`` (s) where a synthesised drive's phases are fitted (else metadata ``free_air``).
+    drive_response : DriveResponse or None
+        The free-air f0 and Q a synthesised drive's phases are fitted against (``--model``,
+        ``--f0/--q`` of reep, probeloss, kalman-bank); None: metadata ``cantilever``, else the lines' magnitudes.
     accepts_drive : bool
         The reader may synthesise the dither from metadata ``drive.lines`` (reep, probeloss, kalman-bank).
     raw_deflection : bool
@@ -97,6 +101,7 @@ class CaptureOptions:
     z_sensitivity_nm_per_v: float | None = None
     drive: str | None = None
     free_air: str | None = None
+    drive_response: DriveResponse | None = None
     accepts_drive: bool = False
     raw_deflection: bool = False
     convert_units: bool = True
@@ -188,7 +193,8 @@ def stack_reader(reader: CaptureReader, options: CaptureOptions | None = None) -
         from afmtool.config.params import parse_interval
         from afmtool.io.synthetic_drive import SyntheticDriveReader
 
-        reader = SyntheticDriveReader(reader, lines, parse_interval(options.free_air or "", "--free-air"))
+        reader = SyntheticDriveReader(reader, lines, parse_interval(options.free_air or "", "--free-air"),
+                                      response=options.drive_response)
     if options.hash_samples:
         from afmtool.io.provenance import HashedReader
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from afmtool.config.samples import interval_samples
 from afmtool.errors import InputError
-from afmtool.estimators.drive_lines import DriveLine, DrivePhaseFit, fit_drive_phases, synthesize_drive
+from afmtool.estimators.drive_lines import DriveLine, DrivePhaseFit, DriveResponse, fit_drive_phases, synthesize_drive
 from afmtool.io.capture import CaptureReader, ChannelSpec, Chunk, ReaderBase
 from afmtool.io.metadata import DriveMetadata
 
@@ -78,11 +78,16 @@ class SyntheticDriveReader(ReaderBase):
     free_air_s : (float, float) or None
         Segment where the phases are fitted; default metadata ``free_air``,
         else the first :data:`DEFAULT_FIT_SAMPLES` samples.
+    response : DriveResponse or None
+        The free-air f0 and Q (``--model``, ``--f0/--q``) the phases are fitted
+        against; None: metadata ``cantilever``, else the lines' magnitudes.
     """
 
-    def __init__(self, reader: CaptureReader, lines: tuple[DriveLine, ...], free_air_s=None) -> None:
+    def __init__(self, reader: CaptureReader, lines: tuple[DriveLine, ...], free_air_s=None,
+                 response: DriveResponse | None = None) -> None:
         self._reader = reader
         self._lines = lines
+        self._response = response
         info = reader.info
         if "deflection" not in info.channel_names:
             raise InputError(f"{info.source}: --drive needs a deflection channel to fit the drive phases against")
@@ -114,11 +119,26 @@ class SyntheticDriveReader(ReaderBase):
             ]
             record["fitted_on_s"] = list(self._fitted_on)
             record["response"] = {
-                "f0_hz": self.fit.f0_hz, "q": self.fit.q, "from": self.fit.response_source,
-                "hold": drive_hold(self.info.capture_metadata.drive),
+                "f0_hz": self.fit.f0_hz, "f0_std_hz": self.fit.f0_std_hz, "q": self.fit.q, "q_std": self.fit.q_std,
+                "from": self.fit.response_source, "hold": drive_hold(self.info.capture_metadata.drive),
             }
+            record["lines_phase_std_deg"] = [float(np.degrees(v)) for v in self.fit.phase_std_rad]
         record["replaced_recorded_dither"] = self.replaced_recorded
         return record
+
+    def _given_response(self) -> dict:
+        """f0, Q (and their std) to fit the phases against: ``--model`` or ``--f0/--q``, else the metadata's."""
+        given = self._response
+        if given is not None:
+            return {"f0_hz": given.f0_hz, "q": given.q, "f0_std_hz": given.f0_std_hz, "q_std": given.q_std,
+                    "given_from": given.source}
+        cantilever = self.info.capture_metadata.cantilever
+        return {"f0_hz": cantilever.f0_hz, "q": cantilever.q, "given_from": "metadata cantilever f0_hz, q"}
+
+    @property
+    def drive_fit(self) -> DrivePhaseFit | None:
+        """The phase fit, once the dither has been asked for."""
+        return self.fit
 
     def _fit_range(self) -> tuple[int, int]:
         fs = self.info.sample_rate_hz
@@ -159,11 +179,8 @@ class SyntheticDriveReader(ReaderBase):
                 f"{self.info.source}: the free-air segment {self._interval[0]:g}:{self._interval[1]:g} s "
                 "for the drive phases runs past the end of the capture"
             )
-        cantilever = self.info.capture_metadata.cantilever
-        self.fit = fit_drive_phases(
-            segment, self.info.sample_rate_hz, start, self._lines, f0_hz=cantilever.f0_hz,
-            q=cantilever.q, hold=drive_hold(self.info.capture_metadata.drive),
-        )
+        self.fit = fit_drive_phases(segment, self.info.sample_rate_hz, start, self._lines,
+                                    hold=drive_hold(self.info.capture_metadata.drive), **self._given_response())
         self._fitted_on = (start / self.info.sample_rate_hz, end / self.info.sample_rate_hz)
 
         def with_dither(chunk: Chunk) -> Chunk:
@@ -182,3 +199,4 @@ class SyntheticDriveReader(ReaderBase):
 
     def close(self) -> None:
         self._reader.close()
+

@@ -1,0 +1,154 @@
+"""The synthetic drive (``--drive``) against the recorded dither, on reference captures (issue 27 item 6).
+
+tests/reference_sim.py (no code shared with afmtool) drives the thesis's three-line design (side
+lines ±6 kHz, B/A = 0.5) continuously; 50 ms of free air, then the resonance steps down by 0.4 %
+and Q by 20 % (what a tip does). REEP runs once with the recorded dither and once with the dither
+dropped and synthesised from the lines' frequencies and amplitudes:
+
+* with f0 and Q in the metadata, the phases are fitted against them: f0′ within 0.01 % and Q′
+  within 1 % of the recorded-dither run (or within three of the carried uncertainty where the
+  side lines stand too little above the noise: Q 400 with 0.1 nm, 1.2 %);
+* from the lines alone, f0 and Q come from the lines' magnitudes with a stated uncertainty, which
+  REEP's per-row std carries (eq. D.3): f0′ within 0.05 %, and Q′ within 3 % where that carried
+  uncertainty is below 1 % (else within three of it: the free-air segment's noise leaves the main
+  line's phase uncertain by 2Q·σ_f0/f0, and a detuned tip reads Q′ through it).
+
+The comparison is of the mean over the free-air rows and over the on-sample rows.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from afmtool.analyses.reep import run_reep
+from afmtool.config import resolve
+from afmtool.config.params import ReepParams
+from afmtool.estimators.drive_lines import DriveLine, drive_phase_std, drive_std_rows
+from afmtool.io.capture import ChannelSpec
+from afmtool.io.memory import ArrayReader
+from afmtool.io.synthetic_drive import SyntheticDriveReader
+from tests import reference_sim as rs
+from tests.test_reep_reference import _Columns
+
+FREE_S, STEP_S, DURATION_S = 0.05, 0.06, 0.12
+
+
+def _runs(fs: float, f0: float, q: float, noise: float, seed: int, with_metadata: bool):
+    """(recorded columns, synthetic columns, the phase fit) on one capture."""
+    cap = rs.simulate(
+        f0_hz=f0, q=q, gain_nm_per_v=1.0, sample_rate_hz=fs, duration_s=DURATION_S,
+        drive=rs.three_sine(f0, 6000.0, 20.0 / q, 0.5), noise_nm=noise, seed=seed, free_air_s=FREE_S,
+        f0_of_t=lambda t: np.where(t < STEP_S, f0, 0.996 * f0), q_of_t=lambda t: np.where(t < STEP_S, q, 0.8 * q),
+    )
+    specs = tuple(ChannelSpec(k, cap.units[k]) for k in cap.channels)
+    recorded = _Columns()
+    run_reep(ArrayReader(fs, specs, cap.channels, cap.metadata, cap.truth, "recorded"), resolve(ReepParams, {}),
+             recorded)
+    meta = copy.deepcopy(cap.metadata)
+    if not with_metadata:
+        meta.pop("cantilever")
+    meta["drive"] = {"hold": meta["drive"]["hold"]}  # what an instrument that did not record its dither says
+    channels = {k: v for k, v in cap.channels.items() if k != "dither"}
+    lines = tuple(DriveLine(f, a) for f, a in zip(cap.metadata["drive"]["lines_hz"], cap.metadata["drive"]["lines_v"]))
+    reader = SyntheticDriveReader(ArrayReader(fs, tuple(s for s in specs if s.name != "dither"), channels, meta,
+                                              cap.truth, "synthetic"), lines)
+    synthetic = _Columns()
+    result = run_reep(reader, resolve(ReepParams, {}), synthetic)
+    return recorded, synthetic, reader.fit, float(result.results["drive_frequency_hz"])
+
+
+def _compare(fs, f0, q, noise, with_metadata, seed=1):
+    recorded, synthetic, fit, drive_hz = _runs(fs, f0, q, noise, seed, with_metadata)
+    phase_std = drive_phase_std(fit, drive_hz)
+    rows = []
+    for segment, (lo, hi) in (("free air", (0.01, FREE_S)), ("on sample", (STEP_S + 0.01, DURATION_S))):
+        a = (recorded["t"] > lo) & (recorded["t"] < hi)
+        b = (synthetic["t"] > lo) & (synthetic["t"] < hi)
+        f_rec, f_syn = np.nanmean(recorded["f0_hz"][a]), np.nanmean(synthetic["f0_hz"][b])
+        q_rec, q_syn = np.nanmean(recorded["q"][a]), np.nanmean(synthetic["q"][b])
+        f_std, q_std = drive_std_rows(np.array([f_syn]), np.array([q_syn]), drive_hz, phase_std)
+        rows.append((segment, f_syn / f_rec - 1.0, q_syn / q_rec - 1.0, float(f_std[0] / f_rec), float(q_std[0] / q_rec)))
+    print(f"\n{fs / 1e6:g} MHz f0 {f0:g} Q {q:g} noise {noise} nm, {'metadata f0/Q' if with_metadata else 'lines alone'}: "
+          f"fit f0 {fit.f0_hz:.2f} ± {fit.f0_std_hz:.2f} Hz, Q {fit.q:.2f} ± {fit.q_std:.2f} ({fit.response_source})")
+    for segment, df, dq, sf, sq in rows:
+        print(f"   {segment}: f0' {100 * df:+.4f} %, Q' {100 * dq:+.3f} % (carried std: f0' {100 * sf:.4f} %, "
+              f"Q' {100 * sq:.3f} %)")
+    return rows
+
+
+def _check(rows, with_metadata):
+    for segment, df, dq, _sf, sq in rows:
+        if with_metadata:
+            assert abs(df) <= 1e-4, segment
+            assert abs(dq) <= max(0.01, 3 * sq), segment
+        else:
+            assert abs(df) <= 5e-4, segment
+            if sq < 0.01:
+                assert abs(dq) <= 0.03, segment
+            else:
+                assert abs(dq) <= 3 * sq, segment
+
+
+#: (fs, f0, Q, noise nm): 0.5-2 MHz, Q 100-400, 0.02-0.1 nm.
+CELLS = [
+    (500e3, 70e3, 100.0, 0.1),
+    (500e3, 70e3, 200.0, 0.02),
+    (500e3, 70e3, 400.0, 0.02),
+    (500e3, 70e3, 400.0, 0.1),
+    (1e6, 120e3, 250.0, 0.05),
+    (2e6, 75e3, 100.0, 0.05),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("with_metadata", [True, False], ids=["metadata", "lines-alone"])
+@pytest.mark.parametrize(("fs", "f0", "q", "noise"), CELLS)
+def test_synthetic_drive_grid(fs, f0, q, noise, with_metadata):
+    _check(_compare(fs, f0, q, noise, with_metadata), with_metadata)
+
+
+@pytest.mark.parametrize("with_metadata", [True, False], ids=["metadata", "lines-alone"])
+def test_synthetic_drive_matches_the_recorded_dither(with_metadata):
+    _check(_compare(500e3, 70e3, 200.0, 0.05, with_metadata), with_metadata)
+
+
+def test_reep_drive_takes_f0_q_from_the_model_and_widens_its_std(tmp_path):
+    """From the command line: --drive with --model fits the phases against the model's f0 and Q; from the
+    lines alone the fitted f0, Q and their std are in the report, and reep.h5's f0_std_hz, q_std carry them."""
+    import json
+
+    import h5py
+
+    from afmtool.models.free_air import FreeAirModel
+    from tests.conftest import run_cli
+
+    f0, q, fs = 70e3, 200.0, 500e3
+    cap = rs.simulate(f0_hz=f0, q=q, gain_nm_per_v=1.0, sample_rate_hz=fs, duration_s=0.06,
+                      drive=rs.three_sine(f0, 6000.0, 20.0 / q, 0.5), noise_nm=0.05, seed=4, free_air_s=0.03)
+    meta = {k: v for k, v in cap.metadata.items() if k != "cantilever"}
+    meta["drive"] = {"hold": "continuous"}
+    channels = {k: v for k, v in cap.channels.items() if k != "dither"}
+    path = rs.write_capture_h5(tmp_path / "no_dither.h5", rs.Capture(fs, channels, {"deflection": "nm"}, {}, meta))
+    drive = ",".join(f"{a:g}:{b:.8g}" for a, b in zip(cap.metadata["drive"]["lines_hz"], cap.metadata["drive"]["lines_v"]))
+    FreeAirModel(f0, q, 1.0, f0_std_hz=0.5, q_std=1.0, source="given").save(tmp_path / "free_air.json")
+    reports = {}
+    for name, extra in (("model", ["--model", tmp_path / "free_air.json"]), ("lines", [])):
+        result = run_cli("reep", path, "--drive", drive, *extra, "--out", tmp_path / name, "--json", "-q")
+        assert result.returncode == 0, result.stderr.decode()
+        reports[name] = json.loads(result.stdout)
+    response = reports["model"]["inputs"][0]["synthetic_drive"]["response"]
+    assert response["from"].startswith("--model") and response["f0_hz"] == f0 and response["f0_std_hz"] == 0.5
+    fitted = reports["lines"]["inputs"][0]["synthetic_drive"]["response"]
+    assert fitted["from"] == "line magnitudes" and fitted["f0_std_hz"] > 0 and fitted["q_std"] > 0
+    assert abs(fitted["f0_hz"] - f0) <= 4 * fitted["f0_std_hz"]
+    widened = reports["lines"]["results"]["synthetic_drive_uncertainty"]
+    assert widened["main_line_phase_std_deg"] > 0 and widened["largest_f0_std_added_hz"] > 0
+    with h5py.File(tmp_path / "lines" / "reep.h5") as f:
+        f0_rows, f0_std = f["f0_hz"][()], f["f0_std_hz"][()]
+    # the main line's phase std, δf0' = f0'·δφ/(2Q') per row, is now part of REEP's stated std
+    floor = f0 * np.radians(widened["main_line_phase_std_deg"]) / (2 * q)
+    settled = np.isfinite(f0_rows) & (np.arange(f0_rows.size) > f0_rows.size // 4)
+    assert np.all(f0_std[settled] >= 0.9 * floor)
