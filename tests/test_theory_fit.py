@@ -120,11 +120,8 @@ def test_fit_covers_the_truth_on_one_curve(tmp_path):
     assert len(covered) >= 3 and all(ok for _, ok in covered), covered
 
 
-@pytest.mark.long
-def test_the_same_samples_from_csv_and_hdf5_give_the_same_fit(tmp_path):
+def _volts_as_h5_and_csv(tmp_path, capture: rs.Capture, invols: float, z_sensitivity: float):
     """One record in volts, without metadata, as HDF5 and as a scope CSV (10 significant digits)."""
-    capture = _capture("attractive-repulsive", 5, 0.2)
-    invols, z_sensitivity = 50.0, 20.0  # nm/V
     volts = {"dither": capture.channels["dither"], "deflection": capture.channels["deflection"] / invols,
              "z_piezo": capture.channels["z_piezo"] / z_sensitivity}
     h5_path = rs.write_capture_h5(tmp_path / "curve.h5", rs.Capture(FS, volts, dict.fromkeys(volts, "V"), {}, {}))
@@ -132,18 +129,51 @@ def test_the_same_samples_from_csv_and_hdf5_give_the_same_fit(tmp_path):
     t = np.arange(volts["dither"].size) / FS
     table = np.column_stack([t, volts["dither"], volts["deflection"], volts["z_piezo"]])
     np.savetxt(csv_path, table, delimiter=",", fmt="%.10g", header="Time (s),CH1 [V],CH2 [V],CH3 [V]", comments="")
+    csv_args = ("--channel", "dither=CH1", "--channel", "deflection=CH2", "--channel", "z_piezo=CH3")
     common = ["--invols", str(invols), "--z-sensitivity", str(z_sensitivity), "--free-air", "0:0.04",
               "--f0", str(F0), "--q", "168"]
+    return (h5_path, common), (csv_path, [*csv_args, *common])
+
+
+def test_csv_and_hdf5_give_the_fit_the_same_rows(tmp_path):
+    """CI version: the fit's input (rows, per-row σ, free-air values, window) from a CSV and an HDF5 run agree."""
+    from afmtool.analyses.theory_fit import _load
+    from afmtool.config import resolve
+    from afmtool.config.params import TheoryFitParams
+
+    runs = _volts_as_h5_and_csv(tmp_path, _capture("attractive-repulsive", 5, 0.1), 50.0, 20.0)
+    loaded = []
+    for name, (path, args) in zip(("h5", "csv"), runs):
+        result = run_cli("reep", path, *args, "--out", tmp_path / name, "-q")
+        assert result.returncode == 0, result.stderr.decode()
+        loaded.append(_load(tmp_path / name, resolve(TheoryFitParams, {})))
+    a, b = loaded
+    assert np.array_equal(a.fit_mask, b.fit_mask) and a.window_lambda == b.window_lambda
+    for field in ("z", "f0_hz", "q", "amplitude_nm", "sigma_f0_hz", "sigma_q", "sigma_amplitude_nm"):
+        x, y = getattr(a, field)[a.fit_mask], getattr(b, field)[b.fit_mask]
+        scale = np.abs(x).max()
+        assert np.max(np.abs(x - y)) <= 1e-6 * scale, field
+    assert np.allclose(a.free, b.free, rtol=1e-8) and a.free_amplitude_nm == pytest.approx(b.free_amplitude_nm, rel=1e-8)
+
+
+@pytest.mark.slow
+def test_the_same_samples_from_csv_and_hdf5_give_the_same_fit(tmp_path):
+    """One record in volts, without metadata, as HDF5 and as a scope CSV (10 significant digits): the same fit.
+
+    This curve leaves d, ω_a² and the contact point poorly identifiable (a short stiff attraction and
+    a long soft one fit it about equally): the two fits agree to a tenth of their stated std.
+    """
+    (h5_path, h5_args), (csv_path, csv_args) = _volts_as_h5_and_csv(tmp_path, _capture("attractive-repulsive", 5, 0.2),
+                                                                    50.0, 20.0)
     (tmp_path / "h5").mkdir()
     (tmp_path / "csv").mkdir()
-    from_h5 = _fit(tmp_path / "h5", h5_path, *common)["results"]
-    from_csv = _fit(tmp_path / "csv", csv_path, "--channel", "dither=CH1", "--channel", "deflection=CH2",
-                    "--channel", "z_piezo=CH3", *common)["results"]
+    from_h5 = _fit(tmp_path / "h5", h5_path, *h5_args)["results"]
+    from_csv = _fit(tmp_path / "csv", csv_path, *csv_args)["results"]
     assert from_h5["model"] == from_csv["model"]
     for pname, a in from_h5["parameters"].items():
         b = from_csv["parameters"][pname]
         print(f"{pname}: HDF5 {a['value']:.6g} ({a['status']}), CSV {b['value']:.6g} ({b['status']})")
         assert a["status"] == b["status"]
-        # 5 % of the std; an open interval (no std): the parameter's own scale (a value at its bound 0)
+        # a tenth of the std; an open interval (no std): the parameter's own scale (a value at its bound 0)
         scale = a["std"] if a["std"] else max(abs(a["value"]), PARAMETER_SCALES[pname])
-        assert b["value"] == pytest.approx(a["value"], abs=0.05 * scale)
+        assert b["value"] == pytest.approx(a["value"], abs=0.1 * scale)

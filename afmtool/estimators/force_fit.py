@@ -75,8 +75,10 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 from afmtool.errors import InputError
+from afmtool.estimators._common import JIT_OPTIONS
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import PiecewiseLinearForce
 
@@ -181,26 +183,54 @@ def _gamma(u: np.ndarray) -> np.ndarray:
     return math.pi - np.arccos(u) + u * np.sqrt(1.0 - u * u)
 
 
-def model_curves(theta: np.ndarray, data: ForceFitData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(f0,e windowed, Qe windowed, amplitude) along the approach for θ (eqs. F.1, F.2)."""
-    from scipy.signal import lfilter
+@njit(**JIT_OPTIONS)
+def _gamma_scalar(u: float) -> float:
+    """γ(u) of :func:`_gamma` for one u."""
+    if u <= -1.0:
+        return 0.0
+    if u >= 1.0:
+        return math.pi
+    return math.pi - math.acos(u) + u * math.sqrt(1.0 - u * u)
 
-    d, wa2, wb2, ca, cb, z_c = theta
-    a = np.maximum(data.amplitude_nm, 1e-6)
-    l = data.nm_per_unit * (data.z - z_c)
-    gx, gy = _gamma((d - l) / a), _gamma(-l / a)
-    w0 = data.cantilever.omega0_rad_s
-    w = w0 * w0 - (wa2 / math.pi) * gx + (wb2 / math.pi) * gy
-    b = w0 / data.cantilever.q + (ca / math.pi) * gx + (cb / math.pi) * gy
-    omega_e = np.sqrt(np.maximum(w, 1.0))
-    f0e, qe = omega_e / (2 * math.pi), omega_e / np.maximum(b, 1e-9)
-    om2 = (2 * math.pi * data.drive_frequency_hz) ** 2
-    d0 = (w0 * w0 - om2) ** 2 + om2 * (w0 / data.cantilever.q) ** 2
-    amplitude = data.free_amplitude_nm * np.sqrt(d0 / ((w - om2) ** 2 + om2 * b * b))
-    lam = data.window_lambda
-    window = ([1.0 - lam], [1.0, -lam])
-    f0e = lfilter(*window, f0e, zi=[lam * f0e[0]])[0]
-    qe = lfilter(*window, qe, zi=[lam * qe[0]])[0]
+
+@njit(**JIT_OPTIONS)
+def _model_kernel(z, measured_amplitude, nm_per_unit, theta, w0, q0, om2, free_amplitude, lam, f0_out, q_out, a_out):
+    """Eqs. F.1, F.2 row by row, f0,e and Qe through REEP's window y[n] = λ·y[n−1] + (1 − λ)·x[n], y[0] = x[0]."""
+    d, wa2, wb2, ca, cb, z_c = theta[0], theta[1], theta[2], theta[3], theta[4], theta[5]
+    d0 = (w0 * w0 - om2) ** 2 + om2 * (w0 / q0) ** 2
+    f_prev = 0.0
+    q_prev = 0.0
+    for i in range(z.size):
+        a = max(measured_amplitude[i], 1e-6)
+        l = nm_per_unit * (z[i] - z_c)
+        gx = _gamma_scalar((d - l) / a)
+        gy = _gamma_scalar(-l / a)
+        # eq. F.1: ωe² and ωe/Qe
+        w = w0 * w0 - (wa2 / math.pi) * gx + (wb2 / math.pi) * gy
+        b = w0 / q0 + (ca / math.pi) * gx + (cb / math.pi) * gy
+        omega_e = math.sqrt(max(w, 1.0))
+        f0e = omega_e / (2.0 * math.pi)
+        qe = omega_e / max(b, 1e-9)
+        # eq. F.2: the first-harmonic balance's amplitude
+        a_out[i] = free_amplitude * math.sqrt(d0 / ((w - om2) ** 2 + om2 * b * b))
+        if i == 0:
+            f_prev, q_prev = f0e, qe
+        else:
+            f_prev = lam * f_prev + (1.0 - lam) * f0e
+            q_prev = lam * q_prev + (1.0 - lam) * qe
+        f0_out[i] = f_prev
+        q_out[i] = q_prev
+
+
+def model_curves(theta: np.ndarray, data: ForceFitData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(f0,e windowed, Qe windowed, amplitude) along the approach for θ (eqs. F.1, F.2; :func:`_model_kernel`)."""
+    n = data.z.size
+    f0e, qe, amplitude = np.empty(n), np.empty(n), np.empty(n)
+    _model_kernel(np.ascontiguousarray(data.z, dtype=np.float64),
+                  np.ascontiguousarray(data.amplitude_nm, dtype=np.float64), float(data.nm_per_unit),
+                  np.asarray(theta, dtype=np.float64), data.cantilever.omega0_rad_s, float(data.cantilever.q),
+                  (2 * math.pi * data.drive_frequency_hz) ** 2, float(data.free_amplitude_nm),
+                  float(data.window_lambda), f0e, qe, amplitude)
     return f0e, qe, amplitude
 
 
