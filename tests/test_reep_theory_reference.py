@@ -24,8 +24,9 @@ from afmtool.config.params import ReepParams
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import PiecewiseLinearForce
 from tests import reference_sim as rs
+from tests.memory_sink import MemorySink
 from tests.test_kalman_bank_reference import _force_curve
-from tests.test_reep_reference import _Columns, reference_reader
+from tests.test_reep_reference import reference_reader
 
 FREE_AMPLITUDE_NM = 20.0
 SIDE_OFFSET_HZ, SIDE_SCALE = 6000.0, 0.5
@@ -59,7 +60,7 @@ def _curve(fs: float, f0: float, q: float, name: str, duration_s: float, seed: i
         force=rs.PiecewiseLinearForce(*REFERENCE_FORCES[name]), separation_nm=_force_curve(duration_s),
         record_z_piezo=True,
     )
-    columns = _Columns()
+    columns = MemorySink()
     result = run_reep(reference_reader(cap), resolve(ReepParams, {}), columns)
     t = columns["t"]
     separation = cap.truth["separation_nm"][np.round(t * fs).astype(int)]

@@ -31,7 +31,7 @@ from afmtool.io.capture import ChannelSpec
 from afmtool.io.memory import ArrayReader
 from afmtool.io.synthetic_drive import SyntheticDriveReader
 from tests import reference_sim as rs
-from tests.test_reep_reference import _Columns
+from tests.memory_sink import MemorySink
 
 FREE_S, STEP_S, DURATION_S = 0.05, 0.06, 0.12
 
@@ -44,7 +44,7 @@ def _runs(fs: float, f0: float, q: float, noise: float, seed: int, with_metadata
         f0_of_t=lambda t: np.where(t < STEP_S, f0, 0.996 * f0), q_of_t=lambda t: np.where(t < STEP_S, q, 0.8 * q),
     )
     specs = tuple(ChannelSpec(k, cap.units[k]) for k in cap.channels)
-    recorded = _Columns()
+    recorded = MemorySink()
     run_reep(ArrayReader(fs, specs, cap.channels, cap.metadata, cap.truth, "recorded"), resolve(ReepParams, {}),
              recorded)
     meta = copy.deepcopy(cap.metadata)
@@ -55,7 +55,7 @@ def _runs(fs: float, f0: float, q: float, noise: float, seed: int, with_metadata
     lines = tuple(DriveLine(f, a) for f, a in zip(cap.metadata["drive"]["lines_hz"], cap.metadata["drive"]["lines_v"]))
     reader = SyntheticDriveReader(ArrayReader(fs, tuple(s for s in specs if s.name != "dither"), channels, meta,
                                               cap.truth, "synthetic"), lines)
-    synthetic = _Columns()
+    synthetic = MemorySink()
     result = run_reep(reader, resolve(ReepParams, {}), synthetic)
     return recorded, synthetic, reader.fit, float(result.results["drive_frequency_hz"])
 

@@ -78,7 +78,7 @@ import numpy as np
 from numba import njit
 
 from afmtool.errors import InputError
-from afmtool.estimators._common import JIT_OPTIONS
+from afmtool.jit import JIT_OPTIONS
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import PiecewiseLinearForce
 
