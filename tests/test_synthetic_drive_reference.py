@@ -92,7 +92,7 @@ def _check(rows, with_metadata):
                 assert abs(dq) <= 3 * sq, segment
 
 
-#: (fs, f0, Q, noise nm): 0.5-2 MHz, Q 100-400, 0.02-0.1 nm.
+#: (fs, f0, Q, noise nm): 0.5-2 MHz, Q 100-600, f0 70-250 kHz, 0.02-0.1 nm.
 CELLS = [
     (500e3, 70e3, 100.0, 0.1),
     (500e3, 70e3, 200.0, 0.02),
@@ -100,6 +100,10 @@ CELLS = [
     (500e3, 70e3, 400.0, 0.1),
     (1e6, 120e3, 250.0, 0.05),
     (2e6, 75e3, 100.0, 0.05),
+    (2e6, 75e3, 200.0, 0.05),
+    (2e6, 75e3, 400.0, 0.05),
+    (2e6, 150e3, 300.0, 0.05),
+    (2e6, 250e3, 600.0, 0.02),
 ]
 
 
@@ -113,6 +117,11 @@ def test_synthetic_drive_grid(fs, f0, q, noise, with_metadata):
 @pytest.mark.parametrize("with_metadata", [True, False], ids=["metadata", "lines-alone"])
 def test_synthetic_drive_matches_the_recorded_dither(with_metadata):
     _check(_compare(500e3, 70e3, 200.0, 0.05, with_metadata), with_metadata)
+
+
+def test_synthetic_drive_at_2_mhz_and_q_400():
+    """REEP decimates at 2 MHz (D = 5 at 75 kHz): the synthesised dither passes the same anti-alias filter."""
+    _check(_compare(2e6, 75e3, 400.0, 0.05, True), True)
 
 
 def test_reep_drive_takes_f0_q_from_the_model_and_widens_its_std(tmp_path):
