@@ -36,7 +36,8 @@ from afmtool.analyses.reep import run_reep
 from afmtool.config import resolve
 from afmtool.config.params import ReepParams
 from tests import reference_sim as rs
-from tests.test_reep_reference import _Columns, reference_reader
+from tests.memory_sink import MemorySink
+from tests.test_reep_reference import reference_reader
 
 #: The thesis's §3.4.3 sets at 80,318 Hz (d nm, ω_a², ω_b² 1/s², c_a, c_b 1/s), scaled to each lever.
 FORCE_SETS = {
@@ -147,7 +148,7 @@ def tapping_capture(cell: Cell) -> tuple[rs.Capture, float]:
 
 def run(cap: rs.Capture, **overrides):
     """REEP on a capture as ``afmtool reep`` runs it: (result, columns)."""
-    columns = _Columns()
+    columns = MemorySink()
     result = run_reep(reference_reader(cap), resolve(ReepParams, overrides), columns)
     return result, columns
 

@@ -85,7 +85,8 @@ def test_quantities_from_reep_match_the_simulated_force(force_name, l_nm):
     from afmtool.config import resolve
     from afmtool.config.params import ReepParams
     from afmtool.models.excitation_design import design_three_sine
-    from tests.test_reep_reference import _Columns, reference_reader
+    from tests.memory_sink import MemorySink
+    from tests.test_reep_reference import reference_reader
 
     fs = 4e6
     force = FORCES[force_name]
@@ -95,7 +96,7 @@ def test_quantities_from_reep_match_the_simulated_force(force_name, l_nm):
     cap = rs.simulate(f0_hz=F0, q=Q, gain_nm_per_v=1.0, sample_rate_hz=fs, duration_s=0.014, drive=drive,
                       noise_nm=0.02, seed=3, force=force, free_air_s=0.004,
                       separation_nm=lambda t: np.where(t < 0.004, 40.0, l_nm))
-    columns = _Columns()
+    columns = MemorySink()
     result = run_reep(reference_reader(cap), resolve(ReepParams, {"decimate": 1}), columns)
     t = columns["t"]
     free, on = (t > 0.0015) & (t < 0.0038), t > 0.009

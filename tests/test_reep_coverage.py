@@ -15,7 +15,8 @@ from afmtool.analyses.reep import run_reep
 from afmtool.config import resolve
 from afmtool.config.params import ReepParams
 from tests import reference_sim as rs
-from tests.test_reep_reference import _Columns, reference_reader
+from tests.memory_sink import MemorySink
+from tests.test_reep_reference import reference_reader
 
 #: Coverage of ±2σ required of every cell.
 COVERAGE = (0.90, 0.99)
@@ -25,7 +26,7 @@ def _free_air_rows(fs, f0, q, noise_nm, amplitude_nm, seed, duration_s=0.06):
     gain = 0.1
     cap = rs.simulate(f0_hz=f0, q=q, gain_nm_per_v=gain, sample_rate_hz=fs, duration_s=duration_s,
                       drive=rs.three_sine(f0, 6000.0, amplitude_nm / (gain * q), 0.5), noise_nm=noise_nm, seed=seed)
-    columns = _Columns()
+    columns = MemorySink()
     run_reep(reference_reader(cap), resolve(ReepParams, {}), columns)
     settled = columns["t"] > duration_s / 4
     return {name: columns[name][settled] for name in ("f0_hz", "q", "f0_std_hz", "q_std", "flag")}

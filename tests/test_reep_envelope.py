@@ -109,14 +109,8 @@ TAPPING_GRID = [
 
 GRID = FREE_GRID + TAPPING_GRID
 
-_NUMERATOR = ("the 3-tap numerator at REEP's rate is exact at the drive and DC only: with a continuous drive its "
-              "mismatch across the side lines at ±7.5 % of f0 biases Q' by 0.01-0.03 % (and f0' by ~0.3 row std) "
-              "at Q 20-38, which exceeds the small stated std at 0.02 nm; the noise-free capture shows the same bias")
 #: Cells that fail for a cause in the estimator not yet removed (strict: they must fail until it is).
 KNOWN_FAILURES = {
-    "free-1MHz-150kHz-Q20-0.02nm": _NUMERATOR,
-    "free-2MHz-300kHz-Q20-0.1nm": _NUMERATOR,
-    "free-2MHz-75kHz-Q38-0.02nm": _NUMERATOR,
     "repulsive-2MHz-200kHz-Q20-0.02nm": ("Q' 2.0 % below the first-harmonic Qe against 1.9 % allowed on the wall at "
                                          "Q 20: REEP's noise-free estimate is covered (0.93/0.97), so the gap is "
                                          "between the estimator's expectation and averaging theory"),

@@ -68,7 +68,8 @@ def _crossing_10_90(t: np.ndarray, values: np.ndarray, before: float, after: flo
 def runs():
     out = {}
     for fs in RATES:
-        result, columns = run(_stepped_capture(fs), free_air=f"0.002:{STEP_S - 0.001}")
+        # a row per drive period (not the default 8-11 per window): the step's 10-90 % time is read off the rows
+        result, columns = run(_stepped_capture(fs), free_air=f"0.002:{STEP_S - 0.001}", rows="per-period")
         out[fs] = (result.results, {k: columns[k] for k in ("t", "f0_hz", "q", "f0_std_hz", "q_std", "flag")})
     return out
 

@@ -13,7 +13,7 @@ from afmtool.config.params import ReepParams
 from afmtool.io.memory import ArrayReader
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import THESIS_FORCE_SETS
-from tests.test_reep import _Columns
+from tests.memory_sink import MemorySink
 
 FREE_AMPLITUDE_NM = 20.0
 SIDEBAND_SCALE = 0.25
@@ -41,7 +41,7 @@ def test_reep_agrees_with_averaging_theory(force_set):
     )
     reader = ArrayReader(captured.sample_rate_hz, captured.channels, captured.data, captured.metadata)
     params = resolve(ReepParams, {})
-    columns = _Columns()
+    columns = MemorySink()
     result = run_reep(reader, params, columns)
     t = columns["t"]
     index = np.round(t * captured.sample_rate_hz).astype(int)

@@ -113,6 +113,11 @@ def line_response(deflection: np.ndarray, dither: np.ndarray, sample_rate_hz: fl
     ratio of the two phasors at the first line is returned.  Side lines are
     fitted jointly so that their leakage does not bias the main one.
     """
+    return complex(line_responses(deflection, dither, sample_rate_hz, lines_hz)[0])
+
+
+def line_responses(deflection: np.ndarray, dither: np.ndarray, sample_rate_hz: float, lines_hz) -> np.ndarray:
+    """Deflection over dither at every one of ``lines_hz`` (complex), as :func:`line_response` fits them."""
     # the last 2^18 samples (0.5 s at 500 kHz) are plenty, and keep the basis small
     deflection = np.asarray(deflection, dtype=np.float64)[-_LINE_FIT_SAMPLES:]
     dither = np.asarray(dither, dtype=np.float64)[-_LINE_FIT_SAMPLES:]
@@ -124,11 +129,12 @@ def line_response(deflection: np.ndarray, dither: np.ndarray, sample_rate_hz: fl
         columns += [np.cos(w), np.sin(w)]
     basis = np.column_stack(columns)
     coef, *_ = np.linalg.lstsq(basis, np.column_stack([deflection, dither]), rcond=None)
-    y = complex(coef[1, 0], -coef[2, 0])
-    u = complex(coef[1, 1], -coef[2, 1])
-    if abs(u) == 0.0:
+    y = coef[1::2, 0] - 1j * coef[2::2, 0]
+    u = coef[1::2, 1] - 1j * coef[2::2, 1]
+    if abs(u[0]) == 0.0:
         raise InputError(f"the dither has no line at {lines_hz[0]:g} Hz on the free-air segment")
-    return y / u
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return y / u
 
 
 def _drive_lines(metadata: CaptureMetadata, drive_hz: float) -> list[float]:

@@ -11,7 +11,15 @@ split kernels and kalman-bank's adaptive observer all call
 bit for bit (``tests/test_reep_estimator.py``).
 
 capture (fs) ─► [band-pass, output-only] ─► anti-alias h, both signals ─► every D-th sample
-            ─► BCEWRLS at fs/D (λ for the window in time, eq. 3.39) ─► rows every ``row_every``
+            ─► [dither through B(z), continuous drive] ─► BCEWRLS at fs/D (λ for the window in time,
+            eq. 3.39) ─► rows every ``row_every``
+
+With a continuous drive and a continuous model (the ``f0-q`` route) the
+numerator is not three taps but the FIR B(z) of
+:func:`~afmtool.models.discretisation.continuous_input_filter`, exact
+across the drive's side lines; the recursion then sees B(z)g with the
+numerator (1, 0, 0).  A zero-order hold keeps the three taps, which are
+exact for it.
 """
 
 from __future__ import annotations
@@ -64,7 +72,9 @@ class ReepEstimatorState(NamedTuple):
     bandpass_zi : numpy.ndarray or None
         The output-only band-pass's state.
     skip : int
-        Filtered samples still to hold back from the recursion (the filter's start).
+        Filtered samples still to hold back from the recursion (the filters' start).
+    input_history : numpy.ndarray or None
+        The input filter B(z)'s last inputs at REEP's rate (continuous drive).
     """
 
     rls: ReepState
@@ -73,6 +83,7 @@ class ReepEstimatorState(NamedTuple):
     dither_history: np.ndarray
     bandpass_zi: np.ndarray | None
     skip: int = 0
+    input_history: np.ndarray | None = None
 
 
 class ReepRun(NamedTuple):
@@ -110,6 +121,8 @@ class ReepEstimator:
         The output-only band-pass at fs (second-order sections).
     window_s : float
         The forgetting window 1/(1 − λ), s (0: from λ).
+    input_taps : numpy.ndarray or None
+        B(z) at REEP's rate for a continuous drive (module docstring).
     """
 
     sample_rate_hz: float
@@ -126,6 +139,8 @@ class ReepEstimator:
     bandpass_sos: np.ndarray | None = None
     #: The window 1/(1 − λ) in seconds as given (λ rounds it).
     window_s: float = 0.0
+    #: B(z) at REEP's rate for a continuous drive (``numerator`` is then (1, 0, 0)); None: the three taps.
+    input_taps: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.row_every % self.factor:
@@ -138,7 +153,7 @@ class ReepEstimator:
     @classmethod
     def build(cls, params, *, sample_rate_hz: float, resonance_hz: float, drive_hz: float, numerator=None,
               denominator=None, row_every: int | None = None, bandpass_half_width_hz: float = 0.0,
-              segment: tuple[np.ndarray, np.ndarray] | None = None) -> ReepEstimator:
+              segment: tuple[np.ndarray, np.ndarray] | None = None, continuous_drive: bool = False) -> ReepEstimator:
         """REEP for a run: the window, rate and numerator from ``params`` and the resolved model.
 
         Parameters
@@ -164,10 +179,19 @@ class ReepEstimator:
         segment : (deflection, dither), optional
             The free-air segment the model was identified on (the ``segment``
             route).  When the rate is reduced, the numerator is identified
-            anew on it at REEP's rate (:func:`_numerator_at_rate`): an ARX fit
+            anew on it at REEP's rate (:func:`_model_at_rate`): an ARX fit
             at fs/f0 = 40 carries the ill-conditioning REEP avoids, and its
             numerator error biased f0′ by 0.2 Hz and Q′ by 0.7 σ at 2 MHz
             (50 kHz, Q 250, 0.1 nm), against none with the true numerator.
+        continuous_drive : bool, optional
+            The drive is continuous and the model continuous (f0, Q, gain
+            and delay: the ``f0-q`` route): the numerator becomes the FIR of
+            :func:`~afmtool.models.discretisation.continuous_input_filter`
+            at REEP's rate, built from the numerator and poles REEP would
+            run with (module docstring).  A segment's ARX fit is a discrete
+            model with three taps; REEP keeps its structure (in free air
+            REEP's mean follows the model's poles nearly one for one, so a
+            filter shaped by them would change nothing).
         """
         fs = float(sample_rate_hz)
         factor = reduction_factor(fs, resonance_hz, params.samples_per_period)
@@ -176,19 +200,27 @@ class ReepEstimator:
         # at D = 1 a given λ is used as it is, bit for bit
         lam = params.lam if (params.lam and factor == 1) else forgetting_factor(window_s, rate)
         rows = _row_spacing(params, row_every, fs, drive_hz, window_s, factor)
-        reep_numerator = None
+        reep_numerator, input_taps = None, None
         if params.use_input:
             if numerator is None or denominator is None:
                 raise ConfigError("REEP with the dither needs the free-air numerator and denominator")
             reep_numerator = tuple(float(a) for a in numerator)
+            reep_denominator = tuple(float(b) for b in denominator)
             if factor > 1:
-                reep_numerator = _numerator_at_rate(numerator, denominator, fs, factor, drive_hz, segment)
+                reep_numerator, reep_denominator = _model_at_rate(numerator, denominator, fs, factor, drive_hz,
+                                                                  segment)
+            if continuous_drive:
+                from afmtool.models.discretisation import continuous_input_filter
+
+                input_taps = _read_only(continuous_input_filter(reep_numerator, reep_denominator, rate, drive_hz))
+                reep_numerator = (1.0, 0.0, 0.0)
         sos = None
         if not params.use_input and bandpass_half_width_hz > 0:
             sos = _bandpass_sos(drive_hz, bandpass_half_width_hz, fs)
         return cls(fs, factor, lam, float(params.p0), bool(params.static_offset), bool(params.bias_compensation),
                    bool(params.use_input), reep_numerator, rows, float(drive_hz), _read_only(anti_alias_taps(factor)),
-                   sos, window_s)
+                   sos, window_s, input_taps)
+
 
     # ------------------------------------------------------------------ what it is
     @property
@@ -217,7 +249,7 @@ class ReepEstimator:
         forgetting = forgetting_lead(self.lam, residual or DEFAULT_RESIDUAL)
         if forgetting is None:
             return None
-        leads = [forgetting * self.factor + len(self.taps)]
+        leads = [forgetting * self.factor + len(self.taps) + self.factor * self._input_order]
         if self.bandpass_sos is not None:
             leads.append(sos_lead(self.bandpass_sos))
         return None if any(lead is None for lead in leads) else max(leads)
@@ -232,7 +264,13 @@ class ReepEstimator:
         rls = dataclasses.replace(rls, n_samples=self.filter_start)
         past = np.zeros(len(self.taps) - 1)
         zi = np.zeros((self.bandpass_sos.shape[0], 2)) if self.bandpass_sos is not None else None
-        return ReepEstimatorState(rls, int(start), past, past.copy(), zi, self.filter_start)
+        inputs = np.zeros(self._input_order) if self.input_taps is not None else None
+        return ReepEstimatorState(rls, int(start), past, past.copy(), zi, self.filter_start, inputs)
+
+    @property
+    def _input_order(self) -> int:
+        """Past samples the input filter B(z) needs (0 without one)."""
+        return 0 if self.input_taps is None else len(self.input_taps) - 1
 
     @property
     def filter_start(self) -> int:
@@ -246,9 +284,11 @@ class ReepEstimator:
         and +0.8 after 2 ms.  Those samples are held back; their rows are
         the initial state's (θ = 0, σ̂² undefined: flagged not converged).
         The count does not depend on the row spacing, so estimators that
-        differ only in it agree at their common rows.
+        differ only in it agree at their common rows.  The input filter
+        B(z) (continuous drive) holds back its own start likewise.
         """
-        return 0 if self.factor == 1 else -(-(len(self.taps) - 1) // self.factor)
+        anti_alias = 0 if self.factor == 1 else -(-(len(self.taps) - 1) // self.factor)
+        return anti_alias + self._input_order
 
     def run(self, state: ReepEstimatorState, deflection, dither=None) -> ReepRun:
         """REEP over the next chunk: its rows (every ``row_every`` capture samples) and the next state.
@@ -269,6 +309,12 @@ class ReepEstimator:
             p = decimate_block(p, self.taps, self.factor, state.start, p_history)
             if g is not None:
                 g = decimate_block(g, self.taps, self.factor, state.start, g_history)
+        inputs = state.input_history
+        if g is not None and self.input_taps is not None:
+            # B(z)g with the last inputs of the previous chunk in front
+            extended = np.concatenate((inputs, g))
+            g = np.convolve(extended, self.input_taps, mode="valid")
+            inputs = extended[len(extended) - self._input_order:].copy()
         held = min(state.skip, len(p))
         block, rls = reep_update(
             state.rls, p[held:], g[held:] if g is not None else None, self.numerator,
@@ -278,7 +324,8 @@ class ReepEstimator:
         if held:
             per_row, done = self.row_every // self.factor, self.filter_start - state.skip
             block = _with_held_rows(block, (done + held) // per_row - done // per_row, state.rls.static_offset)
-        next_state = ReepEstimatorState(rls, state.start + len(deflection), p_history, g_history, zi, state.skip - held)
+        next_state = ReepEstimatorState(rls, state.start + len(deflection), p_history, g_history, zi, state.skip - held,
+                                        inputs)
         return ReepRun(block, next_state)
 
     def describe(self) -> dict:
@@ -298,6 +345,9 @@ class ReepEstimator:
             "row_rate_hz": self.row_rate_hz,
             "row_every_s": self.row_every / self.sample_rate_hz,
             "rows_per_window": self.window_s * self.sample_rate_hz / self.row_every,
+            "input_filter": None if self.input_taps is None else {
+                "type": "FIR exact for a continuous drive across drive·(1 ± 0.2)", "taps": len(self.input_taps),
+            },
         }
 
 
@@ -383,16 +433,17 @@ def _with_held_rows(block: ReepBlock, n_rows: int, static_offset: bool) -> ReepB
     )
 
 
-def _numerator_at_rate(numerator, denominator, fs: float, factor: int, drive_hz: float,
-                       segment: tuple[np.ndarray, np.ndarray] | None) -> tuple[float, float, float]:
-    """(a2, a1, a0) at fs/D: the bias-compensated ARX fit of the filtered, decimated segment, else the matched one.
+def _model_at_rate(numerator, denominator, fs: float, factor: int, drive_hz: float,
+                   segment: tuple[np.ndarray, np.ndarray] | None) -> tuple[tuple, tuple]:
+    """((a2, a1, a0), (b1, b0)) at fs/D: the bias-compensated ARX fit of the filtered, decimated segment, else
+    the matched numerator with the pole map of the capture-rate model.
 
     The fit leaves out the filter's start (its history is zero there, so the
     filtered signals do not yet obey one model).  Without a segment (a given
     or metadata model), :func:`~afmtool.models.discretisation.rate_numerator`
     matches the capture-rate model at the drive and DC.
     """
-    from afmtool.models.discretisation import rate_numerator
+    from afmtool.models.discretisation import discrete_denominator, rate_numerator, resonance_from_denominator
 
     taps = anti_alias_taps(factor)
     start = -(-len(taps) // factor) + 2
@@ -400,8 +451,13 @@ def _numerator_at_rate(numerator, denominator, fs: float, factor: int, drive_hz:
         from afmtool.estimators.rls import identify_arx
 
         p, g = (decimate_block(x, taps, factor, 0, np.zeros(len(taps) - 1)) for x in segment)
-        return identify_arx(p[start:], g[start:]).numerator
-    return tuple(rate_numerator(numerator, denominator, fs, fs / factor, drive_hz))
+        fit = identify_arx(p[start:], g[start:])
+        f0_hz, q, valid = resonance_from_denominator(fit.b1, fit.b0, fs / factor)
+        if valid:
+            return fit.numerator, (float(fit.b1), float(fit.b0))
+    f0_hz, q, _ = resonance_from_denominator(denominator[0], denominator[1], fs)
+    poles = discrete_denominator(float(f0_hz), float(q), fs / factor)
+    return tuple(rate_numerator(numerator, denominator, fs, fs / factor, drive_hz)), (float(poles.b1), float(poles.b0))
 
 
 def _read_only(values: np.ndarray) -> np.ndarray:
