@@ -165,3 +165,11 @@ def test_raster_keeps_its_on_sample_pixels(raster_outputs):
                 kept = float(np.isfinite(image[on_sample]).mean())
                 print(f"{name} {label}: {kept:.1%} of {on_sample.sum()} on-sample pixels kept")
                 assert kept >= 0.90
+    # issue 27 item 1: the report gives the scan's resolution: the distance the tip covers while f0' settles
+    settling = json.loads((raster_outputs / "reep" / "report.json").read_text())["results"]["settling"]
+    speed = 2.0 * scan["scan_size_m"] * scan["line_rate_hz"]  # trace and retrace in one line period
+    assert settling["window_us"] == pytest.approx(400.0)
+    assert settling["scan_speed_m_per_s"] == pytest.approx(speed)
+    assert settling["spatial_resolution_m"] == pytest.approx(speed * settling["f0_settling_10_90_s"])
+    assert settling["spatial_resolution_pixels"] == pytest.approx(
+        settling["spatial_resolution_m"] / (scan["scan_size_m"] / scan["pixels_per_line"]))
