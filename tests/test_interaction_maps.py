@@ -65,7 +65,8 @@ def test_force_curve_tables_hold_the_binned_interaction_series(tmp_path):
             scale = np.nanmax(np.abs(expected))
             worst[name] = float(np.nanmax(np.abs(got - expected)) / scale)
             assert np.isfinite(got).sum() >= 10
-            np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12 * scale)
+            # the table is binned in the stream (float64), the series read back are float32 (issue 33)
+            np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7 * scale)
         print("largest relative table error per quantity:", {k: f"{v:.1e}" for k, v in worst.items()})
         # the approach goes into contact: the force gradient changes along it, in N/m
         gradient = table["force_gradient_n_per_m"][()]
@@ -118,7 +119,8 @@ def test_raster_images_and_gsf_hold_the_binned_interaction_series(raster_outputs
                 ds = f[f"images/{name}/{label}"]
                 assert ds.attrs["units"] == units
                 expected = _pixel_means(t, series, scan, direction)
-                np.testing.assert_allclose(ds[()], expected, rtol=1e-9, atol=1e-12 * np.nanmax(np.abs(expected)))
+                # pixels binned in the stream (float64) against float32 series read back (issue 33)
+                np.testing.assert_allclose(ds[()], expected, rtol=1e-6, atol=1e-7 * np.nanmax(np.abs(expected)))
                 gsf = read_gsf(out / f"{name}_{label}.gsf")
                 assert gsf.header["ZUnits"] == units and gsf.header["XYUnits"] == "m"
                 assert gsf.data.shape == (int(scan["lines"]), int(scan["pixels_per_line"]))

@@ -128,13 +128,15 @@ def test_reep_command_writes_outputs(tmp_path, ltv_constant):
     read_back = segment_statistics(out / "reep.h5", results["summary_after_warmup_samples"] / FS,
                                    results["free_air_segment_s"])
     assert set(results["segments"]) == {"free_air", "after_free_air"} == set(read_back)
+    # reep.h5 stores f0' and Q' as float32 (issue 33): 70 kHz to 0.004 Hz, so the file's mean agrees to
+    # float32 rounding (1e-7) and its scatter of ~1 Hz to that rounding's share of it (1e-4)
     for segment, stats in read_back.items():
         assert results["segments"][segment]["t_s"] == pytest.approx(stats["t_s"], rel=1e-12)
         for name in ("f0_hz", "q"):
             assert results["segments"][segment][name]["count"] == stats[name]["count"] > 0
-            assert results["segments"][segment][name]["mean"] == pytest.approx(stats[name]["mean"], rel=1e-12)
-            assert results["segments"][segment][name]["std"] == pytest.approx(stats[name]["std"], rel=1e-9)
-        assert results["segments"][segment]["f0_row_std_hz"] == pytest.approx(stats["f0_row_std_hz"], rel=1e-12)
+            assert results["segments"][segment][name]["mean"] == pytest.approx(stats[name]["mean"], rel=1e-7)
+            assert results["segments"][segment][name]["std"] == pytest.approx(stats[name]["std"], rel=1e-4)
+        assert results["segments"][segment]["f0_row_std_hz"] == pytest.approx(stats["f0_row_std_hz"], rel=1e-6)
 
 
 def test_single_sine_warns_not_persistently_exciting():
