@@ -194,18 +194,13 @@ def test_fit_then_compare_then_report(walk):
     _, code, stderr, report = _step(walk, "afmtool theory fit")
     assert code == 0, stderr
     _check_printed(stderr, report)
-    _, steps = walk
-    compare = [s for s in steps if s[0].startswith("afmtool theory compare")]
-    if compare and compare[0][1] != 0 and "--fit" in compare[0][2]:
-        pytest.skip(f"theory compare --fit is not in this tree yet (issue 31 item 2, i27b): {compare[0][2].strip()[-200:]}")
     line, code, stderr, report = _step(walk, "afmtool theory compare")
     assert code == 0, stderr
     _check_printed(stderr, report)
     verdict = _headline(report)["verdict"]
     print("compare:", verdict["text"], "|", [e["text"] for e in report["headline"]][1:])
-    # the step runs and says its verdict; whether the fitted force reproduces this curve is the fit's and
-    # the verdict's business (i27b's tests), recorded in the note
-    assert isinstance(verdict["value"], str) and verdict["value"] and isinstance(report["results"]["pass"], bool)
+    # the fitted force reproduces the curve it was fitted to, off the wall (the bins on it are left out)
+    assert report["results"]["pass"] is True and verdict["value"].startswith("agree"), verdict["text"]
     assert any(e["at"] and e["at"]["name"] == "separation" for e in report["headline"])  # the worst bins, located
     _, code, stderr, _ = _step(walk, "afmtool report reep_fc")
     assert code == 0
