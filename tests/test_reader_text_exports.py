@@ -105,7 +105,7 @@ def test_columns_without_units_need_units(tmp_path):
     assert [(c["name"], c["units"]) for c in info["channels"]] == [("column1", "nm"), ("column2", "V")]
     assert info["channels"][1]["mean"] == pytest.approx(2.6)
     named = tmp_path / "named.csv"  # a vendor preamble, a column without a unit: the analyses need --units for it
-    named.write_text("Device: x\nz (nm),deflection\n1,2\n2,3\n")
+    named.write_text("Device: x\nz (nm),deflection,dither (V)\n1,2,0\n2,3,1\n")
     result = run_cli("reep", named, "--sample-rate", "1000", "--out", tmp_path / "r")
     assert result.returncode == 2 and "deflection" in result.stderr.decode() and "no units" in result.stderr.decode()
 
