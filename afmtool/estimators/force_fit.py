@@ -25,7 +25,7 @@ row's measured shift from free air and τ (``MODEL_FLOOR``) the share to which
 averaging theory is expected to hold (``theory compare`` uses the same).
 
 On the wall, averaging theory at the mean amplitude is ill-conditioned
-(NOTES.md): where the fitted tip reaches it, the floor is ``WALL_FLOOR`` for
+(docs/conventions.md): where the fitted tip reaches it, the floor is ``WALL_FLOOR`` for
 all three series, and the wall model is refitted so weighted
 (:func:`_wall_weighted`).
 
@@ -52,7 +52,7 @@ bound of 0, or +inf).
 The wall's stiffness and damping (ω_b², c_b) are given as lower bounds only
 where the wall model is kept: on the reference curves the fit reads stiff
 walls 2-20× too soft, and averaging theory at the mean amplitude cannot tell
-(NOTES.md: treat the repulsive regime qualitatively); the wall's place
+(docs/conventions.md: treat the repulsive regime qualitatively); the wall's place
 (d, z_c) gets the fitted tip's penetration depth as a systematic error
 (:func:`_wall_systematic`).
 
@@ -60,7 +60,7 @@ Systematic part
 ---------------
 Averaging theory and REEP differ by 5-18 % of the shift where the theory is
 well-conditioned (more at low Q), and by 30-45 % on the repulsive wall (the
-reference curves; NOTES.md).  That error is coherent along the curve, not
+reference curves; docs/conventions.md).  That error is coherent along the curve, not
 noise, so it is propagated, not averaged (:func:`_systematic`): the fit is
 repeated with every row's measured shift from free air scaled by (1 ± τ_i),
 and with each quarter of the interacting rows left out in turn (a
@@ -508,7 +508,7 @@ def _wall_weighted(data: ForceFitData, theta: np.ndarray) -> ForceFitData:
     """The data with eq. F.3's floor raised from ``MODEL_FLOOR`` to ``WALL_FLOOR`` on the rows where θ's tip reaches the wall.
 
     Averaging theory at the mean amplitude is ill-conditioned there
-    (NOTES.md): f0′, Q′ and the amplitude on the wall weigh as little as the
+    (docs/conventions.md): f0′, Q′ and the amplitude on the wall weigh as little as the
     theory can be trusted, so the wall's parameters come out as uncertain as
     they are.
     """

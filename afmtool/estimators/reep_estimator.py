@@ -467,7 +467,7 @@ def _read_only(values: np.ndarray) -> np.ndarray:
 
 
 def _bandpass_sos(centre_hz: float, half_width_hz: float, sample_rate_hz: float) -> np.ndarray:
-    """Output-only: a 2nd-order Butterworth band-pass ±``half_width_hz`` around the peak (NOTES.md)."""
+    """Output-only: a 2nd-order Butterworth band-pass ±``half_width_hz`` around the peak (docs/conventions.md)."""
     from scipy.signal import butter
 
     low = max(centre_hz - half_width_hz, 1.0)
@@ -505,7 +505,7 @@ def step_settling(estimator: ReepEstimator, numerator, denominator, dither: np.n
     ``denominator``) driven by ``dither`` (the run's own, repeated as needed),
     its denominator switched at t0 to the pole map of (f0 − f0/(2Q), 0.9·Q)
     while the numerator stays (a tip–sample force changes only the
-    denominator, NOTES.md ch. 5).  The estimator runs as it runs on the
+    denominator, docs/conventions.md ch. 5).  The estimator runs as it runs on the
     capture, at its rate and λ, with a row at every REEP sample; the 10–90 %
     times of f0′ and Q′ are read off the rows.
     """
