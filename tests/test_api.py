@@ -92,7 +92,7 @@ def test_probeloss_kalman_bank_and_gamma_equal_the_cli(tmp_path):
     assert_same_folder(afmtool.identify_gamma(near, contact).save(tmp_path / "api_gamma"), cli)
 
 
-@pytest.mark.long
+@pytest.mark.slow  # 90 s of CI; the capture commands' API-vs-CLI tests run in CI
 def test_theory_design_and_ch6_functions_equal_the_cli(tmp_path):
     import afmtool
 
