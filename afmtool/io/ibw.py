@@ -47,15 +47,15 @@ from __future__ import annotations
 import math
 import struct
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from afmtool.errors import CaptureWarning, InputError
-from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase, SegmentSpec
-from afmtool.io.mapped import MappedArray
+from afmtool.io.capture import CaptureInfo, ChannelSpec, ReaderBase, SegmentSpec
+from afmtool.io.mapped import MappedArray, MappedSamples
 from afmtool.io.text import clean_label, decode_file_text
 from afmtool.io.views import SEGMENTS_KEY, segments_metadata
 
@@ -296,7 +296,7 @@ def _labels(handle, section: tuple[int, int], n_columns: int) -> tuple[str, ...]
     return tuple(clean_label(decode_file_text(label)) for label in labels[1:])
 
 
-class IbwReader(ReaderBase):
+class IbwReader(MappedSamples, ReaderBase):
     """Read an Igor binary wave (version 1, 2, 3 or 5) as a capture, memory-mapped.
 
     Parameters
@@ -424,16 +424,3 @@ class IbwReader(ReaderBase):
         if segments:
             metadata[SEGMENTS_KEY] = segments_metadata(segments)
         return metadata
-
-    def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
-        return self._array.blocks(channels, block_samples)
-
-    def ranges(self) -> MappedArray:
-        """The mapped samples, for a worker that reads its own ranges (:mod:`afmtool.io.ranges`)."""
-        return self._array
-
-    def truth(self) -> dict[str, np.ndarray]:
-        return {}
-
-    def close(self) -> None:
-        pass

@@ -21,7 +21,7 @@ import numpy as np
 from afmtool.errors import InputError
 from afmtool.io.capture import Chunk
 
-__all__ = ["MappedArray"]
+__all__ = ["MappedArray", "MappedSamples"]
 
 
 @dataclass(frozen=True)
@@ -71,3 +71,27 @@ class MappedArray:
         mapped = self._map()
         for start in range(0, self.n_samples, block_samples):
             yield Chunk(start, self.read(channels, start, min(start + block_samples, self.n_samples), mapped))
+
+
+class MappedSamples:
+    """What a reader whose samples are one :class:`MappedArray` (``self._array``) does with them.
+
+    Mixed into the readers of memory-mapped formats (``.ibw``, ``.npy``) before
+    their reader base: chunks and worker ranges come from the mapped array,
+    and there is no truth and nothing to close.
+    """
+
+    _array: MappedArray
+
+    def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
+        return self._array.blocks(channels, block_samples)
+
+    def ranges(self) -> MappedArray:
+        """The mapped samples, for a worker that reads its own ranges (:mod:`afmtool.io.ranges`)."""
+        return self._array
+
+    def truth(self) -> dict[str, np.ndarray]:
+        return {}
+
+    def close(self) -> None:
+        pass

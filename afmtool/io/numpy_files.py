@@ -34,7 +34,7 @@ import numpy as np
 
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
-from afmtool.io.mapped import MappedArray
+from afmtool.io.mapped import MappedArray, MappedSamples
 from afmtool.io.variables import Variable, choose_channels, rate_variable
 
 __all__ = ["NpyReader", "NpzReader"]
@@ -94,7 +94,7 @@ def _samples_and_columns(shape: tuple[int, ...]) -> tuple[int, int, bool]:
     return (rows, columns, True) if rows >= columns else (columns, rows, False)
 
 
-class NpyReader(ReaderBase):
+class NpyReader(MappedSamples, ReaderBase):
     """Read a NumPy ``.npy`` array as a capture, memory-mapped.
 
     Parameters
@@ -146,19 +146,6 @@ class NpyReader(ReaderBase):
             else:
                 raise InputError(f"{self._path}: --channel {channel}={source}: the array's columns are {', '.join(names[:20])}")
         return chosen
-
-    def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
-        return self._array.blocks(channels, block_samples)
-
-    def ranges(self) -> MappedArray:
-        """The mapped samples, for a worker that reads its own ranges (:mod:`afmtool.io.ranges`)."""
-        return self._array
-
-    def truth(self) -> dict[str, np.ndarray]:
-        return {}
-
-    def close(self) -> None:
-        pass
 
 
 class _Member(NamedTuple):
