@@ -27,6 +27,7 @@ import scipy.signal
 import scipy.special
 
 from afmtool.errors import ConfigError, InputError
+from afmtool.estimators.spectral_checks import checked_signal
 from afmtool.models.free_air import FreeAirModel
 
 __all__ = [
@@ -264,20 +265,8 @@ class _Start(NamedTuple):
 
 
 def _spectrum(frequency_hz, asd) -> tuple[np.ndarray, np.ndarray]:
-    def array(name, values):
-        try:
-            arr = np.array(values, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise InputError(f"{name} must be a 1-D array of numbers") from None
-        if arr.ndim != 1:
-            raise InputError(f"{name} must be 1-D, got shape {arr.shape}")
-        if not np.all(np.isfinite(arr)):
-            bad = int(np.flatnonzero(~np.isfinite(arr))[0])
-            raise InputError(f"{name} has a non-finite value at index {bad}")
-        return arr
-
-    f = array("frequency_hz", frequency_hz)
-    a = array("asd_m_per_sqrt_hz", asd)
+    f = checked_signal("frequency_hz", frequency_hz)
+    a = checked_signal("asd_m_per_sqrt_hz", asd)
     if f.shape != a.shape:
         raise InputError(f"frequency_hz and asd_m_per_sqrt_hz differ in length: {f.size} and {a.size}")
     if f.size < 8:

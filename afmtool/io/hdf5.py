@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -27,6 +25,7 @@ import numpy as np
 
 from afmtool.errors import InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
+from afmtool.io.isolated import check_survives
 from afmtool.io.metadata import parse_metadata_json
 
 __all__ = ["Hdf5Reader", "Hdf5Writer", "dataset_name", "max_samples_override", "unit_attribute", "UNIT_ATTRIBUTES"]
@@ -75,40 +74,12 @@ def check_attributes_terminate(path: Path, timeout_s: float = ATTRIBUTE_TIMEOUT_
     InputError
         If the child runs longer than ``timeout_s`` or is killed by a signal.
     """
-    if not hasattr(os, "fork"):
-        return
-    pid = os.fork()
-    if pid == 0:  # the child: only os._exit leaves, so no parent state is flushed or cleaned twice
-        code = 0
-        try:
-            signal.signal(signal.SIGINT, signal.SIG_DFL)
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
-            with h5py.File(path, "r") as h5:
-                _read_every_attribute(h5)
-        except BaseException:  # noqa: BLE001 - the parent reads the attributes again and reports errors
-            code = 1
-        finally:
-            os._exit(code)
-    deadline = time.monotonic() + timeout_s
-    pause = 0.001
-    try:
-        while True:
-            done, status = os.waitpid(pid, os.WNOHANG)
-            if done:
-                break
-            if time.monotonic() > deadline:
-                raise InputError(
-                    f"{path}: reading its attributes did not finish in {timeout_s:g} s; the file is damaged "
-                    "(e.g. a corrupt global heap)"
-                )
-            time.sleep(pause)
-            pause = min(2 * pause, 0.05)
-    except BaseException:
-        os.kill(pid, signal.SIGKILL)
-        os.waitpid(pid, 0)
-        raise
-    if os.WIFSIGNALED(status):
-        raise InputError(f"{path}: libhdf5 crashed reading its attributes (signal {os.WTERMSIG(status)}); the file is damaged")
+    def read_every_attribute() -> None:
+        with h5py.File(path, "r") as h5:
+            _read_every_attribute(h5)
+
+    check_survives(read_every_attribute, str(path), "reading its attributes (libhdf5; e.g. a corrupt global heap)",
+                   timeout_s)
 
 
 #: Most attributes the root group may hold (afmtool writes two; every one is read by the child check).
