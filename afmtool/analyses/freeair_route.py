@@ -62,8 +62,8 @@ from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.metadata import CaptureMetadata
 from afmtool.models.free_air import FreeAirModel
 
-__all__ = ["DRIVE_HOLD_CHOICES", "HEADLINE_PHASE_MISFIT_DEG", "PHASE_TOLERANCE_DEG", "FreeAirRoute", "line_response",
-           "resolve_free_air"]
+__all__ = ["DRIVE_HOLD_CHOICES", "HEADLINE_PHASE_MISFIT_DEG", "PHASE_TOLERANCE_DEG", "FreeAirRoute", "drive_lines",
+           "line_response", "resolve_free_air"]
 
 #: ``--drive-hold`` values.
 DRIVE_HOLD_CHOICES = ("auto", "zoh", "continuous")
@@ -143,6 +143,26 @@ def _drive_lines(metadata: CaptureMetadata, drive_hz: float) -> list[float]:
     if offset > 0:
         lines += [drive_hz - float(offset), drive_hz + float(offset)]
     return lines
+
+
+def drive_lines(metadata: CaptureMetadata, segment: FreeAirSegment | None, fs: float, drive_hz: float) -> tuple:
+    """The drive line, then its side lines: the metadata's, else those the free-air dither's spectrum shows.
+
+    A capture without afmtool's drive metadata (a converted CSV, TDMS, ...)
+    still has its three-sine's side lines; a detector designed for a single
+    tone would misread it (:func:`afmtool.estimators.reliability.design_detector`).
+    """
+    lines = _drive_lines(metadata, drive_hz)
+    if len(lines) > 1 or segment is None or segment.data.get("dither") is None:
+        return tuple(lines)
+    from afmtool.estimators.drive_lines import excitation_lines
+
+    side = [f for f in excitation_lines(segment.data["dither"], fs, drive_hz) if abs(f - drive_hz) > _SAME_LINE_HZ]
+    return (drive_hz, *side)
+
+
+#: Lines of the dither closer than this to the drive are the drive (excitation_lines keeps maxima 500 Hz apart).
+_SAME_LINE_HZ = 500.0
 
 
 def _metadata_f0_q(metadata: CaptureMetadata) -> tuple[float, float] | None:

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
-from afmtool.analyses.freeair_route import resolve_free_air
+from afmtool.analyses.freeair_route import drive_lines, resolve_free_air
 from afmtool.analyses.freeair_source import FreeAirSegment
 from afmtool.config.params import ProbeLossParams
 from afmtool.estimators.probeloss_events import (
@@ -194,33 +194,13 @@ def _design_detector(params: ProbeLossParams, reader: CaptureReader, model: Free
     from afmtool.estimators.reliability import DesignInputs, design_detector
 
     fs = reader.info.sample_rate_hz
-    offset = reader.info.capture_metadata.drive.sideband_offset_hz or 0.0
-    lines = (drive_hz, drive_hz - offset, drive_hz + offset) if offset > 0 else _dither_lines(segment, fs, drive_hz)
+    lines = drive_lines(reader.info.capture_metadata, segment, fs, drive_hz)
     inputs = DesignInputs(
         tuple(model.denominator_at(fs)), tuple(model.numerator_at(fs)), model.gain, fs, drive_hz,
         (segment.data["deflection"], segment.data["dither"]) if segment is not None else None, survey,
         free[0], free[1], _setpoint(params, reader), lowpass_hz, lines,
     )
     return design_detector(inputs, _options(params))
-
-
-def _dither_lines(segment: FreeAirSegment | None, fs: float, drive_hz: float) -> tuple[float, ...]:
-    """The drive line, then any side lines the free-air dither's own spectrum shows.
-
-    A capture without afmtool's drive metadata (a converted CSV, TDMS, ...)
-    still has its three-sine's side lines, and the detector's prediction
-    models a single tone only (:func:`afmtool.estimators.reliability.design_detector`).
-    """
-    from afmtool.estimators.drive_lines import excitation_lines
-
-    if segment is None or segment.data.get("dither") is None:
-        return (drive_hz,)
-    side = [f for f in excitation_lines(segment.data["dither"], fs, drive_hz) if abs(f - drive_hz) > _SAME_LINE_HZ]
-    return (drive_hz, *side)
-
-
-#: Lines of the dither closer than this to the drive are the drive (excitation_lines keeps maxima 500 Hz apart).
-_SAME_LINE_HZ = 500.0
 
 
 def _setup_warnings(route_warnings, upper, detector: DetectorDesign, setpoint: float | None) -> list[str]:
