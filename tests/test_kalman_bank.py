@@ -285,3 +285,44 @@ def test_capture_without_z_piezo_is_refused(captures):
     reader = ArrayReader(captured.sample_rate_hz, channels, captured.data, captured.metadata)
     with pytest.raises(InputError, match="z_piezo"):
         run_kalman_bank(reader, resolve(KalmanBankParams, {}), Columns())
+
+
+class _CountingReader(ArrayReader):
+    """An in-memory capture that counts the passes over it and the samples they read."""
+
+    def __init__(self, captured) -> None:
+        super().__init__(captured.sample_rate_hz, captured.channels, captured.data, captured.metadata)
+        self.passes = 0
+        self.samples_read = 0
+
+    def blocks(self, channels, block_samples):
+        self.passes += 1
+        for chunk in super().blocks(channels, block_samples):
+            self.samples_read += len(chunk)
+            yield chunk
+
+
+def test_the_capture_is_read_once_and_pass_two_sees_the_same_samples(captures, default_runs, monkeypatch):
+    """Issue 33: REEP (pass 1) and the bank (pass 2) cost one read; the spill changes no number.
+
+    The twin run reads the capture again for pass 2, as kalman-bank did before the
+    spill: its series and verdict must equal the one-read run's bit for bit.
+    """
+    from afmtool.io.spill import SpillingReader
+
+    captured = captures["attractive"]
+    counting = _CountingReader(captured)
+    columns = Columns()
+    result = run_kalman_bank(counting, resolve(KalmanBankParams, {}), columns)
+    assert counting.passes == 1
+    assert counting.samples_read == len(captured.data["deflection"])
+
+    monkeypatch.setattr(SpillingReader, "replay", lambda self: self._reader)  # pass 2 on the capture itself
+    twice = _CountingReader(captured)
+    reread = Columns()
+    reread_result = run_kalman_bank(twice, resolve(KalmanBankParams, {}), reread)
+    assert twice.passes == 2
+    for name in ("t", "z", "rms", "adaptive_rms", "reep_f0_hz", "reep_q"):
+        np.testing.assert_array_equal(columns[name], reread[name])
+    assert result.results == reread_result.results
+    assert result.results == default_runs["attractive"][0].results

@@ -50,8 +50,6 @@ class CommandRun:
         ``{field: value or None}`` from the command's generated flags.
     progress : callable
         Called with the samples done so far.
-    reopen : callable, optional
-        Opens the capture again, for a command that reads it twice.
     hash_input : bool
         Record the hash of the samples read (``--no-hash`` turns it off, for live pipelines).
     split : Split, optional
@@ -67,7 +65,6 @@ class CommandRun:
     config: Path | None
     flags: Mapping
     progress: Callable[[int], None]
-    reopen: Callable[[], CaptureReader] | None = None
     hash_input: bool = True
     split: Split | None = None
     figures: FigureProcess = field(default_factory=FigureProcess)

@@ -11,7 +11,7 @@ least innovation RMS):
 2. N steady-state Kalman filters are built from that model at N design
    points z_i (or from models the user names); they share the free-air
    numerator (eq. 5.13).
-3. Pass 2 streams the capture once more through the fused bank kernel and
+3. Pass 2 streams the same samples through the fused bank kernel and
    an adaptive observer whose model follows REEP's (b1, b0) sample by
    sample (REEP runs again beside it, chunk by chunk, bit for bit as in
    pass 1, the same :class:`~afmtool.estimators.reep_estimator.ReepEstimator`;
@@ -47,17 +47,24 @@ Choices
   sample after the warm-up ("throughout", Figs. 3.6, 3.9); the report also
   gives it per leg and within the span of the design points, where the
   bank's models are and the comparison is hardest.
-* Captures that cannot be read twice (stdin) need ``--reep`` or
-  ``--models``: then REEP's tables come with the file, or the models are
-  given and only one pass is needed.
+* The capture is read once.  Pass 1 spills the three channels pass 2
+  needs to a scratch file as it reads them (in the output's staging
+  folder: :class:`~afmtool.io.spill.SpillingReader`, float32 where that is
+  exact), and pass 2 reads that file block by block; so a stream (stdin)
+  runs the bank too, and memory stays flat.  The scratch file costs disk
+  space of 12 (float32) or 24 bytes a sample until the run ends.  With
+  ``--reep`` or ``--models`` there is one pass and nothing is spilled.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
+import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -93,6 +100,7 @@ from afmtool.estimators.kalman_bank_verdict import (
 )
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.chunks import require_channels
+from afmtool.io.spill import SpillingReader
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Split, Warmup, run_stream
 from afmtool.report.results import JsonResults
@@ -572,6 +580,13 @@ def _check_reep_file(reep_results, fs: float) -> ReepTiming:
     return ReepTiming.from_report(reep_results.report)
 
 
+def _scratch_file(stack: contextlib.ExitStack, folder: Path | None) -> Path:
+    """Where pass 1 spills the samples: in ``folder``, else in a temporary folder removed with ``stack``."""
+    if folder is None:
+        folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="afmtool-kalman-bank-")))
+    return Path(folder) / "kalman-bank-samples.spill"
+
+
 def run_kalman_bank(
     reader: CaptureReader,
     params: KalmanBankParams,
@@ -579,7 +594,7 @@ def run_kalman_bank(
     *,
     model: FreeAirModel | None = None,
     reep_results=None,
-    reopen: Callable[[], CaptureReader] | None = None,
+    scratch: Path | None = None,
     progress: Callable[[int], None] | None = None,
     split: Split | None = None,
     on_stream_start: Callable[[], None] | None = None,
@@ -599,9 +614,10 @@ def run_kalman_bank(
         The free-air model; else that of ``reep_results``, else identified from the free-air segment.
     reep_results : afmtool.io.reep_results.ReepResults, optional
         A finished REEP run of this capture (``--reep``); else REEP runs internally.
-    reopen : callable, optional
-        Returns a fresh reader of the same capture for pass 2 (closed here); by default
-        ``reader`` is read again, which in-memory and HDF5 readers allow.
+    scratch : Path, optional
+        A folder for the samples pass 2 needs, spilled as pass 1 reads them
+        (:class:`~afmtool.io.spill.SpillingReader`; deleted before returning), so that the
+        capture is read once, and a stream (stdin) can run the bank; by default a temporary folder.
     progress : callable, optional
         Called with the samples read so far (both passes on one count).
     split : Split, optional
@@ -630,22 +646,20 @@ def run_kalman_bank(
         tables = reep_tables_from_file(reep_results, params, timing, fs)
     two_passes = reep_results is None and not params.models
     progress_one, progress_two = _pass_progress(progress, 2 if two_passes else 1, info.n_samples)
-    source = reader
-    if two_passes:
-        first = reep_pass_one(reader, params, model, progress_one, split, on_stream_start)
-        on_stream_start = None
-        tables, model, segment_s, route = first.tables, first.model, first.segment_s, first.route
-        estimator, timing = first.estimator, ReepTiming.of(first.estimator)
-        source = reopen() if reopen is not None else reader
-    stream = BankStage(source, params, model=model, estimator=estimator, timing=timing, tables=tables,
-                      segment_s=segment_s, route=route, reep_results=reep_results)
-    try:
+    with contextlib.ExitStack() as stack:
+        source = reader
+        if two_passes:
+            spill = stack.enter_context(SpillingReader(reader, _CHANNELS, _scratch_file(stack, scratch)))
+            first = reep_pass_one(spill, params, model, progress_one, split, on_stream_start)
+            on_stream_start = None
+            tables, model, segment_s, route = first.tables, first.model, first.segment_s, first.route
+            estimator, timing = first.estimator, ReepTiming.of(first.estimator)
+            source = spill.replay()
+        stream = BankStage(source, params, model=model, estimator=estimator, timing=timing, tables=tables,
+                          segment_s=segment_s, route=route, reep_results=reep_results)
         (outcome,) = run_stream(source, [stream], writer, channels=_CHANNELS, chunk_samples=params.chunk_samples,
                    progress=progress_two, prologue=stream.free_air_prologue, read_ahead=_PASS_TWO_READ_AHEAD,
                    split=split, on_start=on_stream_start)
-    finally:
-        if source is not reader:
-            source.close()
     if reep_results is not None and outcome.coefficients.last_sample >= outcome.n_total:
         raise InputError(f"--reep {reep_results.path}: REEP's series runs past the capture's {outcome.n_total} samples")
     result = _judge(params, outcome, tables, info.units("z_piezo"), reep_results)

@@ -15,7 +15,6 @@ import numpy as np
 from afmtool.analyses.command_inputs import CommandRun, channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.kalman_bank import SERIES_UNITS, KalmanBankResult, run_kalman_bank
 from afmtool.config.params import KalmanBankParams
-from afmtool.errors import ConfigError
 from afmtool.io.matrix_results import MatrixResultWriter
 from afmtool.io.results import row_attrs
 from afmtool.io.units import calibration_record
@@ -36,11 +35,6 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
 
     reader = run.reader
     params = run.params(KalmanBankParams, "kalman-bank")
-    if run.capture == "-" and not (params.reep_run or params.models):
-        raise ConfigError(
-            "kalman-bank reads a capture twice (REEP first, then the bank); stdin cannot be re-read: "
-            "give --reep REEP_DIR (a finished 'afmtool reep' run) or --models"
-        )
     model = given_free_air_model(params.model)
     deflection_units = channel_units(reader, "deflection")
     z_units = channel_units(reader, "z_piezo")
@@ -55,7 +49,7 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
             with MatrixResultWriter(staged.path("bank.h5"), units, {"afmtool_command": "kalman-bank"},
                                     write_behind=True, float64=("t",)) as writer:
                 result = run_kalman_bank(
-                    reader, params, writer, model=model, reep_results=reep_results, reopen=run.reopen,
+                    reader, params, writer, model=model, reep_results=reep_results, scratch=staged.scratch_folder(),
                     progress=run.progress, split=run.split, on_stream_start=run.figures.on_stream_start,
                 )
                 writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))

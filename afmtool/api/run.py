@@ -157,9 +157,8 @@ def run_capture_command(command: str, capture: Capture | str | Path, out: Path, 
     capture = as_capture(capture)
     options = capture_options_for(command, capture, flags, hash_input=settings.hash_input)
     runner = _function(*_RUNNERS[command])
-    reopen = (lambda: capture.open_reader(options.replace(hash_samples=False))) if command == "kalman-bank" else None
     with capture.open_reader(options) as reader, settings.progress(command, reader.info.n_samples) as update:
-        run = CommandRun(reader, capture.source, out, settings.config, flags, update, reopen=reopen,
+        run = CommandRun(reader, capture.source, out, settings.config, flags, update,
                          hash_input=settings.hash_input, split=settings.split, figures=settings.figure_process())
         with settings.writing():
             return runner(run)

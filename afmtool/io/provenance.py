@@ -84,7 +84,7 @@ class HashedReader(ReaderBase):
 
     ``blocks`` hands every chunk on unchanged; the first pass that reaches
     the end of the capture leaves its :class:`SampleDigest` in
-    :attr:`digest`.  Later passes (kalman-bank reads twice) are not hashed
+    :attr:`digest`.  Later passes are not hashed
     again.  The hashing runs in whichever thread iterates the blocks: the
     read-ahead thread of :func:`afmtool.pipeline.run_stream`.
     """

@@ -44,6 +44,8 @@ WAIT_ENV = "AFMTOOL_WAIT"
 
 _STAGING = ".staging-"
 _ASIDE = ".old-"
+#: The staging folder's scratch folder (:meth:`OutputDir.scratch_folder`), removed before the commit.
+_SCRATCH = ".scratch"
 #: Characters the staging name adds to the key: "." + key + ".staging-" + 8 random + slack.
 _STAGING_EXTRA = 1 + len(_STAGING) + 8 + 8
 _NAME_MAX = 255
@@ -191,6 +193,18 @@ class OutputDir:
         if name not in self._names:
             self._names.append(name)
         return self._staging / name
+
+    def scratch_folder(self) -> Path:
+        """A folder for a run's own scratch files, on the outputs' disk; never published.
+
+        Whatever is left in it is removed with the staging folder, and it is
+        removed before the commit, so a scratch file never reaches ``--out``.
+        """
+        if self._staging is None:
+            raise RuntimeError("OutputDir used outside its context")
+        folder = self._staging / _SCRATCH
+        folder.mkdir(exist_ok=True)
+        return folder
 
     @property
     def names(self) -> tuple[str, ...]:
