@@ -223,8 +223,9 @@ for path in paths(typer.main.get_command(app)):
 print("PROBE=" + json.dumps(seen), file=sys.stderr)
 """
 
-#: numba, scipy and matplotlib (issue 19), and numpy and h5py (bench/bench_io.py's check).
-HEAVY = ("numba", "scipy", "matplotlib", "numpy", "h5py")
+#: numba, scipy and matplotlib (issue 19), numpy and h5py (bench/bench_io.py's check), and pydantic
+#: (issue 33: typer is pinned below 0.29, whose option parsing loads it).
+HEAVY = ("numba", "scipy", "matplotlib", "numpy", "h5py", "pydantic")
 
 
 def _probe(script: str) -> dict:
