@@ -8,6 +8,7 @@ Writes ``bank.h5`` (decimated series ``t``, ``z``, ``rms`` (N × T),
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ from afmtool.io.units import calibration_record
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
+from afmtool.report.timeseries import ThinningSink
 from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_kalman_bank_command"]
@@ -48,16 +50,17 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
         with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
             with MatrixResultWriter(staged.path("bank.h5"), units, {"afmtool_command": "kalman-bank"},
                                     write_behind=True, float64=("t",)) as writer:
+                # the RMS-against-time figure's rows are kept as they stream: bank.h5 is not read back
+                sink = ThinningSink(writer, ("t", "rms", "adaptive_rms", "z"))
                 result = run_kalman_bank(
-                    reader, params, writer, model=model, reep_results=reep_results, scratch=staged.scratch_folder(),
+                    reader, params, sink, model=model, reep_results=reep_results, scratch=staged.scratch_folder(),
                     progress=run.progress, split=run.split, on_stream_start=run.figures.on_stream_start,
                 )
                 writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))
                 _write_tables(writer, result, deflection_units)
             staged.flush_early("bank.h5")  # to disk while the figures are drawn
             _plot_rms_vs_z(run.figures, staged.path("bank_rms_vs_z.png"), result, deflection_units)
-            _plot_rms_vs_time(run.figures, staged.path("bank_rms_vs_time.png"), staged.path("bank.h5"), result,
-                              deflection_units)
+            _plot_rms_vs_time(run.figures, staged.path("bank_rms_vs_time.png"), sink.rows(), result, deflection_units)
             warnings = list(result.warnings)
             if not result.verdict.passed:
                 warnings.append("verdict FAIL: " + "; ".join(result.verdict.reasons))
@@ -119,20 +122,19 @@ def _plot_rms_vs_z(figures: FigureProcess, path: Path, result: KalmanBankResult,
     )
 
 
-def _plot_rms_vs_time(figures: FigureProcess, path: Path, bank_h5: Path, result: KalmanBankResult,
+def _plot_rms_vs_time(figures: FigureProcess, path: Path, rows: Mapping[str, np.ndarray], result: KalmanBankResult,
                       deflection_units: str) -> None:
     """Each filter's innovation RMS and the adaptive observer's against time, z_piezo overlaid (thesis Fig. 3.9).
 
-    Read back from the finished bank.h5 with an HDF5 stride (at most
-    :data:`afmtool.report.timeseries.MAX_PLOT_POINTS` columns).
+    ``rows``: every k-th row of bank.h5's ``t``, ``rms``, ``adaptive_rms`` and ``z``, kept as
+    they streamed (:class:`~afmtool.report.timeseries.ThinningSink`, at most about
+    2·:data:`~afmtool.report.timeseries.MAX_PLOT_POINTS`).
     """
-    from afmtool.io.bank_results import read_bank_rms
     from afmtool.report.images import write_multi_panel_png
 
-    bank = read_bank_rms(bank_h5)
-    if len(bank.t) < 2:
+    if len(rows.get("t", ())) < 2:
         return
-    t, rms, adaptive, z = bank
+    t, rms, adaptive, z = rows["t"], rows["rms"], rows["adaptive_rms"], rows.get("z")
     units = deflection_units or "input units"
     series = []
     for k, row in enumerate(rms):

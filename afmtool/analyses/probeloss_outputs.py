@@ -7,6 +7,7 @@ from pathlib import Path
 
 from afmtool.analyses.command_inputs import CommandRun, channel_units, given_free_air_model, model_input_records
 from afmtool.analyses.probeloss import SERIES_UNITS, ProbeLossResult, run_probeloss
+from afmtool.analyses.probeloss_timeseries import PLOTTED
 from afmtool.analyses.stream import run_stream_with_model
 from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
@@ -15,6 +16,7 @@ from afmtool.io.units import calibration_record
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.images import ImageStyle
 from afmtool.report.run import finish_run
+from afmtool.report.timeseries import ThinningSink
 from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["run_probeloss_command", "run_probeloss_stream"]
@@ -38,14 +40,16 @@ def run_probeloss_command(run: CommandRun) -> dict:
     with OutputDir(run.out) as staged, run.figures.stopped_on_failure():
         with ResultWriter(staged.path("probeloss.h5"), _units(reader), {"afmtool_command": "probeloss"},
                           write_behind=True, float64=("t",)) as writer:
+            # the overview figure's rows are kept as they stream: probeloss.h5 is not read back for them
+            sink = ThinningSink(writer, PLOTTED)
             # matplotlib, for the figures at the end, loads while the observer streams
-            result = run_probeloss(reader, params, writer, model=model, progress=run.progress, split=run.split,
+            result = run_probeloss(reader, params, sink, model=model, progress=run.progress, split=run.split,
                                    on_stream_start=run.figures.on_stream_start)
             writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))
             _write_images(staged, writer, result, run.figures)
         staged.flush_early("probeloss.h5")  # to disk while the figures are drawn
         results = dict(result.results)
-        _write_time_series(run.figures, staged, reader, results)
+        _write_time_series(run.figures, staged, reader, results, sink.rows())
         if result.setup is not None and result.setup.model_source == "segment":
             result.setup.model.save(staged.path("free_air.json"))
         inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_input_records(params.model)]
@@ -59,14 +63,15 @@ def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapp
     run_stream_with_model(run_probeloss, ProbeLossParams, "probeloss", reader, config, flags, fmt)
 
 
-def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: CaptureReader, results: Mapping) -> None:
-    """The index, switches, amplitude and truth contact against time, from the finished probeloss.h5."""
+def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: CaptureReader, results: Mapping,
+                       overview: Mapping) -> None:
+    """The index, switches, amplitude and truth contact against time: ``overview`` rows, zooms from probeloss.h5."""
     from afmtool.analyses.probeloss_timeseries import write_probeloss_time_series
 
     contact = reader.truth()["contact"] if "contact" in reader.info.truth_names else None
     write_probeloss_time_series(
         staged.path, staged.path("probeloss.h5"), results, amplitude_units=_units(reader)["amplitude"],
-        truth_contact=contact, sample_rate_hz=reader.info.sample_rate_hz, figures=figures,
+        truth_contact=contact, sample_rate_hz=reader.info.sample_rate_hz, figures=figures, overview=overview,
     )
 
 

@@ -1,9 +1,11 @@
 """Probe loss against time: the index with its thresholds, the switches, the amplitude, the truth.
 
-Drawn from the finished ``probeloss.h5`` (thinned rows, :mod:`afmtool.report.timeseries`)
-after the run, beside the mask and index images.  A long capture also gets a
-few zoomed segments, centred on the first, middle and last detected loss
-events, where single drive periods can be told apart.
+Drawn after the run, beside the mask and index images: the overview from rows
+kept as they streamed (:class:`~afmtool.report.timeseries.ThinningSink`), so that
+probeloss.h5 is not read back for it.  A long capture also gets a few zoomed
+segments, centred on the first, middle and last detected loss events, where
+single drive periods can be told apart: those windows (300 drive periods each)
+are read from the finished ``probeloss.h5``, as the events are known only at the end.
 """
 
 from __future__ import annotations
@@ -15,7 +17,10 @@ import numpy as np
 
 from afmtool.report.figure_process import FigureProcess
 
-__all__ = ["ZOOM_PERIODS", "write_probeloss_time_series"]
+__all__ = ["PLOTTED", "ZOOM_PERIODS", "write_probeloss_time_series"]
+
+#: The columns the figures draw.
+PLOTTED = ("t", "index", "switch", "amplitude", "amplitude_switch")
 
 #: Width of a zoomed segment, in drive periods.
 ZOOM_PERIODS = 300
@@ -66,6 +71,7 @@ def write_probeloss_time_series(
     truth_contact: np.ndarray | None,
     sample_rate_hz: float,
     figures: FigureProcess | None = None,
+    overview: Mapping[str, np.ndarray] | None = None,
 ) -> list[str]:
     """Write ``probeloss_time_series.png`` and, for a long capture, ``probeloss_zoom_<k>.png``.
 
@@ -87,6 +93,9 @@ def write_probeloss_time_series(
         The capture's rate, to place the truth at the rows.
     figures : FigureProcess, optional
         Draws the figure (the command's figure process); by default this process.
+    overview : mapping, optional
+        The whole run's rows for the overview (``t`` and the drawn columns,
+        thinned as they streamed); by default read thinned from ``probeloss_h5``.
 
     Returns
     -------
@@ -97,13 +106,16 @@ def write_probeloss_time_series(
     from afmtool.report.images import write_multi_panel_png
     from afmtool.report.timeseries import truth_per_row, zoom_windows
 
-    names = ("index", "switch", "amplitude", "amplitude_switch")
+    names = PLOTTED[1:]
     written = []
 
     def draw(name: str, t_range, title: str) -> None:
-        with open_probeloss_results(probeloss_h5) as probeloss:
-            rows = probeloss.read_rows(names, t_range=t_range)
-        if len(rows["t"]) < 2:
+        if t_range is None and overview is not None:
+            rows = overview
+        else:
+            with open_probeloss_results(probeloss_h5) as probeloss:
+                rows = probeloss.read_rows(names, t_range=t_range)
+        if len(rows.get("t", ())) < 2:
             return
         contact = truth_per_row(truth_contact, rows["t"], sample_rate_hz, reduce="max") if truth_contact is not None else None
         (figures or FigureProcess()).draw(

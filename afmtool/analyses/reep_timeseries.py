@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from afmtool.io.result_files import FLAG_COLUMN, MAX_PLOT_POINTS, open_result_file
+from afmtool.report.timeseries import EveryKth
 
 if TYPE_CHECKING:
     from afmtool.estimators.moments import RunningMoments
@@ -214,40 +215,6 @@ class Thinned(NamedTuple):
     flagged: dict[str, np.ndarray]
 
 
-def _rows_in(items: Mapping[str, np.ndarray]) -> int:
-    return len(next(iter(items.values())))
-
-
-class _EveryKth:
-    """Every ``step``-th item of a stream, the step doubling (every other kept item dropped) past ``2·most``."""
-
-    def __init__(self, most: int, step: int = 1) -> None:
-        self.most, self.step, self.seen, self.kept = most, max(1, int(step)), 0, 0
-        self.parts: list[dict[str, np.ndarray]] = []
-
-    def add(self, items: Mapping[str, np.ndarray], rows: np.ndarray | None = None) -> None:
-        """The items (all rows of ``items``, or those at ``rows``) next in the stream."""
-        n = _rows_in(items) if rows is None else len(rows)
-        first = -self.seen % self.step  # the next item whose stream position is a multiple of the step
-        self.seen += n
-        if first < n:
-            taken = slice(first, None, self.step) if rows is None else rows[first::self.step]
-            # a slice is a view of the caller's block, an index array a copy already
-            self.parts.append({name: values[taken].copy() if rows is None else values[taken]
-                               for name, values in items.items()})
-            self.kept += _rows_in(self.parts[-1])
-        while self.kept > 2 * self.most:
-            # kept items sit at positions 0, step, 2·step, …: every other one is a multiple of 2·step
-            self.parts = [{name: values[::2] for name, values in self.items().items()}]
-            self.kept = _rows_in(self.parts[0])
-            self.step *= 2
-
-    def items(self) -> dict[str, np.ndarray]:
-        if not self.parts:
-            return {}
-        return {name: np.concatenate([part[name] for part in self.parts]) for name in self.parts[0]}
-
-
 class ThinnedRows:
     """The rows of REEP's figure, gathered as the rows stream (memory bounded, no second read of reep.h5).
 
@@ -267,8 +234,8 @@ class ThinnedRows:
     def __init__(self, names: tuple[str, ...], expected_rows: int | None = None) -> None:
         self.names = names
         step = math.ceil(expected_rows / MAX_PLOT_POINTS) if expected_rows else 1
-        self._rows = _EveryKth(MAX_PLOT_POINTS, step)
-        self._flagged = _EveryKth(_MAX_FLAG_MARKS)
+        self._rows = EveryKth(MAX_PLOT_POINTS, step)
+        self._flagged = EveryKth(_MAX_FLAG_MARKS)
 
     def add(self, t: np.ndarray, columns: Mapping[str, np.ndarray], flags: np.ndarray | None = None) -> None:
         """Rows at times ``t`` with their ``columns`` (those of ``names`` present) and ``flag`` values."""
