@@ -176,3 +176,21 @@ class ReaderBase:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class ReaderView(ReaderBase):
+    """A reader over another, ``self._reader``: its truth, and whatever the view does not define, are the inner one's.
+
+    So what the views below record of themselves (unit conversions, calibration,
+    a synthesised drive) reads through, e.g. for :func:`afmtool.io.units.calibration_record`.
+    """
+
+    _reader: CaptureReader
+
+    def __getattr__(self, name: str):
+        if name.startswith("__") or name == "_reader":
+            raise AttributeError(name)
+        return getattr(self._reader, name)
+
+    def truth(self) -> dict[str, np.ndarray]:
+        return self._reader.truth()

@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING
 
-from afmtool.io.capture import CaptureReader, Chunk, ReaderBase
+from afmtool.io.capture import CaptureReader, Chunk, ReaderView
 
 if TYPE_CHECKING:
     import numpy as np
@@ -79,7 +79,7 @@ class SampleDigest:
                 "samples": self.samples}
 
 
-class HashedReader(ReaderBase):
+class HashedReader(ReaderView):
     """A view that hashes the samples of its first complete pass as they are read.
 
     ``blocks`` hands every chunk on unchanged; the first pass that reaches
@@ -102,16 +102,6 @@ class HashedReader(ReaderBase):
             yield chunk
         if digest is not None and self.digest is None:
             self.digest = digest
-
-    def __getattr__(self, name: str):
-        # what the views below record of themselves (unit conversions, calibration, a synthesised
-        # drive) is read through this one, e.g. by afmtool.io.units.calibration_record
-        if name.startswith("__") or name == "_reader":
-            raise AttributeError(name)
-        return getattr(self._reader, name)
-
-    def truth(self):
-        return self._reader.truth()
 
     def close(self) -> None:
         self._reader.close()

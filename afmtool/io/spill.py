@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from afmtool.errors import InputError
-from afmtool.io.capture import CaptureReader, Chunk, ReaderBase
+from afmtool.io.capture import CaptureReader, Chunk, ReaderView
 
 __all__ = ["SpillingReader", "SpilledReader"]
 
@@ -35,7 +35,7 @@ __all__ = ["SpillingReader", "SpilledReader"]
 _WIDEN_ROWS = 1 << 20
 
 
-class SpillingReader(ReaderBase):
+class SpillingReader(ReaderView):
     """``reader``'s chunks, handed on unchanged, with ``channels`` also appended to ``path``.
 
     Parameters
@@ -104,22 +104,13 @@ class SpillingReader(ReaderBase):
         info = dataclasses.replace(self.info, n_samples=self.spilled)
         return SpilledReader(self.path, self.dtype, self.channels, info, self._reader)
 
-    def __getattr__(self, name: str):
-        # what the views below record of themselves (calibration, a synthesised drive) reads through
-        if name.startswith("__") or name == "_reader":
-            raise AttributeError(name)
-        return getattr(self._reader, name)
-
-    def truth(self) -> dict[str, np.ndarray]:
-        return self._reader.truth()
-
     def close(self) -> None:
         """Delete the scratch file (the capture itself is its opener's to close)."""
         self._file.close()
         self.path.unlink(missing_ok=True)
 
 
-class SpilledReader(ReaderBase):
+class SpilledReader(ReaderView):
     """The spilled samples, read block by block: the capture for a second pass.
 
     Blocks are read into fresh buffers, not through a memory map: a map's
@@ -134,7 +125,7 @@ class SpilledReader(ReaderBase):
         self._dtype = np.dtype(dtype)
         self._columns = {name: k for k, name in enumerate(columns)}
         self.info = info
-        self._original = original
+        self._reader = original
 
     def blocks(self, channels: Sequence[str], block_samples: int) -> Iterator[Chunk]:
         n, width = self.info.n_samples, len(self._columns)
@@ -144,14 +135,6 @@ class SpilledReader(ReaderBase):
                 if file.readinto(memoryview(rows).cast("B")) != rows.nbytes:
                     raise InputError(f"{self._path}: the scratch spill ended at sample {start} of {n}")
                 yield Chunk(start, {name: rows[:, self._columns[name]].astype(np.float64) for name in channels})
-
-    def __getattr__(self, name: str):
-        if name.startswith("__") or name == "_original":
-            raise AttributeError(name)
-        return getattr(self._original, name)
-
-    def truth(self) -> dict[str, np.ndarray]:
-        return self._original.truth()
 
     def close(self) -> None:
         pass
