@@ -11,8 +11,9 @@ baseline a scientist would otherwise run for a resonance frequency over time
 (what FreqDemod and FFTA do): ``scipy.signal.hilbert`` of the deflection,
 unwrap the phase, differentiate, low-pass over the same 400 µs
 (an exponential average with REEP's forgetting window), rows at REEP's
-spacing, written as float32 HDF5.  Its MS/s and peak RSS, and its f0
-scatter in free air beside REEP's (REEP also gives Q′).
+spacing, written as float32 HDF5.  Its MS/s and peak RSS, its f0
+scatter in free air beside REEP's (REEP also gives Q′), and what each reads
+of a resonance step under a fixed drive (``sample_data/ltv_step.h5``).
 
 Writes ``bench.json`` under ``targets`` and prints the table.
 """
@@ -127,6 +128,44 @@ def bench_hilbert(n: int) -> dict:
     return row
 
 
+def bench_hilbert_step() -> dict:
+    """Both methods on ``sample_data/ltv_step.h5``: f0 steps 70000 -> 69650 Hz under a fixed three-sine drive.
+
+    The Hilbert phase rate follows the drive, so it reads the drive's frequency before and after the
+    step; REEP reads the resonance.  Means over each side, from five windows after the start and
+    after the step (bench_start's reep run of the same file gives REEP's rows).
+    """
+    import h5py
+    import numpy as np
+
+    path = REPO / "sample_data" / "ltv_step.h5"
+    with h5py.File(path) as f:
+        truth = f["truth/f0_hz"][()]
+        fs = float(f.attrs["sample_rate_hz"])
+    step = int(np.flatnonzero(np.diff(truth))[0]) + 1
+    with h5py.File(scratch_dir() / "targets_ltv" / "reep.h5") as f:
+        row_every = int(f.attrs["row_every_samples"])
+        reep_f0 = f["f0_hz"][()].astype("f8")
+        reep_f0[f["flag"][()] != 0] = np.nan
+    target = scratch_dir() / "hilbert_step_f0.h5"
+    run_command([sys.executable, "-c", _HILBERT, str(path), str(target), str(WINDOW_S), str(row_every)])
+    with h5py.File(target) as f:
+        hilbert_f0 = f["f0_hz"][()].astype("f8")
+    settle = int(np.ceil(5 * WINDOW_S * fs))
+
+    def sides(f0: np.ndarray) -> tuple[float, float]:
+        sample = (np.arange(len(f0)) + 1) * row_every - 1  # each row's last sample
+        before = f0[(sample >= settle) & (sample < step)]
+        after = f0[sample >= step + settle]
+        return float(np.nanmean(before)), float(np.nanmean(after))
+
+    reep, hilbert = sides(reep_f0), sides(hilbert_f0)
+    row = {"truth_hz": [float(truth[0]), float(truth[-1])], "reep_hz": list(reep), "hilbert_hz": list(hilbert)}
+    print(f"f0 step     ltv_step.h5 (truth {truth[0]:.0f} -> {truth[-1]:.0f} Hz): REEP {reep[0]:.1f} -> {reep[1]:.1f} Hz, "
+          f"Hilbert {hilbert[0]:.1f} -> {hilbert[1]:.1f} Hz (its phase rate is the drive's)", flush=True)
+    return row
+
+
 def bench_start() -> dict:
     """``reep sample_data/ltv_step.h5`` and ``afmtool --help`` as whole processes, warm caches; best of 3.
 
@@ -191,6 +230,12 @@ def targets_table(results: dict) -> list[tuple[str, str, str, bool]]:
         add("reep against the Hilbert baseline: faster, lower f0 scatter", 1,
             f"{reep['ms_per_s']:.1f} vs {h['ms_per_s']:.1f} MS/s; {r['std_hz']:.3f} vs {h['std_hz']:.3f} Hz",
             reep["ms_per_s"] > h["ms_per_s"] and r["std_hz"] < h["std_hz"], "same capture, 400 us")
+    step = results.get("hilbert_step")
+    if step:
+        truth, reep_step, hilbert_step = (v[1] - v[0] for v in (step["truth_hz"], step["reep_hz"], step["hilbert_hz"]))
+        add("f0 step read (ltv_step.h5, fixed drive)", 1,
+            f"truth {truth:+.0f} Hz: REEP {reep_step:+.1f}, Hilbert {hilbert_step:+.1f} Hz",
+            abs(reep_step - truth) < 0.05 * abs(truth), "Hilbert reads the drive")
     return rows
 
 
@@ -206,6 +251,7 @@ def main() -> dict:
     if "reep" in results["commands"]:
         results["hilbert"] = bench_hilbert(n)
     results["start"] = bench_start()
+    results["hilbert_step"] = bench_hilbert_step()
     table = targets_table(results)
     results["table"] = [{"target": t, "measured": m, "note": note, "pass": ok} for t, m, note, ok in table]
     print(f"\nissue 33 targets ({n:.0e} float32 samples in the page cache, {results['cores']} cores, "
