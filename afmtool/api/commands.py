@@ -35,6 +35,7 @@ from afmtool.api.run import (
     run_stream_rows,
 )
 from afmtool.config import params as P
+from afmtool.config.commands import spec
 from afmtool.errors import ConfigError
 
 __all__ = [
@@ -86,16 +87,8 @@ def _in_private_folder(command: str, work: Callable[[Path], dict]) -> Result:
     return Result.own(command, out, root)
 
 
-_STREAM_UNITS = {"reep": ("afmtool.analyses.reep", "SERIES_UNITS"),
-                 "probeloss": ("afmtool.analyses.probeloss", "SERIES_UNITS"),
-                 "decode": ("afmtool.analyses.decode", "SERIES_UNITS")}
-
-
 def _stream(command: str, capture: Capture, flags: Mapping, config) -> Iterator[ChunkResult]:
-    import importlib
-
-    module, name = _STREAM_UNITS[command]
-    units = dict(getattr(importlib.import_module(module), name))
+    units = dict(spec(command).stream_units.load())  # the columns' units, named by the command's spec
     deflection_units = capture.units.get("deflection", "")
     units.update(amplitude=deflection_units, sigma2=f"{deflection_units}^2" if deflection_units else "")
     sink = ChunkQueue(command, units)

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from afmtool.api.capture import Capture, as_capture
+from afmtool.config.commands import capture_commands, spec
 from afmtool.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -94,26 +95,14 @@ class RunSettings:
                 yield
 
 
-#: The capture commands: the channels each needs, and whether a dither may be synthesised for it.
-CAPTURE_COMMANDS: Mapping[str, tuple[tuple[str, ...], bool]] = {
-    "reep": (("deflection", "dither"), True),
-    "probeloss": (("deflection", "dither"), True),
-    "decode": (("deflection",), False),
-    "kalman-bank": (("deflection", "dither", "z_piezo"), True),
-}
-
-_RUNNERS = {
-    "reep": ("afmtool.analyses.reep_outputs", "run_reep_command"),
-    "probeloss": ("afmtool.analyses.probeloss_outputs", "run_probeloss_command"),
-    "decode": ("afmtool.analyses.decode_outputs", "run_decode_command"),
-    "kalman-bank": ("afmtool.analyses.kalman_bank_outputs", "run_kalman_bank_command"),
-}
+#: The capture commands: the channels each needs, and whether a dither may be synthesised for it
+#: (their specs' ``channels`` and ``synthesised_drive``, :mod:`afmtool.config.commands`).
+CAPTURE_COMMANDS: Mapping[str, tuple[tuple[str, ...], bool]] = capture_commands()
 
 
-def _function(module: str, name: str) -> Callable:
-    import importlib
-
-    return getattr(importlib.import_module(module), name)
+def _runner(command: str) -> Callable:
+    """The analysis that runs ``command``, bound from its spec (imported now, with what it needs)."""
+    return spec(command).runner.load()
 
 
 def capture_options_for(command: str, capture: Capture, flags: Mapping, *, hash_input: bool = False):
@@ -156,7 +145,7 @@ def run_capture_command(command: str, capture: Capture | str | Path, out: Path, 
 
     capture = as_capture(capture)
     options = capture_options_for(command, capture, flags, hash_input=settings.hash_input)
-    runner = _function(*_RUNNERS[command])
+    runner = _runner(command)
     with capture.open_reader(options) as reader, settings.progress(command, reader.info.n_samples) as update:
         run = CommandRun(reader, capture.source, out, settings.config, flags, update,
                          hash_input=settings.hash_input, split=settings.split, figures=settings.figure_process())
@@ -168,8 +157,10 @@ def run_stream_rows(command: str, capture: Capture | str | Path, flags: Mapping,
     """reep, probeloss or decode with its rows going to ``sink`` (``append(columns)``) as each chunk completes."""
     capture = as_capture(capture)
     options = capture_options_for(command, capture, flags)
-    stem = command.replace("-", "_")
-    runner = _function(_RUNNERS[command][0], f"run_{stem}_stream")
+    stream = spec(command).stream
+    if stream is None:
+        raise ConfigError(f"{command} has no --stream")
+    runner = stream.load()
     with capture.open_reader(options) as reader:
         runner(reader, config, flags, sink)
 
@@ -179,8 +170,8 @@ def run_identify_freeair(capture: Capture | str | Path | None, out: Path, flags:
                          invols: float | None = None) -> dict:
     """``identify freeair``: the segment or sweep route on ``capture``, or the thermal route (``psd``, ``thermal``)."""
     from afmtool.analyses.capture_check import needs_from_flags
-    from afmtool.analyses.freeair_outputs import run_freeair_command
 
+    run_freeair_command = _runner("identify freeair")
     if psd and thermal:
         raise ConfigError("give one thermal input: --psd FILE.csv or --thermal CAPTURE")
     route = flags.get("route") or ("thermal" if (psd or thermal) else "segment")
@@ -203,8 +194,7 @@ def run_identify_freeair(capture: Capture | str | Path | None, out: Path, flags:
 def run_identify_gamma(sweep: Capture | str | Path, contact: Capture | str | Path, out: Path, flags: Mapping,
                        settings: RunSettings) -> dict:
     """``identify gamma``: Γ from the sweep near the sample and the sweep in contact."""
-    from afmtool.analyses.gamma_outputs import run_gamma_command
-
+    run_gamma_command = _runner("identify gamma")
     sweep, contact = as_capture(sweep, "sweep"), as_capture(contact, "contact")
     with sweep.open_reader() as near, contact.open_reader() as far, settings.writing():
         total = (near.info.n_samples or 0) + (far.info.n_samples or 0)
@@ -216,8 +206,7 @@ def run_identify_thermal(inputs: Mapping[str, Any], out: Path, flags: Mapping, s
     """``identify thermal`` from its optional inputs: ``iv``, ``z``, ``vr`` (captures), ``gamma``, ``model`` (paths)."""
     from contextlib import ExitStack
 
-    from afmtool.analyses.thermal_outputs import run_thermal_command
-
+    run_thermal_command = _runner("identify thermal")
     captures = {key: as_capture(inputs[key], f"--{key}") if inputs.get(key) is not None else None
                 for key in ("iv", "z", "vr")}
     sources = {key: (value.source if value is not None else None) for key, value in captures.items()}
@@ -233,8 +222,7 @@ def run_identify_thermal(inputs: Mapping[str, Any], out: Path, flags: Mapping, s
 def run_identify_electrostatic(capture: Capture | str | Path, out: Path, flags: Mapping, settings: RunSettings,
                                thermal_model: Path | str | None = None) -> dict:
     """``identify electrostatic`` on a quasi-static approach curve."""
-    from afmtool.analyses.electrostatic_outputs import run_electrostatic_command
-
+    run_electrostatic_command = _runner("identify electrostatic")
     capture = as_capture(capture)
     with capture.open_reader() as reader, settings.writing():
         return run_electrostatic_command(reader, capture.source, out, settings.config, flags,
@@ -243,26 +231,16 @@ def run_identify_electrostatic(capture: Capture | str | Path, out: Path, flags: 
 
 def run_identify_invols(curve: Capture | str | Path, out: Path, flags: Mapping, settings: RunSettings) -> dict:
     """``identify invols``: the deflection is left in V (the InvOLS is what is measured)."""
-    from afmtool.analyses.invols import run_invols_command
-
+    run_invols_command = _runner("identify invols")
     curve = as_capture(curve, "curve")
     with curve.open_reader(curve.options.replace(raw_deflection=True)) as reader, settings.writing():
         return run_invols_command(reader, curve.source, out, settings.config, flags)
 
 
-#: The commands whose input is a folder, a model file or nothing: (module, runner).
-_FOLDER_RUNNERS = {
-    "theory averaging": ("afmtool.analyses.theory_outputs", "run_averaging_command"),
-    "theory compare": ("afmtool.analyses.theory_outputs", "run_compare_command"),
-    "theory fit": ("afmtool.analyses.theory_fit", "run_theory_fit_command"),
-    "design excitation": ("afmtool.analyses.design_excitation", "run_design_excitation_command"),
-}
-
-
 def run_folder_command(command: str, source: Path | str | None, out: Path, flags: Mapping,
                        settings: RunSettings) -> dict:
     """theory averaging (no input), theory compare / fit (a reep folder), design excitation (a free_air.json)."""
-    runner = _function(*_FOLDER_RUNNERS[command])
+    runner = _runner(command)
     with settings.writing():
         if source is None:
             return runner(out, settings.config, flags)

@@ -10,19 +10,13 @@ from typing import Annotated, Optional
 import typer
 
 from afmtool.cli.options import QuietOpt, SchedulerTimeoutOpt
+from afmtool.config.commands import batch_commands
 
 __all__ = ["register"]
 
-#: Commands batch can run: (words, takes a capture argument).
-#: Analyses that take one capture and write an output folder.
-_COMMANDS = {
-    "reep": ("reep",),
-    "freeair": ("identify", "freeair"),
-    "probeloss": ("probeloss",),
-    "kalman-bank": ("kalman-bank",),
-    "decode": ("decode",),
-    "invols": ("identify", "invols"),
-}
+#: Commands batch can run, by batch's name: the command's words.  Analyses that take one capture
+#: and write an output folder: each spec's ``batch`` (:class:`~afmtool.config.commands.CommandSpec`).
+_COMMANDS = batch_commands()
 
 
 def batch(

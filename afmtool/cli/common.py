@@ -177,14 +177,15 @@ def run_capture_analysis(
     finish_command(report, out, json_output, quiet)
 
 
-def run_streaming_command(name: str, capture: str, source_args: tuple, output, flags: dict, analysis: str = "") -> None:
+def run_streaming_command(name: str, capture: str, source_args: tuple, output, flags: dict) -> None:
     """reep, probeloss, decode and kalman-bank: ``--stream`` rows on stdout, or the folder ``--out``.
 
     Both go through :mod:`afmtool.api.run` (the Python API's own path): the capture is
     read through the one reader stack with the command line's options
     (:func:`afmtool.cli.calibration_options.capture_options`), hashed as it is read
     unless ``--no-hash``, split over ``--jobs``.  ``output`` is the command's
-    :class:`~afmtool.cli.groups.CommandOutput`; ``analysis`` is kept for callers that name it.
+    :class:`~afmtool.cli.groups.CommandOutput`; the analysis is the one ``name``'s spec binds
+    (:mod:`afmtool.config.commands`).
     """
     from afmtool.api.capture import Capture
     from afmtool.api.run import run_capture_command, run_stream_rows

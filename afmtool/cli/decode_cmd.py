@@ -30,7 +30,7 @@ def decode(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: C
     from afmtool.analyses.capture_check import needs_from_flags
 
     calibration = source.calibration(needs=needs_from_flags("decode", flags, ("deflection",)))
-    run_streaming_command("decode", capture, source.args(calibration), output, flags, "afmtool.analyses.decode_outputs")
+    run_streaming_command("decode", capture, source.args(calibration), output, flags)
 
 
 def register(app: typer.Typer) -> None:

@@ -22,6 +22,8 @@ import shutil
 import sys
 from collections.abc import Mapping
 
+from afmtool.config.commands import examples
+
 __all__ = ["PANELS", "EXAMPLES", "arrange_help", "panel_of"]
 
 #: The option panels, in the order they are shown.
@@ -44,44 +46,9 @@ _OUTPUT = frozenset({
     "--params", "--help", "--version", "--force", "--no-hash",
 })
 
-#: Example lines closing each command's help, by command path.
-EXAMPLES: Mapping[str, tuple[str, ...]] = {
-    "info": ("afmtool info sample_data/ltv_step.h5", "afmtool info sample_data/ltv_step.csv --json"),
-    "convert": ("afmtool convert sample_data/ltv_step.h5 /tmp/ltv_step.bag",),
-    "report": ("afmtool report results/reep   # results/reep/report.html",
-               "afmtool report results/batch  # one page, a row per input"),
-    "simulate": ("afmtool simulate list", "afmtool simulate tapping -o /tmp/tapping.h5 --set duration_s=0.01"),
-    "reep": ("afmtool reep sample_data/ltv_step.h5 --out results/reep",
-             "afmtool reep sample_data/tapping_force_curve.h5 --lambda 0.99 --out results/force_curve",
-             "afmtool reep sample_data/ltv_step.h5 --stream --stream-format jsonl | head -3"),
-    "decode": ("afmtool decode sample_data/bits_30khz.h5 --bit-rate 30000 --out results/decode",),
-    "batch": ("afmtool batch reep sample_data/ltv_step.h5 sample_data/tapping_force_curve.h5 --out results/batch",),
-    "kalman-bank": ("afmtool kalman-bank sample_data/force_curve_thesis.h5 --out results/bank_thesis",
-                    "afmtool kalman-bank sample_data/tapping_force_curve.h5 --reep results/force_curve --out results/bank"),
-    "probeloss": ("afmtool probeloss sample_data/raster_grating.h5 --out results/probeloss",),
-    "identify freeair": ("afmtool identify freeair sample_data/ltv_step.h5 --out results/freeair",
-                         "afmtool identify freeair --psd ../shared/data/thermal_tune_acl_a.csv --out results/thermal"),
-    "identify gamma": ("afmtool identify gamma sample_data/thermal_sweep_near.h5 "
-                       "--contact sample_data/thermal_sweep_contact.h5 --out results/gamma",),
-    "identify thermal": ("afmtool identify thermal --iv /tmp/iv.h5 --z-curve /tmp/z.h5 --out results/thermal_sensor",),
-    "identify electrostatic": ("afmtool identify electrostatic /tmp/es.h5 --out results/es",),
-    "theory averaging": ("afmtool theory averaging --force-set attractive --out results/averaging",),
-    "theory compare": ("afmtool theory compare results/force_curve --out results/theory_compare",),
-    "theory observer": ("afmtool theory observer --recommend --cycles 2,4,8,16,50 --out results/observer",),
-    "theory fit": ("afmtool theory fit results/force_curve --out results/fit",
-                   "afmtool theory fit results/scope_curve --z-sensitivity -12.5 --out results/fit_scope"),
-    "theory controllers": ("afmtool theory controllers --out results/controllers",
-                           "afmtool theory controllers --lines 4 --figure-lines 48 --out results/controllers_small"),
-    "identify invols": ("afmtool identify invols curve_on_sapphire.ibw --out results/invols",
-                        "afmtool identify invols scope.csv --channel deflection=CH1 --channel z_piezo=CH2 "
-                        "--z-sensitivity 12.5 --out results/invols"),
-    "design excitation": ("afmtool design excitation --model results/freeair --amplitude 20 --out results/excitation",
-                          "afmtool design excitation --model results/freeair --amplitude 20 --dac-rate 2000000 "
-                          "--beat-tolerance 0.02 --out results/excitation"),
-    "config init": ("afmtool config init afmtool.toml",),
-    "overlay": ("afmtool overlay mica_0 mica_45min mica_2h mica_16h --labels '0,45 min,2 h,16 h' --out results/ageing",
-                "afmtool overlay results/q50 results/q200 --label-key q --vs separation --out results/multi_q"),
-}
+#: Example lines closing each command's help, by command path: each command's ``examples``
+#: (:class:`~afmtool.config.commands.CommandSpec`).
+EXAMPLES: Mapping[str, tuple[str, ...]] = examples()
 
 
 def panel_of(param) -> str:

@@ -40,11 +40,12 @@ def overlay(
     label, run, kind, leg, x, quantity, value, units), report.json and
     report.html.  Nothing is estimated again: the runs' reep.h5 are read.
     """
-    from afmtool.analyses.overlay import run_overlay_command
     from afmtool.cli.common import finish_command
+    from afmtool.config.commands import spec
     from afmtool.errors import ConfigError
     from afmtool.report.figure_process import FigureProcess
 
+    run_overlay_command = spec("overlay").runner.load()
     if labels is not None and label_key is not None:
         raise ConfigError("give --labels or --label-key, not both")
     names = [part.strip() for part in labels.split(",")] if labels is not None else None

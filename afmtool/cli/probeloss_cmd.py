@@ -41,8 +41,7 @@ def probeloss(
     from afmtool.analyses.capture_check import needs_from_flags
 
     calibration = source.calibration(flags["free_air"], accepts_drive=True, needs=needs_from_flags("probeloss", flags))
-    analysis = "afmtool.analyses.probeloss_outputs"
-    run_streaming_command("probeloss", capture, source.args(calibration), output, flags, analysis)
+    run_streaming_command("probeloss", capture, source.args(calibration), output, flags)
 
 
 def register(app: typer.Typer) -> None:

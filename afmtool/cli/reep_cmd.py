@@ -36,7 +36,7 @@ def reep(capture: CaptureArg, *, flags: dict, output: CommandOutput, source: Cap
     channels = ("deflection", "dither") if flags.get("use_input") is not False else ("deflection",)
     calibration = source.calibration(flags["free_air"], accepts_drive=True,
                                      needs=needs_from_flags("reep", flags, channels))
-    run_streaming_command("reep", capture, source.args(calibration), output, flags, "afmtool.analyses.reep_outputs")
+    run_streaming_command("reep", capture, source.args(calibration), output, flags)
 
 
 @with_options(

@@ -121,8 +121,9 @@ def observer(
     With --recommend, the model and gain that maximise |dA_e²| along the force
     curve while the error settles within --max-cycles drive periods.
     """
-    from afmtool.analyses.observer_theory_outputs import run_observer_theory_command
+    from afmtool.config.commands import spec
 
+    run_observer_theory_command = spec("theory observer").runner.load()
     with output.settings().writing():
         report = run_observer_theory_command(output.out, output.config, flags)
     finish_command(report, output.out, output.json_output, output.quiet)
@@ -144,9 +145,10 @@ def controllers(*, flags: dict, output: CommandOutput) -> None:
     ch2_loss_force.png.  docs/ch2_table.json and docs/ch2_controllers.png are
     this command with --lines 4 --figure-lines 48.
     """
-    from afmtool.analyses.controllers import run_controllers_command
     from afmtool.cli.progress import progress_steps
+    from afmtool.config.commands import spec
 
+    run_controllers_command = spec("theory controllers").runner.load()
     with output.settings().writing(), progress_steps("simulating the three controllers", output.quiet) as progress:
         report = run_controllers_command(output.out, output.config, flags, progress)
     finish_command(report, output.out, output.json_output, output.quiet)

@@ -15,7 +15,7 @@ from afmtool.config import field
 from afmtool.errors import ConfigError
 
 __all__ = [
-    "SECTIONS",
+    "SECTIONS",  # noqa: F822 - derived from the command specs when first read (module __getattr__ below)
     "ReepParams",
     "ProbeLossParams",
     "FreeAirParams",
@@ -1017,22 +1017,15 @@ class TheoryFitParams:
     max_samples: int = field(3000, "Fit at most this many (evenly thinned) approach samples", bounds=">= 20")
 
 
-#: Config-file section -> parameter model.
-SECTIONS: dict[str, type] = {
-    "identify.freeair": FreeAirParams,
-    "identify.gamma": GammaParams,
-    "identify.thermal": ThermalParams,
-    "identify.electrostatic": ElectrostaticFitParams,
-    "reep": ReepParams,
-    "probeloss": ProbeLossParams,
-    "decode": DecodeParams,
-    "theory.averaging": AveragingParams,
-    "theory.compare": TheoryCompareParams,
-    "theory.controllers": TheoryControllersParams,
-    "kalman-bank": KalmanBankParams,
-    "theory.observer": ObserverTheoryParams,
-    "identify.invols": InvolsParams,
-    "identify.spring_constant": SpringConstantParams,
-    "design.excitation": DesignExcitationParams,
-    "theory.fit": TheoryFitParams,
-}
+def __getattr__(name: str):
+    """``SECTIONS``: config-file section -> parameter model, derived from the command specs.
+
+    Looked up when first read, not at import: the specs (:mod:`afmtool.config.commands`)
+    name the models defined here, so this module cannot import them while it loads.
+    """
+    if name == "SECTIONS":
+        from afmtool.config.commands import sections
+
+        globals()["SECTIONS"] = sections()  # once: later reads find the module attribute
+        return globals()["SECTIONS"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -32,6 +32,7 @@ import stat
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
+from afmtool.config.commands import main_figures
 from afmtool.errors import InputError
 from afmtool.report.numbers import format_measurement as _measurement
 from afmtool.report.numbers import format_value
@@ -52,16 +53,9 @@ __all__ = [
 #: The file a batch folder holds (``afmtool batch``).
 BATCH_SUMMARY = "summary.csv"
 
-#: Each command's figures in reading order; figures not named follow, sorted.
-MAIN_FIGURES: Mapping[str, tuple[str, ...]] = {
-    "reep": ("reep_time_series.png", "force_curve.png", "force_curve_sensitivity.png"),
-    "probeloss": ("probeloss_time_series.png",),
-    "decode": ("decode_time_series.png", "eye.png", "psd.png", "l0_search.png"),
-    "kalman-bank": ("bank_rms_vs_time.png", "bank_rms_vs_z.png"),
-    "identify gamma": ("gamma_ir_ts.png",),
-    "identify freeair": ("thermal_fit.png", "sweep_bode.png", "segment_bode.png"),
-    "overlay": ("overlay_f0_hz.png", "overlay_q.png", "overlay_amplitude.png", "overlay_phase_deg.png"),
-}
+#: Each command's figures in reading order; figures not named follow, sorted.  Each command's
+#: ``main_figures`` (:class:`~afmtool.config.commands.CommandSpec`).
+MAIN_FIGURES: Mapping[str, tuple[str, ...]] = main_figures()
 
 #: Headline numbers shown per row of a batch page (each run's own page has all of them).
 BATCH_COLUMNS = 4

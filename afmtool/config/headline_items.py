@@ -1,0 +1,264 @@
+"""What each command's headline shows: :class:`Item` declarations, per command, as plain data.
+
+A command's headline (:mod:`afmtool.report.headline`) is declared here, beside the
+command's other parts (:mod:`afmtool.config.commands`), so that the one
+command table can name it while staying light: nothing here imports beyond the
+standard library, and ``afmtool --help`` reads this module.  Every
+``Item`` names a dotted path into the run's ``results``; nothing is computed here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = [
+    "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR", "GAMMA", "ELECTROSTATIC", "THERMAL",
+    "INVOLS", "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
+]
+
+
+@dataclass(frozen=True)
+class Item:
+    """One headline number, as a command declares it.
+
+    Attributes
+    ----------
+    label : str
+        What the number is, for a reader ("f0' in the free-air segment").
+    path : str
+        Dotted path of the value in ``results`` ("segments.free_air.f0_hz.mean").
+    units : str
+        Its units ("" when dimensionless); ``"@path"`` reads them from ``results``.
+    std : str, optional
+        Dotted path of its standard deviation.
+    at : str, optional
+        Dotted path of where it occurs (the z of a force curve's largest shift).
+    at_label : str
+        The name of that coordinate ("z", "separation").
+    at_units : str
+        Its units, or ``"@path"``.
+    note : str, optional
+        Dotted path of a word on its standing ("identified", "not identifiable").
+    text : bool
+        The value may be text or a yes/no (a verdict), not only a number.
+    scores : bool
+        A score that a failed premise undermines: left out when a :class:`State` says so.
+    needs : str, optional
+        Dotted path of a flag in ``results``: the item is left out when it is False
+        (Q′ items need ``q_identifiable``).
+    """
+
+    label: str
+    path: str
+    units: str = ""
+    std: str | None = None
+    at: str | None = None
+    at_label: str = "z"
+    at_units: str = ""
+    note: str | None = None
+    text: bool = False
+    scores: bool = False
+    needs: str | None = None
+
+
+def _free_air_model(prefix: str = "free_air_model") -> tuple[Item, ...]:
+    return (
+        Item("f0 (free air)", f"{prefix}.f0_hz", "Hz", f"{prefix}.f0_std_hz"),
+        Item("Q (free air)", f"{prefix}.q", "", f"{prefix}.q_std"),
+    )
+
+
+def _reep_segments() -> tuple[Item, ...]:
+    labels = {"free_air": "in the free-air segment", "after_free_air": "after the free-air segment",
+              "settled": "after the warm-up"}
+    items = []
+    for segment, label in labels.items():
+        items.append(Item(f"f0' {label}", f"segments.{segment}.f0_hz.mean", "Hz", f"segments.{segment}.f0_hz.std"))
+        items.append(Item(f"Q' {label}", f"segments.{segment}.q.mean", "", f"segments.{segment}.q.std",
+                          needs="q_identifiable"))
+    return tuple(items)
+
+
+def _reep_force_curve() -> tuple[Item, ...]:
+    """On a force curve: the approach's extremes and where they occur (z in the capture's z units)."""
+    leg = "force_curve.approach"
+    z_units = f"@{leg}.z_units"
+    return (
+        Item("largest Δf0' on approach", f"{leg}.largest_df0_hz", "Hz", at=f"{leg}.largest_df0_z", at_units=z_units),
+        Item("smallest Q' on approach", f"{leg}.smallest_q", "", at=f"{leg}.smallest_q_z", at_units=z_units,
+             needs="q_identifiable"),
+        Item("largest energy dissipated per cycle", f"{leg}.largest_energy_per_cycle_ev", "eV",
+             at=f"{leg}.largest_energy_per_cycle_z", at_units=z_units, needs="q_identifiable"),
+        Item("largest force gradient", f"{leg}.largest_force_gradient_n_per_m", "N/m",
+             at=f"{leg}.largest_force_gradient_z", at_units=z_units),
+    )
+
+
+REEP = (
+    *_reep_segments(),
+    *_reep_force_curve(),
+    Item("|f0' − f0| median vs truth", "truth_tracking.f0_hz.median_abs", "Hz"),
+    Item("|f0' − f0| 95th percentile vs truth", "truth_tracking.f0_hz.p95_abs", "Hz"),
+    Item("|Q' − Q| median vs truth", "truth_tracking.q.median_abs", "", needs="q_identifiable"),
+    Item("|Q' − Q| 95th percentile vs truth", "truth_tracking.q.p95_abs", "", needs="q_identifiable"),
+    Item("flagged output samples", "flagged_samples", "samples"),
+)
+
+PROBELOSS = (
+    Item("probe-loss fraction (index)", "loss_fraction", "of time"),
+    Item("probe-loss fraction (truth)", "truth.loss_fraction", "of time"),
+    Item("precision (index)", "truth.index.precision", "", scores=True),
+    Item("recall (index)", "truth.index.recall", "", scores=True),
+    Item("median latency (index)", "truth.index.median_latency_periods", "drive periods", scores=True),
+    Item("probe-loss fraction (amplitude baseline)", "amplitude_baseline.loss_fraction", "of time"),
+    Item("precision (amplitude baseline)", "truth.amplitude.precision", ""),
+    Item("recall (amplitude baseline)", "truth.amplitude.recall", ""),
+    Item("loss events (index)", "events_total", "events"),
+)
+
+DECODE = (
+    Item("BER (EKF decoder)", "truth.decoder.ber", ""),
+    Item("BER 95 % upper bound (EKF decoder)", "truth.decoder.ber_upper_95", ""),
+    Item("BER (lock-in baseline)", "truth.baseline.ber", ""),
+    Item("BER estimated from the bit clusters", "bits.estimated_ber_gaussian", ""),
+    Item("bits decoded", "bits.count", "bits"),
+    Item("bit rate", "clock.rate_hz", "bit/s"),
+    Item("ℓ0", "l0.estimate_nm", "nm"),
+    # --mode step: the response to a V_phi step (§7.7)
+    Item("innovation settling after the V_phi step", "step.innovation.settling_periods", "actuation periods"),
+    Item("amplitude settling after the V_phi step", "step.amplitude.settling_periods", "actuation periods"),
+    Item("deflection settling after the V_phi step", "step.deflection.settling_periods", "actuation periods"),
+    Item("running mean of the innovation: detection delay", "step.innovation_mean.delay_periods",
+         "actuation periods"),
+)
+
+KALMAN_BANK = (
+    Item("verdict: pass", "verdict.pass", "", text=True),
+    Item("adaptive observer has the least RMS", "adaptive.fraction_lowest", "of time"),
+    Item("filters in the bank", "design.n_filters", "filters"),
+    *_free_air_model(),
+)
+
+FREEAIR = (
+    *_free_air_model(),
+    Item("gain", "free_air_model.gain", "", "free_air_model.gain_std"),
+    Item("k (thermal, equipartition)", "spring_constant.thermal.value_n_per_m", "N/m",
+         "spring_constant.thermal.std_n_per_m"),
+    Item("k (Sader)", "spring_constant.sader.value_n_per_m", "N/m", "spring_constant.sader.std_n_per_m"),
+)
+
+GAMMA = (
+    Item("DC sensitivity Γ_IR,ts", "dc_sensitivity_ua_per_nm", "µA/nm"),
+    Item("−3 dB bandwidth", "bandwidth_hz", "Hz"),
+    Item("roll-off", "roll_off_db_per_decade", "dB/decade"),
+    Item("feed-through capacitance", "feedthrough_fit.capacitance_pf", "pF"),
+)
+
+ELECTROSTATIC = (
+    Item("ℓ0", "parameters.l0_m.value", "m", "parameters.l0_m.std"),
+    Item("K_esf/k", "parameters.k_esf_over_k_m3_per_v2.value", "m³/V²", "parameters.k_esf_over_k_m3_per_v2.std"),
+    Item("α_R", "parameters.alpha_r.value", "", "parameters.alpha_r.std"),
+    Item("t_h", "parameters.tip_height_m.value", "m", "parameters.tip_height_m.std"),
+    Item("K_esf", "parameters.k_esf_f_m.value", "F·m", "parameters.k_esf_f_m.std"),
+    Item("RMS residual", "rms_residual_nm", "nm"),
+)
+
+THERMAL = (
+    Item("K_TP (I-V knee)", "iv.k_tp_k_per_mw", "K/mW"),
+    Item("knee power", "iv.knee_power_mw", "mW"),
+    Item("knee voltage", "iv.knee_voltage_v", "V"),
+    Item("K_TP in contact (z curve)", "z_curve.contact_k_tp_k_per_mw", "K/mW"),
+    Item("snap-in z", "z_curve.snap_in_z_nm", "nm"),
+    Item("C(jω) DC gain", "dynamics.c.dc_gain_k_per_mw", "K/mW"),
+    Item("C(jω) −3 dB bandwidth", "dynamics.c.bandwidth_hz", "Hz"),
+    Item("H(jω) DC gain", "dynamics.h.dc_gain_k_per_nm", "K/nm"),
+    Item("H(jω) −3 dB bandwidth", "dynamics.h.bandwidth_hz", "Hz"),
+)
+
+INVOLS = (
+    Item("InvOLS (contact slope)", "invols_nm_per_v", "nm/V", "invols_std_nm_per_v"),
+    Item("InvOLS implied by the contact slope", "implied_invols_nm_per_v", "nm/V", "implied_invols_std_nm_per_v"),
+    Item("InvOLS of the capture (metadata)", "capture_invols_nm_per_v", "nm/V"),
+    Item("contact slope", "contact_slope", "@contact_slope_units", "contact_slope_std"),
+    Item("contact point z", "contact_z_nm", "nm"),
+)
+
+COMPARE = (
+    Item("verdict", "verdict", "", text=True),
+    Item("χ² per degree of freedom", "chi2_per_dof", ""),
+    Item("χ² limit per degree of freedom", "chi2_limit_per_dof", ""),
+    Item("outlier share of the bins", "outlier_share", ""),
+    Item("bins compared", "bins_compared", "bins"),
+    Item("bins left out (ill-conditioned)", "bins_ill_conditioned", "bins"),
+    Item("worst bin: (f0' − f0e) shift", "worst_bins.0.f0_z", "σ", at="worst_bins.0.separation_nm",
+         at_label="separation", at_units="nm"),
+    Item("worst bin: (Q' − Qe) shift", "worst_bins.0.q_z", "σ", at="worst_bins.0.separation_nm",
+         at_label="separation", at_units="nm"),
+    Item("second worst bin: (f0' − f0e) shift", "worst_bins.1.f0_z", "σ", at="worst_bins.1.separation_nm",
+         at_label="separation", at_units="nm"),
+)
+
+
+def _fit_parameter(name: str, label: str, units: str) -> Item:
+    return Item(label, f"parameters.{name}.value", units, f"parameters.{name}.std", note=f"parameters.{name}.status")
+
+
+FIT = (
+    _fit_parameter("d_nm", "d", "nm"),
+    _fit_parameter("omega_a2", "ω_a²", "1/s²"),
+    _fit_parameter("omega_b2", "ω_b²", "1/s²"),
+    _fit_parameter("c_a", "c_a", "1/s"),
+    _fit_parameter("c_b", "c_b", "1/s"),
+    _fit_parameter("contact_z", "contact point z_c", "@parameters.contact_z.units"),
+    Item("onset d + s·z_c", "onset_d_plus_s_contact_z_nm.value", "nm", "onset_d_plus_s_contact_z_nm.std"),
+    Item("RMS residual of f0'", "rms_residual.f0_hz", "Hz"),
+)
+
+DESIGN = (
+    Item("main line", "lines.0.frequency_hz", "Hz"),
+    Item("main line amplitude", "lines.0.amplitude_v", "V"),
+    Item("lower side line", "lines.1.frequency_hz", "Hz"),
+    Item("upper side line", "lines.2.frequency_hz", "Hz"),
+    Item("side-line amplitude", "lines.1.amplitude_v", "V"),
+    Item("free-air response", "lines.0.response_nm", "nm"),
+    Item("envelope beat (R₊ + R₋)/R_d", "envelope_beat", ""),
+    Item("amplitude beat", "amplitude_beat", ""),
+    Item("loop length", "loop_s", "s"),
+)
+
+AVERAGING = (
+    Item("f0e on approach, lowest", "approach.f0_e_range_hz.0", "Hz"),
+    Item("f0e on approach, highest", "approach.f0_e_range_hz.1", "Hz"),
+    Item("Qe on approach, lowest", "approach.q_e_range.0", ""),
+    Item("bistable from separation", "approach.bistable_separation_nm.0", "nm"),
+    Item("bistable up to separation", "approach.bistable_separation_nm.1", "nm"),
+    Item("drive amplitude", "drive_amplitude_nm", "nm"),
+)
+
+OBSERVER = (
+    Item("recommended observer f_k", "recommendation.f_k_hz", "Hz"),
+    Item("recommended observer Q_k", "recommendation.q_k", ""),
+    Item("recommended window", "recommendation.cycles", "drive periods"),
+    Item("observer f_k range mapped, lowest", "maps.f_k_hz_range.0", "Hz"),
+    Item("observer f_k range mapped, highest", "maps.f_k_hz_range.1", "Hz"),
+    Item("plant f0 (free air)", "plant.f0_hz", "Hz"),
+    Item("plant Q (free air)", "plant.q", ""),
+)
+
+CONTROLLERS = (
+    Item("verdict: pass", "pass", "", text=True),
+    Item("probe-loss area, low gain", "table.0.low.loss_area", "of the image"),
+    Item("probe-loss area, high gain", "table.0.high.loss_area", "of the image"),
+    Item("probe-loss area, switching gain", "table.0.switching.loss_area", "of the image"),
+    Item("peak force, switching gain", "table.0.switching.peak_force_n", "N"),
+    Item("at line rate", "table.0.line_rate_hz", "Hz"),
+)
+
+OVERLAY = (
+    Item("runs overlaid", "n_runs", "runs"),
+    Item("free-air f0' spread across the runs", "free_air_f0_hz_spread", "Hz"),
+    Item("free-air Q' spread across the runs", "free_air_q_spread", ""),
+    Item("largest Δf0' on approach, first run", "first.largest_df0_hz", "Hz"),
+    Item("largest Δf0' on approach, last run", "last.largest_df0_hz", "Hz"),
+    Item("spread of the largest Δf0' across the runs", "largest_df0_hz_spread", "Hz"),
+)
