@@ -80,3 +80,19 @@ def test_the_scratch_folder_never_reaches_the_output(tmp_path):
         staged.path("report.json").write_text("{}")
         (staged.scratch_folder() / "left.spill").write_bytes(b"x")
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["report.json"]
+
+
+def test_the_replay_offers_no_ranges_even_where_the_capture_does(tmp_path):
+    # a Dask worker would read the capture itself: the second read the spill avoids
+    from afmtool.io.ranges import range_source
+
+    class Ranged(ArrayReader):
+        def ranges(self):
+            return "the capture's own ranges"
+
+    data = _data(1000, np.random.default_rng(5), exact_float32=True)
+    reader = Ranged(1e6, [ChannelSpec(name, "m") for name in data], data)
+    with SpillingReader(reader, CHANNELS, tmp_path / "spill") as spill:
+        assert range_source(spill) == "the capture's own ranges"  # pass 1 reads the capture, workers too
+        _read_all(spill, CHANNELS, 500)
+        assert range_source(spill.replay()) is None

@@ -115,9 +115,7 @@ class SpilledReader(ReaderView):
 
     Blocks are read into fresh buffers, not through a memory map: a map's
     touched pages stay resident, so a pass over a 1.2 GB spill would grow
-    the process's RSS by that much.  It has no ``ranges()``: the scratch file
-    lies in this machine's output folder, which Dask workers elsewhere may
-    not see, so a split pass sends the samples with each task.
+    the process's RSS by that much.
     """
 
     def __init__(self, path: Path, dtype: np.dtype, columns: Sequence[str], info, original: CaptureReader) -> None:
@@ -135,6 +133,14 @@ class SpilledReader(ReaderView):
                 if file.readinto(memoryview(rows).cast("B")) != rows.nbytes:
                     raise InputError(f"{self._path}: the scratch spill ended at sample {start} of {n}")
                 yield Chunk(start, {name: rows[:, self._columns[name]].astype(np.float64) for name in channels})
+
+    def ranges(self) -> None:
+        """None, though the capture below may offer ranges: a split pass sends the samples with each task.
+
+        The scratch file lies in this machine's output folder, which Dask workers
+        elsewhere may not see, and reading the capture's ranges would read it twice.
+        """
+        return None
 
     def close(self) -> None:
         pass
