@@ -59,6 +59,9 @@ __all__ = [
 #: Decimated series written per kept sample ("" = dimensionless; amplitude in input units).
 SERIES_UNITS = {"t": "s", "index": "", "switch": "", "amplitude": "deflection units", "amplitude_switch": ""}
 _IMAGE_QUANTITIES = ("loss", "index")
+#: Chunks read ahead while the kernels run (issue 33): one 1 Mi-sample chunk is read in a few
+#: ms, far less than the kernels take, so a second only held 16 MB more at the same speed.
+_READ_AHEAD = 1
 
 
 @dataclass(frozen=True)
@@ -622,7 +625,8 @@ def run_probeloss(
     state = ProbeLossStage(reader, params, model)
     ((index_events, amp_events),) = run_stream(
         reader, [state], writer, channels=("deflection", "dither"), chunk_samples=params.chunk_samples,
-        progress=progress, prologue=state.free_air_prologue, split=split, on_start=on_stream_start,
+        progress=progress, prologue=state.free_air_prologue, read_ahead=_READ_AHEAD, split=split,
+        on_start=on_stream_start,
     )
     setup, geometry = state.setup, state.geometry
     lead = overlapping_lead(index_events, amp_events)
