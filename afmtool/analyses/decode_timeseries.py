@@ -64,11 +64,14 @@ def write_decode_time_series_png(
     if not isinstance(rate, (int, float)) or rate <= 0:
         return False
     with open_decode_results(decode_h5) as decoded:
-        bit_rows = decoded.read_rows(("bits", "soft"), time="bit_times_s", max_points=10**9)
-        if len(bit_rows["bit_times_s"]) == 0 or "bits" not in bit_rows:
+        if "bit_times_s" not in decoded.names() or len(decoded["bit_times_s"]) == 0:
             return False
-        start = float(bit_rows["bit_times_s"][0]) - 0.5 / rate
+        # only the first WINDOW_BITS cells are drawn: read their window, not every bit of the run
+        start = float(decoded["bit_times_s"][0]) - 0.5 / rate
         window = (start, start + WINDOW_BITS / rate)
+        bit_rows = decoded.read_rows(("bits", "soft"), time="bit_times_s", t_range=window, max_points=10**9)
+        if "bits" not in bit_rows:
+            return False
         cells = (bit_rows["bit_times_s"] >= window[0]) & (bit_rows["bit_times_s"] < window[1])
         means = decoded.read_rows(("innovation_mean",), time="t_mean", t_range=window)
     t_bits = bit_rows["bit_times_s"][cells]
