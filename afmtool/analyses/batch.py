@@ -24,8 +24,10 @@ from pathlib import Path
 from afmtool.errors import ConfigError, InputError, one_line
 from afmtool.report.json_report import sha256_file
 from afmtool.runtime.atomic import write_text_atomic
+from afmtool.runtime.run_options import DEFAULTS, RunOptions, applied
 
-__all__ = ["BatchItem", "BatchOutcome", "expand_inputs", "plan_batch", "run_one", "headline", "write_summary"]
+__all__ = ["BatchItem", "BatchOutcome", "child_command", "expand_inputs", "plan_batch", "run_one", "headline",
+           "write_summary"]
 
 #: Suffixes of the files a folder given as an input contributes: every format afmtool reads.
 _CAPTURE_SUFFIXES = (".h5", ".hdf5", ".hdf", ".csv", ".bag", ".ibw", ".jpk-force", ".jpk-qi-series", ".jpk-force-map",
@@ -252,21 +254,35 @@ def _sha_or_none(source: str) -> str | None:
         return None
 
 
-def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], retry_failed: bool = False) -> BatchOutcome:
+def child_command(command: Sequence[str], item: BatchItem, extra_args: Sequence[str],
+                  options: RunOptions = DEFAULTS) -> list[str]:
+    """The command line of one input's run: ``afmtool [--max-samples N] [--wait] COMMAND INPUT --out SUBDIR ...``.
+
+    ``options`` are the batch's own ``afmtool --max-samples`` and ``--wait``, given to each run
+    explicitly (a Dask worker's environment is not the batch's).
+    """
+    return [sys.executable, "-m", "afmtool", *options.args(), *command, item.source, "--out", item.out_dir,
+            "--quiet", *extra_args]
+
+
+def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], retry_failed: bool = False,
+            options: RunOptions = DEFAULTS) -> BatchOutcome:
     """Run one input as a separate afmtool process (on whichever worker Dask chose).
 
     Completed inputs are skipped; an input that failed before with the same
     bytes is reported failed again without rerunning unless ``retry_failed``.
+    ``options`` (``afmtool --max-samples``, ``--wait``) apply to the resume check here and to the run.
     """
     extra_args = [*item.selection, *extra_args]  # a map's curve: --curve N, for the run and its resume check
-    existing = _complete(item, command, extra_args)
+    with applied(options):  # the resume check reads the input as the run would
+        existing = _complete(item, command, extra_args)
     if existing is not None:
         return BatchOutcome(item.label, item.out_dir, "skipped", "outputs complete", headline(existing))
     known = None if retry_failed else _known_failure(item)
     if known is not None:
         # the same line as the run that found it: a rerun reports the same result for the same input
         return BatchOutcome(item.label, item.out_dir, "failed", known[0], {}, known[1])
-    args = [sys.executable, "-m", "afmtool", *command, item.source, "--out", item.out_dir, "--quiet", *extra_args]
+    args = child_command(command, item, extra_args, options)
     _manifest_path(item).unlink(missing_ok=True)
     proc = subprocess.run(args, capture_output=True, text=True)
     if _killed(proc.returncode):
@@ -349,8 +365,12 @@ def run_batch(
     on_done: Callable[[BatchOutcome], None],
     retry_failed: bool = False,
     scheduler_timeout_s: float = 10.0,
+    options: RunOptions = DEFAULTS,
 ) -> list[BatchOutcome]:
-    """Submit every item to Dask (a local cluster, or ``scheduler``) and gather outcomes in input order."""
+    """Submit every item to Dask (a local cluster, or ``scheduler``) and gather outcomes in input order.
+
+    ``options`` (``afmtool --max-samples``, ``--wait``) go to every run on its command line.
+    """
     try:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
@@ -367,7 +387,7 @@ def run_batch(
         client = Client(cluster)
     try:
         futures = {
-            client.submit(run_one, list(command), item, list(extra_args), retry_failed, key=f"afmtool-{i}-{item.out_dir}", pure=False): i
+            client.submit(run_one, list(command), item, list(extra_args), retry_failed, options, key=f"afmtool-{i}-{item.out_dir}", pure=False): i
             for i, item in enumerate(items)
         }
         outcomes: list[BatchOutcome | None] = [None] * len(items)

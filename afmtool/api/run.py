@@ -38,6 +38,10 @@ def _no_progress(name: str, total: int | None) -> AbstractContextManager[Callabl
 class RunSettings:
     """How a run is carried out, not what it computes.
 
+    ``max_samples`` and ``wait`` reach the HDF5 readers and the output folder's lock
+    through :mod:`afmtool.runtime.run_options`, in force during :meth:`scope`, which
+    every ``run_*`` here enters for the whole run (and :meth:`writing` too).
+
     Attributes
     ----------
     config : Path or None
@@ -56,6 +60,11 @@ class RunSettings:
         Record the run's Python warnings into its report as a fresh ``afmtool`` process does
         (Python's default filters, each first occurrence), restoring the caller's warning state after.
         The CLI records them for the whole process itself (False there).
+    max_samples : int or None
+        ``afmtool --max-samples N``: accept HDF5 captures of up to N samples per dataset whatever
+        their size on disk (None: a file may claim at most 1000x its size).
+    wait : bool
+        ``afmtool --wait``: wait for another run writing the same output folder instead of failing.
     """
 
     config: Path | None = None
@@ -65,6 +74,23 @@ class RunSettings:
     progress: Callable[[str, int | None], AbstractContextManager] = field(default=_no_progress)
     data_format: str = "h5"
     own_warnings: bool = True
+    max_samples: int | None = None
+    wait: bool = False
+
+    def __post_init__(self) -> None:
+        self.run_options()  # a bad --max-samples is refused as the settings are made
+
+    def run_options(self):
+        """``max_samples`` and ``wait`` as the :class:`~afmtool.runtime.run_options.RunOptions` the floors read."""
+        from afmtool.runtime.run_options import RunOptions
+
+        return RunOptions(self.max_samples, self.wait)
+
+    def scope(self) -> AbstractContextManager:
+        """Within the block, the readers and output folders of this run see :attr:`max_samples` and :attr:`wait`."""
+        from afmtool.runtime.run_options import applied
+
+        return applied(self.run_options())
 
     def figure_process(self):
         from afmtool.report.figure_process import FigureProcess
@@ -73,13 +99,16 @@ class RunSettings:
 
     @contextmanager
     def writing(self):
-        """The run's result arrays are written in :attr:`data_format` (``report.run.finish_run`` converts them)."""
+        """The run's result arrays are written in :attr:`data_format` (``report.run.finish_run`` converts them).
+
+        Within :meth:`scope`, so a runner called without a ``run_*`` here still sees ``max_samples`` and ``wait``.
+        """
         import warnings
 
         from afmtool.report.run import result_format
 
         if not self.own_warnings:
-            with result_format(self.data_format):
+            with self.scope(), result_format(self.data_format):
                 yield
             return
         from afmtool.report.captured_warnings import record, take
@@ -91,13 +120,32 @@ class RunSettings:
                 warnings.simplefilter("ignore", category)
             warnings.showwarning = record
             take()  # nothing recorded before this run belongs to its report
-            with result_format(self.data_format):
+            with self.scope(), result_format(self.data_format):
                 yield
 
 
 #: The capture commands: the channels each needs, and whether a dither may be synthesised for it
 #: (their specs' ``channels`` and ``synthesised_drive``, :mod:`afmtool.config.commands`).
 CAPTURE_COMMANDS: Mapping[str, tuple[tuple[str, ...], bool]] = capture_commands()
+
+
+def _in_scope(run: Callable) -> Callable:
+    """``run`` within its ``settings``' :meth:`RunSettings.scope` from its first line on.
+
+    From the first line: a path given as the capture is opened by ``as_capture`` already, and
+    ``--max-samples`` must be in force there.
+    """
+    import functools
+    import inspect
+
+    signature = inspect.signature(run)
+
+    @functools.wraps(run)
+    def scoped(*args, **kwargs):
+        with signature.bind(*args, **kwargs).arguments["settings"].scope():
+            return run(*args, **kwargs)
+
+    return scoped
 
 
 def _runner(command: str) -> Callable:
@@ -138,6 +186,7 @@ def drive_response_from_flags(flags: Mapping):
     return None
 
 
+@_in_scope
 def run_capture_command(command: str, capture: Capture | str | Path, out: Path, flags: Mapping,
                         settings: RunSettings) -> dict:
     """reep, probeloss, decode or kalman-bank on ``capture`` into ``out``; the report."""
@@ -165,6 +214,7 @@ def run_stream_rows(command: str, capture: Capture | str | Path, flags: Mapping,
         runner(reader, config, flags, sink)
 
 
+@_in_scope
 def run_identify_freeair(capture: Capture | str | Path | None, out: Path, flags: Mapping, settings: RunSettings,
                          *, psd: Path | str | None = None, thermal: Capture | str | Path | None = None,
                          invols: float | None = None) -> dict:
@@ -191,6 +241,7 @@ def run_identify_freeair(capture: Capture | str | Path | None, out: Path, flags:
             return run_freeair_command(reader, source.source, out, settings.config, flags, update)
 
 
+@_in_scope
 def run_identify_gamma(sweep: Capture | str | Path, contact: Capture | str | Path, out: Path, flags: Mapping,
                        settings: RunSettings) -> dict:
     """``identify gamma``: Γ from the sweep near the sample and the sweep in contact."""
@@ -202,6 +253,7 @@ def run_identify_gamma(sweep: Capture | str | Path, contact: Capture | str | Pat
             return run_gamma_command(near, far, (sweep.source, contact.source), out, settings.config, flags, update)
 
 
+@_in_scope
 def run_identify_thermal(inputs: Mapping[str, Any], out: Path, flags: Mapping, settings: RunSettings) -> dict:
     """``identify thermal`` from its optional inputs: ``iv``, ``z``, ``vr`` (captures), ``gamma``, ``model`` (paths)."""
     from contextlib import ExitStack
@@ -219,6 +271,7 @@ def run_identify_thermal(inputs: Mapping[str, Any], out: Path, flags: Mapping, s
             return run_thermal_command(readers, sources, out, settings.config, flags, update)
 
 
+@_in_scope
 def run_identify_electrostatic(capture: Capture | str | Path, out: Path, flags: Mapping, settings: RunSettings,
                                thermal_model: Path | str | None = None) -> dict:
     """``identify electrostatic`` on a quasi-static approach curve."""
@@ -229,6 +282,7 @@ def run_identify_electrostatic(capture: Capture | str | Path, out: Path, flags: 
                                          Path(thermal_model) if thermal_model else None)
 
 
+@_in_scope
 def run_identify_invols(curve: Capture | str | Path, out: Path, flags: Mapping, settings: RunSettings) -> dict:
     """``identify invols``: the deflection is left in V (the InvOLS is what is measured)."""
     run_invols_command = _runner("identify invols")
@@ -237,6 +291,7 @@ def run_identify_invols(curve: Capture | str | Path, out: Path, flags: Mapping, 
         return run_invols_command(reader, curve.source, out, settings.config, flags)
 
 
+@_in_scope
 def run_folder_command(command: str, source: Path | str | None, out: Path, flags: Mapping,
                        settings: RunSettings) -> dict:
     """theory averaging (no input), theory compare / fit (a reep folder), design excitation (a free_air.json)."""

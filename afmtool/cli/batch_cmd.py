@@ -42,6 +42,7 @@ def batch(
     are complete.  Exit status 2 when any input failed (one line each on stderr), 1 when one met an internal error.  Needs 'afmtool[cluster]'.
     """
     from afmtool.analyses.batch import expand_inputs, plan_batch, write_summary
+    from afmtool.cli.options import root_run_options
     from afmtool.errors import ConfigError
     from afmtool.runtime.atomic import OutputError, atomic_path
     from afmtool.runtime.outputs import FolderLock
@@ -54,12 +55,14 @@ def batch(
 
         probe_scheduler(scheduler, scheduler_timeout)
     out.parent.mkdir(parents=True, exist_ok=True)
+    options = root_run_options()  # afmtool --max-samples / --wait: for this lock and every run's command line
     # one batch (or command) at a time on --out: two batches on one folder mixed their outputs
-    with FolderLock(Path(os.path.realpath(out)), out):
+    with FolderLock(Path(os.path.realpath(out)), out, wait=options.wait):
         before = set(os.listdir(out)) if out.is_dir() else None
         try:
             out.mkdir(parents=True, exist_ok=True)
-            outcomes = _run_with_progress(command, items, args or [], workers, (scheduler, scheduler_timeout), retry_failed, quiet)
+            outcomes = _run_with_progress(command, items, args or [], workers, (scheduler, scheduler_timeout),
+                                          retry_failed, quiet, options)
             faults = [o for o in outcomes if o.fault]
             if faults:
                 raise OutputError(f"--out {out}: could not be written ({faults[0].reason.rsplit('(', 1)[-1].rstrip(')')}); "
@@ -90,7 +93,7 @@ def _remove_what_this_run_made(out: Path, before: set[str] | None) -> None:
         pass
 
 
-def _run_with_progress(command, items, args, workers, scheduler: tuple, retry_failed, quiet):
+def _run_with_progress(command, items, args, workers, scheduler: tuple, retry_failed, quiet, options):
     from rich.progress import Progress
 
     from afmtool.analyses.batch import run_batch
@@ -105,7 +108,7 @@ def _run_with_progress(command, items, args, workers, scheduler: tuple, retry_fa
 
         return run_batch(
             _COMMANDS[command], items, args, workers=workers, scheduler=scheduler[0], on_done=done,
-            retry_failed=retry_failed, scheduler_timeout_s=scheduler[1],
+            retry_failed=retry_failed, scheduler_timeout_s=scheduler[1], options=options,
         )
 
 

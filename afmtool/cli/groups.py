@@ -239,14 +239,17 @@ class CommandOutput(NamedTuple):
         return Split.of(self.jobs, self.scheduler, self.scheduler_timeout)
 
     def settings(self, figures=None, *, split: bool = False):
-        """The :class:`afmtool.api.run.RunSettings` of these options (``split``: probe ``--jobs``/``--scheduler``)."""
+        """The :class:`afmtool.api.run.RunSettings` of these options (``split``: probe ``--jobs``/``--scheduler``),
+        with the root's ``--max-samples`` and ``--wait``."""
         from afmtool.api.run import RunSettings
+        from afmtool.cli.options import root_run_options
         from afmtool.cli.progress import progress_bar
 
-        quiet = self.quiet
+        quiet, root = self.quiet, root_run_options()  # afmtool --max-samples / --wait
         return RunSettings(config=self.config, split=self.split() if split else None, hash_input=not self.no_hash,
                            figures=figures, progress=lambda name, total: progress_bar(name, total, quiet),
-                           data_format=self.data_format, own_warnings=False)
+                           data_format=self.data_format, own_warnings=False, max_samples=root.max_samples,
+                           wait=root.wait)
 
     @property
     def stream_mode(self) -> tuple[bool, str]:

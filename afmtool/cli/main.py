@@ -57,6 +57,7 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _root(
+    ctx: typer.Context,
     version: Annotated[
         bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")
     ] = False,
@@ -74,12 +75,16 @@ def _root(
     ] = False,
 ) -> None:
     """afmtool: capture -> chunks -> kernel -> result -> writer."""
-    # Process-wide settings read where files are opened; the environment carries them to
-    # batch workers too.
-    if max_samples is not None:
-        os.environ["AFMTOOL_MAX_SAMPLES"] = str(max_samples)
-    if wait:
-        os.environ["AFMTOOL_WAIT"] = "1"
+    from afmtool.cli.options import RUN_OPTIONS_KEY
+    from afmtool.runtime.run_options import RunOptions, applied
+
+    options = RunOptions(max_samples, wait)
+    # Kept on the context for the RunSettings the command builds, and in force until the root context
+    # closes after the command: HDF5 captures and output folders open far below, on paths that carry no
+    # RunSettings (info, convert, overlay, batch).  Not os.environ: that outlived the run in this process
+    # and reached every child; batch hands its runs the options on their command lines.
+    ctx.meta[RUN_OPTIONS_KEY] = options
+    ctx.with_resource(applied(options))
 
 
 identify_app = typer.Typer(help="Identify models: the free-air cantilever, ...", no_args_is_help=True)

@@ -30,7 +30,13 @@ __all__ = [
     "SchedulerOpt",
     "check_stream_format",
     "parse_mapping",
+    "RUN_OPTIONS_KEY",
+    "root_run_options",
 ]
+
+#: Where the root callback keeps ``--max-samples`` and ``--wait`` (a
+#: :class:`~afmtool.runtime.run_options.RunOptions`) in the click context's ``meta``, shared by every command's context.
+RUN_OPTIONS_KEY = "afmtool.run_options"
 
 CaptureArg = Annotated[
     str,
@@ -135,3 +141,19 @@ def parse_mapping(items: list[str] | None, option: str) -> dict[str, str]:
             raise ConfigError(f"{option} {item!r} must look like NAME=VALUE")
         mapping[name.strip()] = target.strip()
     return mapping
+
+
+def root_run_options():
+    """``afmtool --max-samples N`` and ``--wait`` of the command line being run (the defaults outside one).
+
+    Read from the click context, where the root callback put them, by the code that builds the
+    run's :class:`~afmtool.api.run.RunSettings` and by ``afmtool batch``.
+    """
+    try:  # recent typer vendors its own click
+        from typer._click.globals import get_current_context
+    except ImportError:  # pragma: no cover - older typer uses click itself
+        from click import get_current_context
+    from afmtool.runtime.run_options import DEFAULTS
+
+    ctx = get_current_context(silent=True)
+    return DEFAULTS if ctx is None else ctx.meta.get(RUN_OPTIONS_KEY, DEFAULTS)

@@ -14,7 +14,6 @@ sample rate.  Files are written without ``libver='latest'`` so that
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -27,8 +26,9 @@ from afmtool.errors import InputError
 from afmtool.io.capture import CaptureInfo, ChannelSpec, Chunk, ReaderBase
 from afmtool.io.isolated import check_survives
 from afmtool.io.metadata import parse_metadata_json
+from afmtool.runtime import run_options
 
-__all__ = ["Hdf5Reader", "Hdf5Writer", "dataset_name", "max_samples_override", "unit_attribute", "UNIT_ATTRIBUTES"]
+__all__ = ["Hdf5Reader", "Hdf5Writer", "dataset_name", "unit_attribute", "UNIT_ATTRIBUTES"]
 
 _WRITE_CHUNK = 1 << 16
 
@@ -111,10 +111,6 @@ MAX_COMPRESSION_RATIO = 1000
 #: Largest chunk read at once, bytes: a compressed chunk is decompressed whole.
 MAX_CHUNK_BYTES = 256 << 20
 
-#: Environment variable set by ``afmtool --max-samples N``: the largest capture accepted
-#: without the compression-ratio check.
-MAX_SAMPLES_ENV = "AFMTOOL_MAX_SAMPLES"
-
 _TRUTH_KINDS = "fiub"
 
 
@@ -179,20 +175,6 @@ def _check_local(path: Path, name: str, dataset: h5py.Dataset) -> None:
         raise InputError(f"{path}: dataset {name} stores its data in external files; refusing")
 
 
-def max_samples_override() -> int | None:
-    """``afmtool --max-samples N``, or ``None`` when not given."""
-    text = os.environ.get(MAX_SAMPLES_ENV, "").strip()
-    if not text:
-        return None
-    try:
-        value = int(text)
-    except ValueError:
-        raise InputError(f"--max-samples {text!r} must be a whole number") from None
-    if value < 1:
-        raise InputError(f"--max-samples {value} must be at least 1")
-    return value
-
-
 def _claimed_bytes(dataset: h5py.Dataset) -> int:
     return int(np.prod(dataset.shape, dtype=object)) * dataset.dtype.itemsize
 
@@ -204,10 +186,10 @@ def _check_claims(path: Path, datasets: Mapping[str, h5py.Dataset], n_samples: i
     size times :data:`MAX_COMPRESSION_RATIO` before anything is read: a
     400 kB file claiming 1e15 samples would otherwise be read for ever (the
     missing chunks read as fill values).  ``--max-samples N`` replaces the
-    ratio check by ``n_samples <= N``.
+    ratio check by ``n_samples <= N`` (the run's :mod:`afmtool.runtime.run_options`).
     """
     file_bytes = max(path.stat().st_size, 1)
-    limit = max_samples_override()
+    limit = run_options.current().max_samples
     largest_chunk = max(
         (int(np.prod(d.chunks, dtype=object)) * d.dtype.itemsize for d in datasets.values() if d.chunks), default=0
     )

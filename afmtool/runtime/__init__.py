@@ -9,6 +9,9 @@
   lost mount) told from bugs, and HDF5 handles kept past a failed write.
 * :mod:`~afmtool.runtime.interrupts` — SIGINT/SIGTERM deferred across the
   swap of a finished output.
+* :mod:`~afmtool.runtime.run_options` — ``afmtool --max-samples`` and
+  ``--wait`` for the run in progress, read by the HDF5 readers and the
+  output folder's lock (a context variable, not ``os.environ``).
 
 It imports nothing of afmtool but :mod:`afmtool.errors`, so that ``io/``,
 ``models/`` and ``report/`` can all use it (docs/architecture.md, "Floors").

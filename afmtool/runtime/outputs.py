@@ -12,7 +12,8 @@ renames.)
 
 A run holds an exclusive ``flock`` on ``.<name>.lock`` beside ``--out``
 from start to finish (the file exists only meanwhile): a second run on the
-same folder fails at once, or waits with ``afmtool --wait``.  Under that lock the run first removes the
+same folder fails at once, or waits with ``afmtool --wait`` (the run's
+:mod:`afmtool.runtime.run_options`, or :class:`FolderLock`'s ``wait``).  Under that lock the run first removes the
 staging folders that killed runs left behind.
 
 An existing ``--out`` is replaced as a whole, so it must be an afmtool
@@ -32,15 +33,13 @@ import threading
 from pathlib import Path
 
 from afmtool.errors import AfmtoolError
+from afmtool.runtime import run_options
 from afmtool.runtime.atomic import OutputError, _fsync_dir, _fsync_path, _fsync_tree
 from afmtool.runtime.faults import environment_fault
 from afmtool.runtime.input_guard import refuse_output_over_inputs
 from afmtool.runtime.interrupts import signals_deferred
 
-__all__ = ["FolderLock", "OutputDir", "WAIT_ENV"]
-
-#: Environment variable set by ``afmtool --wait``: wait for the lock instead of failing.
-WAIT_ENV = "AFMTOOL_WAIT"
+__all__ = ["FolderLock", "OutputDir"]
 
 _STAGING = ".staging-"
 _ASIDE = ".old-"
@@ -329,19 +328,22 @@ class FolderLock:
     before it lets go, so a waiter may wake up holding a file nobody can
     see any more; it then tries again on the new one (the file at the path
     must be the one it locked).  ``afmtool --wait`` waits for the holder
-    instead of failing.  ``out`` is how messages name the folder.  Used by
-    :class:`OutputDir` and by ``afmtool batch`` for its whole ``--out``.
+    instead of failing: ``wait``, or when None the run's own option
+    (:func:`afmtool.runtime.run_options.current`).  ``out`` is how messages
+    name the folder.  Used by :class:`OutputDir` and by ``afmtool batch``
+    for its whole ``--out``.
     """
 
-    def __init__(self, final: Path, out: Path | str, *, key: str | None = None) -> None:
+    def __init__(self, final: Path, out: Path | str, *, key: str | None = None, wait: bool | None = None) -> None:
         self.path = Path(final).parent / f".{key or _key_for(Path(final).name)}.lock"
         self._out = out
+        self._wait = wait
         self._fd: int | None = None
 
     def acquire(self) -> None:
         import fcntl
 
-        wait = bool(os.environ.get(WAIT_ENV))
+        wait = run_options.current().wait if self._wait is None else self._wait
         while True:
             fd = _open_lock(self.path, self._out)
             try:
