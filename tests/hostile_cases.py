@@ -186,12 +186,14 @@ def _numeric_cases() -> list[Case]:
     ):
         cases.append(Case(f"numeric/toml [{section}] {key} = {value}", "numeric",
                           lambda f, c: ["reep", c["cap"], "--config", f / "params.toml", "--out", f / "out", "-q"],
-                          prepare=_toml(f"[{section}]\n{key} = {value}\n")))
+                          prepare=_toml(f"[{section}]\n{key} = {value}\n"),
+                          # a hang (2.5e14 row spacings tried) and an internal error, found by the full run
+                          quick=(key, value) in {("lam", "0.9999999999999999"), ("drive_frequency_hz", "1e-300")}))
     for key, value in (("decimate", "99999999999999"), ("rms_window_periods", "1e308"), ("rms_window_periods", "1e-320"),
                        ("drive_frequency_hz", "1e-300")):
         cases.append(Case(f"numeric/toml [kalman-bank] {key} = {value}", "numeric",
                           lambda f, c: ["kalman-bank", c["fc"], "--config", f / "params.toml", "--out", f / "out", "-q"],
-                          prepare=_toml(f'["kalman-bank"]\n{key} = {value}\n')))
+                          prepare=_toml(f'["kalman-bank"]\n{key} = {value}\n'), quick=key == "drive_frequency_hz"))
     for key, value in (("clock_window_s", "1e308"), ("psd_window_s", "1e308"), ("warmup_s", "1e308"),
                        ("bits_from_s", "1e308"), ("mean_window", "99999999999999")):
         cases.append(Case(f"numeric/toml [decode] {key} = {value}", "numeric",

@@ -129,3 +129,39 @@ def test_resonance_std_is_the_first_order_propagation(f0, q, fs):
     expected = np.sqrt(np.einsum("ij,jk,ik->i", grads, cov, grads))
     np.testing.assert_allclose([f0_std, q_std], expected, rtol=1e-5)
     assert all(math.isnan(v) for v in resonance_std_scalar(0.5, 1.2, *cov.ravel()[[0, 1, 3]], 1.0 / fs))
+
+
+def test_a_drive_at_dc_is_refused_not_a_singular_matrix():
+    # hostile case [reep] drive_frequency_hz = 1e-300: e^{-jωT} = 1 makes the line's equation DC's
+    from afmtool.errors import ConfigError
+    from afmtool.models.discretisation import line_numerator
+
+    with pytest.raises(ConfigError, match="too close to DC"):
+        line_numerator(70e3, 200.0, 500e3, match_hz=1e-300)
+
+
+def test_a_line_fit_that_runs_away_is_none():
+    # lines a hundred octaves below the resonance: Gauss-Newton overflowed math.exp (an internal error)
+    from afmtool.models.discretisation import fit_continuous_lines
+
+    # what kalman-bank's segment route gave it for [kalman-bank] drive_frequency_hz = 1e-300 (hostile case)
+    lines = np.array([1e-300, 80317.91666666666, 86317.91666666666])
+    responses = np.array([-52.403435037765504 + 5.4981886227641899e-10j, -9.8346785686724402e-03 - 167.84045385061864j,
+                          -6.4691014079361855 - 0.25902786316719184j])
+    assert fit_continuous_lines(lines, responses, 80318.39743372834, 166.6813989300005) is None
+
+
+def test_the_row_spacing_of_a_window_of_1e16_samples_is_found_at_once():
+    # lam = 1 - 1e-16: the rule tried 2.5e14 spacings (a hang); it tries at most 4096, the top of the range
+    import time
+
+    from afmtool.config import resolve
+    from afmtool.config.params import ReepParams
+    from afmtool.estimators.reep_estimator import _row_spacing
+
+    params = resolve(ReepParams, {})
+    started = time.process_time()
+    spacing = _row_spacing(params, None, 500e3, 70e3, 2e10, 1)  # a 2e10 s window: 1e16 samples
+    assert time.process_time() - started < 1.0
+    longest = int(2e10 * 500e3 / 8)
+    assert longest - 4096 < spacing <= longest

@@ -19,7 +19,7 @@ from afmtool.config.params import parse_interval
 from afmtool.config.samples import interval_samples
 from afmtool.errors import InputError
 from afmtool.estimators.free_air_fit import free_air_from_segment
-from afmtool.io.capture import CaptureReader, Chunk
+from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import read_segment
 
@@ -80,9 +80,8 @@ def drive_frequency(reader: CaptureReader, given_hz: float, model: FreeAirModel)
     Raises
     ------
     InputError
-        If it is not below the Nyquist frequency.
+        If it is not below the Nyquist frequency, or one period is longer than the capture.
     """
-    fs = reader.info.sample_rate_hz
     metadata_hz = reader.info.capture_metadata.drive.frequency_hz
     if given_hz:
         hz = given_hz
@@ -90,6 +89,21 @@ def drive_frequency(reader: CaptureReader, given_hz: float, model: FreeAirModel)
         hz = metadata_hz
     else:
         hz = model.f0_hz
+    return checked_drive_frequency(hz, reader.info)
+
+
+def checked_drive_frequency(hz: float, info: CaptureInfo) -> float:
+    """``hz`` if a capture of ``info`` can carry a drive there: below Nyquist, and a period within the capture.
+
+    Raises
+    ------
+    InputError
+        Naming the frequency and the limit it breaks.
+    """
+    fs = info.sample_rate_hz
     if not 0 < hz < fs / 2:
         raise InputError(f"drive frequency {hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
+    if info.n_samples is not None and hz * info.n_samples < fs:  # n/fs < 1/hz, without overflowing 1/hz
+        raise InputError(f"drive frequency {hz:g} Hz: one period is longer than the capture "
+                         f"({info.n_samples / fs:g} s), so no line at it can be measured")
     return hz

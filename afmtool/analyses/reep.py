@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from afmtool.analyses.accumulators import ForceCurveAccumulator, ImageAccumulator, ScanGeometry
+from afmtool.analyses.freeair_source import checked_drive_frequency
 from afmtool.analyses.reep_timeseries import PLOTTED, SegmentMoments, Thinned, ThinnedRows
 from afmtool.config.params import ReepParams
-from afmtool.errors import InputError
 from afmtool.estimators._common import check_resolvable
 from afmtool.estimators.drive_lines import excitation_lines
 from afmtool.estimators.moments import RunningMoments
@@ -34,8 +34,7 @@ from afmtool.estimators.reep_validity import (
     free_air_levels,
     reep_rows,
 )
-from afmtool.io.capture import CaptureReader, Chunk
-from afmtool.io.metadata import DriveMetadata
+from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Split, Warmup, run_stream
@@ -243,7 +242,7 @@ class ReepStage:
         params, fs = self.params, self.fs
         check_resolvable("deflection", head.first.data["deflection"], "REEP's regression")
         drive = head.info.capture_metadata.drive
-        self.drive_hz = _drive_frequency(params, drive, self.model, head.first.data["deflection"], fs)
+        self.drive_hz = _drive_frequency(params, head.info, self.model, head.first.data["deflection"])
         self.lowpass_hz = params.lockin_lowpass_hz or default_lowpass_hz(self.drive_hz, drive.sideband_offset_hz)
         self.estimator = self._build_estimator()
         self.decimation = Decimation(self.estimator.row_every)
@@ -530,8 +529,9 @@ def _refined_line(dither: np.ndarray, fs: float, frequency_hz: float) -> float:
     return best
 
 
-def _drive_frequency(params: ReepParams, drive: DriveMetadata, model: FreeAirModel | None, first_deflection, fs: float) -> float:
+def _drive_frequency(params: ReepParams, info: CaptureInfo, model: FreeAirModel | None, first_deflection) -> float:
     """The lock-in's reference: the flag, the metadata, f0, else the first chunk's spectral peak (Hz)."""
+    drive = info.capture_metadata.drive
     if params.drive_frequency_hz:
         drive_hz = params.drive_frequency_hz
     elif drive.frequency_hz is not None:
@@ -539,10 +539,8 @@ def _drive_frequency(params: ReepParams, drive: DriveMetadata, model: FreeAirMod
     elif model is not None:
         drive_hz = model.f0_hz
     else:
-        drive_hz = _spectral_peak_hz(first_deflection, fs)
-    if not 0 < drive_hz < fs / 2:
-        raise InputError(f"drive frequency {drive_hz:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
-    return drive_hz
+        drive_hz = _spectral_peak_hz(first_deflection, info.sample_rate_hz)
+    return checked_drive_frequency(drive_hz, info)
 
 
 def run_reep(

@@ -371,11 +371,15 @@ def _row_spacing(params, row_every: int | None, fs: float, drive_hz: float, wind
         wanted = sample_count(1.0, fs / drive_hz, "the drive period", minimum=1, per="drive period")
         return factor * max(1, round(wanted / factor))
     longest = max(1, int(window_s * fs / ROWS_PER_WINDOW) // factor)
-    return factor * _phase_spreading(range(max(1, (3 * longest) // 4), longest + 1), factor * drive_hz / fs)
+    shortest = max(1, (3 * longest) // 4, longest - _MOST_CANDIDATES + 1)
+    return factor * _phase_spreading(range(shortest, longest + 1), factor * drive_hz / fs)
 
 
 #: Rows whose drive phase repeats within this many rows are avoided (:func:`_phase_spreading`).
 _PHASE_ORDERS = 6
+#: Spacings tried at most: a window of λ = 1 − 1e-16 (1e16 samples) offered 2.5e14 (a hang); at the
+#: defaults there are 6, and any window under 250 ms at 2 MHz offers fewer than 4096.
+_MOST_CANDIDATES = 4096
 
 
 def _phase_spreading(candidates: range, cycles_per_unit: float) -> int:

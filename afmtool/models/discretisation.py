@@ -396,7 +396,11 @@ def line_numerator(
     target *= 1.0 + b1 * zinv + b0 * zinv * zinv
     system = np.array([[1.0, 1.0, 1.0], [1.0, zinv.real, (zinv * zinv).real], [0.0, zinv.imag, (zinv * zinv).imag]])
     rhs = np.array([1.0 + b1 + b0, target.real, target.imag])
-    a2, a1, a0 = np.linalg.solve(system, rhs)
+    try:
+        a2, a1, a0 = np.linalg.solve(system, rhs)
+    except np.linalg.LinAlgError:  # e^{-jωT} ≈ 1: the line and DC give the same equation
+        raise ConfigError(f"the drive at {match:g} Hz is too close to DC (fs {sample_rate_hz:g} Hz) to match "
+                          "the model's numerator there") from None
     return DiscreteNumerator(float(a2), float(a1), float(a0))
 
 
@@ -542,7 +546,7 @@ def fit_continuous_lines(lines_hz, responses, f0_hz: float, q: float, iterations
     responses are G's own, so (f0, Q) here carry no discretisation error;
     an ARX fit with three numerator taps on the same segment biased Q by
     0.0013 of 20 on a noise-free reference capture.  None with fewer than
-    three lines or when the fit leaves the under-damped region.
+    three lines, when the fit leaves the under-damped region, or when it diverges.
     """
     lines = np.asarray(lines_hz, dtype=np.float64)
     measured = np.asarray(responses, dtype=np.complex128)
@@ -560,14 +564,17 @@ def fit_continuous_lines(lines_hz, responses, f0_hz: float, q: float, iterations
         return np.concatenate((r.real, r.imag))
 
     steps = np.array([1e-7, 1e-6, 1e-6, 1e-3 / lines[0]])
-    for _ in range(iterations):
-        r = residual(theta)
-        jacobian = np.column_stack([(residual(theta + np.eye(4)[k] * steps[k]) - r) / steps[k] for k in range(4)])
-        step, *_ = np.linalg.lstsq(jacobian, -r, rcond=None)
-        theta = theta + step
-        if np.all(np.abs(step) <= 1e-12 * np.maximum(np.abs(theta), 1e-9)):
-            break
-    f0, qq = math.exp(theta[0]), math.exp(theta[1])
+    try:
+        for _ in range(iterations):
+            r = residual(theta)
+            jacobian = np.column_stack([(residual(theta + np.eye(4)[k] * steps[k]) - r) / steps[k] for k in range(4)])
+            step, *_ = np.linalg.lstsq(jacobian, -r, rcond=None)
+            theta = theta + step
+            if np.all(np.abs(step) <= 1e-12 * np.maximum(np.abs(theta), 1e-9)):
+                break
+        f0, qq = math.exp(theta[0]), math.exp(theta[1])
+    except (OverflowError, np.linalg.LinAlgError):  # the iteration ran away (lines far from any resonance)
+        return None
     if not (math.isfinite(f0) and math.isfinite(qq) and qq > 0.5):
         return None
     return ContinuousLineFit(*(float(_significant(x)) for x in (f0, qq, math.exp(theta[2]), theta[3])))
