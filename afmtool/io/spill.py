@@ -75,8 +75,12 @@ class SpillingReader(ReaderView):
         if skip < 0 or skip >= len(chunk):
             return  # already spilled, or beyond a gap no pass in order leaves
         columns = [np.asarray(chunk.data[name][skip:], dtype=np.float64) for name in self.channels]
-        if self.dtype == np.float32 and not all(np.array_equal(c.astype(np.float32), c) for c in columns):
-            self._widen()
+        if self.dtype == np.float32:
+            narrow = [c.astype(np.float32) for c in columns]  # converted once: checked, then stored
+            if all(np.array_equal(n, c) for n, c in zip(narrow, columns)):
+                columns = narrow
+            else:
+                self._widen()
         rows = np.empty((len(columns[0]), len(columns)), dtype=self.dtype)
         for k, column in enumerate(columns):
             rows[:, k] = column
