@@ -165,3 +165,29 @@ def test_the_row_spacing_of_a_window_of_1e16_samples_is_found_at_once():
     assert time.process_time() - started < 1.0
     longest = int(2e10 * 500e3 / 8)
     assert longest - 4096 < spacing <= longest
+
+
+def test_a_window_no_capture_can_hold_is_refused_by_the_parameter_that_set_it():
+    # lam = 1 - 1e-16 is a window of 9e15 samples: named as lam, not as the warm-up it later made too long
+    from afmtool.config import resolve
+    from afmtool.config.params import ReepParams
+    from afmtool.estimators.reep_estimator import ReepEstimator
+
+    params = resolve(ReepParams, {"lam": 0.9999999999999999, "use_input": False})
+    with pytest.raises(ConfigError, match=r"^lam=0\.9999999999999999 is 9\.007e\+15 samples"):
+        ReepEstimator.build(params, sample_rate_hz=500e3, resonance_hz=70e3, drive_hz=70e3)
+
+
+def test_the_step_response_of_a_window_too_long_to_simulate_is_left_out_with_a_note():
+    # window_us = 1e12 (5e11 samples at 500 kHz): the simulation asked for 55 TiB (a MemoryError)
+    from afmtool.analyses import reep as reep_analysis
+    from afmtool.config import resolve
+    from afmtool.config.params import ReepParams
+    from afmtool.estimators.reep_estimator import ReepEstimator, settling_samples
+
+    params = resolve(ReepParams, {"window_us": 1e12, "use_input": False})
+    estimator = ReepEstimator.build(params, sample_rate_hz=500e3, resonance_hz=70e3, drive_hz=70e3)
+    assert settling_samples(estimator) > reep_analysis._MOST_SETTLING_SAMPLES
+    default = ReepEstimator.build(resolve(ReepParams, {"use_input": False}), sample_rate_hz=2e6, resonance_hz=70e3,
+                                  drive_hz=70e3)
+    assert settling_samples(default) < reep_analysis._MOST_SETTLING_SAMPLES  # the defaults are simulated

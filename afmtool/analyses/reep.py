@@ -585,9 +585,14 @@ def run_reep(
     return result
 
 
+#: The longest step-response simulation run (capture samples): 2**24 holds 15 windows of 0.5 s at 2 MHz, in
+#: 270 MB; a window of λ = 1 − 1e-12 (1e12 samples) asked for 55 TiB (a MemoryError, an internal error).
+_MOST_SETTLING_SAMPLES = 1 << 24
+
+
 def _settling(estimator: ReepEstimator, model: FreeAirModel | None, head: Head, geometry: ScanGeometry | None) -> dict:
     """The window, the measured 10–90 % settling of f0′ and Q′, and for a scan the distance the tip covers meanwhile."""
-    from afmtool.estimators.reep_estimator import step_settling
+    from afmtool.estimators.reep_estimator import settling_samples, step_settling
 
     out: dict = {"window_us": estimator.window_s * 1e6, "f0_settling_10_90_s": None, "q_settling_10_90_s": None}
     dither = head.first.data.get("dither")
@@ -595,6 +600,11 @@ def _settling(estimator: ReepEstimator, model: FreeAirModel | None, head: Head, 
         out["note"] = "no step response without the recorded dither and a free-air model"
         return out
     fs = estimator.sample_rate_hz
+    simulated = settling_samples(estimator)
+    if simulated > _MOST_SETTLING_SAMPLES:
+        out["note"] = (f"no step response: REEP's window of {estimator.window_s:.3g} s needs {simulated:.3g} samples "
+                       f"simulated (at most {_MOST_SETTLING_SAMPLES:.3g})")
+        return out
     step = step_settling(estimator, model.numerator_at(fs), model.denominator_at(fs), dither)
     out.update(f0_settling_10_90_s=step.f0_s, q_settling_10_90_s=step.q_s, f0_step_hz=step.f0_step_hz, q_step=step.q_step,
                method="noise-free free-air model, f0 stepped down by half a linewidth and Q by 10 %")

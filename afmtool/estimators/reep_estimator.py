@@ -31,7 +31,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from afmtool.config.samples import sample_count
+from afmtool.config.samples import check_count, sample_count
 from afmtool.errors import ConfigError
 from afmtool.estimators.rate_reduction import ANTI_ALIAS_ROLLOFF, anti_alias_taps, decimate_block, reduction_factor
 from afmtool.estimators.rls import ReepBlock, ReepState, reep_update
@@ -43,6 +43,7 @@ __all__ = [
     "Settling",
     "capture_rate_coefficients",
     "forgetting_factor",
+    "settling_samples",
     "step_settling",
 ]
 
@@ -197,6 +198,8 @@ class ReepEstimator:
         factor = reduction_factor(fs, resonance_hz, params.samples_per_period)
         rate = fs / factor
         window_s = 1.0 / ((1.0 - params.lam) * fs) if params.lam else params.window_us / 1e6
+        # a window no capture can hold is refused here, by the parameter that set it (λ = 1 − 1e-16: 9e15 samples)
+        check_count(window_s * fs, *(("lam", params.lam) if params.lam else ("window_us", params.window_us)))
         # at D = 1 a given λ is used as it is, bit for bit
         lam = params.lam if (params.lam and factor == 1) else forgetting_factor(window_s, rate)
         rows = _row_spacing(params, row_every, fs, drive_hz, window_s, factor)
@@ -502,6 +505,19 @@ class Settling(NamedTuple):
 _SETTLE_BEFORE, _SETTLE_AFTER = 5, 10
 
 
+def _settling_span(estimator: ReepEstimator) -> tuple[int, int]:
+    """(the step's sample, the samples simulated) of :func:`step_settling`."""
+    window = int(math.ceil(estimator.window_s * estimator.sample_rate_hz))
+    # the step on a REEP sample (the rows below are every REEP sample), whatever --decimate asks of the output
+    step_at = estimator.factor * -(-_SETTLE_BEFORE * window // estimator.factor)
+    return step_at, step_at + _SETTLE_AFTER * window
+
+
+def settling_samples(estimator: ReepEstimator) -> int:
+    """Capture samples :func:`step_settling` simulates (15 windows): its memory is 16 bytes a sample."""
+    return _settling_span(estimator)[1]
+
+
 def step_settling(estimator: ReepEstimator, numerator, denominator, dither: np.ndarray) -> Settling:
     """Run the estimator on a noise-free capture whose f0 drops by half a linewidth and Q by 10 %.
 
@@ -520,10 +536,7 @@ def step_settling(estimator: ReepEstimator, numerator, denominator, dither: np.n
     f0, q, valid = resonance_from_denominator(denominator[0], denominator[1], fs)
     if not valid:
         raise ConfigError(f"the free-air denominator {tuple(denominator)!r} is not an under-damped mode")
-    window = int(math.ceil(estimator.window_s * fs))
-    # the step on a REEP sample (the rows below are every REEP sample), whatever --decimate asks of the output
-    step_at = estimator.factor * -(-_SETTLE_BEFORE * window // estimator.factor)
-    total = step_at + _SETTLE_AFTER * window
+    step_at, total = _settling_span(estimator)
     g = np.resize(np.ascontiguousarray(dither, dtype=np.float64), total)
     after = (f0 - f0 / (2.0 * q), 0.9 * q)
     p = np.empty(total)
