@@ -551,11 +551,18 @@ def test_sigterm_at_random_points_ends_every_run_within_2_s(tmp_path, compressed
         ["info", str(compressed), "--chunk-samples", "4096"],  # many small h5py reads of gzip chunks
         ["reep", str(compressed), "--out", str(tmp_path / "out"), "-q"],
     ]
+    # the signal lands at a random point of each run's own length, measured here: a fixed 0.3-3 s let
+    # most runs finish first on a faster machine (8 of 20 signalled in CI), and then too few were measured
+    lengths = []
+    for run in runs:
+        started = time.monotonic()
+        subprocess.run([sys.executable, "-m", "afmtool", *run], cwd=REPO, capture_output=True, check=True)
+        lengths.append(time.monotonic() - started)
     late = []
     for k in range(SIGTERMS):
         args = [sys.executable, "-m", "afmtool", *runs[k % 2]]
         proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        time.sleep(rng.uniform(0.3, 3.0))
+        time.sleep(rng.uniform(0.1, 0.9) * lengths[k % 2])
         if proc.poll() is not None:
             continue  # finished before the signal: nothing to measure
         sent = time.monotonic()
