@@ -59,6 +59,18 @@ def load_schema(name: str) -> dict:
 
 
 def validate_report(report: dict) -> None:
+    """``report`` against ``report.schema.json``, and its ``results`` against the command's generated schema.
+
+    Where the command has a result record (``afmtool.records``), the results must also read back into
+    it and write out again unchanged.
+    """
     import jsonschema
 
     jsonschema.validate(report, load_schema("report.schema.json"))
+    results_schema = SCHEMAS / "results" / f"{report['command'].replace(' ', '.')}.schema.json"
+    if results_schema.is_file():
+        jsonschema.validate(report["results"], json.loads(results_schema.read_text()))
+        from afmtool.config.commands import SPECS
+
+        record = SPECS[report["command"]].result.load()
+        assert record.from_json(report["results"]).to_json() == report["results"]

@@ -126,6 +126,12 @@ def test_identify_invols_equals_the_cli(tmp_path, rng):
     cli = _cli(tmp_path, "invols", "identify", "invols", curve)
     result = afmtool.identify_invols(curve)
     assert_same_folder(result.save(tmp_path / "api_invols"), cli)
+    from afmtool.records.invols import InvolsResults, Leg
+
+    typed = result.results  # the typed record, read back from report.json
+    assert isinstance(typed, InvolsResults) and typed.leg is Leg.APPROACH
+    assert typed.to_json() == result.report["results"]
+    assert result.summary["InvOLS (contact slope)"].value == typed.invols_nm_per_v
     assert result.summary[0].units == "nm/V"
 
 

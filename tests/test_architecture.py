@@ -150,6 +150,7 @@ def test_the_repeat_check_can_fail():
 #: A module may import from its own floor and from any floor below it, never from one above.
 FLOORS: tuple[tuple[str, ...], ...] = (
     ("errors", "jit"),  # the ground: exceptions and the numba options; they import nothing of afmtool
+    ("records",),  # the typed result records of each command, with their headlines (standard library only)
     ("config",),  # parameters, defaults, sample counts
     ("runtime",),  # atomic outputs, the input registry, faults, deferred signals
     ("models",),  # cantilever, forces, thermal sensor, discretisation

@@ -61,7 +61,8 @@ def test_each_derived_table_holds_the_commands_whose_spec_has_that_part():
 
     specs = SPECS.values()
     assert EXAMPLES == {s.name: s.examples for s in specs} and set(EXAMPLES) == set(SPECS)
-    assert HEADLINES == {s.name: s.headline for s in specs if s.headline is not None}
+    assert HEADLINES == {s.name: s.result.load().HEADLINE if s.result else s.headline for s in specs
+                         if s.kind is not Kind.TOOL}
     assert set(HEADLINES) == set(SPECS) - _with(Kind.TOOL)
     assert MAIN_FIGURES == {s.name: s.main_figures for s in specs if s.main_figures is not None}
     assert SECTIONS == {name: model for s in specs for name, model in s.sections()}
@@ -101,7 +102,7 @@ def test_the_api_and_the_cli_bind_the_specs_runners():
 
 _CAPTURE = dict(
     params=(Section(dict),), runner=Lazy("afmtool.analyses.reep_outputs", "run_reep_command"),
-    examples=("afmtool x capture.h5 --out results/x",), main_figures=(), headline=(Item("n", "n"),),
+    examples=("afmtool x capture.h5 --out results/x",), main_figures=(), result=Lazy("afmtool.records.invols", "InvolsResults"),
     channels=("deflection",),
 )
 
@@ -125,6 +126,8 @@ def test_a_spec_lacking_a_required_part_is_refused_as_it_is_built(kind):
         (Kind.ANALYSIS, {"channels": ("deflection",)}, "channels"),
         (Kind.ANALYSIS, {"synthesised_drive": True}, "synthesised_drive"),
         (Kind.TOOL, {"headline": ()}, "headline"),
+        (Kind.TOOL, {"result": Lazy("afmtool.records.invols", "InvolsResults")}, "result"),
+        (Kind.CAPTURE, {"headline": (Item("n", "n"),)}, "no headline beside a result"),
         (Kind.CAPTURE, {"stream": Lazy("m", "f")}, "stream_units"),
         (Kind.CAPTURE, {"examples": ()}, "examples"),
     ],
@@ -138,9 +141,9 @@ def test_a_spec_with_a_part_it_must_not_have_is_refused(kind, extra, needle):
 def test_the_check_fails_a_spec_that_lost_a_part_and_a_table_out_of_step_with_the_cli():
     whole = CommandSpec("x", Kind.CAPTURE, **_CAPTURE)
     broken = dataclasses.replace(whole)
-    object.__setattr__(broken, "headline", None)  # past the constructor's check: the check function finds it
-    assert missing_parts(broken) == ["headline"]
-    assert check_specs({"x": broken}, ["x"]) == ["x: lacks headline"]
+    object.__setattr__(broken, "result", None)  # past the constructor's check: the check function finds it
+    assert missing_parts(broken) == ["result"]
+    assert check_specs({"x": broken}, ["x"]) == ["x: lacks result"]
     assert check_specs({"x": whole}, ["x", "y"]) == ["y: a command without a spec"]
     assert check_specs({"x": whole}, []) == ["x: a spec without a command"]
     assert check_specs({"z": whole}, ["z"]) == ["z: its spec is named 'x'"]

@@ -24,6 +24,7 @@ from afmtool.estimators.stages import RecordStage
 from afmtool.io.capture import CaptureReader
 from afmtool.io.units import calibration_record, parse_unit
 from afmtool.pipeline import run_stream
+from afmtool.records.invols import InvolsResults, Leg
 from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -43,7 +44,7 @@ def _leg(z: np.ndarray, leg: str) -> slice:
     return slice(0, z.size)
 
 
-def identify_invols(reader: CaptureReader, params: InvolsParams, warnings: list[str]) -> tuple[dict, dict]:
+def identify_invols(reader: CaptureReader, params: InvolsParams, warnings: list[str]) -> tuple[InvolsResults, dict]:
     """Fit the contact slope of one leg; return (results, plot data).
 
     Raises
@@ -71,31 +72,15 @@ def identify_invols(reader: CaptureReader, params: InvolsParams, warnings: list[
     fit = fit_contact_slope(z[part], d[part], skip_fraction=params.skip_fraction)
     d_kind = parse_unit(d_units).kind if d_units else "none"
     note = info.capture_metadata.cantilever.deflection_sensitivity_nm_per_v
-    results: dict = {
-        "leg": params.leg,
-        "points": int(z[part].size),
-        "contact_z_nm": fit.contact_z_nm,
-        "contact_side": "z above the contact point" if fit.contact_side > 0 else "z below the contact point",
-        "fitted_points": fit.n_fitted,
-        "fitted_z_range_nm": list(fit.z_range_nm),
-        "contact_slope": fit.slope,
-        "contact_slope_std": fit.slope_std,
-        "contact_slope_units": f"{d_units or 'deflection units'}/nm",
-        "rms_residual": fit.rms_residual,
-        "capture_invols_nm_per_v": float(note) if note is not None else None,
-        "note": "the InvOLS is 1/|slope| only on a hard (incompressible) sample; on a soft one the tip indents "
-        "and |slope| is smaller",
-    }
+    invols = implied = (None, None)
     if d_kind == "voltage":
         # V/nm → nm/V; δ(1/s) = δs/s²
-        results["invols_nm_per_v"] = 1.0 / abs(fit.slope)
-        results["invols_std_nm_per_v"] = fit.slope_std / fit.slope**2
+        invols = (1.0 / abs(fit.slope), fit.slope_std / fit.slope**2)
     elif d_kind in ("length", "none"):
         # the file's deflection is already detector volts × the capture's InvOLS: a hard-contact slope of 1
         # confirms that InvOLS, any other slope s asks for InvOLS/s
         if note is not None:
-            results["implied_invols_nm_per_v"] = float(note) / abs(fit.slope)
-            results["implied_invols_std_nm_per_v"] = float(note) * fit.slope_std / fit.slope**2
+            implied = (float(note) / abs(fit.slope), float(note) * fit.slope_std / fit.slope**2)
         if abs(fit.slope) < 0.9:
             warnings.append(
                 f"contact slope {fit.slope:.3g} nm/nm is well below 1: a soft sample (indentation), or the "
@@ -104,6 +89,17 @@ def identify_invols(reader: CaptureReader, params: InvolsParams, warnings: list[
     else:
         raise InputError(f"{info.source}: channel {params.deflection_channel!r} is in {d_units!r}; "
                          "a deflection must be in V or a length")
+    results = InvolsResults(
+        leg=Leg(params.leg), points=int(z[part].size), contact_z_nm=fit.contact_z_nm,
+        contact_side="z above the contact point" if fit.contact_side > 0 else "z below the contact point",
+        fitted_points=fit.n_fitted, fitted_z_range_nm=tuple(fit.z_range_nm), contact_slope=fit.slope,
+        contact_slope_std=fit.slope_std, contact_slope_units=f"{d_units or 'deflection units'}/nm",
+        rms_residual=fit.rms_residual, capture_invols_nm_per_v=float(note) if note is not None else None,
+        note="the InvOLS is 1/|slope| only on a hard (incompressible) sample; on a soft one the tip indents "
+        "and |slope| is smaller",
+        invols_nm_per_v=invols[0], invols_std_nm_per_v=invols[1],
+        implied_invols_nm_per_v=implied[0], implied_invols_std_nm_per_v=implied[1],
+    )
     plot = {"z": z[part], "d": d[part], "fit": fit, "z_units": "nm", "d_units": d_units}
     return results, plot
 
@@ -136,7 +132,7 @@ def run_invols_command(
     params = resolve_from(InvolsParams, "identify.invols", load_toml(config) if config else None, flags)
     warnings: list[str] = []
     results, plot = identify_invols(reader, params, warnings)
-    if not all(math.isfinite(v) for v in (results["contact_slope"], results["contact_slope_std"])):
+    if not all(math.isfinite(v) for v in (results.contact_slope, results.contact_slope_std)):
         raise InputError(f"{reader.info.source}: the contact part has no z spread to fit a slope to")
     inputs = [{**input_record(source), **calibration_record(reader)}]
     with OutputDir(out) as staged:

@@ -4,8 +4,7 @@ A :class:`Result` is a thin, frozen wrapper over what the command wrote: its
 ``report.json`` and the files beside it, in a private folder the object owns
 (removed when it is garbage-collected).  ``.save(out)`` writes exactly the
 CLI's output folder (the same files, copied, committed atomically).  Typed
-per-command records (issue 29) can replace :attr:`Result.report` reading
-without changing this interface.
+per-command records (issue 29) are what :attr:`Result.results` gives.
 """
 
 from __future__ import annotations
@@ -97,9 +96,16 @@ class Result:
         return json.loads(self._report_text)
 
     @property
-    def results(self) -> dict:
-        """``report.json``'s ``results``."""
-        return self.report["results"]
+    def results(self) -> Any:
+        """``report.json``'s ``results``: the command's typed result record (``afmtool.records``).
+
+        ``inv.results.invols_nm_per_v``; a command whose results are not yet a record gives the dict.
+        """
+        from afmtool.config.commands import SPECS
+
+        record = SPECS[self.command].result
+        results = self.report["results"]
+        return record.load().from_json(results) if record is not None else results
 
     @property
     def parameters(self) -> dict:

@@ -42,7 +42,7 @@ from afmtool.config.headline_items import Item
 
 __all__ = [
     "Kind", "Lazy", "Section", "CommandSpec", "SPECS", "REQUIRED", "missing_parts", "check_specs", "spec",
-    "sections", "examples", "headlines", "main_figures", "batch_commands", "capture_commands",
+    "sections", "examples", "headlines", "results", "main_figures", "batch_commands", "capture_commands",
 ]
 
 
@@ -118,8 +118,12 @@ class CommandSpec:
     main_figures : tuple of str
         Its figures a reader sees first on the HTML page, in order; ``()`` puts none first
         (the page shows the figures by name).
+    result : Lazy
+        Its root result record (:mod:`afmtool.records`): the ``results`` of its report.json, whose
+        ``HEADLINE`` is its headline.
     headline : tuple of Item
-        Its headline numbers (:mod:`afmtool.report.headline`).
+        Its headline numbers (:mod:`afmtool.report.headline`), for a command whose results are not yet a
+        record.
     batch : str or None
         Its name under ``afmtool batch`` (``"freeair"``); None when batch does not run it.
     channels : tuple of str
@@ -136,6 +140,7 @@ class CommandSpec:
     stream_units: Lazy | None = None
     examples: tuple[str, ...] | None = None
     main_figures: tuple[str, ...] | None = None
+    result: Lazy | None = None
     headline: tuple[Item, ...] | None = None
     batch: str | None = None
     channels: tuple[str, ...] | None = None
@@ -158,8 +163,8 @@ class CommandSpec:
 
 #: The parts each kind must declare (a part declared empty, ``()``, is declared).
 REQUIRED: Mapping[Kind, tuple[str, ...]] = {
-    Kind.CAPTURE: ("params", "runner", "examples", "main_figures", "headline", "channels"),
-    Kind.ANALYSIS: ("params", "runner", "examples", "main_figures", "headline"),
+    Kind.CAPTURE: ("params", "runner", "examples", "main_figures", "result", "channels"),
+    Kind.ANALYSIS: ("params", "runner", "examples", "main_figures", "result"),
     Kind.TOOL: ("examples",),
 }
 #: Parts only a capture command may have: the stream and its capture's channels and drive.
@@ -168,13 +173,17 @@ _CAPTURE_ONLY = ("stream", "stream_units", "channels")
 
 def missing_parts(spec: CommandSpec) -> list[str]:
     """The parts ``spec`` lacks for its kind, and those it has but must not; empty when it is whole."""
-    problems = [part for part in REQUIRED[spec.kind] if getattr(spec, part) is None]
+    # a command whose results are not yet a record declares its headline instead (issue 29, item 2)
+    problems = [part for part in REQUIRED[spec.kind]
+                if getattr(spec, part) is None and not (part == "result" and spec.headline is not None)]
     if spec.kind is not Kind.CAPTURE:
         problems += [f"no {part} (capture commands only)" for part in _CAPTURE_ONLY if getattr(spec, part) is not None]
         if spec.synthesised_drive:
             problems.append("no synthesised_drive (capture commands only)")
-    if spec.kind is Kind.TOOL and spec.headline is not None:
-        problems.append("no headline (a tool writes no report.json)")
+    if spec.kind is Kind.TOOL and (spec.headline is not None or spec.result is not None):
+        problems.append("no result or headline (a tool writes no report.json)")
+    if spec.headline is not None and spec.result is not None:
+        problems.append("no headline beside a result (the record declares it)")
     if (spec.stream is None) != (spec.stream_units is None):
         problems.append("stream and stream_units (both or neither)")
     if spec.examples == ():
@@ -291,7 +300,7 @@ _IDENTIFY_INVOLS = CommandSpec(
     examples=("afmtool identify invols curve_on_sapphire.ibw --out results/invols",
               "afmtool identify invols scope.csv --channel deflection=CH1 --channel z_piezo=CH2 "
               "--z-sensitivity 12.5 --out results/invols"),
-    main_figures=(), headline=H.INVOLS, batch="invols",
+    main_figures=(), result=Lazy("afmtool.records.invols", "InvolsResults"), batch="invols",
 )
 _DESIGN_EXCITATION = CommandSpec(
     "design excitation", Kind.ANALYSIS, _own(P.DesignExcitationParams),
@@ -350,8 +359,18 @@ def examples() -> dict[str, tuple[str, ...]]:
 
 
 def headlines() -> dict[str, tuple[Item, ...]]:
-    """Command -> its headline items, for the commands that write report.json (``report.headline.HEADLINES``)."""
-    return {s.name: s.headline for s in SPECS.values() if s.headline is not None}
+    """Command -> its headline items, for the commands that write report.json (``report.headline.HEADLINES``).
+
+    A command with a result record declares them on it (its ``HEADLINE``); the records are light
+    (standard library only).
+    """
+    return {s.name: s.result.load().HEADLINE if s.result is not None else s.headline
+            for s in SPECS.values() if s.kind is not Kind.TOOL}
+
+
+def results() -> dict[str, type]:
+    """Command -> its root result record, for the commands that have one."""
+    return {s.name: s.result.load() for s in SPECS.values() if s.result is not None}
 
 
 def main_figures() -> dict[str, tuple[str, ...]]:

@@ -3,62 +3,20 @@
 A command's headline (:mod:`afmtool.report.headline`) is declared here, beside the
 command's other parts (:mod:`afmtool.config.commands`), so that the one
 command table can name it while staying light: nothing here imports beyond the
-standard library, and ``afmtool --help`` reads this module.  Every
+standard library (and :mod:`afmtool.records.base`, which declares :class:`Item`), and
+``afmtool --help`` reads this module.  A command whose results are a typed record declares its
+headline on the record instead (:mod:`afmtool.records`); the rest move there one by one.  Every
 ``Item`` names a dotted path into the run's ``results``; nothing is computed here.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from afmtool.records.base import Item
 
 __all__ = [
     "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR", "GAMMA", "ELECTROSTATIC", "THERMAL",
-    "INVOLS", "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
+    "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
 ]
-
-
-@dataclass(frozen=True)
-class Item:
-    """One headline number, as a command declares it.
-
-    Attributes
-    ----------
-    label : str
-        What the number is, for a reader ("f0' in the free-air segment").
-    path : str
-        Dotted path of the value in ``results`` ("segments.free_air.f0_hz.mean").
-    units : str
-        Its units ("" when dimensionless); ``"@path"`` reads them from ``results``.
-    std : str, optional
-        Dotted path of its standard deviation.
-    at : str, optional
-        Dotted path of where it occurs (the z of a force curve's largest shift).
-    at_label : str
-        The name of that coordinate ("z", "separation").
-    at_units : str
-        Its units, or ``"@path"``.
-    note : str, optional
-        Dotted path of a word on its standing ("identified", "not identifiable").
-    text : bool
-        The value may be text or a yes/no (a verdict), not only a number.
-    scores : bool
-        A score that a failed premise undermines: left out when a :class:`State` says so.
-    needs : str, optional
-        Dotted path of a flag in ``results``: the item is left out when it is False
-        (Q′ items need ``q_identifiable``).
-    """
-
-    label: str
-    path: str
-    units: str = ""
-    std: str | None = None
-    at: str | None = None
-    at_label: str = "z"
-    at_units: str = ""
-    note: str | None = None
-    text: bool = False
-    scores: bool = False
-    needs: str | None = None
 
 
 def _free_air_model(prefix: str = "free_air_model") -> tuple[Item, ...]:
@@ -173,14 +131,6 @@ THERMAL = (
     Item("C(jω) −3 dB bandwidth", "dynamics.c.bandwidth_hz", "Hz"),
     Item("H(jω) DC gain", "dynamics.h.dc_gain_k_per_nm", "K/nm"),
     Item("H(jω) −3 dB bandwidth", "dynamics.h.bandwidth_hz", "Hz"),
-)
-
-INVOLS = (
-    Item("InvOLS (contact slope)", "invols_nm_per_v", "nm/V", "invols_std_nm_per_v"),
-    Item("InvOLS implied by the contact slope", "implied_invols_nm_per_v", "nm/V", "implied_invols_std_nm_per_v"),
-    Item("InvOLS of the capture (metadata)", "capture_invols_nm_per_v", "nm/V"),
-    Item("contact slope", "contact_slope", "@contact_slope_units", "contact_slope_std"),
-    Item("contact point z", "contact_z_nm", "nm"),
 )
 
 COMPARE = (

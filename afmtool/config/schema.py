@@ -1,13 +1,14 @@
-"""JSON schemas of the config sections, generated from the parameter declarations.
+"""JSON schemas of the config sections and of each command's results, generated from their declarations.
 
 One schema per ``[section]`` of ``defaults.toml`` (every command's parameter
-model and every ``simulate.SCENARIO``), written to ``schemas/params/`` at the
-repository root.  Regenerate with::
+model and every ``simulate.SCENARIO``), written to ``schemas/params/``, and one
+per command's ``results`` (its result record, :mod:`afmtool.records`), written
+to ``schemas/results/``, at the repository root.  Regenerate with::
 
-    python -m afmtool.config.schema            # writes schemas/params/*.schema.json
+    python -m afmtool.config.schema            # writes schemas/params/ and schemas/results/
     python -m afmtool.config.schema --check    # exit 1 if any file is stale
 
-A test (``tests/test_params_model.py``) checks that the committed files are current.
+Tests (``tests/test_params_model.py``, ``tests/test_records.py``) check that the committed files are current.
 """
 
 from __future__ import annotations
@@ -22,10 +23,13 @@ from typing import Any
 
 from afmtool.config import describe_bounds
 
-__all__ = ["section_schema", "all_schemas", "schema_filename", "write_schemas", "SCHEMA_DIR"]
+__all__ = ["section_schema", "all_schemas", "result_schemas", "schema_filename", "write_schemas", "SCHEMA_DIR",
+           "RESULT_SCHEMA_DIR"]
 
 #: Where the generated schemas live (beside ``capture-metadata.schema.json``).
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas" / "params"
+#: Where the schemas of each command's ``results`` live, generated from its result record.
+RESULT_SCHEMA_DIR = SCHEMA_DIR.parent / "results"
 
 _JSON_TYPES = {float: "number", int: "integer", bool: "boolean", str: "string"}
 
@@ -108,9 +112,16 @@ def _text(schema: dict) -> str:
     return json.dumps(schema, indent=2, ensure_ascii=False) + "\n"
 
 
-def write_schemas(directory: Path = SCHEMA_DIR, *, check: bool = False) -> list[str]:
+def result_schemas() -> dict[str, dict]:
+    """File name -> schema of ``results``, for every command with a result record (:mod:`afmtool.records`)."""
+    from afmtool.config.commands import results
+
+    return {schema_filename(command.replace(" ", ".")): record.json_schema() for command, record in results().items()}
+
+
+def write_schemas(directory: Path = SCHEMA_DIR, *, check: bool = False, schemas: dict | None = None) -> list[str]:
     """Write (or with ``check``, compare) every schema; returns the names that were stale."""
-    schemas = all_schemas()
+    schemas = all_schemas() if schemas is None else schemas
     stale = []
     for name, schema in schemas.items():
         path = directory / name
@@ -129,8 +140,11 @@ def write_schemas(directory: Path = SCHEMA_DIR, *, check: bool = False) -> list[
 
 
 if __name__ == "__main__":
-    stale = write_schemas(check="--check" in sys.argv[1:])
-    if "--check" in sys.argv[1:]:
-        print("\n".join(f"stale: schemas/params/{name}" for name in stale) or "schemas/params is current")
-        sys.exit(1 if stale else 0)
-    print(f"wrote {len(stale)} schema(s) to {SCHEMA_DIR}")
+    check = "--check" in sys.argv[1:]
+    stale = {"params": write_schemas(check=check),
+             "results": write_schemas(RESULT_SCHEMA_DIR, check=check, schemas=result_schemas())}
+    if check:
+        print("\n".join(f"stale: schemas/{folder}/{name}" for folder, names in stale.items() for name in names)
+              or "schemas/params and schemas/results are current")
+        sys.exit(1 if any(stale.values()) else 0)
+    print(f"wrote {sum(map(len, stale.values()))} schema(s) to {SCHEMA_DIR.parent}")

@@ -41,10 +41,11 @@ entry named ``"warning"`` whose ``source`` is the number that says so
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, NamedTuple
+from typing import Any
 
 from afmtool.config.commands import headlines
 from afmtool.config.headline_items import Item
+from afmtool.records import Record, State
 from afmtool.report.numbers import format_measurement, format_with_units
 
 __all__ = [
@@ -90,14 +91,6 @@ def _units(results: Mapping, units: str) -> str:
 
 
 # --------------------------------------------------------------------------- states before numbers
-
-
-class State(NamedTuple):
-    """The run's state where it undermines its own numbers: said first, and maybe the scores left out."""
-
-    text: str
-    source: str
-    hides_scores: bool = True
 
 
 def _number_at(results: Mapping, path: str) -> float | None:
@@ -218,9 +211,12 @@ def _entry(item: Item, results: Mapping) -> dict | None:
             "std_source": std_source, "at": at, "note": note, "text": text}
 
 
-def headline(command: str, results: Mapping) -> list[dict]:
+def headline(command: str, results: Record | Mapping) -> list[dict]:
     """The headline entries of ``command``'s ``results`` (JSON-ready), in reading order.
 
+    ``results`` is the command's root :class:`~afmtool.records.Record`: its
+    ``HEADLINE`` items and ``STATES`` rules are the declaration read here
+    (a mapping is read by the command's declaration in :data:`HEADLINES`).
     Each entry is ``{"name", "value", "std", "units", "source", "std_source", "at", "note", "text"}``:
     ``value`` is ``results`` at the dotted path ``source`` and ``std`` (its
     standard deviation, or None) at ``std_source``; ``units`` is ``""`` for a
@@ -232,13 +228,18 @@ def headline(command: str, results: Mapping) -> list[dict]:
     :data:`STATE_NAME` (text) come first: the run's state where it undermines
     its own numbers (module docstring), and the scores it undermines are left out.
     """
+    if isinstance(results, Record):
+        rules, declared, subject = type(results).STATES, type(results).HEADLINE, results
+        results = results.to_json()
+    else:
+        rules, declared, subject = STATES.get(command, ()), HEADLINES.get(command, ()), results
     states: list[State] = []
-    for rule in STATES.get(command, ()):
-        state = rule(results, any(s.hides_scores for s in states))
+    for rule in rules:
+        state = rule(subject, any(s.hides_scores for s in states))
         if state is not None:
             states.append(state)
     hide_scores = any(s.hides_scores for s in states)
-    items = [item for item in HEADLINES.get(command, ())
+    items = [item for item in declared
              if not (item.scores and hide_scores) and not (item.needs and lookup(results, item.needs) is False)]
     entries = [entry for entry in (_entry(item, results) for item in items) if entry is not None]
     said = [{"name": STATE_NAME, "value": s.text, "std": None, "units": "", "source": s.source, "std_source": None,

@@ -14,9 +14,12 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import afmtool
+
+if TYPE_CHECKING:
+    from afmtool.records import Record
 
 __all__ = ["sha256_file", "file_hash", "input_record", "SampleInputRecord", "build_report", "to_jsonable", "dumps"]
 
@@ -101,7 +104,7 @@ def build_report(
     command: str,
     inputs: Sequence[Mapping],
     parameters: Mapping,
-    results: Mapping,
+    results: Record | Mapping,
     outputs: Sequence[str],
     warnings: Sequence[str] = (),
 ) -> dict:
@@ -112,13 +115,14 @@ def build_report(
     page and batch's summary show.  ``warning_shares`` gives each warning's
     share of the samples (:class:`afmtool.errors.SampleShareWarning`), or None.
     """
+    from afmtool.records import Record
     from afmtool.report.headline import headline
 
-    jsonable_results = to_jsonable(results)
+    jsonable_results = results.to_json() if isinstance(results, Record) else to_jsonable(results)
     return {
         "afmtool_version": afmtool.__version__,
         "command": command,
-        "headline": headline(command, jsonable_results),
+        "headline": headline(command, results if isinstance(results, Record) else jsonable_results),
         "inputs": to_jsonable(list(inputs)),
         "parameters": to_jsonable(parameters),
         "results": jsonable_results,

@@ -5,11 +5,14 @@ from __future__ import annotations
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from afmtool.config import parameters_dict, section_to_toml
 from afmtool.report.json_report import build_report, dumps
 from afmtool.runtime.outputs import OutputDir
+
+if TYPE_CHECKING:
+    from afmtool.records import Record
 
 __all__ = ["finish_run", "result_format"]
 
@@ -40,7 +43,7 @@ def finish_run(
     inputs: Sequence[Mapping],
     section: str,
     params: Any,
-    results: Mapping,
+    results: Record | Mapping,
     warnings: Sequence[str],
 ) -> dict:
     """Write ``config.toml`` (effective parameters) and ``report.json``; return the report.
