@@ -114,3 +114,38 @@ def test_batch_gives_each_run_the_options_on_its_command_line():
                         "--out", "out/in", "--quiet", "--no-input"]
     assert "--max-samples" not in child_command(["reep"], item, []) and "--wait" not in child_command(["reep"], item, [])
     assert RunOptions(wait=True).args() == ["--wait"]
+
+
+def test_every_python_function_takes_max_file_samples_and_passes_it_to_its_reader(sparse):
+    import inspect
+
+    import afmtool
+    from afmtool.api import commands
+
+    for name in commands.__all__:
+        parameter = inspect.signature(getattr(afmtool, name)).parameters.get("max_file_samples")
+        assert parameter is not None and parameter.default is None, name
+        assert "max_file_samples : int, optional" in getattr(afmtool, name).__doc__, name
+    with pytest.raises(InputError, match="give afmtool --max-samples N"):
+        afmtool.reep(sparse, use_input=False)
+    with pytest.raises(InputError, match="more than --max-samples 1,000"):
+        afmtool.reep(sparse, use_input=False, max_file_samples=1000)
+    with pytest.raises(InputError, match="more than --max-samples 1,000"):  # stream=True runs in a thread of its own
+        next(iter(afmtool.reep(sparse, use_input=False, stream=True, max_file_samples=1000)))
+    with pytest.raises(InputError, match="more than --max-samples 1,000"):
+        afmtool.identify_invols(sparse, max_file_samples=1000)
+    assert current() == DEFAULTS
+
+
+def test_result_save_waits_for_the_folder_with_wait(tmp_path):
+    import afmtool
+    from afmtool.runtime.atomic import OutputError
+
+    result = afmtool.theory_averaging(force_set="attractive", points=40)
+    out = tmp_path / "out"
+    held = open(tmp_path / ".out.lock", "wb")  # noqa: SIM115 - closed by the timer, to let the waiter in
+    fcntl.flock(held, fcntl.LOCK_EX)
+    with pytest.raises(OutputError, match="give afmtool --wait"):
+        result.save(out)
+    threading.Timer(0.3, held.close).start()
+    assert result.save(out, wait=True) == out and (out / "report.json").is_file()

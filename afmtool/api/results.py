@@ -145,11 +145,15 @@ class Result:
 
         return result_dataset(self.folder, self.report).load()
 
-    def save(self, out_dir: str | Path) -> Path:
-        """Write the CLI's output folder for this run to ``out_dir`` (atomically; an existing run there is replaced)."""
-        from afmtool.runtime.outputs import OutputDir
+    def save(self, out_dir: str | Path, *, wait: bool = False) -> Path:
+        """Write the CLI's output folder for this run to ``out_dir`` (atomically; an existing run there is replaced).
 
-        with OutputDir(Path(out_dir)) as staged:
+        ``wait`` (``afmtool --wait``): wait for another run writing ``out_dir`` instead of failing.
+        """
+        from afmtool.runtime.outputs import OutputDir
+        from afmtool.runtime.run_options import RunOptions, applied
+
+        with applied(RunOptions(wait=wait)), OutputDir(Path(out_dir)) as staged:
             for name in self.outputs:
                 source = self.folder / name
                 if source.is_dir():

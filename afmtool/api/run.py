@@ -202,7 +202,8 @@ def run_capture_command(command: str, capture: Capture | str | Path, out: Path, 
             return runner(run)
 
 
-def run_stream_rows(command: str, capture: Capture | str | Path, flags: Mapping, config: Path | None, sink) -> None:
+@_in_scope
+def run_stream_rows(command: str, capture: Capture | str | Path, flags: Mapping, settings: RunSettings, sink) -> None:
     """reep, probeloss or decode with its rows going to ``sink`` (``append(columns)``) as each chunk completes."""
     capture = as_capture(capture)
     options = capture_options_for(command, capture, flags)
@@ -211,7 +212,7 @@ def run_stream_rows(command: str, capture: Capture | str | Path, flags: Mapping,
         raise ConfigError(f"{command} has no --stream")
     runner = stream.load()
     with capture.open_reader(options) as reader:
-        runner(reader, config, flags, sink)
+        runner(reader, settings.config, flags, sink)
 
 
 @_in_scope

@@ -198,7 +198,7 @@ def run_streaming_command(name: str, capture: str, source_args: tuple, output, f
     if streaming:
         check_stream_format(stream_format)
         with stdout_pipe():
-            run_stream_rows(name, source, flags, output.config, stream_format)
+            run_stream_rows(name, source, flags, output.settings(), stream_format)
         return
     if output.out is None:
         raise ConfigError("--out is required (or use --stream)")
