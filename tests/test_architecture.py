@@ -171,11 +171,6 @@ FLOOR_EXCEPTIONS: dict[tuple[str, str], str] = {
         "the generator of defaults.toml and the parameter schemas lists the simulator's scenarios' "
         "parameters beside the commands'; it runs when the file is regenerated, not in a command"
     ),
-    ("analyses/batch.py", "afmtool.cli"): (
-        "batch drives the CLI (one `afmtool COMMAND` process per input) and parses each run's own "
-        "arguments with the command's click options for its resume check; its command list now comes "
-        "from config/commands.SPECS, but the option parsing still needs the click tree: to move under cli/"
-    ),
 }
 
 

@@ -143,3 +143,17 @@ def test_batch_iterates_the_curves_of_a_map(tmp_path, shared):
     again = run_cli(*args)
     with open(out / "summary.csv") as handle:
         assert [row["status"] for row in csv.DictReader(handle)] == ["skipped"] * 4, again.stderr.decode()
+
+
+def test_the_resume_check_reads_the_input_with_the_runs_own_capture_options(tmp_path, captures):
+    """The CLI hands batch its option parser (no import up a floor): a run read in pm is checked in pm."""
+    from afmtool.analyses.batch import plan_batch, run_one
+    from afmtool.cli.batch_cmd import capture_options_of
+
+    args = ["--units", "deflection=pm", "--no-input"]
+    assert capture_options_of(["reep"], str(captures / "c0.h5"), args) is not None
+    (item,) = plan_batch([captures / "c0.h5"], tmp_path / "batch")
+    assert run_one(["reep"], item, args, options_of=capture_options_of).status == "ok"
+    assert run_one(["reep"], item, args, options_of=capture_options_of).status == "skipped"
+    # read with the capture's defaults (nm), the samples hash differently from the run's (pm): redone
+    assert run_one(["reep"], item, args).status == "ok"

@@ -20,6 +20,7 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from afmtool.errors import ConfigError, InputError, one_line
 from afmtool.report.json_report import sha256_file
@@ -140,7 +141,13 @@ def _output_hashes(folder: Path, names: Sequence[str]) -> dict[str, str]:
     return {name: sha256_file(folder / name) for name in names if (folder / name).is_file()}
 
 
-def _complete(item: BatchItem, command: Sequence[str] = (), extra_args: Sequence[str] = ()) -> dict | None:
+#: ``options_of(command, source, extra_args)``: the capture options a run of ``afmtool COMMAND SOURCE
+#: EXTRA_ARGS`` reads with, or None (the CLI's own option parsing: :func:`afmtool.cli.batch_cmd.capture_options_of`).
+OptionsOf = Callable[[Sequence[str], str, Sequence[str]], Any]
+
+
+def _complete(item: BatchItem, command: Sequence[str] = (), extra_args: Sequence[str] = (),
+              options_of: OptionsOf | None = None) -> dict | None:
     """The existing report if the subfolder holds this input's finished result, every file intact.
 
     Intact means: report.json is for the same input bytes, and every output
@@ -158,20 +165,21 @@ def _complete(item: BatchItem, command: Sequence[str] = (), extra_args: Sequence
         manifest = json.loads(_manifest_path(item).read_text())
     except (ValueError, KeyError, IndexError, TypeError, OSError, RecursionError):
         return None
-    if not _input_unchanged(item.source, recorded, command, extra_args):
+    if not _input_unchanged(item.source, recorded, command, extra_args, options_of):
         return None
     if any(not (folder / name).exists() for name in names):
         return None
     return report if manifest == _output_hashes(folder, names) else None
 
 
-def _input_unchanged(source: str, recorded, command: Sequence[str] = (), extra_args: Sequence[str] = ()) -> bool:
+def _input_unchanged(source: str, recorded, command: Sequence[str] = (), extra_args: Sequence[str] = (),
+                     options_of: OptionsOf | None = None) -> bool:
     """Whether ``source`` still has the hash its report recorded, by the report's own algorithm.
 
     A file hash (sha256) is recomputed over the file; a sample hash (XXH3-128,
     :mod:`afmtool.io.provenance`) over the same channels, read through the one
     reader stack with the run's own capture options (``--arg=--invols=50``...,
-    :func:`capture_options_of`).  A run made with ``--no-hash`` cannot be checked
+    ``options_of``, the CLI's parsing of them).  A run made with ``--no-hash`` cannot be checked
     this way and is redone.
     """
     if not isinstance(recorded, dict):
@@ -182,45 +190,11 @@ def _input_unchanged(source: str, recorded, command: Sequence[str] = (), extra_a
         from afmtool.io.provenance import hash_matches
         from afmtool.io.stack import CaptureOptions, open_capture
 
-        options = capture_options_of(command, source, extra_args) if command else None
+        options = options_of(command, source, extra_args) if command and options_of else None
         with open_capture(source, options or CaptureOptions()) as reader:
             return hash_matches(recorded, reader)
     except (InputError, ConfigError, OSError, ValueError):
         return False
-
-
-#: Commands whose runs may synthesise the dither from metadata drive.lines (as their CLI does).
-_ACCEPTS_DRIVE = ("reep", "probeloss", "kalman-bank")
-
-
-def capture_options_of(command: Sequence[str], source: str, extra_args: Sequence[str]):
-    """The :class:`~afmtool.io.stack.CaptureOptions` a run of ``afmtool COMMAND SOURCE EXTRA_ARGS`` reads with.
-
-    The extra arguments are parsed by the command's own options (click), so ``--invols``,
-    ``--units``, ``--channel``, ``--segment``, ``--drive`` mean here what they mean to the run.
-    None when they cannot be parsed (the run itself will say why).
-    """
-    import typer.main
-
-    from afmtool.cli.calibration_options import CaptureCalibration, capture_options
-    from afmtool.cli.main import app
-
-    try:
-        click_command = typer.main.get_command(app)
-        for word in command:
-            click_command = click_command.commands[word]
-        values = click_command.make_context("afmtool", [source, *extra_args, "--out", "-"],
-                                            resilient_parsing=True).params
-        calibration = CaptureCalibration(values.get("units"), values.get("invols"), values.get("z_sensitivity"),
-                                         values.get("drive"), values.get("free_air") or None,
-                                         accepts_drive=" ".join(command) in _ACCEPTS_DRIVE)
-        from afmtool.io.registry import Selection
-
-        selection = Selection(values.get("segment"), values.get("curve"), values.get("group"))
-        return capture_options(values.get("channel"), values.get("topic"), values.get("sample_rate"), calibration,
-                               segment=selection)
-    except Exception:  # noqa: BLE001 - click's own usage errors, a bad value: the run reports them; no check here
-        return None
 
 
 def headline(report: dict) -> dict:
@@ -266,16 +240,17 @@ def child_command(command: Sequence[str], item: BatchItem, extra_args: Sequence[
 
 
 def run_one(command: Sequence[str], item: BatchItem, extra_args: Sequence[str], retry_failed: bool = False,
-            options: RunOptions = DEFAULTS) -> BatchOutcome:
+            options: RunOptions = DEFAULTS, options_of: OptionsOf | None = None) -> BatchOutcome:
     """Run one input as a separate afmtool process (on whichever worker Dask chose).
 
     Completed inputs are skipped; an input that failed before with the same
     bytes is reported failed again without rerunning unless ``retry_failed``.
-    ``options`` (``afmtool --max-samples``, ``--wait``) apply to the resume check here and to the run.
+    ``options`` (``afmtool --max-samples``, ``--wait``) apply to the resume check here and to the run;
+    ``options_of`` reads the run's own capture options for that check (None: the capture's defaults).
     """
     extra_args = [*item.selection, *extra_args]  # a map's curve: --curve N, for the run and its resume check
     with applied(options):  # the resume check reads the input as the run would
-        existing = _complete(item, command, extra_args)
+        existing = _complete(item, command, extra_args, options_of)
     if existing is not None:
         return BatchOutcome(item.label, item.out_dir, "skipped", "outputs complete", headline(existing))
     known = None if retry_failed else _known_failure(item)
@@ -366,10 +341,12 @@ def run_batch(
     retry_failed: bool = False,
     scheduler_timeout_s: float = 10.0,
     options: RunOptions = DEFAULTS,
+    options_of: OptionsOf | None = None,
 ) -> list[BatchOutcome]:
     """Submit every item to Dask (a local cluster, or ``scheduler``) and gather outcomes in input order.
 
-    ``options`` (``afmtool --max-samples``, ``--wait``) go to every run on its command line.
+    ``options`` (``afmtool --max-samples``, ``--wait``) go to every run on its command line; ``options_of``
+    (a module-level function, sent to the workers by reference) to each run's resume check.
     """
     try:
         from dask.distributed import Client, LocalCluster, as_completed
@@ -387,7 +364,8 @@ def run_batch(
         client = Client(cluster)
     try:
         futures = {
-            client.submit(run_one, list(command), item, list(extra_args), retry_failed, options, key=f"afmtool-{i}-{item.out_dir}", pure=False): i
+            client.submit(run_one, list(command), item, list(extra_args), retry_failed, options, options_of,
+                          key=f"afmtool-{i}-{item.out_dir}", pure=False): i
             for i, item in enumerate(items)
         }
         outcomes: list[BatchOutcome | None] = [None] * len(items)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -109,7 +110,40 @@ def _run_with_progress(command, items, args, workers, scheduler: tuple, retry_fa
         return run_batch(
             _COMMANDS[command], items, args, workers=workers, scheduler=scheduler[0], on_done=done,
             retry_failed=retry_failed, scheduler_timeout_s=scheduler[1], options=options,
+            options_of=capture_options_of,
         )
+
+
+def capture_options_of(command: Sequence[str], source: str, extra_args: Sequence[str]):
+    """The :class:`~afmtool.io.stack.CaptureOptions` a run of ``afmtool COMMAND SOURCE EXTRA_ARGS`` reads with.
+
+    The extra arguments are parsed by the command's own options (click), so ``--invols``,
+    ``--units``, ``--channel``, ``--segment``, ``--drive`` mean here what they mean to the run:
+    batch's resume check reads the input as the run did.  None when they cannot be parsed (the
+    run itself will say why).
+    """
+    import typer.main
+
+    from afmtool.cli.calibration_options import CaptureCalibration, capture_options
+    from afmtool.cli.main import app
+    from afmtool.config.commands import capture_commands
+    from afmtool.io.registry import Selection
+
+    try:
+        click_command = typer.main.get_command(app)
+        for word in command:
+            click_command = click_command.commands[word]
+        values = click_command.make_context("afmtool", [source, *extra_args, "--out", "-"],
+                                            resilient_parsing=True).params
+        accepts_drive = capture_commands().get(" ".join(command), ((), False))[1]
+        calibration = CaptureCalibration(values.get("units"), values.get("invols"), values.get("z_sensitivity"),
+                                         values.get("drive"), values.get("free_air") or None,
+                                         accepts_drive=accepts_drive)
+        selection = Selection(values.get("segment"), values.get("curve"), values.get("group"))
+        return capture_options(values.get("channel"), values.get("topic"), values.get("sample_rate"), calibration,
+                               segment=selection)
+    except Exception:  # noqa: BLE001 - click's own usage errors, a bad value: the run reports them; no check here
+        return None
 
 
 def _report(outcomes, out: Path, quiet: bool) -> None:
