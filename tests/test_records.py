@@ -6,6 +6,7 @@ import enum
 import json
 import math
 import re
+from collections.abc import Mapping
 from pathlib import Path
 
 import jsonschema
@@ -15,7 +16,7 @@ import pytest
 from afmtool.config.commands import SPECS, Kind, results
 from afmtool.config.schema import RESULT_SCHEMA_DIR, result_schemas, write_schemas
 from afmtool.errors import InputError
-from afmtool.records import Item, Record, optional, record, resolve
+from afmtool.records import Item, Record, inline, lookup, optional, record, resolve
 from afmtool.records.base import walk_schema_objects
 
 PACKAGE = Path(__file__).resolve().parents[1] / "afmtool"
@@ -130,6 +131,43 @@ def test_resolve_follows_a_dotted_path_through_records_and_tuples() -> None:
     assert resolve(_Root, "lines_hz.3") is float
     with pytest.raises(KeyError, match="no field 'median'"):
         resolve(_Root, "f0_hz.median")
+
+
+@record
+class _Maps(Record):
+    """Fixed keys and keys the run names.
+
+    Attributes
+    ----------
+    pass_ : bool
+        The verdict (a keyword: its key is "pass").
+    nominal : float
+        The nominal value (Hz).
+    per_gain : Mapping of str to _Moments
+        One entry per gain, keyed "<c>_cycles".
+    """
+
+    pass_: bool
+    nominal: float
+    per_gain: Mapping[str, _Moments] = inline()
+
+
+def test_a_keyword_field_and_an_inline_mapping_keep_the_reports_keys() -> None:
+    maps = _Maps(pass_=True, nominal=7e4, per_gain={"4_cycles": _Moments(mean=1.0, count=2)})
+    data = maps.to_json()
+    assert data == {"pass": True, "nominal": 7e4, "4_cycles": {"mean": 1.0, "count": 2}}
+    again = _Maps.from_json(data)
+    assert again.pass_ is True and again.per_gain["4_cycles"] == _Moments(mean=1.0, count=2)
+    schema = _Maps.json_schema()
+    assert schema["required"] == ["pass", "nominal"] and schema["properties"]["pass"]["type"] == "boolean"
+    assert schema["additionalProperties"] == {"$ref": "#/$defs/_Moments"}
+    jsonschema.validate(data, schema)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({**data, "8_cycles": {"mean": "x", "count": 1}}, schema)
+    assert resolve(_Maps, "pass") is bool and resolve(_Maps, "16_cycles.mean") is float
+    assert lookup(maps, "pass") is True and lookup(maps, "4_cycles.count") == 2 and lookup(maps, "8_cycles") is None
+    with pytest.raises(TypeError, match="own fields"):
+        _Maps(pass_=True, nominal=1.0, per_gain={"nominal": _Moments(mean=1.0, count=1)}).to_json()
 
 
 # --------------------------------------------------------------------------- every command's record

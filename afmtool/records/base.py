@@ -15,6 +15,10 @@ generates
   (``schemas/results/<command>.schema.json``, written by ``python -m
   afmtool.records.schema``).
 
+A field named like a Python keyword takes a trailing underscore, which its key in
+``results`` drops (``pass_`` is ``"pass"``, :func:`json_key`).  An object whose keys are
+partly fixed and partly named by the run keeps the run's keys in one :func:`inline` field.
+
 A root record also declares its headline: :attr:`Record.HEADLINE`, the
 :class:`Item` s a reader sees first (label, dotted path into the record,
 units), and :attr:`Record.STATES`, the rules that put the run's state before
@@ -42,7 +46,8 @@ from typing import Any, ClassVar, NamedTuple
 
 from afmtool.errors import InputError
 
-__all__ = ["Record", "record", "optional", "Item", "State", "StateRule", "resolve", "lookup", "walk_schema_objects"]
+__all__ = ["Record", "record", "optional", "inline", "json_key", "Item", "State", "StateRule", "resolve", "lookup",
+           "walk_schema_objects"]
 
 _T = typing.TypeVar("_T", bound="Record")
 
@@ -133,6 +138,32 @@ def optional(default: Any = None) -> Any:
     written as null.
     """
     return dataclasses.field(default=default, metadata={"omit_none": True})
+
+
+def inline() -> Any:
+    """A ``Mapping[str, X]`` field whose entries sit beside the record's own keys in ``results``.
+
+    For an object whose keys are partly fixed and partly named by the run (``theory observer``'s
+    ``maps``: ``nominal``, ``f_k_hz_range``, ... and one ``"<c>_cycles"`` entry per gain).  The
+    schema lists the fixed keys and types every other key as ``X``.
+    """
+    return dataclasses.field(default_factory=lambda: types.MappingProxyType({}), metadata={"inline": True})
+
+
+def json_key(field: dataclasses.Field) -> str:
+    """A field's key in ``results``: its name, less a trailing underscore (``pass_`` is ``"pass"``)."""
+    return field.name[:-1] if field.name.endswith("_") else field.name
+
+
+def _inline(field: dataclasses.Field) -> bool:
+    return bool(field.metadata.get("inline"))
+
+
+def _field_at(cls: type, part: str) -> dataclasses.Field | None:
+    """The field of record class ``cls`` whose key is ``part``, else its :func:`inline` field (or None)."""
+    fields = dataclasses.fields(cls)
+    own = next((f for f in fields if json_key(f) == part and not _inline(f)), None)
+    return own or next((f for f in fields if _inline(f)), None)
 
 
 def record(cls: type[_T]) -> type[_T]:
@@ -238,7 +269,13 @@ def _encode_record(value: Record, where: str) -> dict:
         item = getattr(value, f.name)
         if item is None and f.metadata.get("omit_none"):
             continue
-        out[f.name] = _encode(_hints(type(value))[f.name], item, f"{where}.{f.name}")
+        encoded = _encode(_hints(type(value))[f.name], item, f"{where}.{json_key(f)}")
+        if not _inline(f):
+            out[json_key(f)] = encoded
+        elif clash := sorted(set(encoded) & {json_key(g) for g in dataclasses.fields(value) if not _inline(g)}):
+            raise TypeError(f"{where}.{f.name}: keys {clash} are the record's own fields")
+        else:
+            out.update(encoded)
     return out
 
 
@@ -343,11 +380,14 @@ def _decode_record(kind: type[Record], data: Any, where: str) -> Record:
         raise _bad(where, "not an object")
     hints = _hints(kind)
     values = {}
+    own = {json_key(f) for f in dataclasses.fields(kind) if not _inline(f)}
     for f in dataclasses.fields(kind):
-        if f.name in data:
-            values[f.name] = _decode(hints[f.name], data[f.name], f"{where}.{f.name}")
+        if _inline(f):
+            values[f.name] = _decode(hints[f.name], {k: v for k, v in data.items() if k not in own}, where)
+        elif json_key(f) in data:
+            values[f.name] = _decode(hints[f.name], data[json_key(f)], f"{where}.{json_key(f)}")
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise _bad(where, f"no {f.name!r}")
+            raise _bad(where, f"no {json_key(f)!r}")
     return kind(**values)
 
 
@@ -375,14 +415,17 @@ def _record_schema(cls: type[Record], definitions: dict[type, dict]) -> dict:
     if summary:
         schema["description"] = " ".join(summary.split())
     descriptions = _descriptions(cls)
-    properties = {}
-    for name, kind in _hints(cls).items():
-        prop = _type_schema(kind, definitions)
-        if name in descriptions:
-            prop = {"description": descriptions[name], **prop}
-        properties[name] = prop
-    required = [f.name for f in dataclasses.fields(cls) if not f.metadata.get("omit_none")]
-    schema.update({"type": "object", "properties": properties, "required": required, "additionalProperties": False})
+    properties: dict[str, Any] = {}
+    others: Any = False
+    for f in dataclasses.fields(cls):
+        prop = _type_schema(_hints(cls)[f.name], definitions)
+        if _inline(f):
+            others = prop["additionalProperties"]
+            continue
+        description = descriptions.get(f.name, descriptions.get(json_key(f)))
+        properties[json_key(f)] = {"description": description, **prop} if description else prop
+    required = [json_key(f) for f in dataclasses.fields(cls) if not f.metadata.get("omit_none") and not _inline(f)]
+    schema.update({"type": "object", "properties": properties, "required": required, "additionalProperties": others})
     return schema
 
 
@@ -459,10 +502,11 @@ def resolve(cls: type[Record], path: str) -> Any:
     for part in path.split("."):
         kind = _optional_of(kind) or kind
         if _is_record(kind):
-            hints = _hints(kind)
-            if part not in hints:
+            field = _field_at(kind, part)
+            if field is None:
                 raise KeyError(f"{cls.__name__}: {path!r}: {kind.__name__} has no field {part!r}")
-            kind = hints[part]
+            kind = _hints(kind)[field.name]
+            kind = _values_of(kind) if _inline(field) else kind
             continue
         items = _items_of(kind)
         if items is not None and part.isdigit():
@@ -482,7 +526,9 @@ def lookup(value: Any, path: str) -> Any:
         if value is None:
             return None
         if isinstance(value, Record):
-            value = getattr(value, part, None)
+            field = _field_at(type(value), part)
+            value = None if field is None else getattr(value, field.name)
+            value = value.get(part) if field is not None and _inline(field) else value
         elif isinstance(value, Mapping):
             value = value.get(part)
         elif isinstance(value, tuple) and part.isdigit():
