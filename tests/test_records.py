@@ -232,3 +232,23 @@ def test_no_module_reads_results_by_string() -> None:
             found.add(relative)
     assert found <= _STILL_READ_BY_STRING, f"read results by string: {sorted(found - _STILL_READ_BY_STRING)}"
     assert _STILL_READ_BY_STRING <= found, f"no longer read by string: {sorted(_STILL_READ_BY_STRING - found)}"
+
+
+def test_report_schema_ties_results_to_the_commands_record_and_is_current(tmp_path):
+    from afmtool.config.schema import REPORT_SCHEMA, report_schema, write_report_schema
+
+    # Regenerate with: python -m afmtool.config.schema
+    assert not write_report_schema(check=True)
+    schema = report_schema(json.loads(REPORT_SCHEMA.read_text()))
+    jsonschema.Draft202012Validator.check_schema(schema)
+    for command in RECORDS:
+        name = command.replace(" ", ".")
+        assert name in schema["$defs"]
+        rule = {"if": {"properties": {"command": {"const": command}}, "required": ["command"]},
+                "then": {"properties": {"results": {"$ref": f"#/$defs/{name}"}}}}
+        assert rule in schema["allOf"]
+    # a report whose results are another command's record, or carry a key their record lacks, is refused
+    invols = json.loads((Path(__file__).parent / "golden" / "freeair_ltv_step.json").read_text())
+    invols["command"] = "identify invols"
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({**invols, "headline": []}, schema)

@@ -8,7 +8,9 @@ to ``schemas/results/``, at the repository root.  Regenerate with::
     python -m afmtool.config.schema            # writes schemas/params/ and schemas/results/
     python -m afmtool.config.schema --check    # exit 1 if any file is stale
 
-Tests (``tests/test_params_model.py``, ``tests/test_records.py``) check that the committed files are current.
+``schemas/report.schema.json`` is hand-written but for its ``results``, which is generated from the
+same records (:func:`report_schema`).  Tests (``tests/test_params_model.py``, ``tests/test_records.py``)
+check that the committed files are current.
 """
 
 from __future__ import annotations
@@ -23,8 +25,8 @@ from typing import Any
 
 from afmtool.config import describe_bounds
 
-__all__ = ["section_schema", "all_schemas", "result_schemas", "schema_filename", "write_schemas", "SCHEMA_DIR",
-           "RESULT_SCHEMA_DIR"]
+__all__ = ["section_schema", "all_schemas", "result_schemas", "report_schema", "schema_filename", "write_schemas",
+           "write_report_schema", "SCHEMA_DIR", "RESULT_SCHEMA_DIR", "REPORT_SCHEMA"]
 
 #: Where the generated schemas live (beside ``capture-metadata.schema.json``).
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas" / "params"
@@ -114,9 +116,67 @@ def _text(schema: dict) -> str:
 
 def result_schemas() -> dict[str, dict]:
     """File name -> schema of ``results``, for every command with a result record (:mod:`afmtool.records`)."""
-    from afmtool.config.commands import results
+    from afmtool.config.commands import SPECS, Kind, results
 
     return {schema_filename(command.replace(" ", ".")): record.json_schema() for command, record in results().items()}
+
+
+#: report.json's schema: hand-written, but for its ``results``, which :func:`report_schema` generates.
+REPORT_SCHEMA = SCHEMA_DIR.parent / "report.schema.json"
+
+
+def _hoisted(command: str, schema: dict) -> tuple[dict, dict]:
+    """(the root, its ``$defs``) of one command's results schema, the names prefixed by the command."""
+    prefix = command.replace(" ", ".")
+
+    def rename(node):
+        if isinstance(node, dict):
+            out = {k: rename(v) for k, v in node.items() if k not in ("$schema", "$defs")}
+            if isinstance(out.get("$ref"), str) and out["$ref"].startswith("#/$defs/"):
+                out["$ref"] = f"#/$defs/{prefix}.{out['$ref'][len('#/$defs/'):]}"
+            return out
+        return [rename(v) for v in node] if isinstance(node, list) else node
+
+    return rename(schema), {f"{prefix}.{name}": rename(d) for name, d in schema.get("$defs", {}).items()}
+
+
+def report_schema(current: dict) -> dict:
+    """``current`` (report.schema.json) with ``results`` tied to each command's result record.
+
+    ``results`` must be one of the records (``anyOf``), and the one of the run's ``command``
+    (``allOf`` of ``if``/``then``); the records' schemas sit in ``$defs`` under their command's
+    name.  The rest of the file is hand-written and kept as it is.
+    """
+    from afmtool.config.commands import SPECS, Kind, results
+
+    definitions: dict[str, dict] = {}
+    rules = []
+    for command, record in results().items():
+        root, nested = _hoisted(command, record.json_schema())
+        name = command.replace(" ", ".")
+        definitions[name] = root
+        definitions.update(nested)
+        rules.append({"if": {"properties": {"command": {"const": command}}, "required": ["command"]},
+                      "then": {"properties": {"results": {"$ref": f"#/$defs/{name}"}}}})
+    names = [command.replace(" ", ".") for command in results()]
+    described = {"description": "what the command found: its result record (afmtool.records), chosen by `command`"}
+    if all(s.result is not None for s in SPECS.values() if s.kind is not Kind.TOOL):
+        described["anyOf"] = [{"$ref": f"#/$defs/{name}"} for name in names]
+    else:  # while some commands' results are still dicts (issue 29, item 2)
+        described["type"] = "object"
+    properties = {**current["properties"], "results": described}
+    rest = {k: v for k, v in current.items() if k not in ("properties", "allOf", "$defs")}
+    return {**rest, "properties": properties, "allOf": rules, "$defs": definitions}
+
+
+def write_report_schema(path: Path = REPORT_SCHEMA, *, check: bool = False) -> bool:
+    """Write (or with ``check``, compare) report.schema.json's generated part; True when it was stale."""
+    current = json.loads(path.read_text(encoding="utf-8"))
+    text = _text(report_schema(current))
+    stale = path.read_text(encoding="utf-8") != text
+    if stale and not check:
+        path.write_text(text, encoding="utf-8")
+    return stale
 
 
 def write_schemas(directory: Path = SCHEMA_DIR, *, check: bool = False, schemas: dict | None = None) -> list[str]:
@@ -142,9 +202,10 @@ def write_schemas(directory: Path = SCHEMA_DIR, *, check: bool = False, schemas:
 if __name__ == "__main__":
     check = "--check" in sys.argv[1:]
     stale = {"params": write_schemas(check=check),
-             "results": write_schemas(RESULT_SCHEMA_DIR, check=check, schemas=result_schemas())}
+             "results": write_schemas(RESULT_SCHEMA_DIR, check=check, schemas=result_schemas()),
+             "": ["report.schema.json"] if write_report_schema(check=check) else []}
     if check:
-        print("\n".join(f"stale: schemas/{folder}/{name}" for folder, names in stale.items() for name in names)
-              or "schemas/params and schemas/results are current")
+        print("\n".join(f"stale: schemas/{folder}/{name}".replace("//", "/") for folder, names in stale.items()
+                        for name in names) or "schemas/params, schemas/results and report.schema.json are current")
         sys.exit(1 if any(stale.values()) else 0)
     print(f"wrote {sum(map(len, stale.values()))} schema(s) to {SCHEMA_DIR.parent}")
