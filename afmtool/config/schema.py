@@ -116,7 +116,7 @@ def _text(schema: dict) -> str:
 
 def result_schemas() -> dict[str, dict]:
     """File name -> schema of ``results``, for every command with a result record (:mod:`afmtool.records`)."""
-    from afmtool.config.commands import SPECS, Kind, results
+    from afmtool.config.commands import results
 
     return {schema_filename(command.replace(" ", ".")): record.json_schema() for command, record in results().items()}
 
