@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -32,6 +33,16 @@ from afmtool.io.chunks import require_channels
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
 from afmtool.pipeline import run_stream
+from afmtool.records.gamma import (
+    FeedthroughFitRecord,
+    FeedthroughRiseRecord,
+    GammaOperatingPoint,
+    GammaResults,
+    GammaSamples,
+    GammaUnits,
+    ResponseMethod,
+    SensingSummaryRecord,
+)
 from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -82,9 +93,20 @@ def _estimate(
     return responses, means
 
 
+class GammaFacts(NamedTuple):
+    """What the results say about the run beside the summary: the method, its resolution, the operating point."""
+
+    method: ResponseMethod
+    nperseg: int | None
+    frequency_resolution_hz: float | None
+    n_frequencies: int
+    samples: GammaSamples
+    operating_point: GammaOperatingPoint
+
+
 def estimate_from_captures(
     sweep: CaptureReader, contact: CaptureReader, params: GammaParams, progress: Callable[[int], None], warnings: list
-) -> tuple[GammaResponses, dict]:
+) -> tuple[GammaResponses, GammaFacts]:
     """Every Γ in µA, nm and V from the near-sample and contact sweeps, and facts about the run."""
     require_channels(sweep.info, ("v_sub", "thermal_current", "deflection"))
     require_channels(contact.info, ("v_sub", "thermal_current"))
@@ -109,81 +131,94 @@ def estimate_from_captures(
         scale_response(near["deflection"], s_near["deflection"] / s_near["v_sub"]),
         scale_response(far["thermal_current"], s_far["thermal_current"] / s_far["v_sub"]),
     )
-    facts = {
-        "method": method,
-        "nperseg": nperseg if method == "h1" else None,
-        "frequency_resolution_hz": sweep.info.sample_rate_hz / nperseg if method == "h1" else None,
-        "n_frequencies": int(gamma.frequency_hz.size),
-        "samples": {"sweep": near_means.count, "contact": contact_means.count},
-        "operating_point": {
-            "v_sub_mean_v": near_means.mean("v_sub") * s_near["v_sub"],
-            "thermal_current_mean_ua": near_means.mean("thermal_current") * s_near["thermal_current"],
-            "deflection_mean_nm": near_means.mean("deflection") * s_near["deflection"],
-            "contact_thermal_current_mean_ua": contact_means.mean("thermal_current") * s_far["thermal_current"],
-        },
-    }
+    facts = GammaFacts(
+        method=ResponseMethod(method),
+        nperseg=nperseg if method == "h1" else None,
+        frequency_resolution_hz=sweep.info.sample_rate_hz / nperseg if method == "h1" else None,
+        n_frequencies=int(gamma.frequency_hz.size),
+        samples=GammaSamples(sweep=near_means.count, contact=contact_means.count),
+        operating_point=GammaOperatingPoint(
+            v_sub_mean_v=near_means.mean("v_sub") * s_near["v_sub"],
+            thermal_current_mean_ua=near_means.mean("thermal_current") * s_near["thermal_current"],
+            deflection_mean_nm=near_means.mean("deflection") * s_near["deflection"],
+            contact_thermal_current_mean_ua=contact_means.mean("thermal_current") * s_far["thermal_current"],
+        ),
+    )
     return gamma, facts
 
 
-def _summary_dict(summary: SensingSummary) -> dict:
-    return {
-        "dc_sensitivity_ua_per_nm": summary.dc_sensitivity,
-        "bandwidth_hz": summary.bandwidth_hz,
-        "roll_off_db_per_decade": summary.roll_off_db_per_decade,
-        "roll_off_band_hz": list(summary.roll_off_band_hz),
-        "dc_band_hz": list(summary.dc_band_hz),
-    }
+def _summary_record(summary: SensingSummary) -> SensingSummaryRecord:
+    return SensingSummaryRecord(
+        dc_sensitivity_ua_per_nm=summary.dc_sensitivity,
+        bandwidth_hz=summary.bandwidth_hz,
+        roll_off_db_per_decade=summary.roll_off_db_per_decade,
+        roll_off_band_hz=summary.roll_off_band_hz,
+        dc_band_hz=summary.dc_band_hz,
+    )
 
 
-def summarise(gamma: GammaResponses, params: GammaParams, warnings: list) -> tuple[dict, np.ndarray]:
-    """The report's numbers (usable band, DC sensitivity, bandwidth, roll-off, the uncorrected view) and the usable mask."""
+def _feedthrough_fit(gamma: GammaResponses, params: GammaParams, warnings: list) -> FeedthroughFitRecord | None:
+    """The feed-through's first-order fit; None (with a warning) where the contact sweep is too little coherent."""
+    try:
+        sp = fit_feedthrough(gamma.feedthrough, params.min_coherence)
+    except InputError as exc:
+        warnings.append(f"feed-through: no fit ({exc})")
+        return None
+    return FeedthroughFitRecord(
+        capacitance_pf=sp.capacitance_pf,
+        pole_hz=sp.pole_hz,
+        numerator_ua_per_v=tuple(sp.fit.numerator),
+        denominator=tuple(sp.fit.denominator),
+        rms_residual_ua_per_v=sp.fit.rms_residual,
+        band_hz=sp.band_hz,
+        form="(b1 s + b0)/(s + a0), s in rad/s",
+    )
+
+
+def summarise(
+    gamma: GammaResponses, facts: GammaFacts, params: GammaParams, warnings: list
+) -> tuple[GammaResults, np.ndarray]:
+    """The results: the facts, the usable band, DC sensitivity, bandwidth, roll-off, the uncorrected view; and the mask."""
     mask = usable_mask(gamma, params.min_coherence)
     band = usable_band(gamma.frequency_hz, mask)
     kwargs = {"roll_off_start_factor": params.roll_off_start_factor, "roll_off_stop_factor": params.roll_off_stop_factor}
     corrected = sensing_summary(gamma.ir_ts, mask, **kwargs)
-    results = {
-        "units": dict(GAMMA_UNITS),
-        "min_coherence": params.min_coherence,
-        "usable_band_hz": list(band),
-        "usable_bins": int(np.count_nonzero(mask)),
-        **_summary_dict(corrected),
-    }
     try:
-        results["uncorrected"] = _summary_dict(sensing_summary(gamma.ir_ts_uncorrected, mask, **kwargs))
+        uncorrected = _summary_record(sensing_summary(gamma.ir_ts_uncorrected, mask, **kwargs))
     except InputError as exc:
-        results["uncorrected"] = None
+        uncorrected = None
         warnings.append(f"uncorrected Gamma (eq. 6.16): no summary ({exc})")
     rise = feedthrough_rise(gamma.ir_ts, gamma.ir_ts_uncorrected, mask)
-    results["feedthrough_rise"] = {
-        "excess_db": rise.excess_db,
-        "uncorrected_slope_db_per_decade": rise.uncorrected_slope_db_per_decade,
-        "corrected_slope_db_per_decade": rise.corrected_slope_db_per_decade,
-        "band_hz": list(rise.band_hz),
-    }
-    try:
-        sp = fit_feedthrough(gamma.feedthrough, params.min_coherence)
-        results["feedthrough_fit"] = {
-            "capacitance_pf": sp.capacitance_pf,
-            "pole_hz": sp.pole_hz,
-            "numerator_ua_per_v": list(sp.fit.numerator),
-            "denominator": list(sp.fit.denominator),
-            "rms_residual_ua_per_v": sp.fit.rms_residual,
-            "band_hz": list(sp.band_hz),
-            "form": "(b1 s + b0)/(s + a0), s in rad/s",
-        }
-    except InputError as exc:
-        results["feedthrough_fit"] = None
-        warnings.append(f"feed-through: no fit ({exc})")
+    results = GammaResults(
+        **facts._asdict(),
+        units=GammaUnits(**GAMMA_UNITS),
+        min_coherence=params.min_coherence,
+        usable_band_hz=band,
+        usable_bins=int(np.count_nonzero(mask)),
+        dc_sensitivity_ua_per_nm=corrected.dc_sensitivity,
+        bandwidth_hz=corrected.bandwidth_hz,
+        roll_off_db_per_decade=corrected.roll_off_db_per_decade,
+        roll_off_band_hz=corrected.roll_off_band_hz,
+        dc_band_hz=corrected.dc_band_hz,
+        uncorrected=uncorrected,
+        feedthrough_rise=FeedthroughRiseRecord(
+            excess_db=rise.excess_db,
+            uncorrected_slope_db_per_decade=rise.uncorrected_slope_db_per_decade,
+            corrected_slope_db_per_decade=rise.corrected_slope_db_per_decade,
+            band_hz=rise.band_hz,
+        ),
+        feedthrough_fit=_feedthrough_fit(gamma, params, warnings),
+    )
     if not np.isfinite(corrected.bandwidth_hz):
         warnings.append("|Gamma_IR,ts| never falls 3 dB below its DC value in the usable band: no bandwidth")
     return results, mask
 
 
-def _write_tables(staged: OutputDir, gamma: GammaResponses, facts: dict) -> None:
+def _write_tables(staged: OutputDir, gamma: GammaResponses, facts: GammaFacts) -> None:
     from afmtool.io.rows import RowWriter
 
     attrs = {"afmtool_command": "identify gamma",
-             "thermal_current_mean_ua": facts["operating_point"]["thermal_current_mean_ua"]}
+             "thermal_current_mean_ua": facts.operating_point.thermal_current_mean_ua}
     with ResultWriter(staged.path("gamma.h5"), {}, attrs) as writer:
         writer.put("frf/frequency_hz", gamma.frequency_hz, "Hz")
         for name, units in GAMMA_UNITS.items():
@@ -196,21 +231,21 @@ def _write_tables(staged: OutputDir, gamma: GammaResponses, facts: dict) -> None
                     rows.append(frf_table(fr))
 
 
-def _feedthrough_model(fit, frequency_hz: np.ndarray) -> np.ndarray | None:
+def _feedthrough_model(fit: FeedthroughFitRecord | None, frequency_hz: np.ndarray) -> np.ndarray | None:
     """The fitted feed-through (b1 s + b0)/(s + a0), s = j2πf in rad/s, µA/V; None without a fit."""
-    if not isinstance(fit, dict) or not fit.get("numerator_ua_per_v") or not fit.get("denominator"):
+    if fit is None:
         return None
-    (b1, b0), (_, a0) = fit["numerator_ua_per_v"], fit["denominator"]
+    (b1, b0), (_, a0) = fit.numerator_ua_per_v, fit.denominator
     s = 2j * np.pi * np.asarray(frequency_hz, dtype=np.float64)
     return (b1 * s + b0) / (s + a0)
 
 
-def _write_plots(staged: OutputDir, gamma: GammaResponses, results: dict, mask: np.ndarray) -> None:
+def _write_plots(staged: OutputDir, gamma: GammaResponses, results: GammaResults, mask: np.ndarray) -> None:
     """Bode plots; Γ_IR,ts and eq. 6.16 are drawn over the usable bins only (noise elsewhere)."""
     from afmtool.report.bode import BodeCurve, write_bode_png
 
     f = gamma.frequency_hz
-    markers = [(results["bandwidth_hz"], "-3 dB")] if np.isfinite(results["bandwidth_hz"]) else []
+    markers = [(results.bandwidth_hz, "-3 dB")] if np.isfinite(results.bandwidth_hz) else []
 
     def usable(fr: FrequencyResponse) -> np.ndarray:
         return np.where(mask, fr.response, np.nan)
@@ -225,7 +260,7 @@ def _write_plots(staged: OutputDir, gamma: GammaResponses, results: dict, mask: 
         magnitude_label="|Gamma_IR,ts| (dB re 1 uA/nm)",
         markers=markers,
     )
-    lo, hi = results["usable_band_hz"]
+    lo, hi = results.usable_band_hz
     driven = (f >= lo) & (f <= hi)  # the feed-through's own coherence is low at low f: drawn, not masked
     feedthrough_curves = [
         BodeCurve(f[driven], gamma.ir_v.response[driven], "Gamma_IR,V near the sample", {"color": "C0"},
@@ -233,9 +268,8 @@ def _write_plots(staged: OutputDir, gamma: GammaResponses, results: dict, mask: 
         BodeCurve(f[driven], gamma.feedthrough.response[driven], "Gamma_sp in contact (feed-through)",
                   {"color": "C3"}, gamma.feedthrough.magnitude_std[driven]),
     ]
-    fit = results.get("feedthrough_fit")
-    fit_band = fit.get("band_hz") if isinstance(fit, dict) else None
-    in_fit_band = (f >= fit_band[0]) & (f <= fit_band[1]) if fit_band else driven
+    fit = results.feedthrough_fit
+    in_fit_band = (f >= fit.band_hz[0]) & (f <= fit.band_hz[1]) if fit is not None else driven
     fitted = _feedthrough_model(fit, f[in_fit_band])
     if fitted is not None and fitted.size:
         feedthrough_curves.append(BodeCurve(f[in_fit_band], fitted, "fitted (b1 s + b0)/(s + a0), fit band",
@@ -267,8 +301,7 @@ def run_gamma_command(
     params = resolve_from(GammaParams, "identify.gamma", load_toml(config) if config else None, flags)
     warnings: list[str] = []
     gamma, facts = estimate_from_captures(sweep, contact, params, progress, warnings)
-    summary, mask = summarise(gamma, params, warnings)
-    results = {**facts, **summary}
+    results, mask = summarise(gamma, facts, params, warnings)
     inputs = [
         {**input_record(sources[0], "sweep"), **calibration_record(sweep)},
         {**input_record(sources[1], "contact"), **calibration_record(contact)},

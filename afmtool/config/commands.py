@@ -256,7 +256,7 @@ _IDENTIFY = (
         "identify gamma", Kind.ANALYSIS, _own(P.GammaParams), _analysis("gamma_outputs", "run_gamma_command"),
         examples=("afmtool identify gamma sample_data/thermal_sweep_near.h5 "
                   "--contact sample_data/thermal_sweep_contact.h5 --out results/gamma",),
-        main_figures=("gamma_ir_ts.png",), headline=H.GAMMA,
+        main_figures=("gamma_ir_ts.png",), result=Lazy("afmtool.records.gamma", "GammaResults"),
     ),
     CommandSpec(
         "identify thermal", Kind.ANALYSIS, _own(P.ThermalParams), _analysis("thermal_outputs", "run_thermal_command"),

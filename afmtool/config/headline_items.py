@@ -14,7 +14,7 @@ from __future__ import annotations
 from afmtool.records.base import Item
 
 __all__ = [
-    "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR", "GAMMA", "ELECTROSTATIC", "THERMAL",
+    "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR", "ELECTROSTATIC", "THERMAL",
     "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
 ]
 
@@ -103,13 +103,6 @@ FREEAIR = (
     Item("k (thermal, equipartition)", "spring_constant.thermal.value_n_per_m", "N/m",
          "spring_constant.thermal.std_n_per_m"),
     Item("k (Sader)", "spring_constant.sader.value_n_per_m", "N/m", "spring_constant.sader.std_n_per_m"),
-)
-
-GAMMA = (
-    Item("DC sensitivity Γ_IR,ts", "dc_sensitivity_ua_per_nm", "µA/nm"),
-    Item("−3 dB bandwidth", "bandwidth_hz", "Hz"),
-    Item("roll-off", "roll_off_db_per_decade", "dB/decade"),
-    Item("feed-through capacitance", "feedthrough_fit.capacitance_pf", "pF"),
 )
 
 ELECTROSTATIC = (
