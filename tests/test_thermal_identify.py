@@ -137,7 +137,7 @@ def test_c_and_h_from_a_v_r_sweep(iv):
     h_db, h_deg = np.max(np.abs(20 * np.log10(np.abs(h_ratio)))), np.max(np.abs(np.angle(h_ratio, deg=True)))
     c_dc = float(np.median(np.abs(dyn.c.response[(f > 0) & (f < 500)]))) / model.operating_point.k_tp_k_per_w - 1
     print(f"C(jw): max {c_db:.3f} dB / {c_deg:.2f} deg, DC {100 * c_dc:+.2f} %; H(jw): max {h_db:.3f} dB / {h_deg:.2f} deg "
-          f"(100 Hz-50 kHz); T0 {dyn.operating_point['temperature_c']:.2f} (truth {model.operating_point.temperature_c:.2f}) C")
+          f"(100 Hz-50 kHz); T0 {dyn.operating_point.temperature_c:.2f} (truth {model.operating_point.temperature_c:.2f}) C")
     assert c_db < 0.2 and c_deg < 2.0
     assert h_db < 0.3 and h_deg < 3.0
     assert abs(c_dc) < 0.02
@@ -184,3 +184,22 @@ def test_identify_thermal_command_end_to_end(tmp_path):
     assert json.loads(again.stdout)["results"]["z_curve"] == res["z_curve"]
     missing = run_cli("identify", "thermal", "--z-curve", tmp_path / "z.h5", "--out", tmp_path / "t3")
     assert missing.returncode == 2 and "need g(T)" in missing.stderr.decode()
+
+
+def test_the_thermal_records_write_what_the_model_file_and_the_report_held():
+    """The model's record writes thermal_sensor.json's content; a response without a summary is {} (issue 29)."""
+    import math
+
+    from afmtool.models.thermal_model import ThermalModel
+    from afmtool.records.thermal import CSummaryRecord, HSummaryRecord
+
+    g = ResistanceFit(25.0, (1200.0, 1.8, 0.002), 550.0)
+    model = ThermalModel(g, 550.0, 125e3, 4.2e-3, 2.9, (0.0, 1e-8), (1.2e5, 1.25e5), 0.95e5)
+    assert model.record().to_json() == model.to_dict() and g.record().to_json() == g.to_dict()
+    assert ThermalModel(None, 550.0).record().to_json() == ThermalModel(None, 550.0).to_dict()
+    assert CSummaryRecord().to_json() == {} and HSummaryRecord.from_json({}) == HSummaryRecord()
+    no_bandwidth = CSummaryRecord(dc_gain_k_per_mw=104.4, bandwidth_hz=math.nan, roll_off_db_per_decade=math.nan,
+                                  roll_off_band_hz=(math.nan, math.nan)).to_json()
+    assert no_bandwidth == {"dc_gain_k_per_mw": 104.4, "bandwidth_hz": None, "roll_off_db_per_decade": None,
+                            "roll_off_band_hz": [None, None]}
+    assert CSummaryRecord.from_json(no_bandwidth).to_json() == no_bandwidth  # null stays null, not left out

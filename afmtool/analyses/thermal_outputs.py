@@ -14,6 +14,7 @@ from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.frequency_response import FrequencyResponse, frf_table
 from afmtool.estimators.sensing_gamma import (
     CANONICAL_UNITS,
+    SensingSummary,
     auto_nperseg,
     canonical_scale,
     gamma_response_stage,
@@ -36,6 +37,16 @@ from afmtool.io.gamma_results import GammaFile, read_gamma_ir_ts
 from afmtool.io.results import ResultWriter
 from afmtool.models.thermal_model import THERMAL_MODEL_FILE, ThermalModel, load_thermal_model
 from afmtool.pipeline import run_stream
+from afmtool.records.gamma import ResponseMethod
+from afmtool.records.thermal import (
+    CSummaryRecord,
+    DynamicsRecord,
+    HSummaryRecord,
+    IvRecord,
+    ThermalOperatingPointRecord,
+    ThermalResults,
+    ZCurveRecord,
+)
 from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -82,46 +93,57 @@ def _read_all(
 # --------------------------------------------------------------------------- routes
 
 
-def _iv_results(iv: IvIdentification) -> dict:
-    return {
-        "knee_voltage_v": iv.knee.voltage_v,
-        "knee_power_mw": iv.knee.power_w * 1e3,
-        "k_tp_k_per_w": iv.k_tp_k_per_w,
-        "k_tp_k_per_mw": iv.k_tp_k_per_w * 1e-3,
-        "slope_below_knee": iv.knee.slope_below,
-        "slope_above_knee": iv.knee.slope_above,
-        "knee_rms_log_residual": iv.knee.rms_log_residual,
-        "g_fit": iv.g_fit.to_dict(),
-        "g_rms_relative_residual": iv.g_rms_relative_residual,
-        "samples_used": int(iv.curve.v_r_v.size),
-    }
+def _iv_record(iv: IvIdentification) -> IvRecord:
+    return IvRecord(
+        knee_voltage_v=iv.knee.voltage_v,
+        knee_power_mw=iv.knee.power_w * 1e3,
+        k_tp_k_per_w=iv.k_tp_k_per_w,
+        k_tp_k_per_mw=iv.k_tp_k_per_w * 1e-3,
+        slope_below_knee=iv.knee.slope_below,
+        slope_above_knee=iv.knee.slope_above,
+        knee_rms_log_residual=iv.knee.rms_log_residual,
+        g_fit=iv.g_fit.record(),
+        g_rms_relative_residual=iv.g_rms_relative_residual,
+        samples_used=int(iv.curve.v_r_v.size),
+    )
 
 
-def _z_results(curve: KtpCurve) -> dict:
-    return {
-        "snap_in_z_nm": curve.snap_in_z_m * 1e9,
-        "snap_in_jump_ua": curve.jump_a * 1e6,
-        "contact_k_tp_k_per_mw": curve.contact_k_tp_k_per_w * 1e-3,
-        "separation_range_nm": [float(curve.separation_m.min() * 1e9), float(curve.separation_m.max() * 1e9)],
-        "k_tp_range_k_per_mw": [float(curve.k_tp_k_per_w.min() * 1e-3), float(curve.k_tp_k_per_w.max() * 1e-3)],
-        "bins": int(curve.separation_m.size),
-        "separation_convention": "t_s = z_sn - z, snap-in taken as t_s = 0 (thesis 6.5.2); the true separation at "
+def _z_record(curve: KtpCurve) -> ZCurveRecord:
+    return ZCurveRecord(
+        snap_in_z_nm=curve.snap_in_z_m * 1e9,
+        snap_in_jump_ua=curve.jump_a * 1e6,
+        contact_k_tp_k_per_mw=curve.contact_k_tp_k_per_w * 1e-3,
+        separation_range_nm=(float(curve.separation_m.min() * 1e9), float(curve.separation_m.max() * 1e9)),
+        k_tp_range_k_per_mw=(float(curve.k_tp_k_per_w.min() * 1e-3), float(curve.k_tp_k_per_w.max() * 1e-3)),
+        bins=int(curve.separation_m.size),
+        separation_convention="t_s = z_sn - z, snap-in taken as t_s = 0 (thesis 6.5.2); the true separation at "
         "snap-in (about the attractive range d) is not seen by the thermal sensor",
-    }
+    )
 
 
-def _summary(fr: FrequencyResponse, mask: np.ndarray, scale: float, key: str, warnings: list, label: str) -> dict:
+def _summary(fr: FrequencyResponse, mask: np.ndarray, warnings: list, label: str) -> SensingSummary | None:
+    """The response's sensing summary; None (with a warning) where it has none."""
     try:
-        s = sensing_summary(fr, mask)
+        return sensing_summary(fr, mask)
     except InputError as exc:
         warnings.append(f"{label}: no summary ({exc})")
-        return {}
-    return {
-        key: s.dc_sensitivity * scale,
-        "bandwidth_hz": s.bandwidth_hz,
-        "roll_off_db_per_decade": s.roll_off_db_per_decade,
-        "roll_off_band_hz": list(s.roll_off_band_hz),
-    }
+        return None
+
+
+def _c_record(s: SensingSummary | None) -> CSummaryRecord:
+    """C(jω)'s summary in K/mW (``s`` in K/W); empty without one."""
+    if s is None:
+        return CSummaryRecord()
+    return CSummaryRecord(dc_gain_k_per_mw=s.dc_sensitivity * 1e-3, bandwidth_hz=s.bandwidth_hz,
+                          roll_off_db_per_decade=s.roll_off_db_per_decade, roll_off_band_hz=s.roll_off_band_hz)
+
+
+def _h_record(s: SensingSummary | None) -> HSummaryRecord:
+    """H(jω)'s summary in K/nm (``s`` in K/m); empty without one."""
+    if s is None:
+        return HSummaryRecord()
+    return HSummaryRecord(dc_gain_k_per_nm=s.dc_sensitivity * 1e-9, bandwidth_hz=s.bandwidth_hz,
+                          roll_off_db_per_decade=s.roll_off_db_per_decade, roll_off_band_hz=s.roll_off_band_hz)
 
 
 def _without_lever_motion(ir_vr: FrequencyResponse, gamma_file, responses: dict, deflection_scale: float):
@@ -146,7 +168,7 @@ def _without_lever_motion(ir_vr: FrequencyResponse, gamma_file, responses: dict,
 
 def _vr_route(
     reader: CaptureReader, g_fit, gamma_path: Path | None, params: ThermalParams, progress, warnings: list
-) -> tuple[ThermalDynamics, dict, FrequencyResponse]:
+) -> tuple[ThermalDynamics, DynamicsRecord, FrequencyResponse]:
     require_channels(reader.info, ("v_r", "thermal_current"))
     i_scale = _scale(reader, "thermal_current", "current", warnings)
     v_scale = _scale(reader, "v_r", "voltage", warnings)
@@ -187,16 +209,15 @@ def _vr_route(
     f = dyn.c.frequency_hz
     with np.errstate(invalid="ignore"):
         mask = (f > 0) & np.isfinite(dyn.c.response) & (ir_vr.coherence >= params.min_coherence)
-    results = {
-        "method": method,
-        "operating_point": dyn.operating_point,
-        "lever_motion_removed": removed,
-        "c": _summary(dyn.c, mask, 1e-3, "dc_gain_k_per_mw", warnings, "C(jw)"),
-    }
+    c = _c_record(_summary(dyn.c, mask, warnings, "C(jw)"))
+    h = None
     if dyn.h is not None:
         h_mask = mask & np.isfinite(dyn.h.response)
-        results["h"] = _summary(dyn.h, h_mask, 1e-9, "dc_gain_k_per_nm", warnings, "H(jw)")
-    return dyn, results, ir_vr
+        h = _h_record(_summary(dyn.h, h_mask, warnings, "H(jw)"))
+    dynamics = DynamicsRecord(method=ResponseMethod(method),
+                              operating_point=ThermalOperatingPointRecord(**dyn.operating_point._asdict()),
+                              lever_motion_removed=removed, c=c, h=h)
+    return dyn, dynamics, ir_vr
 
 
 # --------------------------------------------------------------------------- files out
@@ -307,18 +328,15 @@ def run_thermal_command(
         raise ConfigError("give at least one of --iv, --z-curve and --vr-sweep")
     warnings: list[str] = []
     inputs = []
-    results: dict = {"breakdown_temperature_c": params.breakdown_temperature_c,
-                     "room_temperature_c": params.room_temperature_c}
     prior = load_thermal_model(Path(sources["model"])) if sources.get("model") else None
     if prior is not None:
         inputs.append(input_record(_model_file(Path(sources["model"])), "model"))
-    iv = curve = dyn = ir_vr = None
+    iv = curve = dyn = ir_vr = dynamics = None
     if readers.get("iv"):
         data = _read_all(readers["iv"], {"v_r": "voltage", "thermal_current": "current"}, params, progress, warnings)
         iv = identify_iv(data["v_r"], data["thermal_current"], breakdown_temperature_c=params.breakdown_temperature_c,
                          room_temperature_c=params.room_temperature_c, g_order=params.g_order,
                          table_bins=params.g_table_bins, knee_fit_fraction=params.knee_fit_fraction)
-        results["iv"] = _iv_results(iv)
         inputs.append(input_record(sources["iv"], "iv-ramp"))
     g_fit = iv.g_fit if iv is not None else (prior.g_fit if prior is not None else None)
     if g_fit is None and (readers.get("z") or readers.get("vr")):
@@ -328,11 +346,10 @@ def run_thermal_command(
                          progress, warnings)
         curve = identify_z_curve(data["z_piezo"], data["v_r"], data["thermal_current"], g_fit,
                                  bin_m=params.z_bin_nm * 1e-9)
-        results["z_curve"] = _z_results(curve)
         inputs.append(input_record(sources["z"], "z-curve"))
     if readers.get("vr"):
         gamma_path = Path(sources["gamma"]) if sources.get("gamma") else None
-        dyn, results["dynamics"], ir_vr = _vr_route(readers["vr"], g_fit, gamma_path, params, progress, warnings)
+        dyn, dynamics, ir_vr = _vr_route(readers["vr"], g_fit, gamma_path, params, progress, warnings)
         inputs.append(input_record(sources["vr"], "vr-sweep"))
         if gamma_path is not None:
             inputs.append(input_record(gamma_path if gamma_path.is_file() else gamma_path / "gamma.h5", "gamma"))
@@ -346,7 +363,11 @@ def run_thermal_command(
                 _write_z(staged, writer, curve)
             if dyn is not None:
                 _write_dynamics(staged, writer, dyn, ir_vr)
-        results["thermal_sensor"] = model.to_dict()
+        results = ThermalResults(
+            breakdown_temperature_c=params.breakdown_temperature_c, room_temperature_c=params.room_temperature_c,
+            iv=None if iv is None else _iv_record(iv), z_curve=None if curve is None else _z_record(curve),
+            dynamics=dynamics, thermal_sensor=model.record(),
+        )
         return finish_run(staged, "identify thermal", inputs, "identify.thermal", params, results, warnings)
 
 

@@ -261,7 +261,7 @@ _IDENTIFY = (
     CommandSpec(
         "identify thermal", Kind.ANALYSIS, _own(P.ThermalParams), _analysis("thermal_outputs", "run_thermal_command"),
         examples=("afmtool identify thermal --iv /tmp/iv.h5 --z-curve /tmp/z.h5 --out results/thermal_sensor",),
-        main_figures=(), headline=H.THERMAL,
+        main_figures=(), result=Lazy("afmtool.records.thermal", "ThermalResults"),
     ),
     CommandSpec(
         "identify electrostatic", Kind.ANALYSIS, _own(P.ElectrostaticFitParams),

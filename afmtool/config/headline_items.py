@@ -14,7 +14,7 @@ from __future__ import annotations
 from afmtool.records.base import Item
 
 __all__ = [
-    "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR", "ELECTROSTATIC", "THERMAL",
+    "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR", "ELECTROSTATIC",
     "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
 ]
 
@@ -112,18 +112,6 @@ ELECTROSTATIC = (
     Item("t_h", "parameters.tip_height_m.value", "m", "parameters.tip_height_m.std"),
     Item("K_esf", "parameters.k_esf_f_m.value", "F·m", "parameters.k_esf_f_m.std"),
     Item("RMS residual", "rms_residual_nm", "nm"),
-)
-
-THERMAL = (
-    Item("K_TP (I-V knee)", "iv.k_tp_k_per_mw", "K/mW"),
-    Item("knee power", "iv.knee_power_mw", "mW"),
-    Item("knee voltage", "iv.knee_voltage_v", "V"),
-    Item("K_TP in contact (z curve)", "z_curve.contact_k_tp_k_per_mw", "K/mW"),
-    Item("snap-in z", "z_curve.snap_in_z_nm", "nm"),
-    Item("C(jω) DC gain", "dynamics.c.dc_gain_k_per_mw", "K/mW"),
-    Item("C(jω) −3 dB bandwidth", "dynamics.c.bandwidth_hz", "Hz"),
-    Item("H(jω) DC gain", "dynamics.h.dc_gain_k_per_nm", "K/nm"),
-    Item("H(jω) −3 dB bandwidth", "dynamics.h.bandwidth_hz", "Hz"),
 )
 
 COMPARE = (

@@ -49,6 +49,7 @@ __all__ = [
     "k_tp_from_current",
     "monotone_k_tp",
     "separation_from_current",
+    "SweepOperatingPoint",
     "ThermalDynamics",
     "thermal_dynamics",
 ]
@@ -487,16 +488,36 @@ def separation_from_current(
 # --------------------------------------------------------------------------- C(jω), H(jω)
 
 
+class SweepOperatingPoint(NamedTuple):
+    """The operating point of a V_R sweep, and what g(T) gives there.
+
+    v_r_v, current_a : float
+        V_R0 (V) and I_R0 (A): the sweep's means.
+    resistance_ohm : float
+        R0 = V_R0/I_R0, Ω.
+    temperature_c : float
+        T0 = g⁻¹(R0), °C.
+    dg_dt_ohm_per_k : float
+        g′(T0), Ω/K.
+    """
+
+    v_r_v: float
+    current_a: float
+    resistance_ohm: float
+    temperature_c: float
+    dg_dt_ohm_per_k: float
+
+
 class ThermalDynamics(NamedTuple):
     """C(jω) (eq. 6.11, K/W) and H(jω) (eq. 6.12, K/m; None without Γ_IR,ts) at one operating point.
 
-    operating_point : dict
-        V_R0 (V), I_R0 (A), R0 (Ω), T0 (°C) and g′(T0) (Ω/K) used.
+    operating_point : SweepOperatingPoint
+        V_R0, I_R0, R0, T0 and g′(T0) used.
     """
 
     c: FrequencyResponse
     h: FrequencyResponse | None
-    operating_point: dict
+    operating_point: SweepOperatingPoint
 
 
 def _transform(fr: FrequencyResponse, values: np.ndarray, relative_error: np.ndarray) -> FrequencyResponse:
@@ -569,6 +590,6 @@ def thermal_dynamics(
         h_fr = replace(
             _transform(ir_vr_a_per_v, h, rel_h), coherence=np.fmin(ir_vr_a_per_v.coherence, ir_ts_a_per_m.coherence)
         )
-    point = {"v_r_v": v_r0_v, "current_a": current0_a, "resistance_ohm": r0, "temperature_c": t0,
-             "dg_dt_ohm_per_k": slope}
+    point = SweepOperatingPoint(v_r_v=v_r0_v, current_a=current0_a, resistance_ohm=r0, temperature_c=t0,
+                                dg_dt_ohm_per_k=slope)
     return ThermalDynamics(c_fr, h_fr, point)

@@ -14,11 +14,13 @@ from typing import NamedTuple
 
 from afmtool.errors import InputError
 from afmtool.models.thermal_sensor import ResistanceFit
+from afmtool.records.thermal import KtpTableRecord, ThermalSensorRecord
 
 __all__ = ["THERMAL_MODEL_FILE", "ThermalModel", "load_thermal_model"]
 
 #: The file name of the model in an ``identify thermal`` output folder.
 THERMAL_MODEL_FILE = "thermal_sensor.json"
+_K_TP_DEFINITION = "DC gain of Gamma_TP, (T - T_r)/P, K/W"
 
 
 class ThermalModel(NamedTuple):
@@ -43,7 +45,24 @@ class ThermalModel(NamedTuple):
     k_tp_table_k_per_w: tuple[float, ...] | None = None
     contact_k_tp_k_per_w: float | None = None
 
+    def record(self) -> ThermalSensorRecord:
+        """The model as a result record (``identify thermal``'s ``thermal_sensor``); its JSON is :meth:`to_dict`'s."""
+        table = None
+        if self.k_tp_separation_m is not None:
+            table = KtpTableRecord(separation_m=self.k_tp_separation_m, k_tp_k_per_w=self.k_tp_table_k_per_w)
+        return ThermalSensorRecord(
+            g=None if self.g_fit is None else self.g_fit.record(),
+            breakdown_temperature_c=self.breakdown_temperature_c,
+            k_tp_k_per_w=self.k_tp_k_per_w,
+            knee_power_w=self.knee_power_w,
+            knee_voltage_v=self.knee_voltage_v,
+            k_tp_table=table,
+            contact_k_tp_k_per_w=self.contact_k_tp_k_per_w,
+            k_tp_definition=_K_TP_DEFINITION,
+        )
+
     def to_dict(self) -> dict:
+        """``thermal_sensor.json``'s content (a non-finite number stays NaN here; :meth:`record` writes null)."""
         return {
             "g": None if self.g_fit is None else self.g_fit.to_dict(),
             "breakdown_temperature_c": self.breakdown_temperature_c,
@@ -54,7 +73,7 @@ class ThermalModel(NamedTuple):
             if self.k_tp_separation_m is None
             else {"separation_m": list(self.k_tp_separation_m), "k_tp_k_per_w": list(self.k_tp_table_k_per_w)},
             "contact_k_tp_k_per_w": self.contact_k_tp_k_per_w,
-            "k_tp_definition": "DC gain of Gamma_TP, (T - T_r)/P, K/W",
+            "k_tp_definition": _K_TP_DEFINITION,
         }
 
     @classmethod

@@ -51,6 +51,7 @@ from typing import NamedTuple
 import numpy as np
 
 from afmtool.errors import ConfigError
+from afmtool.records.thermal import ResistanceFitRecord
 
 __all__ = [
     "ResistanceModel",
@@ -506,13 +507,17 @@ class ResistanceFit:
         inside = (r >= table[0]) & (r <= table[-1])
         return np.where(inside, t, np.nan)
 
+    def record(self) -> ResistanceFitRecord:
+        """The fit as a result record (``identify thermal``'s ``iv.g_fit`` and ``thermal_sensor.g``)."""
+        return ResistanceFitRecord(
+            room_temperature_c=self.room_temperature_c,
+            coefficients_ohm=self.coefficients_ohm,
+            max_temperature_c=self.max_temperature_c,
+            form="R = sum_i c_i (T - T_r)^i, T in degC, R in ohm",
+        )
+
     def to_dict(self) -> dict:
-        return {
-            "room_temperature_c": self.room_temperature_c,
-            "coefficients_ohm": list(self.coefficients_ohm),
-            "max_temperature_c": self.max_temperature_c,
-            "form": "R = sum_i c_i (T - T_r)^i, T in degC, R in ohm",
-        }
+        return self.record().to_json()  # every number is finite (checked on construction)
 
     @classmethod
     def from_dict(cls, data) -> ResistanceFit:
