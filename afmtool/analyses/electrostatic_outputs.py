@@ -20,6 +20,17 @@ from afmtool.io.capture import CaptureReader
 from afmtool.io.units import calibration_record
 from afmtool.models.thermal_model import THERMAL_MODEL_FILE, load_thermal_model
 from afmtool.pipeline import run_stream
+from afmtool.records.electrostatic import (
+    ElectrostaticParameters,
+    ElectrostaticResults,
+    IdentifiabilityRecord,
+    NullDirectionRecord,
+    ParameterRecord,
+    ParameterStatus,
+    RegionRecord,
+    Sensor,
+    ThesisEquation,
+)
 from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -93,40 +104,51 @@ def _curve(sensor: str, reader: CaptureReader, model_path, warnings: list) -> tu
     return data, ts, "6.7"
 
 
-def _parameters_dict(fit: ElectrostaticFit) -> dict:
-    out = {}
-    for name, est in fit.estimates.items():
-        entry = {"value": est.value, "std": est.std, "relative_std": est.relative_std, "status": est.status}
-        if est.status == "not identifiable" and name in ("spring_constant_n_per_m", "k_esf_f_m"):
-            entry["note"] = _NOTES["spring_constant_n_per_m"]
-        out[name] = entry
-    return out
+def _parameter(fit: ElectrostaticFit, name: str) -> ParameterRecord:
+    est = fit.estimates[name]
+    status = ParameterStatus(est.status)
+    note = None
+    if status is ParameterStatus.NOT_IDENTIFIABLE and name in ("spring_constant_n_per_m", "k_esf_f_m"):
+        note = _NOTES["spring_constant_n_per_m"]
+    return ParameterRecord(value=est.value, std=est.std, relative_std=est.relative_std, status=status, note=note)
 
 
-def _identifiability_dict(fit: ElectrostaticFit) -> dict:
+def _parameters(fit: ElectrostaticFit) -> ElectrostaticParameters:
+    return ElectrostaticParameters(
+        spring_constant_n_per_m=_parameter(fit, "spring_constant_n_per_m"),
+        l0_m=_parameter(fit, "l0_m"),
+        k_esf_f_m=_parameter(fit, "k_esf_f_m"),
+        alpha_r=_parameter(fit, "alpha_r"),
+        tip_height_m=_parameter(fit, "tip_height_m") if "tip_height_m" in fit.estimates else None,
+        k_esf_over_k_m3_per_v2=_parameter(fit, "k_esf_over_k_m3_per_v2"),
+    )
+
+
+def _identifiability(fit: ElectrostaticFit) -> IdentifiabilityRecord:
     ident = fit.identifiability
-    return {
-        "method": "SVD of the Jacobian in relative parameters (d ln theta; alpha_R: d theta/|theta|), residuals "
+    return IdentifiabilityRecord(
+        method="SVD of the Jacobian in relative parameters (d ln theta; alpha_R: d theta/|theta|), residuals "
         "in noise units",
-        "parameters": list(ident.names),
-        "singular_values": [float(s) for s in ident.singular_values],
-        "condition_number": ident.condition_number if math.isfinite(ident.condition_number) else None,
-        "directions": [[float(x) for x in row] for row in ident.directions],
-        "non_identifiable": [
-            {
-                "parameters": list(d.parameters),
-                "weights": list(d.weights),
-                "identifiable_combination": d.identifiable_combination,
-                "relative_singular_value": d.singular_value / float(ident.singular_values[0]),
-            }
+        parameters=ident.names,
+        singular_values=tuple(float(s) for s in ident.singular_values),
+        condition_number=ident.condition_number if math.isfinite(ident.condition_number) else None,
+        directions=tuple(tuple(float(x) for x in row) for row in ident.directions),
+        non_identifiable=tuple(
+            NullDirectionRecord(
+                parameters=d.parameters,
+                weights=d.weights,
+                identifiable_combination=d.identifiable_combination,
+                relative_singular_value=d.singular_value / float(ident.singular_values[0]),
+            )
             for d in ident.null_directions
-        ],
-        "fixed_in_fit": list(fit.fixed),
-        "poorly_identifiable": [n for n, e in fit.estimates.items() if e.status == "poorly identifiable"],
-    }
+        ),
+        fixed_in_fit=tuple(fit.fixed),
+        poorly_identifiable=tuple(n for n, e in fit.estimates.items() if e.status == "poorly identifiable"),
+    )
 
 
-def _write(staged: OutputDir, fit: ElectrostaticFit, v_sub, y_m, v_r: float, region, sensor: str, results: dict):
+def _write(staged: OutputDir, fit: ElectrostaticFit, v_sub, y_m, v_r: float, region, sensor: str,
+           results: ElectrostaticResults):
     from afmtool.io.rows import RowWriter
     from afmtool.report.images import write_line_plot_png
 
@@ -141,8 +163,8 @@ def _write(staged: OutputDir, fit: ElectrostaticFit, v_sub, y_m, v_r: float, reg
     with open(staged.path("fit.csv"), "w", encoding="utf-8", newline="") as handle, RowWriter(handle, "csv") as rows:
         rows.append(table)
     staged.path("electrostatic.json").write_text(
-        json.dumps({"sensor": sensor, "v_r_v": v_r, "parameters": results["parameters"],
-                    "identifiability": results["identifiability"]}, indent=2, allow_nan=False) + "\n",
+        json.dumps({"sensor": sensor, "v_r_v": v_r, "parameters": results.parameters.to_json(),
+                    "identifiability": results.identifiability.to_json()}, indent=2, allow_nan=False) + "\n",
         encoding="utf-8",
     )
     markers = [] if region.snap_index is None else [(float(v_sub[region.snap_index]), "snap-in")]
@@ -155,7 +177,7 @@ def _write(staged: OutputDir, fit: ElectrostaticFit, v_sub, y_m, v_r: float, reg
             (v_sub[::step], y_m[::step] * 1e9, "measured", {"color": "0.6", "linewidth": 0.8}),
             (v_sub[fitted], y_m[fitted] * 1e9, "fitted region",
              {"color": "C0", "linestyle": "none", "marker": ".", "markersize": 2}),
-            (v_sub[approach], model[approach] * 1e9, f"eq. {results['thesis_equation']} fit", {"color": "C3"}),
+            (v_sub[approach], model[approach] * 1e9, f"eq. {results.thesis_equation.value} fit", {"color": "C3"}),
         ],
         x_label="V_sub (V)",
         y_label="deflection p (nm)" if sensor == "optical" else "t_s from snap-in (nm)",
@@ -198,23 +220,23 @@ def run_electrostatic_command(
     for name, est in fit.estimates.items():
         if est.status == "poorly identifiable":
             warnings.append(f"{name} is poorly identifiable (relative std {est.relative_std:.3g})")
-    results = {
-        "sensor": sensor,
-        "thesis_equation": equation,
-        "v_r_v": v_r,
-        "region": {
-            "v_sub_range_v": [float(v_sub[region.start]), float(v_sub[region.stop - 1])],
-            "points": int(np.count_nonzero(ok)),
-            "snap_in_v_sub_v": region.snap_v_sub_v,
-            "snap_in_jump_nm": region.jump * 1e9,
-            "margin_fraction": params.snap_margin,
-        },
-        "parameters": _parameters_dict(fit),
-        "identifiability": _identifiability_dict(fit),
-        "correlation": fit.correlation,
-        "rms_residual_nm": fit.rms_residual_m * 1e9,
-        "residual_lag1_autocorrelation": fit.residual_autocorrelation,
-    }
+    results = ElectrostaticResults(
+        sensor=Sensor(sensor),
+        thesis_equation=ThesisEquation(equation),
+        v_r_v=v_r,
+        region=RegionRecord(
+            v_sub_range_v=(float(v_sub[region.start]), float(v_sub[region.stop - 1])),
+            points=int(np.count_nonzero(ok)),
+            snap_in_v_sub_v=region.snap_v_sub_v,
+            snap_in_jump_nm=region.jump * 1e9,
+            margin_fraction=params.snap_margin,
+        ),
+        parameters=_parameters(fit),
+        identifiability=_identifiability(fit),
+        correlation=fit.correlation,
+        rms_residual_nm=fit.rms_residual_m * 1e9,
+        residual_lag1_autocorrelation=fit.residual_autocorrelation,
+    )
     inputs = [{**input_record(source), **calibration_record(reader)}]
     if sensor == "thermal":
         path = Path(thermal_model)

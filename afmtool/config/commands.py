@@ -267,7 +267,7 @@ _IDENTIFY = (
         "identify electrostatic", Kind.ANALYSIS, _own(P.ElectrostaticFitParams),
         _analysis("electrostatic_outputs", "run_electrostatic_command"),
         examples=("afmtool identify electrostatic /tmp/es.h5 --out results/es",), main_figures=(),
-        headline=H.ELECTROSTATIC,
+        result=Lazy("afmtool.records.electrostatic", "ElectrostaticResults"),
     ),
 )
 

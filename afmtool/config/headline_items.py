@@ -14,7 +14,7 @@ from __future__ import annotations
 from afmtool.records.base import Item
 
 __all__ = [
-    "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR", "ELECTROSTATIC",
+    "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR",
     "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
 ]
 
@@ -103,15 +103,6 @@ FREEAIR = (
     Item("k (thermal, equipartition)", "spring_constant.thermal.value_n_per_m", "N/m",
          "spring_constant.thermal.std_n_per_m"),
     Item("k (Sader)", "spring_constant.sader.value_n_per_m", "N/m", "spring_constant.sader.std_n_per_m"),
-)
-
-ELECTROSTATIC = (
-    Item("ℓ0", "parameters.l0_m.value", "m", "parameters.l0_m.std"),
-    Item("K_esf/k", "parameters.k_esf_over_k_m3_per_v2.value", "m³/V²", "parameters.k_esf_over_k_m3_per_v2.std"),
-    Item("α_R", "parameters.alpha_r.value", "", "parameters.alpha_r.std"),
-    Item("t_h", "parameters.tip_height_m.value", "m", "parameters.tip_height_m.std"),
-    Item("K_esf", "parameters.k_esf_f_m.value", "F·m", "parameters.k_esf_f_m.std"),
-    Item("RMS residual", "rms_residual_nm", "nm"),
 )
 
 COMPARE = (
