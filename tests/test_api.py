@@ -89,7 +89,14 @@ def test_probeloss_kalman_bank_and_gamma_equal_the_cli(tmp_path):
     assert_same_folder(afmtool.kalman_bank(SAMPLE_DATA / "force_curve_thesis.h5").save(tmp_path / "api_bank"), cli)
     near, contact = SAMPLE_DATA / "thermal_sweep_near.h5", SAMPLE_DATA / "thermal_sweep_contact.h5"
     cli = _cli(tmp_path, "gamma", "identify", "gamma", near, "--contact", contact)
-    assert_same_folder(afmtool.identify_gamma(near, contact).save(tmp_path / "api_gamma"), cli)
+    gamma = afmtool.identify_gamma(near, contact)
+    assert_same_folder(gamma.save(tmp_path / "api_gamma"), cli)
+    from afmtool.records.gamma import GammaResults, ResponseMethod
+
+    typed = gamma.results  # the typed record, read back from report.json
+    assert isinstance(typed, GammaResults) and typed.method is ResponseMethod.H1
+    assert typed.to_json() == gamma.report["results"]
+    assert gamma.summary["feed-through capacitance"].value == typed.feedthrough_fit.capacitance_pf
 
 
 @pytest.mark.slow  # 90 s of CI; the capture commands' API-vs-CLI tests run in CI
@@ -114,6 +121,11 @@ def test_theory_design_and_ch6_functions_equal_the_cli(tmp_path):
         cli = _cli(tmp_path, scenario, *command, capture)
         result = function(**{key: capture}) if key else function(capture)
         assert_same_folder(result.save(tmp_path / f"api_{scenario}"), cli)
+        assert result.results.to_json() == result.report["results"]  # the typed record (issue 29, item 2)
+    from afmtool.records.electrostatic import ParameterStatus, Sensor
+
+    assert result.results.sensor is Sensor.OPTICAL and result.results.parameters.tip_height_m is None
+    assert result.results.parameters.l0_m.status is ParameterStatus.IDENTIFIED
 
 
 def test_identify_invols_equals_the_cli(tmp_path, rng):
