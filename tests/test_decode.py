@@ -253,18 +253,18 @@ def test_l0_search_warns_without_a_minimum(short_bits):
     assert not search.unique and "edge of the bracket" in search.note
     result, _ = _decode(short_bits, bit_rate_hz=30e3, l0_bracket_nm="1100:1300", l0_grid_points=9)
     assert any(w.startswith("l0: no unique minimum") for w in result.warnings)
-    assert not result.results["l0"]["unique_minimum"]
+    assert not result.results.l0.unique_minimum
 
 
 def test_decode_estimates_noise_levels(short_bits):
     result, _ = _decode(short_bits, bit_rate_hz=30e3)
-    noise = result.results["noise"]
+    noise = result.results.noise
     thermal = thermal_force_asd(THESIS_CH7_PARAMS.spring_constant_n_per_m, F0, Q0, 300.0)
-    print(f"estimated measurement noise {noise['measurement_noise_nm']:.4f} nm (true 0.05), process noise "
-          f"{noise['process_noise_n_per_rthz']:.3e} N/rtHz (thermal {thermal:.3e})")
-    assert noise["measurement_noise_nm"] == pytest.approx(0.05, rel=0.1)
-    assert noise["process_noise_n_per_rthz"] == pytest.approx(thermal, rel=0.3)
-    assert noise["nominal_mean_nis"] == pytest.approx(1.0, rel=1e-6)
+    print(f"estimated measurement noise {noise.measurement_noise_nm:.4f} nm (true 0.05), process noise "
+          f"{noise.process_noise_n_per_rthz:.3e} N/rtHz (thermal {thermal:.3e})")
+    assert noise.measurement_noise_nm == pytest.approx(0.05, rel=0.1)
+    assert noise.process_noise_n_per_rthz == pytest.approx(thermal, rel=0.3)
+    assert noise.nominal_mean_nis == pytest.approx(1.0, rel=1e-6)
 
 
 # --------------------------------------------------------------------------- bits
@@ -275,15 +275,15 @@ def _ber_run(rate_hz, n_bits, seed):
         "bits", {"duration_s": 0.002 + (n_bits + 1) / rate_hz, "bit_rate_hz": rate_hz, "bit_height_nm": 4.0}, seed=seed
     )
     result, _ = _decode(captured, bit_rate_hz=rate_hz)
-    return result.results["truth"]
+    return result.results.truth
 
 
 def _report_ber(label, truth):
-    ekf, base = truth["decoder"], truth["baseline"]
+    ekf, base = truth.decoder, truth.baseline
     print(
-        f"{label}: EKF {ekf['errors']}/{ekf['compared']} errors, BER {ekf['ber']:.2e} (95 % upper {ekf['ber_upper_95']:.2e}); "
-        f"lock-in amplitude baseline {base['errors']}/{base['compared']}, BER {base['ber']:.2e}; "
-        f"baseline/EKF {'>=' if truth['ratio_is_lower_bound'] else '='} {truth['baseline_to_decoder_ber_ratio']:.0f}"
+        f"{label}: EKF {ekf.errors}/{ekf.compared} errors, BER {ekf.ber:.2e} (95 % upper {ekf.ber_upper_95:.2e}); "
+        f"lock-in amplitude baseline {base.errors}/{base.compared}, BER {base.ber:.2e}; "
+        f"baseline/EKF {'>=' if truth.ratio_is_lower_bound else '='} {truth.baseline_to_decoder_ber_ratio:.0f}"
     )
 
 
@@ -291,33 +291,33 @@ def test_ber_50khz_4nm_bits():
     """Acceptance: BER ≤ 1e-3 at the 50 kHz minimum bit width, baseline ≥ 10× worse (20,000 bits)."""
     truth = _ber_run(50e3, 20_000, seed=21)
     _report_ber("50 kHz, 4 nm", truth)
-    ekf, base = truth["decoder"], truth["baseline"]
-    assert ekf["compared"] >= 19_990
-    assert ekf["ber"] <= 1e-3 and ekf["ber_upper_95"] <= 1e-3
+    ekf, base = truth.decoder, truth.baseline
+    assert ekf.compared >= 19_990
+    assert ekf.ber <= 1e-3 and ekf.ber_upper_95 <= 1e-3
     # with no decoder error the ratio uses the decoder's 95 % upper bound: a lower bound of the ratio
-    assert truth["baseline_to_decoder_ber_ratio"] >= 10
-    assert base["ber"] >= 10 * max(ekf["ber"], 1.0 / ekf["compared"])
+    assert truth.baseline_to_decoder_ber_ratio >= 10
+    assert base.ber >= 10 * max(ekf.ber, 1.0 / ekf.compared)
 
 
 def test_ber_30khz_4nm_bits():
     """Acceptance: BER ≤ 1e-4 at 30 kHz (40,000 bits: 0 errors bound it below 7.5e-5 at 95 %)."""
     truth = _ber_run(30e3, 40_000, seed=31)
     _report_ber("30 kHz, 4 nm", truth)
-    ekf = truth["decoder"]
-    assert ekf["compared"] >= 39_990
-    assert ekf["ber"] <= 1e-4
-    assert truth["baseline_to_decoder_ber_ratio"] >= 10
+    ekf = truth.decoder
+    assert ekf.compared >= 39_990
+    assert ekf.ber <= 1e-4
+    assert truth.baseline_to_decoder_ber_ratio >= 10
 
 
 def test_clock_recovery_without_bit_rate():
     captured = sim.simulate("bits", {"duration_s": 0.05, "bit_rate_hz": 30e3}, seed=8)
     result, columns = _decode(captured)
-    clock = result.results["clock"]
-    print(f"recovered bit rate {clock['rate_hz']:.2f} Hz (true 30000), final period {clock['final_period_samples']:.4f}")
-    assert clock["recovered"]
-    assert clock["rate_hz"] == pytest.approx(30e3, rel=1e-3)
-    assert result.results["truth"]["decoder"]["errors"] == 0
-    assert result.results["truth"]["decoder"]["compared"] >= 1430
+    clock = result.results.clock
+    print(f"recovered bit rate {clock.rate_hz:.2f} Hz (true 30000), final period {clock.final_period_samples:.4f}")
+    assert clock.recovered
+    assert clock.rate_hz == pytest.approx(30e3, rel=1e-3)
+    assert result.results.truth.decoder.errors == 0
+    assert result.results.truth.decoder.compared >= 1430
 
 
 def test_voltage_channel_gives_the_same_bits(short_bits):
@@ -344,7 +344,7 @@ def test_decode_does_not_depend_on_the_chunk_size(short_bits):
     for name in ("innovation", "soft", "baseline_soft", "bit_times_s"):
         np.testing.assert_allclose(c1[name], c2[name], rtol=1e-12, atol=1e-12, err_msg=name)
     np.testing.assert_array_equal(c1["bits"], c2["bits"])
-    assert r1.results["truth"] == r2.results["truth"]
+    assert r1.results.truth == r2.results.truth
 
 
 def test_slicer_chunked_equals_single(short_bits):

@@ -26,6 +26,7 @@ from afmtool.config.params import DecodeParams
 from afmtool.errors import ConfigError
 from afmtool.io.hdf5 import Hdf5Writer
 from afmtool.io.memory import ArrayReader
+from afmtool.records.decode import DecodeMode
 from tests.conftest import run_cli
 from tests.memory_sink import MemorySink
 
@@ -79,14 +80,14 @@ def test_electrostatic_from_identify_electrostatic(bits, tmp_path):
     columns = MemorySink()
     result = run_decode(_reader(bits, bare), resolve(DecodeParams, {"bit_rate_hz": 30e3,
                                                                     "electrostatic": str(tmp_path / "es")}), columns)
-    model, l0 = result.results["model"], result.results["l0"]
-    print(f"decode --electrostatic: l0 {l0['estimate_nm']:.1f} nm (truth {LEVER['l0_nm']}), sources {model['sources']}")
-    assert model["sources"]["k_esf_f_m"].startswith("--electrostatic")
-    assert model["sources"]["alpha_r"].startswith("--electrostatic")
-    assert model["sources"]["spring_constant_n_per_m"] == "metadata"  # the curve knows only K_esf/k
-    assert model["alpha_r"] == pytest.approx(LEVER["alpha_r"], rel=0.01)
-    assert l0["estimate_nm"] == pytest.approx(LEVER["l0_nm"], rel=0.01)
-    assert result.results["truth"]["decoder"]["errors"] == 0
+    model, l0 = result.results.model, result.results.l0
+    print(f"decode --electrostatic: l0 {l0.estimate_nm:.1f} nm (truth {LEVER['l0_nm']}), sources {model.sources}")
+    assert model.sources.k_esf_f_m.startswith("--electrostatic")
+    assert model.sources.alpha_r.startswith("--electrostatic")
+    assert model.sources.spring_constant_n_per_m == "metadata"  # the curve knows only K_esf/k
+    assert model.alpha_r == pytest.approx(LEVER["alpha_r"], rel=0.01)
+    assert l0.estimate_nm == pytest.approx(LEVER["l0_nm"], rel=0.01)
+    assert result.results.truth.decoder.errors == 0
 
 
 def test_alpha_r_zero_decodes(tmp_path):
@@ -95,10 +96,10 @@ def test_alpha_r_zero_decodes(tmp_path):
                                      "substrate_dc_v": -2.8}, seed=4)
     assert captured.metadata["electrostatic"]["alpha_r"] == 0.0
     result = run_decode(_reader(captured), resolve(DecodeParams, {"bit_rate_hz": 30e3}), MemorySink())
-    truth = result.results["truth"]
-    print(f"alpha_R = 0: l0 error {truth['l0_error_percent']:+.3f} %, BER {truth['decoder']['ber']}")
-    assert result.results["model"]["alpha_r"] == 0.0 and result.results["model"]["sources"]["alpha_r"] == "metadata"
-    assert truth["decoder"]["errors"] == 0 and abs(truth["l0_error_percent"]) < 1
+    truth = result.results.truth
+    print(f"alpha_R = 0: l0 error {truth.l0_error_percent:+.3f} %, BER {truth.decoder.ber}")
+    assert result.results.model.alpha_r == 0.0 and result.results.model.sources.alpha_r == "metadata"
+    assert truth.decoder.errors == 0 and abs(truth.l0_error_percent) < 1
     # and as a parameter: --alpha-r 0 is a value, not "automatic"
     assert resolve(DecodeParams, {"alpha_r": 0.0}).alpha_r == 0.0
 
@@ -114,11 +115,11 @@ def test_vphi_step_across_q_as_figs_7_9_to_7_12():
     settling = {}
     for q in (1.0148, 100.0148, 1000.0148):
         result = run_decode(_reader(_step_capture(q)), resolve(DecodeParams, {}), MemorySink())
-        step = result.results["step"]
-        assert result.results["mode"] == "step" and result.step is not None
-        settling[q] = {name: step[name]["settling_periods"] for name in ("deflection", "amplitude", "innovation")}
+        step = result.results.step
+        assert result.results.mode is DecodeMode.STEP and result.step is not None
+        settling[q] = {name: getattr(step, name).settling_periods for name in ("deflection", "amplitude", "innovation")}
         print(f"Q {q:g}: " + ", ".join(f"{k} {v:.2f}" for k, v in settling[q].items())
-              + f" actuation periods; running-mean detection after {step['innovation_mean']['delay_periods']:.2f}")
+              + f" actuation periods; running-mean detection after {step.innovation_mean.delay_periods:.2f}")
     innovation = [s["innovation"] for s in settling.values()]
     amplitude = [s["amplitude"] for s in settling.values()]
     assert max(innovation) <= 5.0 and max(innovation) / max(min(innovation), 0.5) < 2.0

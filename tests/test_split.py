@@ -141,9 +141,9 @@ def test_split_on_two_threads_equals_sequential(case, long_ltv, tmp_path, monkey
     assert len(passes) == (2 if command == "kalman-bank" else 1)  # every pass really ran split
     assert_same_run(split_path, sequential_path)
     if command == "decode":  # the bits themselves are compared exactly in the files
-        assert split.results["bits"] == sequential.results["bits"]
-        assert split.results["ekf"]["bit_stream_innovation_rms_nm"] == pytest.approx(
-            sequential.results["ekf"]["bit_stream_innovation_rms_nm"], rel=RTOL)
+        assert split.results.bits == sequential.results.bits
+        assert split.results.ekf.bit_stream_innovation_rms_nm == pytest.approx(
+            sequential.results.ekf.bit_stream_innovation_rms_nm, rel=RTOL)
     if command == "kalman-bank":
         for key in ("held_samples", "samples_compared"):
             assert split.results["adaptive"][key] == sequential.results["adaptive"][key]
@@ -199,7 +199,7 @@ def test_split_on_a_two_worker_dask_cluster_equals_sequential(case, long_ltv, tm
     split, split_path = _run(case, capture, tmp_path, Split(jobs=2, scheduler=dask_cluster), **flags)
     assert_same_run(split_path, sequential_path)
     if case == "decode":
-        assert split.results["bits"] == sequential.results["bits"]
+        assert split.results.bits == sequential.results.bits
 
 
 def test_cli_jobs_and_scheduler(long_ltv, tmp_path):

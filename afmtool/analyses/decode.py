@@ -35,7 +35,18 @@ from afmtool.estimators.bit_stream import BitDecision, decide_bits
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.pipeline import Split, run_stream
-from afmtool.report.results import JsonResults
+from afmtool.records.decode import (
+    ActuationSource,
+    BaselineBitScores,
+    BitScores,
+    Confusion,
+    DecodeMode,
+    DecodeModel,
+    DecodeResults,
+    EkfRecord,
+    Rows,
+    TruthRecord,
+)
 
 __all__ = [
     "DecodeResult",
@@ -60,10 +71,10 @@ _READ_AHEAD = 1
 
 
 @dataclass(frozen=True)
-class DecodeResult(JsonResults):
+class DecodeResult:
     """What :func:`run_decode` found; the command turns it into files and a report."""
 
-    results: dict
+    results: DecodeResults
     warnings: tuple[str, ...]
     l0_curve_nm: tuple[np.ndarray, np.ndarray] | None  #: (ℓ0, innovation RMS), nm
     psd: dict = field(default_factory=dict)  #: frequency_hz, deflection, innovation (nm²/Hz)
@@ -129,66 +140,65 @@ def run_decode(
     if tuning.l0_curve_nm is not None:
         writer.put("l0_search/l0_nm", tuning.l0_curve_nm[0], "nm")
         writer.put("l0_search/innovation_rms_nm", tuning.l0_curve_nm[1], "nm")
-    results = _common_results(decoding, totals, fs)
     warnings = list(tuning.warnings)
     if decoding.step_window is not None:
         from afmtool.analyses.decode_step import step_results
 
         series = decoding.step_window.series()
-        results["mode"] = "step"
-        results["step"] = step_results(series, decoding.step_window.step_sample, fs, decoding.actuation_hz,
-                                       setup.f0_hz, setup.q, decoding.mean_window)
+        step = step_results(series, decoding.step_window.step_sample, fs, decoding.actuation_hz, setup.f0_hz, setup.q,
+                            decoding.mean_window)
+        results = _results(decoding, totals, fs, DecodeMode.STEP, step=step)
         return DecodeResult(results, tuple(warnings), tuning.l0_curve_nm, decoding.psd.spectra(fs), {}, series)
     stage, mean_window = decoding.bits, decoding.mean_window
     decided = decide_bits(stage, params, mean_window, warnings)
     _write_bits(writer, decided, params)
-    results.update({"mode": "bits", **decided.results,
-                    "baseline": {**decoding.baseline.results(), **decided.baseline_results}})
-    results["clock"]["bits_from_s"] = decoding.bits_start / fs
-    _compare_truth(reader, results, decided, stage.clock.period_samples, 0.5 * (mean_window - 1))
+    truth = _compare_truth(reader, tuning.l0.estimate_nm, decided, stage.clock.period_samples, 0.5 * (mean_window - 1))
+    results = _results(decoding, totals, fs, DecodeMode.BITS, clock=decided.clock_record, bits=decided.bits_record,
+                       baseline=decoding.baseline.record(decided.baseline_levels), truth=truth)
     eye = {"x": stage.eye_x, "traces": stage.eye_traces, "threshold_nm": decided.threshold_nm}
     eye = eye if stage.eye_traces.size else {}
     return DecodeResult(results, tuple(warnings), tuning.l0_curve_nm, decoding.psd.spectra(fs), eye)
 
 
-def _common_results(decoding: DecodeStage, totals: DecodeTotals, fs: float) -> dict:
-    """The model, the nominal segment, the tuning and the EKF's figures: the results of either mode."""
+def _results(decoding: DecodeStage, totals: DecodeTotals, fs: float, mode: DecodeMode, **sections) -> DecodeResults:
+    """The model, the nominal segment, the tuning and the EKF's figures, with the ``sections`` of ``mode``."""
     nominal = decoding.nominal
-    return {
-        "model": _model_results(decoding.setup, decoding.params),
-        "nominal_segment_s": list(nominal) if nominal is not None else None,
-        **decoding.tuning.results,
-        "ekf": {
-            "sample_rate_hz": fs,
-            "actuation_hz": decoding.actuation_hz,
-            "actuation_source": decoding.actuation_source,
-            "mean_window_samples": decoding.mean_window,
-            "bit_stream_innovation_rms_nm": totals.bit_stream_rms_nm,
-        },
+    return DecodeResults(
+        model=_model_record(decoding.setup, decoding.params),
+        nominal_segment_s=tuple(nominal) if nominal is not None else None,
+        l0=decoding.tuning.l0,
+        noise=decoding.tuning.noise,
+        ekf=EkfRecord(
+            sample_rate_hz=fs, actuation_hz=decoding.actuation_hz,
+            actuation_source=ActuationSource(decoding.actuation_source), mean_window_samples=decoding.mean_window,
+            bit_stream_innovation_rms_nm=totals.bit_stream_rms_nm,
+        ),
         # the series' density and what set it (issue 33): innovation_mean's rows; per-period adds every sample's
-        "rows": decoding.params.rows,
-        "row_every_samples": decoding.mean_window,
-        "row_rate_hz": fs / decoding.mean_window,
-        "innovation_every_sample": decoding.params.rows == "per-period",
-        "n_samples": totals.n_samples,
-        "duration_s": totals.n_samples / fs,
-    }
+        rows=Rows(decoding.params.rows),
+        row_every_samples=decoding.mean_window,
+        row_rate_hz=fs / decoding.mean_window,
+        innovation_every_sample=decoding.params.rows == "per-period",
+        n_samples=totals.n_samples,
+        duration_s=totals.n_samples / fs,
+        mode=mode,
+        **sections,
+    )
 
 
-def _model_results(setup: ModelSetup, params: DecodeParams) -> dict:
+def _model_record(setup: ModelSetup, params: DecodeParams) -> DecodeModel:
     es = setup.electrostatic
-    return {
-        "f0_hz": setup.f0_hz,
-        "q": setup.q,
-        "spring_constant_n_per_m": es.spring_constant_n_per_m,
-        "k_esf_f_m": es.k_esf_f_m,
-        "alpha_r": es.alpha_r,
-        "tip_height_nm": es.tip_height_m * 1e9,
-        "l0_guess_nm": es.l0_m * 1e9 if setup.l0_known else None,
-        "sources": setup.sources,
-        "convention": "F_esf = -K_esf*V^2/(l0 + p)^2 (no 1/2), K_esf in F*m; EKF state [p (nm), dp/dt (nm/s)]",
-        "voltage": params.voltage_channel or "alpha_r*v_r - v_sub",
-    }
+    return DecodeModel(
+        f0_hz=setup.f0_hz,
+        q=setup.q,
+        spring_constant_n_per_m=es.spring_constant_n_per_m,
+        k_esf_f_m=es.k_esf_f_m,
+        alpha_r=es.alpha_r,
+        tip_height_nm=es.tip_height_m * 1e9,
+        l0_guess_nm=es.l0_m * 1e9 if setup.l0_known else None,
+        sources=setup.sources,
+        convention="F_esf = -K_esf*V^2/(l0 + p)^2 (no 1/2), K_esf in F*m; EKF state [p (nm), dp/dt (nm/s)]",
+        voltage=params.voltage_channel or "alpha_r*v_r - v_sub",
+    )
 
 
 def _write_bits(writer: ResultWriter, decided: BitDecision, params: DecodeParams) -> None:
@@ -201,42 +211,40 @@ def _write_bits(writer: ResultWriter, decided: BitDecision, params: DecodeParams
     writer.put("baseline_bits", decided.baseline_bits, "", {"polarity": "1 = larger amplitude"})
 
 
+def _scores(kind: type[BitScores], found: BitErrors, fs: float, **more) -> BitScores:
+    """One decoder's errors as ``kind`` (:class:`BitScores`, or the baseline's with ``inverted``)."""
+    return kind(ber=found.ber, ber_upper_95=ber_upper_bound(found.errors, found.compared) if found.compared else None,
+                errors=found.errors, compared=found.compared, latency_s=found.lag_samples / fs,
+                confusion=Confusion(**found.confusion), **more)
+
+
 def _compare_truth(
-    reader: CaptureReader, results: dict, decided: BitDecision, period: float, latency_known: float
-) -> None:
+    reader: CaptureReader, l0_estimate_nm: float, decided: BitDecision, period: float, latency_known: float
+) -> TruthRecord | None:
     """BER and confusion counts of the decoder and the baseline when /truth has the bits."""
     bits, base_bits, centres = decided.bits, decided.baseline_bits, decided.centres
     names = reader.info.truth_names
     if not {"bit", "bit_index"} <= set(names):
-        return
+        return None
     truth = reader.truth()
     truth_bit, truth_index = truth["bit"], truth["bit_index"]
-    truth_results: dict = {}
-    if "l0_nm" in truth and truth["l0_nm"].size:
-        l0_true = float(truth["l0_nm"][0])
-        truth_results["l0_nm"] = l0_true
-        estimate = results["l0"]["estimate_nm"]
-        truth_results["l0_error_percent"] = 100.0 * (estimate / l0_true - 1.0)
+    l0_true = float(truth["l0_nm"][0]) if "l0_nm" in truth and truth["l0_nm"].size else None
     max_lag = int(math.ceil(2 * period + latency_known))
     ekf = bit_errors(bits, centres, truth_bit, truth_index, max_lag=max_lag)
     base = bit_errors(base_bits, centres, truth_bit, truth_index, max_lag=max_lag + int(math.ceil(period)),
                       allow_inversion=True)
+    del truth
     fs = reader.info.sample_rate_hz
-    for key, found in (("decoder", ekf), ("baseline", base)):
-        truth_results[key] = {
-            "ber": found.ber,
-            "ber_upper_95": ber_upper_bound(found.errors, found.compared) if found.compared else None,
-            "errors": found.errors,
-            "compared": found.compared,
-            "latency_s": found.lag_samples / fs,
-            "confusion": found.confusion,
-        }
-    truth_results["baseline"]["inverted"] = base.inverted
-    truth_results["alignment"] = "latency (0 to 2 bit periods) with the fewest errors, per decoder"
+    ratio = lower_bound = None
     if ekf.compared and base.compared:
         # with no decoder error the ratio is bounded below, by the one-sided 95 % upper bound of its BER
         bound = ekf.ber if ekf.errors else ber_upper_bound(0, ekf.compared)
-        truth_results["baseline_to_decoder_ber_ratio"] = base.ber / bound if bound > 0 else None
-        truth_results["ratio_is_lower_bound"] = ekf.errors == 0
-    results["truth"] = truth_results
-    del truth
+        ratio, lower_bound = (base.ber / bound if bound > 0 else None), ekf.errors == 0
+    return TruthRecord(
+        l0_nm=l0_true,
+        l0_error_percent=100.0 * (l0_estimate_nm / l0_true - 1.0) if l0_true is not None else None,
+        decoder=_scores(BitScores, ekf, fs),
+        baseline=_scores(BaselineBitScores, base, fs, inverted=base.inverted),
+        alignment="latency (0 to 2 bit periods) with the fewest errors, per decoder",
+        baseline_to_decoder_ber_ratio=ratio, ratio_is_lower_bound=lower_bound,
+    )

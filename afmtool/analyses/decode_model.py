@@ -30,6 +30,7 @@ from afmtool.errors import ConfigError
 from afmtool.io.capture import CaptureInfo
 from afmtool.io.electrostatic_file import ElectrostaticFile
 from afmtool.models.electrostatic import ElectrostaticParams
+from afmtool.records.decode import ModelSources
 
 __all__ = ["ModelSetup", "resolve_model", "DEFAULT_L0_BRACKET_M"]
 
@@ -43,7 +44,7 @@ class ModelSetup(NamedTuple):
     f0_hz: float
     q: float
     electrostatic: ElectrostaticParams  #: its l0_m is the guess (a placeholder when ``l0_known`` is False)
-    sources: dict  #: parameter name -> "parameter", "--electrostatic FILE", "metadata" or "none: ..."
+    sources: ModelSources  #: per parameter: "parameter", "--electrostatic FILE", "metadata" or "none: ..."
     l0_known: bool = True  #: False: nothing gave ℓ0; the default bracket is searched
 
     def l0_bracket_m(self) -> tuple[float, float, bool]:
@@ -115,8 +116,9 @@ def resolve_model(info: CaptureInfo, params: DecodeParams, file: ElectrostaticFi
     if l0 is None:  # a placeholder above t_h; the search over the default bracket replaces it
         src.sources["l0_guess_nm"] = "none: the default bracket is searched"
         l0 = 2.0 * max(DEFAULT_L0_BRACKET_M[0], 1.05 * tip)
-    return ModelSetup(f0, q, ElectrostaticParams(k, k_esf, alpha, l0, tip), src.sources,
-                      src.sources["l0_guess_nm"] != "none: the default bracket is searched")
+    sources = ModelSources(**src.sources)
+    return ModelSetup(f0, q, ElectrostaticParams(k, k_esf, alpha, l0, tip), sources,
+                      sources.l0_guess_nm != "none: the default bracket is searched")
 
 
 _HOW = {

@@ -12,6 +12,7 @@ from afmtool.config.params import DecodeParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter, row_attrs
 from afmtool.io.units import calibration_record
+from afmtool.records.decode import DecodeResults
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -31,7 +32,10 @@ def run_decode_command(run: CommandRun) -> dict:
             # matplotlib, for the eye, PSD and ℓ0 figures at the end, loads while the EKF streams
             result = run_decode(reader, params, writer, progress=run.progress, on_stream_start=run.figures.on_stream_start,
                                 split=run.split)
-            writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))
+            found = result.results
+            rows = {"rows": found.rows.value, "row_every_samples": found.row_every_samples,
+                    "row_rate_hz": found.row_rate_hz}
+            writer.set_attrs(row_attrs(rows, reader.info.sample_rate_hz))
             if result.psd:
                 for name in ("frequency_hz", "deflection", "innovation"):
                     units = "Hz" if name == "frequency_hz" else "nm^2/Hz"
@@ -54,7 +58,8 @@ def run_decode_stream(reader: CaptureReader, config: Path | None, flags: Mapping
     run_stream(run_decode, DecodeParams, "decode", reader, config, flags, fmt, row_columns=("t_mean", "innovation_mean"))
 
 
-def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: CaptureReader, results: Mapping) -> None:
+def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: CaptureReader,
+                       results: DecodeResults) -> None:
     """decode_time_series.png: the running mean with the decided bits and, with /truth/bit, the truth."""
     from afmtool.analyses.decode_timeseries import write_decode_time_series_png
 
@@ -66,12 +71,11 @@ def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: Captur
 def _write_figures(figures: FigureProcess, staged: OutputDir, result: DecodeResult) -> None:
     from afmtool.analyses.decode_figures import write_eye_png, write_l0_png, write_psd_png, write_step_png
 
+    found = result.results
     if result.step is not None:  # --mode step: the response to the V_phi step
-        series, step = result.step, result.results["step"]
-        fs = result.results["ekf"]["sample_rate_hz"]
+        series, fs = result.step, found.ekf.sample_rate_hz
         figures.draw(write_step_png, staged.path("decode_step.png"), series.deflection, series.innovation,
-                     series.amplitude, series.first, round(step["time_s"] * fs), fs,
-                     result.results["ekf"]["mean_window_samples"])
+                     series.amplitude, series.first, round(found.step.time_s * fs), fs, found.ekf.mean_window_samples)
 
     if result.eye:
         figures.draw(write_eye_png, staged.path("eye.png"), result.eye["x"], result.eye["traces"],
@@ -81,4 +85,4 @@ def _write_figures(figures: FigureProcess, staged: OutputDir, result: DecodeResu
                      result.psd["innovation"])
     if result.l0_curve_nm is not None:
         figures.draw(write_l0_png, staged.path("l0_search.png"), *result.l0_curve_nm,
-                     result.results["l0"]["estimate_nm"])
+                     found.l0.estimate_nm)

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 
 from afmtool.errors import InputError
+from afmtool.records.decode import Settling, StepDetection, StepRecord
 
 __all__ = ["STEP_WINDOW_SAMPLES", "StepWindow", "StepSeries", "step_results"]
 
@@ -123,7 +124,7 @@ def _running_mean(x: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
-def _detection(innovation: np.ndarray, step: int, window: int) -> dict:
+def _detection(innovation: np.ndarray, step: int, window: int, fs: float, period: float) -> StepDetection:
     """When the innovation's running mean leaves its pre-step scatter (module docstring)."""
     mean = _running_mean(innovation, window)
     before = mean[window - 1:step]
@@ -134,12 +135,14 @@ def _detection(innovation: np.ndarray, step: int, window: int) -> dict:
     peak = float(np.nanmax(deviation)) if deviation.size else 0.0
     threshold = max(DETECTION_SIGMA * scatter, 0.05 * peak)
     crossed = np.flatnonzero(deviation > threshold)
-    return {"pre_step_mean_nm": level, "pre_step_std_nm": scatter, "peak_deviation_nm": peak,
-            "threshold_nm": threshold, "delay_samples": float(crossed[0]) if crossed.size else None}
+    delay = float(crossed[0]) if crossed.size else None
+    return StepDetection(pre_step_mean_nm=level, pre_step_std_nm=scatter, peak_deviation_nm=peak,
+                         threshold_nm=threshold, delay_s=None if delay is None else delay / fs,
+                         delay_periods=None if delay is None else delay / period)
 
 
 def step_results(series: StepSeries, step_sample: int, fs: float, actuation_hz: float, f0_hz: float, q: float,
-                 mean_window: int) -> dict:
+                 mean_window: int) -> StepRecord:
     """Settling times and the detection delay (module docstring), in s and actuation periods."""
     period = fs / actuation_hz
     step = step_sample - series.first
@@ -147,22 +150,15 @@ def step_results(series: StepSeries, step_sample: int, fs: float, actuation_hz: 
         raise InputError(f"the V_phi step at {step_sample / fs:g} s leaves too little capture on either side "
                          "(--step-time)")
     rad = 2.0 * math.pi * actuation_hz / fs
-    out = {}
+    settled = {}
     for name in ("deflection", "amplitude", "innovation"):
         settle, peak = _settle_samples(getattr(series, name), step, rad, mean_window, periodic=name != "amplitude")
-        out[name] = {"settling_s": settle / fs, "settling_periods": settle / period, "transient_peak_nm": peak}
-    detection = _detection(series.innovation, step, mean_window)
-    delay = detection.pop("delay_samples")
-    detection["delay_s"] = None if delay is None else delay / fs
-    detection["delay_periods"] = None if delay is None else delay / period
+        settled[name] = Settling(settling_s=settle / fs, settling_periods=settle / period, transient_peak_nm=peak)
     lever = 2.0 * q / (2.0 * math.pi * f0_hz)  # 2Q/ω0
-    return {
-        "time_s": step_sample / fs,
-        "lever_time_constant_s": lever,
-        "lever_time_constant_periods": lever * actuation_hz,
-        **out,
-        "innovation_mean": detection,
-
-        "window_s": [series.first / fs, (series.first + series.deflection.size) / fs],
-        "settling": f"last time the one-period rms envelope of the transient exceeds {SETTLE_TOLERANCE:g} of its peak",
-    }
+    return StepRecord(
+        time_s=step_sample / fs, lever_time_constant_s=lever, lever_time_constant_periods=lever * actuation_hz,
+        deflection=settled["deflection"], amplitude=settled["amplitude"], innovation=settled["innovation"],
+        innovation_mean=_detection(series.innovation, step, mean_window, fs, period),
+        window_s=(series.first / fs, (series.first + series.deflection.size) / fs),
+        settling=f"last time the one-period rms envelope of the transient exceeds {SETTLE_TOLERANCE:g} of its peak",
+    )

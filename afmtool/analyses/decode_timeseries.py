@@ -8,11 +8,11 @@ single cells can be read; the eye diagram shows all of them.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from afmtool.records.decode import DecodeResults
 from afmtool.report.figure_process import FigureProcess
 
 __all__ = ["WINDOW_BITS", "write_decode_time_series_png"]
@@ -24,7 +24,7 @@ WINDOW_BITS = 60
 def write_decode_time_series_png(
     directory_path,
     decode_h5: Path,
-    results: Mapping,
+    results: DecodeResults,
     *,
     truth_bit: np.ndarray | None,
     sample_rate_hz: float,
@@ -39,9 +39,9 @@ def write_decode_time_series_png(
         called only when there is a figure to write.
     decode_h5 : Path
         The finished result file.
-    results : mapping
-        The run's results: ``bits.threshold_nm``, ``clock.rate_hz``,
-        ``clock.bits_from_s`` and, with truth, ``truth.decoder.latency_s``.
+    results : DecodeResults
+        The run's results: ``bits.threshold_nm``, ``clock.rate_hz`` and, with
+        truth, ``truth.decoder.latency_s``.
     truth_bit : ndarray or None
         ``/truth/bit`` per input sample; drawn delayed by the decoder's
         latency (the alignment its BER was counted with).
@@ -58,11 +58,9 @@ def write_decode_time_series_png(
     from afmtool.io.result_files import open_decode_results
     from afmtool.report.images import write_multi_panel_png
 
-    bits_info = results.get("bits") or {}
-    clock = results.get("clock") or {}
-    rate = clock.get("rate_hz")
-    if not isinstance(rate, (int, float)) or rate <= 0:
+    if results.clock is None or results.clock.rate_hz <= 0:
         return False
+    rate = results.clock.rate_hz
     with open_decode_results(decode_h5) as decoded:
         if "bit_times_s" not in decoded.names() or len(decoded["bit_times_s"]) == 0:
             return False
@@ -78,14 +76,14 @@ def write_decode_time_series_png(
     mean_series = [(means["t_mean"], means["innovation_mean"], "innovation running mean", {"color": "C0", "linewidth": 1.0})]
     if "soft" in bit_rows:
         mean_series.append((t_bits, bit_rows["soft"][cells], "cell value", {"color": "C1", "linestyle": "none", "marker": "o", "markersize": 3}))
-    threshold = bits_info.get("threshold_nm")
-    if isinstance(threshold, (int, float)):
-        mean_series.append((np.array(window), np.full(2, float(threshold)), "threshold", {"color": "C3", "linestyle": "--", "linewidth": 1.0}))
+    if results.bits is not None:
+        threshold = float(results.bits.threshold_nm)
+        mean_series.append((np.array(window), np.full(2, threshold), "threshold", {"color": "C3", "linestyle": "--", "linewidth": 1.0}))
     bit_series = [(t_bits, bit_rows["bits"][cells].astype(np.float64), "decided bit",
                    {"color": "C0", "drawstyle": "steps-mid", "linewidth": 1.5})]
-    latency = ((results.get("truth") or {}).get("decoder") or {}).get("latency_s")
+    latency = results.truth.decoder.latency_s if results.truth is not None else None
     if truth_bit is not None and len(truth_bit):
-        delay = float(latency) if isinstance(latency, (int, float)) else 0.0
+        delay = float(latency) if latency is not None and np.isfinite(latency) else 0.0
         first = max(0, int(np.floor((window[0] - delay) * sample_rate_hz)))
         last = min(len(truth_bit), int(np.ceil((window[1] - delay) * sample_rate_hz)) + 1)
         if last > first:

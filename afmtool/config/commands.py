@@ -232,8 +232,8 @@ _DECODE = CommandSpec(
     "decode", Kind.CAPTURE, _own(P.DecodeParams), _analysis("decode_outputs", "run_decode_command"),
     stream=_analysis("decode_outputs", "run_decode_stream"), stream_units=_analysis("decode", "SERIES_UNITS"),
     examples=("afmtool decode sample_data/bits_30khz.h5 --bit-rate 30000 --out results/decode",),
-    main_figures=("decode_time_series.png", "eye.png", "psd.png", "l0_search.png"), headline=H.DECODE,
-    batch="decode", channels=("deflection",),
+    main_figures=("decode_time_series.png", "eye.png", "psd.png", "l0_search.png"),
+    result=Lazy("afmtool.records.decode", "DecodeResults"), batch="decode", channels=("deflection",),
 )
 _KALMAN_BANK = CommandSpec(
     "kalman-bank", Kind.CAPTURE, _own(P.KalmanBankParams), _analysis("kalman_bank_outputs", "run_kalman_bank_command"),

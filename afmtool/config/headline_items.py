@@ -14,7 +14,7 @@ from __future__ import annotations
 from afmtool.records.base import Item
 
 __all__ = [
-    "Item", "REEP", "PROBELOSS", "DECODE", "KALMAN_BANK", "FREEAIR",
+    "Item", "REEP", "PROBELOSS", "KALMAN_BANK", "FREEAIR",
     "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
 ]
 
@@ -72,22 +72,6 @@ PROBELOSS = (
     Item("precision (amplitude baseline)", "truth.amplitude.precision", ""),
     Item("recall (amplitude baseline)", "truth.amplitude.recall", ""),
     Item("loss events (index)", "events_total", "events"),
-)
-
-DECODE = (
-    Item("BER (EKF decoder)", "truth.decoder.ber", ""),
-    Item("BER 95 % upper bound (EKF decoder)", "truth.decoder.ber_upper_95", ""),
-    Item("BER (lock-in baseline)", "truth.baseline.ber", ""),
-    Item("BER estimated from the bit clusters", "bits.estimated_ber_gaussian", ""),
-    Item("bits decoded", "bits.count", "bits"),
-    Item("bit rate", "clock.rate_hz", "bit/s"),
-    Item("ℓ0", "l0.estimate_nm", "nm"),
-    # --mode step: the response to a V_phi step (§7.7)
-    Item("innovation settling after the V_phi step", "step.innovation.settling_periods", "actuation periods"),
-    Item("amplitude settling after the V_phi step", "step.amplitude.settling_periods", "actuation periods"),
-    Item("deflection settling after the V_phi step", "step.deflection.settling_periods", "actuation periods"),
-    Item("running mean of the innovation: detection delay", "step.innovation_mean.delay_periods",
-         "actuation periods"),
 )
 
 KALMAN_BANK = (

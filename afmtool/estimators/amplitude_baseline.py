@@ -18,8 +18,10 @@ import numpy as np
 
 from afmtool.config.params import DecodeParams
 from afmtool.estimators.decimation import Decimation
+from afmtool.records.decode import BaselineRecord
 
 if TYPE_CHECKING:  # numba and scipy load when a decode runs, not on import
+    from afmtool.estimators.bitslicer import TwoClass
     from afmtool.estimators.lockin import LockIn
 
 __all__ = ["AmplitudeBaseline", "SampleHold"]
@@ -56,14 +58,14 @@ class AmplitudeBaseline:
             return cls(lockin, keep, int(round(lag)), 0)
         return cls(lockin, keep, 0, int(round(-lag)))
 
-    def results(self) -> dict:
-        return {
-            "method": "lock-in amplitude of the deflection at the actuation frequency, integrated over the same cells",
-            "lockin_lowpass_hz": self.lockin.lowpass_hz,
-            "lockin_order": self.lockin.order,
-            "amplitude_kept_every": self.keep,
-            "alignment_delay_samples": self.delay_primary - self.delay_aux,
-        }
+    def record(self, levels: TwoClass) -> BaselineRecord:
+        """The report's ``baseline``: the lock-in, and ``levels``, the two classes of its cell amplitudes."""
+        return BaselineRecord(
+            method="lock-in amplitude of the deflection at the actuation frequency, integrated over the same cells",
+            lockin_lowpass_hz=self.lockin.lowpass_hz, lockin_order=self.lockin.order, amplitude_kept_every=self.keep,
+            alignment_delay_samples=self.delay_primary - self.delay_aux, threshold_nm=levels.threshold,
+            separation=levels.separation, estimated_ber_gaussian=levels.estimated_error_rate,
+        )
 
 
 class SampleHold:

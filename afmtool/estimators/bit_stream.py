@@ -11,13 +11,17 @@ Moved out of :mod:`afmtool.analyses.decode` (issue 29, item 6).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from afmtool.config.params import DecodeParams
 from afmtool.config.samples import sample_count
 from afmtool.errors import InputError
+from afmtool.records.decode import BitsRecord, ClockRecord
+
+if TYPE_CHECKING:
+    from afmtool.estimators.bitslicer import TwoClass
 
 __all__ = ["BitStreamSlicer", "BitDecision", "decide_bits"]
 
@@ -170,8 +174,9 @@ class BitDecision(NamedTuple):
     baseline_soft: np.ndarray  #: the baseline's amplitude per cell, nm
     bit_times_s: np.ndarray  #: cell centres, s, the running mean's delay removed
     threshold_nm: float
-    results: dict  #: "clock" and "bits"
-    baseline_results: dict
+    clock_record: ClockRecord  #: the report's ``clock``
+    bits_record: BitsRecord  #: the report's ``bits``
+    baseline_levels: TwoClass  #: the two classes of the baseline's cell amplitudes
 
 
 def decide_bits(slicer: BitStreamSlicer, params: DecodeParams, mean_window: int, warnings: list) -> BitDecision:
@@ -191,31 +196,18 @@ def decide_bits(slicer: BitStreamSlicer, params: DecodeParams, mean_window: int,
     base_bits = (soft_aux >= base_levels.threshold).astype(np.uint8)
     bit_times = (centres - 0.5 * (mean_window - 1)) / slicer.fs
     clock = slicer.clock
-    results = {
-        "clock": {
-            "rate_hz": clock.rate_hz,
-            "recovered": clock.recovered,
-            "period_samples": clock.period_samples,
-            "final_period_samples": slicer.state.period_samples,
-            "acquisition_transitions": clock.transitions,
-            "line_strength": clock.line_strength,
-            "rms_jitter_samples": clock.rms_jitter_samples,
-        },
-        "bits": {
-            "count": int(bits.size),
-            "ones": int(bits.sum()),
-            "incomplete_cells": int((~finite).sum()),
-            "detector": f"integrate-and-dump over the central {params.integrate_fraction:g} of each cell",
-            "threshold_nm": levels.threshold,
-            "centres_nm": [levels.low_centre, levels.high_centre],
-            "std_nm": [levels.low_std, levels.high_std],
-            "separation": levels.separation,
-            "estimated_ber_gaussian": levels.estimated_error_rate,
-        },
-    }
-    baseline = {
-        "threshold_nm": base_levels.threshold,
-        "separation": base_levels.separation,
-        "estimated_ber_gaussian": base_levels.estimated_error_rate,
-    }
-    return BitDecision(bits, base_bits, centres, soft, soft_aux, bit_times, levels.threshold, results, baseline)
+    clock_record = ClockRecord(
+        rate_hz=clock.rate_hz, recovered=clock.recovered, period_samples=clock.period_samples,
+        final_period_samples=slicer.state.period_samples, acquisition_transitions=clock.transitions,
+        line_strength=clock.line_strength, rms_jitter_samples=clock.rms_jitter_samples,
+        bits_from_s=slicer.start / slicer.fs,
+    )
+    bits_record = BitsRecord(
+        count=int(bits.size), ones=int(bits.sum()), incomplete_cells=int((~finite).sum()),
+        detector=f"integrate-and-dump over the central {params.integrate_fraction:g} of each cell",
+        threshold_nm=levels.threshold, centres_nm=(levels.low_centre, levels.high_centre),
+        std_nm=(levels.low_std, levels.high_std), separation=levels.separation,
+        estimated_ber_gaussian=levels.estimated_error_rate,
+    )
+    return BitDecision(bits, base_bits, centres, soft, soft_aux, bit_times, levels.threshold, clock_record,
+                       bits_record, base_levels)

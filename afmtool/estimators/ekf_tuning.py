@@ -31,6 +31,7 @@ from afmtool.config.params import DecodeParams, parse_bracket_nm
 from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.ekf import EkfDesign, EkfModel, InnovationStats, discretise, ekf_run, thermal_force_asd
 from afmtool.models.electrostatic import ElectrostaticParams
+from afmtool.records.decode import L0Record, L0Source, MeasurementNoiseSource, NoiseRecord, ProcessNoiseSource
 
 __all__ = [
     "L0Search",
@@ -259,7 +260,8 @@ class EkfTuning(NamedTuple):
     """The tuned EKF model and what the report says about each level."""
 
     model: EkfModel
-    results: dict  #: ``l0`` and ``noise``: each value and its source
+    l0: L0Record  #: ℓ0 and how it was set
+    noise: NoiseRecord  #: each noise level and its source
     l0_curve_nm: tuple[np.ndarray, np.ndarray] | None  #: (ℓ0, innovation RMS), nm, when ℓ0 was searched
     warnings: list
 
@@ -291,7 +293,6 @@ def tune_ekf(electrostatic: ElectrostaticParams, f0_hz: float, q: float, params:
     fs = sample_rate_hz
     thermal = thermal_force_asd(electrostatic.spring_constant_n_per_m, f0_hz, q, params.temperature_k) \
         if params.temperature_k > 0 else 0.0
-    noise: dict = {"thermal_force_asd_n_per_rthz": thermal, "temperature_k": params.temperature_k}
     if segment is None:
         missing = [n for n, v in (("l0_nm", params.l0_nm), ("measurement_noise_nm", params.measurement_noise_nm),
                                   ("process_noise_n_per_rthz", params.process_noise_n_per_rthz)) if not v]
@@ -301,54 +302,55 @@ def tune_ekf(electrostatic: ElectrostaticParams, f0_hz: float, q: float, params:
                 f"{', '.join(missing)}; or give them"
             )
     y, v = segment if segment is not None else (None, None)
-    r_nm = _measurement_noise(f0_hz, params, fs, y, noise, warnings)
+    r_nm, r_source = _measurement_noise(f0_hz, params, fs, y, warnings)
     q_start = params.process_noise_n_per_rthz or thermal
     if not q_start > 0:
         raise ConfigError("the process noise is 0: give --process-noise or a temperature_k > 0")
     model = EkfModel(f0_hz, q, electrostatic, q_start, r_nm)
     if params.l0_nm:
-        l0_result: dict = {"estimate_nm": params.l0_nm, "source": "parameter"}
+        l0 = L0Record(estimate_nm=params.l0_nm, source=L0Source.PARAMETER)
         curve = None
     else:
-        model, l0_result, curve = _search_l0(model, params, l0_bracket_m, segment, fs, warmup, warnings)
+        model, l0, curve = _search_l0(model, params, l0_bracket_m, segment, fs, warmup, warnings)
     if params.process_noise_n_per_rthz:
-        noise["process_noise_n_per_rthz"], noise["process_source"] = params.process_noise_n_per_rthz, "parameter"
+        q_asd, q_source = params.process_noise_n_per_rthz, ProcessNoiseSource.PARAMETER
     else:
         fit = estimate_process_noise(model, y, v, fs, warmup=warmup)
         model = model.with_noise(fit.asd_n_per_rthz, r_nm)
-        noise["process_noise_n_per_rthz"] = fit.asd_n_per_rthz
-        noise["process_source"] = "mean NIS = 1 on the nominal segment"
+        q_asd, q_source = fit.asd_n_per_rthz, ProcessNoiseSource.MEAN_NIS
         if fit.clamped:
             warnings.append(
                 f"process noise: no consistent level in the search range (mean NIS {fit.mean_nis:.3g}); "
                 f"using {fit.asd_n_per_rthz:.3g} N/sqrt(Hz)"
             )
-    if segment is not None:
-        stats = innovation_stats(model, y, v, fs, warmup)
-        noise["nominal_innovation_rms_nm"] = stats.rms_nm
-        noise["nominal_mean_nis"] = stats.mean_nis
-    return EkfTuning(model, {"l0": l0_result, "noise": noise}, curve, warnings)
+    stats = innovation_stats(model, y, v, fs, warmup) if segment is not None else None
+    noise = NoiseRecord(
+        thermal_force_asd_n_per_rthz=thermal, temperature_k=params.temperature_k, measurement_source=r_source,
+        measurement_noise_nm=r_nm, process_noise_n_per_rthz=q_asd, process_source=q_source,
+        nominal_innovation_rms_nm=stats.rms_nm if stats is not None else None,
+        nominal_mean_nis=stats.mean_nis if stats is not None else None,
+    )
+    return EkfTuning(model, l0, noise, curve, warnings)
 
 
-def _measurement_noise(f0_hz: float, params: DecodeParams, fs: float, y, noise: dict, warnings: list) -> float:
-    """R of the EKF, nm: given, or the PSD floor of the nominal segment (recorded in ``noise``)."""
+def _measurement_noise(f0_hz: float, params: DecodeParams, fs: float, y,
+                       warnings: list) -> tuple[float, MeasurementNoiseSource]:
+    """R of the EKF, nm, and where it came from: given, or the PSD floor of the nominal segment."""
     if params.measurement_noise_nm:
-        r_nm, noise["measurement_source"] = params.measurement_noise_nm, "parameter"
-    else:
-        if 0.3 * fs < 3.0 * f0_hz:
-            raise ConfigError(
-                f"the PSD floor above 0.3·fs = {0.3 * fs:g} Hz is not clear of the resonance f0 = {f0_hz:g} Hz; "
-                "give --measurement-noise"
-            )
-        r_nm, noise["measurement_source"] = estimate_measurement_noise(y, fs), "PSD floor of the nominal segment"
-        if not r_nm >= MIN_MEASUREMENT_NOISE_NM:
-            warnings.append(
-                f"the deflection's noise floor is {r_nm:.3g} nm (a noise-free capture?); the EKF assumes "
-                f"{MIN_MEASUREMENT_NOISE_NM:g} nm"
-            )
-            r_nm = MIN_MEASUREMENT_NOISE_NM
-    noise["measurement_noise_nm"] = r_nm
-    return r_nm
+        return params.measurement_noise_nm, MeasurementNoiseSource.PARAMETER
+    if 0.3 * fs < 3.0 * f0_hz:
+        raise ConfigError(
+            f"the PSD floor above 0.3·fs = {0.3 * fs:g} Hz is not clear of the resonance f0 = {f0_hz:g} Hz; "
+            "give --measurement-noise"
+        )
+    r_nm = estimate_measurement_noise(y, fs)
+    if not r_nm >= MIN_MEASUREMENT_NOISE_NM:
+        warnings.append(
+            f"the deflection's noise floor is {r_nm:.3g} nm (a noise-free capture?); the EKF assumes "
+            f"{MIN_MEASUREMENT_NOISE_NM:g} nm"
+        )
+        r_nm = MIN_MEASUREMENT_NOISE_NM
+    return r_nm, MeasurementNoiseSource.PSD_FLOOR
 
 
 def _search_l0(model: EkfModel, params: DecodeParams, l0_bracket_m: tuple[float, float, bool], segment,
@@ -365,16 +367,11 @@ def _search_l0(model: EkfModel, params: DecodeParams, l0_bracket_m: tuple[float,
         model, y, v, fs, bracket_m=(low * 1e-9, high * 1e-9), grid_points=params.l0_grid_points, warmup=warmup,
         geometric=geometric,
     )
-    l0_result = {
-        "estimate_nm": search.l0_m * 1e9,
-        "source": "innovation RMS minimum on the nominal segment (§7.4)",
-        "rms_at_minimum_nm": search.rms_nm,
-        "bracket_nm": [low, high],
-        "grid_points": search.grid_points,
-        "evaluations": int(search.curve_l0_m.size),
-        "unique_minimum": search.unique,
-        "process_noise_used_n_per_rthz": model.process_noise_n_per_rthz,
-    }
+    l0_result = L0Record(
+        estimate_nm=search.l0_m * 1e9, source=L0Source.SEARCH, rms_at_minimum_nm=search.rms_nm,
+        bracket_nm=(low, high), grid_points=search.grid_points, evaluations=int(search.curve_l0_m.size),
+        unique_minimum=search.unique, process_noise_used_n_per_rthz=model.process_noise_n_per_rthz,
+    )
     if not search.unique:
         warnings.append(f"l0: no unique minimum of the innovation RMS: {search.note}")
     return model.with_l0(search.l0_m), l0_result, (search.curve_l0_m * 1e9, search.curve_rms_nm)
