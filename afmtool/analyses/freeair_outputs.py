@@ -6,6 +6,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -19,18 +20,58 @@ from afmtool.io.capture import CaptureReader
 from afmtool.io.units import calibration_record
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import run_stream
+from afmtool.records.common import DriveHold, FreeAirModelRecord
+from afmtool.records.freeair import (
+    AveragesFrom,
+    Detection,
+    Fluid,
+    FreeAirResults,
+    FreeAirRoute,
+    SaderSpringConstant,
+    SpringConstantParameters,
+    SpringConstants,
+    SweepMethod,
+    ThermalFitRecord,
+    ThermalSpectrumRecord,
+    ThermalSpringConstant,
+    ThermalVariantRecord,
+    ValueSpread,
+    Weighting,
+)
 from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
 
-__all__ = ["run_freeair_command"]
+__all__ = ["run_freeair_command", "free_air_model_record"]
 
 #: Samples per chunk of the free-air routes (read ahead two at a time).
 _CHUNK_SAMPLES = 1 << 20
 
 
-def _segment_route(reader: CaptureReader, params: FreeAirParams, progress):
-    """(model, details, plot): the ARX fit on the free-air segment, and its Bode figure."""
+class _Identified(NamedTuple):
+    """What a route found: the model, the report's results, what it draws in the staged folder, its warnings."""
+
+    model: FreeAirModel
+    results: FreeAirResults
+    draw: Callable[[OutputDir], None] | None
+    warnings: list[str]
+
+
+def free_air_model_record(model: FreeAirModel) -> FreeAirModelRecord:
+    """The report's copy of ``model`` (``free_air.json``'s fields; those of k only where k is known)."""
+    known = model.spring_constant_n_per_m is not None
+    return FreeAirModelRecord(
+        f0_hz=model.f0_hz, q=model.q, gain=model.gain, f0_std_hz=model.f0_std_hz, q_std=model.q_std,
+        gain_std=model.gain_std, source=model.source, sample_rate_hz=model.sample_rate_hz,
+        numerator=model.numerator, denominator=model.denominator, delay_s=model.delay_s,
+        spring_constant_n_per_m=model.spring_constant_n_per_m if known else None,
+        spring_constant_std_n_per_m=model.spring_constant_std_n_per_m if known else None,
+        spring_constant_source=model.spring_constant_source if known else None,
+    )
+
+
+def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> _Identified:
+    """The ARX fit on the free-air segment, and its Bode figure."""
     interval = parse_interval(params.free_air, "--free-air")
     free_air = reader.info.capture_metadata.free_air
     if interval is None and free_air is not None:
@@ -46,8 +87,11 @@ def _segment_route(reader: CaptureReader, params: FreeAirParams, progress):
     model = free_air_from_segment(segment["deflection"], segment["dither"], fs)
     units = reader.info.units("deflection") or "input units"
     measured = _segment_lines(segment["deflection"], segment["dither"], fs, model.f0_hz)
-    details = {"segment_s": list(interval), "segment_samples": end - start}
-    return model, details, lambda path: write_segment_bode_png(path, measured, model, units)
+    results = FreeAirResults(free_air_model=free_air_model_record(model), route=FreeAirRoute.SEGMENT,
+                             segment_s=tuple(interval), segment_samples=end - start)
+    return _Identified(model, results,
+                       lambda staged: write_segment_bode_png(staged.path("segment_bode.png"), measured, model, units),
+                       [])
 
 
 def _segment_lines(deflection: np.ndarray, dither: np.ndarray, fs: float, f0_hz: float) -> tuple[np.ndarray, np.ndarray]:
@@ -175,30 +219,26 @@ def _identify_sweep(reader: CaptureReader, params: FreeAirParams, progress):
     return found, means.count
 
 
-def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress):
-    """(model, details, warnings, plot): ``plot`` draws the spectral methods' Bode figure (None for ``record``)."""
+def _sweep_route(reader: CaptureReader, params: FreeAirParams, progress) -> _Identified:
+    """The sweep's model; the record fit draws its measurement against the model, the spectral methods a Bode figure."""
     found, samples = _identify_sweep(reader, params, progress)
-    details = {
-        "sweep_method": params.sweep_method,
-        "samples": samples,
-        "drive_hold": found.hold,
-        "drive_hold_reason": found.hold_reason,
-    }
+    results = FreeAirResults(free_air_model=free_air_model_record(found.model), route=FreeAirRoute.SWEEP,
+                             sweep_method=SweepMethod(params.sweep_method), samples=samples,
+                             drive_hold=DriveHold(found.hold), drive_hold_reason=found.hold_reason)
     if params.sweep_method == "record":
-        details.update(
-            band_hz=list(found.fit.band_hz),
-            n_bins=found.fit.n_bins,
-            transient_order=found.fit.transient_order,
-            delay_std_s=found.fit.delay_std_s,
-            noise_std=found.fit.noise_std,
-            drive_edges_s=list(found.fit.drive_edges_s),
-            _fit=found.fit,
+        fit, fs = found.fit, reader.info.sample_rate_hz
+        results = results.replace(
+            band_hz=tuple(fit.band_hz), n_bins=fit.n_bins, transient_order=fit.transient_order,
+            delay_std_s=fit.delay_std_s, noise_std=fit.noise_std, drive_edges_s=tuple(fit.drive_edges_s),
         )
-        return found.model, details, list(found.warnings), None
+        return _Identified(found.model, results, lambda staged: _write_sweep_fit(staged, fit, fs), list(found.warnings))
     info = reader.info
     units = f"{info.units('deflection')}/{info.units('dither')}".strip("/") or "input units"
-    plot = lambda path: write_sweep_bode_png(path, found.response, found.model, units)  # noqa: E731 - drawn once the folder is staged
-    return found.model, details, list(found.warnings), plot
+
+    def draw(staged: OutputDir) -> None:  # once the folder is staged
+        write_sweep_bode_png(staged.path("sweep_bode.png"), found.response, found.model, units)
+
+    return _Identified(found.model, results, draw, list(found.warnings))
 
 
 def _write_sweep_fit(staged: OutputDir, fit, sample_rate_hz: float) -> None:
@@ -262,11 +302,13 @@ def _psd_spectrum(psd: Path, params: FreeAirParams, invols_nm_per_v: float | Non
 
     table = read_psd_csv(psd, invols_nm_per_v)
     averages = params.averages or table.n_averages
-    details = {"columns": list(table.columns), "spectrum": f"{table.source_kind.upper()} in {table.source_unit}",
-               "n_averages_from": "--averages" if params.averages else ("the file" if table.n_averages else
-                                                                         "estimated from the scatter")}
-    if invols_nm_per_v and table.source_unit and "V" in table.source_unit:
-        details["invols_nm_per_v"] = invols_nm_per_v
+    scaled = bool(invols_nm_per_v and table.source_unit and "V" in table.source_unit)
+    details = ThermalSpectrumRecord(
+        columns=tuple(table.columns), spectrum=f"{table.source_kind.upper()} in {table.source_unit}",
+        n_averages_from=AveragesFrom.GIVEN if params.averages else (
+            AveragesFrom.FILE if table.n_averages else AveragesFrom.ESTIMATED),
+        invols_nm_per_v=invols_nm_per_v if scaled else None,
+    )
     return ThermalSpectrum(table.frequency_hz, table.asd_m_per_sqrt_hz, averages, details)
 
 
@@ -282,8 +324,8 @@ def _record_spectrum(reader: CaptureReader, params: FreeAirParams, progress):
     return spectrum
 
 
-def _thermal_route(spectrum, params: FreeAirParams, spring: SpringConstantParams):
-    """(model with k, details, plot, warnings) of the ML fit of a thermal spectrum."""
+def _thermal_route(spectrum, params: FreeAirParams, spring: SpringConstantParams) -> _Identified:
+    """The ML fit of a thermal spectrum, with the spring constant in the model, and its figure."""
     from afmtool.config.params import parse_band
     from afmtool.estimators.thermal_noise import fit_thermal_spectrum
 
@@ -298,111 +340,111 @@ def _thermal_route(spectrum, params: FreeAirParams, spring: SpringConstantParams
         warnings.append(f"the spectrum's resolution {resolution:.3g} Hz is coarse against the peak's half-width "
                         f"{fit.f0_hz / (2 * fit.q):.3g} Hz: Q is biased low by the window (record longer, or "
                         "give --resolution)")
-    details = {
-        "spectrum": spectrum.details,
-        "fit": _thermal_fit_record(fit),
-        "floor_asd_m_per_sqrt_hz": fit.floor_asd_m_per_sqrt_hz,
-        "peak_asd_m_per_sqrt_hz": fit.peak_asd_m_per_sqrt_hz,
-        "band_hz": list(fit.band_hz),
-        "n_bins": fit.n_bins,
-        "rms_log_residual": fit.rms_log_residual,
-        "spring_constant_n_per_m": fit.spring_constant_n_per_m,
-        "spring_constant_note": "equipartition, assuming the ASD is calibrated tip displacement (m/sqrt(Hz))",
-        "temperature_k": params.temperature_k,
-        "spring_constant": springs,
-    }
-    return model, details, lambda path: write_thermal_fit_png(path, frequency, asd, fit), warnings
+    results = FreeAirResults(
+        free_air_model=free_air_model_record(model), route=FreeAirRoute.THERMAL, spectrum=spectrum.details,
+        fit=_thermal_fit_record(fit), floor_asd_m_per_sqrt_hz=fit.floor_asd_m_per_sqrt_hz,
+        peak_asd_m_per_sqrt_hz=fit.peak_asd_m_per_sqrt_hz, band_hz=tuple(fit.band_hz), n_bins=fit.n_bins,
+        rms_log_residual=fit.rms_log_residual, spring_constant_n_per_m=fit.spring_constant_n_per_m,
+        spring_constant_note="equipartition, assuming the ASD is calibrated tip displacement (m/sqrt(Hz))",
+        temperature_k=params.temperature_k, spring_constant=springs,
+    )
+
+    def draw(staged: OutputDir) -> None:
+        write_thermal_fit_png(staged.path("thermal_fit.png"), frequency, asd, fit)
+
+    return _Identified(model, results, draw, warnings)
 
 
-def _thermal_fit_record(fit) -> dict:
+def _thermal_fit_record(fit) -> ThermalFitRecord:
     """The ML fit's goodness of fit and its spread over bands and weightings, for report.json."""
-    return {
-        "estimator": "maximum likelihood, each bin Gamma(M) distributed (averaged periodogram)",
-        "n_averages": fit.n_averages,
-        "n_averages_estimated": fit.n_averages_estimated,
-        "deviance": fit.deviance,
-        "dof": fit.dof,
-        "p_value": fit.p_value,
-        "dispersion": fit.dispersion,
-        "bin_correlation": fit.bin_correlation,
-        "f0_hz": {"value": fit.f0_hz, "std": fit.f0_std_hz, "systematic": fit.f0_systematic_hz,
-                  "spread": fit.f0_spread_hz},
-        "q": {"value": fit.q, "std": fit.q_std, "systematic": fit.q_systematic, "spread": fit.q_spread},
-        "variants": [{"band_hz": list(v.band_hz), "weighting": v.weighting, "f0_hz": v.f0_hz, "q": v.q,
-                      "mean_square_m2": v.mean_square_m2} for v in fit.variants],
-    }
+    return ThermalFitRecord(
+        estimator="maximum likelihood, each bin Gamma(M) distributed (averaged periodogram)",
+        n_averages=fit.n_averages, n_averages_estimated=fit.n_averages_estimated, deviance=fit.deviance,
+        dof=fit.dof, p_value=fit.p_value, dispersion=fit.dispersion, bin_correlation=fit.bin_correlation,
+        f0_hz=ValueSpread(value=fit.f0_hz, std=fit.f0_std_hz, systematic=fit.f0_systematic_hz,
+                          spread=fit.f0_spread_hz),
+        q=ValueSpread(value=fit.q, std=fit.q_std, systematic=fit.q_systematic, spread=fit.q_spread),
+        variants=tuple(ThermalVariantRecord(band_hz=tuple(v.band_hz), weighting=Weighting(v.weighting),
+                                            f0_hz=v.f0_hz, q=v.q, mean_square_m2=v.mean_square_m2)
+                       for v in fit.variants),
+    )
 
 
-def _model_spring_constant(springs: dict) -> dict:
+def _model_spring_constant(springs: SpringConstants) -> dict:
     """The free_air.json fields of k: the thermal value (statistical and systematic std combined), else Sader's."""
-    thermal, sader = springs["thermal"], springs["sader"]
-    if thermal["value_n_per_m"] is not None:
-        std = math.hypot(thermal["std_n_per_m"] or 0.0, thermal["systematic_n_per_m"] or 0.0)
-        source = f"thermal: equipartition, {thermal['detection']} factor {thermal['factor']:.4g}"
-        return {"spring_constant_n_per_m": thermal["value_n_per_m"], "spring_constant_std_n_per_m": std,
+    thermal, sader = springs.thermal, springs.sader
+    if thermal.value_n_per_m is not None:
+        std = math.hypot(thermal.std_n_per_m or 0.0, thermal.systematic_n_per_m or 0.0)
+        source = f"thermal: equipartition, {thermal.detection.value} factor {thermal.factor:.4g}"
+        return {"spring_constant_n_per_m": thermal.value_n_per_m, "spring_constant_std_n_per_m": std,
                 "spring_constant_source": source}
     if sader is not None:
-        return {"spring_constant_n_per_m": sader["value_n_per_m"], "spring_constant_std_n_per_m": sader["std_n_per_m"],
+        return {"spring_constant_n_per_m": sader.value_n_per_m, "spring_constant_std_n_per_m": sader.std_n_per_m,
                 "spring_constant_source": "Sader (plan-view length and width, f0 and Q in the fluid)"}
     return {}
 
 
-def _spring_constant_warnings(springs: dict) -> list[str]:
+def _spring_constant_warnings(springs: SpringConstants) -> list[str]:
     """A warning when the thermal and Sader k differ by more than twice their combined standard uncertainty."""
-    thermal, sader = springs["thermal"], springs["sader"]
-    if sader is None or thermal["value_n_per_m"] is None:
+    thermal, sader = springs.thermal, springs.sader
+    if sader is None or thermal.value_n_per_m is None:
         return []
-    combined = math.sqrt((thermal["std_n_per_m"] or 0.0) ** 2 + (thermal["systematic_n_per_m"] or 0.0) ** 2
-                         + (sader["std_n_per_m"] or 0.0) ** 2)
-    difference = abs(thermal["value_n_per_m"] - sader["value_n_per_m"])
+    combined = math.sqrt((thermal.std_n_per_m or 0.0) ** 2 + (thermal.systematic_n_per_m or 0.0) ** 2
+                         + (sader.std_n_per_m or 0.0) ** 2)
+    difference = abs(thermal.value_n_per_m - sader.value_n_per_m)
     if difference <= 2.0 * combined:
         return []
-    return [f"the thermal spring constant {thermal['value_n_per_m']:.4g} N/m and the Sader one "
-            f"{sader['value_n_per_m']:.4g} N/m differ by {difference:.3g} N/m, more than twice their combined "
+    return [f"the thermal spring constant {thermal.value_n_per_m:.4g} N/m and the Sader one "
+            f"{sader.value_n_per_m:.4g} N/m differ by {difference:.3g} N/m, more than twice their combined "
             f"uncertainty {combined:.2g} N/m: check the InvOLS, the detection factor, and the length and width"]
 
 
-def _spring_constants(fit, spring: SpringConstantParams) -> dict:
+def _spring_constants(fit, spring: SpringConstantParams) -> SpringConstants:
     """The thermal (Butt–Jaschke corrected) and, with L and b, the Sader spring constants (N/m)."""
-    from afmtool.estimators.spring_constant import FLUIDS, sader_spring_constant, thermal_factor
+    from afmtool.estimators.spring_constant import thermal_factor
 
     factor = thermal_factor(spring.detection)
-    thermal = {
-        "method": "equipartition of mode 1, k = factor * k_B T / <p^2>",
-        "detection": spring.detection,
-        "factor": factor,
-        "factor_source": "Butt & Jaschke, Nanotechnology 6, 1 (1995): 12/(alpha_1 L)^4 / chi^2 (optical lever, "
+    thermal = ThermalSpringConstant(
+        method="equipartition of mode 1, k = factor * k_B T / <p^2>",
+        detection=Detection(spring.detection),
+        factor=factor,
+        factor_source="Butt & Jaschke, Nanotechnology 6, 1 (1995): 12/(alpha_1 L)^4 / chi^2 (optical lever, "
         "static InvOLS) or 12/(alpha_1 L)^4 (displacement)",
-        "temperature_k": fit.temperature_k,
-        "value_n_per_m": None if fit.spring_constant_n_per_m is None else factor * fit.spring_constant_n_per_m,
-        "std_n_per_m": None if fit.spring_constant_std is None else factor * fit.spring_constant_std,
-        "systematic_n_per_m": None if fit.spring_constant_systematic is None
+        temperature_k=fit.temperature_k,
+        value_n_per_m=None if fit.spring_constant_n_per_m is None else factor * fit.spring_constant_n_per_m,
+        std_n_per_m=None if fit.spring_constant_std is None else factor * fit.spring_constant_std,
+        systematic_n_per_m=None if fit.spring_constant_systematic is None
         else factor * fit.spring_constant_systematic,
-    }
-    result = {"thermal": thermal, "sader": None, "parameters": dataclasses.asdict(spring)}
-    if spring.length_um > 0 and spring.width_um > 0:
-        density = spring.fluid_density_kg_per_m3 or FLUIDS[spring.fluid][0]
-        viscosity = spring.fluid_viscosity_pa_s or FLUIDS[spring.fluid][1]
-        # Sader's k is proportional to Q: its std carries Q's systematic spread too
-        sader = sader_spring_constant(
-            fit.f0_hz, fit.q, spring.length_um * 1e-6, spring.width_um * 1e-6, fluid=spring.fluid,
-            density_kg_per_m3=density, viscosity_pa_s=viscosity,
-            f0_std_hz=math.hypot(fit.f0_std_hz, fit.f0_systematic_hz), q_std=math.hypot(fit.q_std, fit.q_systematic),
-        )
-        result["sader"] = {
-            "method": "Sader, Chon & Mulvaney, Rev. Sci. Instrum. 70, 3967 (1999): "
-            "k = 0.1906 rho_f b^2 L Q Gamma_i(Re) omega^2",
-            "value_n_per_m": sader.spring_constant_n_per_m,
-            "std_n_per_m": sader.spring_constant_std,
-            "length_um": spring.length_um,
-            "width_um": spring.width_um,
-            "fluid": spring.fluid,
-            "fluid_density_kg_per_m3": density,
-            "fluid_viscosity_pa_s": viscosity,
-            "reynolds": sader.reynolds,
-            "gamma_imag": sader.gamma_imag,
-        }
-    return result
+    )
+    parameters = SpringConstantParameters(
+        detection=Detection(spring.detection), length_um=spring.length_um, width_um=spring.width_um,
+        fluid=Fluid(spring.fluid), fluid_density_kg_per_m3=spring.fluid_density_kg_per_m3,
+        fluid_viscosity_pa_s=spring.fluid_viscosity_pa_s,
+    )
+    sader = _sader(fit, spring) if spring.length_um > 0 and spring.width_um > 0 else None
+    return SpringConstants(thermal=thermal, sader=sader, parameters=parameters)
+
+
+def _sader(fit, spring: SpringConstantParams) -> SaderSpringConstant:
+    """Sader's spring constant from the lever's plan view and the fit's f0 and Q in the fluid."""
+    from afmtool.estimators.spring_constant import FLUIDS, sader_spring_constant
+
+    density = spring.fluid_density_kg_per_m3 or FLUIDS[spring.fluid][0]
+    viscosity = spring.fluid_viscosity_pa_s or FLUIDS[spring.fluid][1]
+    # Sader's k is proportional to Q: its std carries Q's systematic spread too
+    sader = sader_spring_constant(
+        fit.f0_hz, fit.q, spring.length_um * 1e-6, spring.width_um * 1e-6, fluid=spring.fluid,
+        density_kg_per_m3=density, viscosity_pa_s=viscosity,
+        f0_std_hz=math.hypot(fit.f0_std_hz, fit.f0_systematic_hz), q_std=math.hypot(fit.q_std, fit.q_systematic),
+    )
+    return SaderSpringConstant(
+        method="Sader, Chon & Mulvaney, Rev. Sci. Instrum. 70, 3967 (1999): "
+        "k = 0.1906 rho_f b^2 L Q Gamma_i(Re) omega^2",
+        value_n_per_m=sader.spring_constant_n_per_m, std_n_per_m=sader.spring_constant_std,
+        length_um=spring.length_um, width_um=spring.width_um, fluid=Fluid(spring.fluid),
+        fluid_density_kg_per_m3=density, fluid_viscosity_pa_s=viscosity, reynolds=sader.reynolds,
+        gamma_imag=sader.gamma_imag,
+    )
 
 
 def run_freeair_command(
@@ -424,8 +466,6 @@ def run_freeair_command(
         FreeAirParams, "identify.freeair", user_config,
         {k: v for k, v in flags.items() if k not in ("spring", "invols_nm_per_v")},
     )
-    plot = None
-    warnings: list[str] = []
     if params.route == "thermal":
         spring = resolve_from(SpringConstantParams, "identify.spring_constant", user_config, flags.get("spring", {}))
         if reader is None:
@@ -434,18 +474,14 @@ def run_freeair_command(
         else:
             spectrum = _record_spectrum(reader, params, progress)
             inputs = [{**input_record(source, "thermal record"), **calibration_record(reader)}]
-        model, details, plot, warnings = _thermal_route(spectrum, params, spring)
-    elif params.route == "sweep":
-        model, details, warnings, plot = _sweep_route(reader, params, progress)
-        inputs = [{**input_record(source), **calibration_record(reader)}]
+        found = _thermal_route(spectrum, params, spring)
     else:
-        model, details, plot = _segment_route(reader, params, progress)
+        route = _sweep_route if params.route == "sweep" else _segment_route
+        found = route(reader, params, progress)
         inputs = [{**input_record(source), **calibration_record(reader)}]
     with OutputDir(out) as staged:
-        model.save(staged.path("free_air.json"))
-        if params.route == "sweep" and params.sweep_method == "record":
-            _write_sweep_fit(staged, details.pop("_fit"), reader.info.sample_rate_hz)
-        elif plot is not None:
-            plot(staged.path({"thermal": "thermal_fit.png", "sweep": "sweep_bode.png"}.get(params.route, "segment_bode.png")))
-        results = {"free_air_model": model.to_dict(), "route": params.route, **details}
-        return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, results, warnings)
+        found.model.save(staged.path("free_air.json"))
+        if found.draw is not None:
+            found.draw(staged)
+        return finish_run(staged, "identify freeair", inputs, "identify.freeair", params, found.results,
+                          found.warnings)

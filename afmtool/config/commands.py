@@ -250,7 +250,8 @@ _IDENTIFY = (
         _analysis("freeair_outputs", "run_freeair_command"),
         examples=("afmtool identify freeair sample_data/ltv_step.h5 --out results/freeair",
                   "afmtool identify freeair --psd ../shared/data/thermal_tune_acl_a.csv --out results/thermal"),
-        main_figures=("thermal_fit.png", "sweep_bode.png", "segment_bode.png"), headline=H.FREEAIR, batch="freeair",
+        main_figures=("thermal_fit.png", "sweep_bode.png", "segment_bode.png"),
+        result=Lazy("afmtool.records.freeair", "FreeAirResults"), batch="freeair",
     ),
     CommandSpec(
         "identify gamma", Kind.ANALYSIS, _own(P.GammaParams), _analysis("gamma_outputs", "run_gamma_command"),

@@ -14,7 +14,7 @@ from __future__ import annotations
 from afmtool.records.base import Item
 
 __all__ = [
-    "Item", "REEP", "PROBELOSS", "KALMAN_BANK", "FREEAIR",
+    "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
     "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
 ]
 
@@ -79,14 +79,6 @@ KALMAN_BANK = (
     Item("adaptive observer has the least RMS", "adaptive.fraction_lowest", "of time"),
     Item("filters in the bank", "design.n_filters", "filters"),
     *_free_air_model(),
-)
-
-FREEAIR = (
-    *_free_air_model(),
-    Item("gain", "free_air_model.gain", "", "free_air_model.gain_std"),
-    Item("k (thermal, equipartition)", "spring_constant.thermal.value_n_per_m", "N/m",
-         "spring_constant.thermal.std_n_per_m"),
-    Item("k (Sader)", "spring_constant.sader.value_n_per_m", "N/m", "spring_constant.sader.std_n_per_m"),
 )
 
 COMPARE = (

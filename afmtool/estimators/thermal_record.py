@@ -25,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from afmtool.errors import InputError
+from afmtool.records.freeair import ThermalSpectrumRecord
 
 __all__ = ["HANN_OVERLAP_CORRELATION", "ThermalSpectrum", "WelchPsdStage", "default_segment_length"]
 
@@ -40,7 +41,7 @@ class ThermalSpectrum(NamedTuple):
     frequency_hz: np.ndarray
     asd_m_per_sqrt_hz: np.ndarray
     n_averages: float | None
-    details: dict
+    details: ThermalSpectrumRecord  #: how it was made, for the report
 
 
 def default_segment_length(n_samples: int | None, sample_rate_hz: float, resolution_hz: float = 0.0) -> int:
@@ -122,6 +123,7 @@ class WelchPsdStage:
         frequency = np.fft.rfftfreq(n, 1.0 / self._fs)
         c = HANN_OVERLAP_CORRELATION
         averages = k / (1.0 + 2.0 * c * c * (k - 1) / k)  # eq. W.1
-        details = {"method": "Welch: Hann window, half overlap, mean removed per segment",
-                   "nperseg": n, "segments": k, "resolution_hz": self._fs / n, "n_averages_effective": averages}
+        details = ThermalSpectrumRecord(method="Welch: Hann window, half overlap, mean removed per segment",
+                                        nperseg=n, segments=k, resolution_hz=self._fs / n,
+                                        n_averages_effective=averages)
         return ThermalSpectrum(frequency, np.sqrt(psd_nm2) * 1e-9, averages, details)

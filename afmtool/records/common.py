@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import enum
 
-from afmtool.records.base import Record, State, optional, record
+from afmtool.records.base import Item, Record, State, optional, record
 
-__all__ = ["Moments", "SeriesMoments", "FreeAirModelRecord", "Route", "DriveHold", "DriveHoldOption",
-           "FreeAirRouteRecord", "phase_state", "PHASE_MISFIT_DEG"]
+__all__ = ["Moments", "SeriesMoments", "FreeAirModelRecord", "free_air_model_items", "Route", "DriveHold",
+           "DriveHoldOption", "FreeAirRouteRecord", "phase_state", "PHASE_MISFIT_DEG"]
 
 
 @record
@@ -109,6 +109,14 @@ class FreeAirModelRecord(Record):
     spring_constant_n_per_m: float | None = optional()
     spring_constant_std_n_per_m: float | None = optional()
     spring_constant_source: str | None = optional()
+
+
+def free_air_model_items(prefix: str = "free_air_model") -> tuple[Item, ...]:
+    """The headline items of a :class:`FreeAirModelRecord` at ``prefix``: f0 and Q with their std."""
+    return (
+        Item("f0 (free air)", f"{prefix}.f0_hz", "Hz", f"{prefix}.f0_std_hz"),
+        Item("Q (free air)", f"{prefix}.q", "", f"{prefix}.q_std"),
+    )
 
 
 class Route(enum.Enum):
