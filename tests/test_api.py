@@ -72,11 +72,21 @@ def test_capture_commands_equal_the_cli(tmp_path):
         ("decode", afmtool.decode, ["decode", SAMPLE_DATA / "bits_30khz.h5", "--bit-rate", "30000"],
          {"bit_rate_hz": 30000}),
     ]
+    runs = {}
     for name, function, args, params in cases:
         cli = _cli(tmp_path, name.replace(" ", "_"), *args)
-        result = function(args[-1] if not params else args[1], **params)
+        result = runs[name] = function(args[-1] if not params else args[1], **params)
         assert_same_folder(result.save(tmp_path / f"api_{name.replace(' ', '_')}"), cli)
         assert result.summary and all(entry.text for entry in result.summary)
+    from afmtool.records.decode import DecodeMode, DecodeResults
+    from afmtool.records.freeair import FreeAirResults, FreeAirRoute
+
+    freeair, decoded = runs["identify freeair"].results, runs["decode"].results  # the typed records (issue 29)
+    assert isinstance(freeair, FreeAirResults) and freeair.route is FreeAirRoute.SEGMENT
+    assert isinstance(decoded, DecodeResults) and decoded.mode is DecodeMode.BITS and decoded.truth.decoder.errors == 0
+    for name in ("identify freeair", "decode"):
+        assert runs[name].results.to_json() == runs[name].report["results"]
+    assert runs["decode"].summary["bits decoded"].value == decoded.bits.count
 
 
 @pytest.mark.long
