@@ -32,7 +32,8 @@ from afmtool.models.excitation_design import (
     dither_samples,
     response_envelope,
 )
-from afmtool.models.free_air import load_free_air_model
+from afmtool.models.free_air import FreeAirModel, load_free_air_model
+from afmtool.records.design import DesignModelRecord, DesignResults, ExcitationLineRecord, LineRole
 from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -40,31 +41,34 @@ from afmtool.runtime.outputs import OutputDir
 __all__ = ["design_record", "run_design_excitation_command", "write_wav_float32"]
 
 
-def design_record(design: ExcitationDesign) -> dict:
-    """The design as JSON-ready numbers (``lines.json`` and the report's results)."""
-    return {
-        "convention": "u(t) = sum_k amplitude_v * sin(2 pi frequency_hz t + phase_deg); response likewise in the "
-                      "model's deflection units; continuous drive (a generator or a DAC behind its reconstruction "
-                      "filter)",
-        "lines": [
-            {"role": line.role, "frequency_hz": line.frequency_hz, "amplitude_v": line.amplitude_v,
-             "phase_deg": math.degrees(line.phase_rad), "response_nm": line.response_nm,
-             "response_phase_deg": math.degrees(line.response_phase_rad)}
+def design_record(design: ExcitationDesign, model: FreeAirModel, wav_full_scale_v: float) -> DesignResults:
+    """The design as ``lines.json`` and the report's results hold it."""
+    return DesignResults(
+        convention="u(t) = sum_k amplitude_v * sin(2 pi frequency_hz t + phase_deg); response likewise in the "
+                   "model's deflection units; continuous drive (a generator or a DAC behind its reconstruction "
+                   "filter)",
+        lines=tuple(
+            ExcitationLineRecord(role=LineRole(line.role), frequency_hz=line.frequency_hz,
+                                 amplitude_v=line.amplitude_v, phase_deg=math.degrees(line.phase_rad),
+                                 response_nm=line.response_nm,
+                                 response_phase_deg=math.degrees(line.response_phase_rad))
             for line in design.lines
-        ],
-        "offset_hz": design.offset_hz,
-        "offset_reason": design.offset_reason,
-        "side_scale": design.side_scale,
-        "envelope_beat": design.beat,
-        "beat_tolerance": design.beat_tolerance,
-        "amplitude_beat": design.amplitude_beat,
-        "phase_swing_deg": math.degrees(design.phase_swing_rad),
-        "dac_rate_hz": design.dac_rate_hz,
-        "loop_samples": design.loop_samples,
-        "loop_beats": design.loop_beats,
-        "loop_s": design.loop_s,
-        "peak_v": design.peak_v,
-    }
+        ),
+        offset_hz=design.offset_hz,
+        offset_reason=design.offset_reason,
+        side_scale=design.side_scale,
+        envelope_beat=design.beat,
+        beat_tolerance=design.beat_tolerance,
+        amplitude_beat=design.amplitude_beat,
+        phase_swing_deg=math.degrees(design.phase_swing_rad),
+        dac_rate_hz=design.dac_rate_hz,
+        loop_samples=design.loop_samples,
+        loop_beats=design.loop_beats,
+        loop_s=design.loop_s,
+        peak_v=design.peak_v,
+        wav_full_scale_v=wav_full_scale_v,
+        free_air_model=DesignModelRecord(f0_hz=model.f0_hz, q=model.q, gain=model.gain),
+    )
 
 
 def write_wav_float32(path: Path, samples: np.ndarray, rate_hz: int) -> None:
@@ -74,12 +78,12 @@ def write_wav_float32(path: Path, samples: np.ndarray, rate_hz: int) -> None:
     wavfile.write(path, int(rate_hz), np.asarray(samples, dtype=np.float32))
 
 
-def _write_lines_csv(path: Path, record: Mapping) -> None:
+def _write_lines_csv(path: Path, record: DesignResults) -> None:
     rows = ["role,frequency_hz,amplitude_v,phase_deg,response_nm,response_phase_deg"]
     rows += [
-        f"{line['role']},{line['frequency_hz']:.12g},{line['amplitude_v']:.12g},{line['phase_deg']:.12g},"
-        f"{line['response_nm']:.12g},{line['response_phase_deg']:.12g}"
-        for line in record["lines"]
+        f"{line.role.value},{line.frequency_hz:.12g},{line.amplitude_v:.12g},{line.phase_deg:.12g},"
+        f"{line.response_nm:.12g},{line.response_phase_deg:.12g}"
+        for line in record.lines
     ]
     path.write_text("\n".join(rows) + "\n", encoding="utf-8")
 
@@ -124,11 +128,9 @@ def run_design_excitation_command(model_path: Path, out: Path, config: Path | No
         beat_tolerance=params.beat_tolerance, max_side_scale=params.max_side_scale,
         resolution_hz=params.resolution_hz or None,
     )
-    record = design_record(design)
     samples = dither_samples(design)
     full_scale = float(np.max(np.abs(samples)))
-    record["wav_full_scale_v"] = full_scale
-    record["free_air_model"] = {"f0_hz": model.f0_hz, "q": model.q, "gain": model.gain}
+    record = design_record(design, model, full_scale)
     warnings = []
     if design.side_scale < 0.05:
         warnings.append(
@@ -138,7 +140,7 @@ def run_design_excitation_command(model_path: Path, out: Path, config: Path | No
         )
     source = model_path / "free_air.json" if Path(model_path).is_dir() else model_path
     with OutputDir(out) as staged:
-        staged.path("lines.json").write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+        staged.path("lines.json").write_text(json.dumps(record.to_json(), indent=2) + "\n", encoding="utf-8")
         _write_lines_csv(staged.path("lines.csv"), record)
         write_wav_float32(staged.path("excitation.wav"), samples / full_scale, int(design.dac_rate_hz))
         _write_samples_csv(staged.path("excitation.csv"), samples, design.dac_rate_hz)

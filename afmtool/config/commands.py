@@ -309,7 +309,7 @@ _DESIGN_EXCITATION = CommandSpec(
     examples=("afmtool design excitation --model results/freeair --amplitude 20 --out results/excitation",
               "afmtool design excitation --model results/freeair --amplitude 20 --dac-rate 2000000 "
               "--beat-tolerance 0.02 --out results/excitation"),
-    main_figures=(), headline=H.DESIGN,
+    main_figures=(), result=Lazy("afmtool.records.design", "DesignResults"),
 )
 _OVERLAY = CommandSpec(
     "overlay", Kind.ANALYSIS, (), _analysis("overlay", "run_overlay_command"),

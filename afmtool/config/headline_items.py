@@ -15,7 +15,7 @@ from afmtool.records.base import Item
 
 __all__ = [
     "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
-    "COMPARE", "FIT", "DESIGN", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
+    "COMPARE", "FIT", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
 ]
 
 
@@ -110,18 +110,6 @@ FIT = (
     _fit_parameter("contact_z", "contact point z_c", "@parameters.contact_z.units"),
     Item("onset d + s·z_c", "onset_d_plus_s_contact_z_nm.value", "nm", "onset_d_plus_s_contact_z_nm.std"),
     Item("RMS residual of f0'", "rms_residual.f0_hz", "Hz"),
-)
-
-DESIGN = (
-    Item("main line", "lines.0.frequency_hz", "Hz"),
-    Item("main line amplitude", "lines.0.amplitude_v", "V"),
-    Item("lower side line", "lines.1.frequency_hz", "Hz"),
-    Item("upper side line", "lines.2.frequency_hz", "Hz"),
-    Item("side-line amplitude", "lines.1.amplitude_v", "V"),
-    Item("free-air response", "lines.0.response_nm", "nm"),
-    Item("envelope beat (R₊ + R₋)/R_d", "envelope_beat", ""),
-    Item("amplitude beat", "amplitude_beat", ""),
-    Item("loop length", "loop_s", "s"),
 )
 
 AVERAGING = (
