@@ -59,6 +59,14 @@ from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
 from afmtool.config.samples import sample_count
 from afmtool.errors import ConfigError
 from afmtool.estimators.probeloss_events import Events, truth_loss_events
+from afmtool.records.theory_controllers import (
+    Ch2RowRecord,
+    ControllerRowRecord,
+    ControllersResults,
+    CriteriaRecord,
+    GainRecord,
+    GainsRecord,
+)
 from afmtool.sim.raster import CONTROLLERS, RasterParams, RasterRun, run_raster
 
 __all__ = [
@@ -125,13 +133,12 @@ class Ch2Row(NamedTuple):
         """Switching peak force / low-gain peak force."""
         return self.switching.peak_force_n / self.low.peak_force_n
 
-    def as_dict(self) -> dict:
-        return {
-            "line_rate_hz": self.line_rate_hz,
-            **{name: getattr(self, name)._asdict() for name in CONTROLLERS},
-            "loss_ratio_switching_to_high": self.loss_ratio_to_high,
-            "force_ratio_switching_to_low": self.force_ratio_to_low,
-        }
+    def record(self) -> Ch2RowRecord:
+        """The row as the report holds it."""
+        low, high, switching = (ControllerRowRecord(**getattr(self, name)._asdict()) for name in CONTROLLERS)
+        return Ch2RowRecord(line_rate_hz=self.line_rate_hz, low=low, high=high, switching=switching,
+                            loss_ratio_switching_to_high=self.loss_ratio_to_high,
+                            force_ratio_switching_to_low=self.force_ratio_to_low)
 
 
 def _scan_start(run: RasterRun) -> int:
@@ -253,7 +260,7 @@ def write_controller_png(path: Path, runs: Mapping[str, RasterRun], *, title: st
     )
 
 
-def criteria(row: Ch2Row, tolerance: float = 1.2) -> dict:
+def criteria(row: Ch2Row, tolerance: float = 1.2) -> CriteriaRecord:
     """The thesis's claims (§2.5) at one line rate, each True or False.
 
     * ``high_below_low``: the high gain loses less than the low gain;
@@ -263,12 +270,12 @@ def criteria(row: Ch2Row, tolerance: float = 1.2) -> dict:
     * ``switching_loss_within``: switching probe-loss area ≤ ``tolerance`` × the high gain's;
     * ``switching_force_within``: switching peak force ≤ ``tolerance`` × the low gain's.
     """
-    return {
-        "high_below_low": row.high.loss_area < row.low.loss_area,
-        "high_least_loss": row.high.loss_area <= min(row.low.loss_area, row.switching.loss_area),
-        "switching_loss_within": row.switching.loss_area <= tolerance * row.high.loss_area,
-        "switching_force_within": row.switching.peak_force_n <= tolerance * row.low.peak_force_n,
-    }
+    return CriteriaRecord(
+        high_below_low=row.high.loss_area < row.low.loss_area,
+        high_least_loss=row.high.loss_area <= min(row.low.loss_area, row.switching.loss_area),
+        switching_loss_within=row.switching.loss_area <= tolerance * row.high.loss_area,
+        switching_force_within=row.switching.peak_force_n <= tolerance * row.low.peak_force_n,
+    )
 
 
 def _write_loss_force_png(path: Path, rows: Sequence[Ch2Row]) -> None:
@@ -305,22 +312,21 @@ def run_controllers_command(
         runs = run_controllers(rate, {"lines": params.lines}, params.seed)
         rows.append(Ch2Row(rate, *(controller_row(runs[c]) for c in CONTROLLERS)))
     checks = {f"{row.line_rate_hz:g}": criteria(row, params.tolerance) for row in rows}
-    required = ("high_below_low", "high_least_loss", "switching_loss_within", "switching_force_within")
     # issue 14's acceptance: every claim at >= 3 line rates (at 4 Hz the high and switching gains tie)
-    passed = sum(all(check[name] for name in required) for check in checks.values()) >= min(3, len(checks))
+    passed = sum(check.holds() for check in checks.values()) >= min(3, len(checks))
     base = RasterParams()
-    results = {
-        "line_rates_hz": list(rates),
-        "gains": {"low": {"ki_per_s": base.ki_low_per_s, "kp": base.kp_low},
-                  "high": {"ki_per_s": base.ki_high_per_s, "kp": base.kp_high}},
-        "table": [row.as_dict() for row in rows],
-        "criteria": checks,
-        "tolerance": params.tolerance,
-        "pass": passed,
-    }
+    results = ControllersResults(
+        line_rates_hz=tuple(rates),
+        gains=GainsRecord(low=GainRecord(ki_per_s=base.ki_low_per_s, kp=base.kp_low),
+                          high=GainRecord(ki_per_s=base.ki_high_per_s, kp=base.kp_high)),
+        table=tuple(row.record() for row in rows),
+        criteria=checks,
+        tolerance=params.tolerance,
+        pass_=passed,
+    )
     warnings = [
-        f"{rate} Hz: {name.replace('_', ' ')} does not hold"
-        for rate, check in checks.items() for name in required if not check[name]
+        f"{rate} Hz: {claim.name.replace('_', ' ')} does not hold"
+        for rate, check in checks.items() for claim in dataclasses.fields(check) if not getattr(check, claim.name)
     ]
     if progress:
         progress(f"images at {params.figure_line_rate_hz:g} Hz")
@@ -330,7 +336,7 @@ def run_controllers_command(
         params.seed,
     )
     with OutputDir(out) as staged:
-        staged.path("ch2_table.json").write_text(json.dumps([row.as_dict() for row in rows], indent=2) + "\n")
+        staged.path("ch2_table.json").write_text(json.dumps([row.to_json() for row in results.table], indent=2) + "\n")
         write_controller_png(
             staged.path("ch2_controllers.png"), figure_runs,
             title=f"grating, {params.figure_line_rate_hz:g} Hz line rate: z of the three controllers",

@@ -273,10 +273,14 @@ _IDENTIFY = (
 )
 
 
-def _theory(word: str, params: type, runner: Lazy, examples: tuple[str, ...], headline: tuple[Item, ...]) -> CommandSpec:
+def _theory(word: str, params: type, runner: Lazy, examples: tuple[str, ...],
+            result: Lazy | tuple[Item, ...]) -> CommandSpec:
     """A ``theory`` subcommand: its figures read in name order (none put first)."""
+    if isinstance(result, Lazy):
+        return CommandSpec(f"theory {word}", Kind.ANALYSIS, _own(params), runner, examples=examples, main_figures=(),
+                           result=result)
     return CommandSpec(f"theory {word}", Kind.ANALYSIS, _own(params), runner, examples=examples, main_figures=(),
-                       headline=headline)
+                       headline=result)
 
 
 _THEORY_AVERAGING = _theory(
@@ -288,7 +292,8 @@ _THEORY_COMPARE = _theory(
 _THEORY_CONTROLLERS = _theory(
     "controllers", P.TheoryControllersParams, _analysis("controllers", "run_controllers_command"),
     ("afmtool theory controllers --out results/controllers",
-     "afmtool theory controllers --lines 4 --figure-lines 48 --out results/controllers_small"), H.CONTROLLERS)
+     "afmtool theory controllers --lines 4 --figure-lines 48 --out results/controllers_small"),
+    Lazy("afmtool.records.theory_controllers", "ControllersResults"))
 _THEORY_OBSERVER = _theory(
     "observer", P.ObserverTheoryParams, _analysis("observer_theory_outputs", "run_observer_theory_command"),
     ("afmtool theory observer --recommend --cycles 2,4,8,16,50 --out results/observer",), H.OBSERVER)

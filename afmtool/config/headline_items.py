@@ -15,7 +15,7 @@ from afmtool.records.base import Item
 
 __all__ = [
     "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
-    "COMPARE", "FIT", "AVERAGING", "OBSERVER", "CONTROLLERS", "OVERLAY",
+    "COMPARE", "FIT", "AVERAGING", "OBSERVER", "OVERLAY",
 ]
 
 
@@ -129,15 +129,6 @@ OBSERVER = (
     Item("observer f_k range mapped, highest", "maps.f_k_hz_range.1", "Hz"),
     Item("plant f0 (free air)", "plant.f0_hz", "Hz"),
     Item("plant Q (free air)", "plant.q", ""),
-)
-
-CONTROLLERS = (
-    Item("verdict: pass", "pass", "", text=True),
-    Item("probe-loss area, low gain", "table.0.low.loss_area", "of the image"),
-    Item("probe-loss area, high gain", "table.0.high.loss_area", "of the image"),
-    Item("probe-loss area, switching gain", "table.0.switching.loss_area", "of the image"),
-    Item("peak force, switching gain", "table.0.switching.peak_force_n", "N"),
-    Item("at line rate", "table.0.line_rate_hz", "Hz"),
 )
 
 OVERLAY = (
