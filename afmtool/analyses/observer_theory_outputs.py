@@ -29,6 +29,19 @@ from afmtool.estimators.observer_design import (
     recommend,
 )
 from afmtool.io.results import ResultWriter
+from afmtool.records.common import DriveHold
+from afmtool.records.theory_observer import (
+    DirectionRecord,
+    DiscreteObserverRecord,
+    GainMapRecord,
+    LineRecord,
+    MapsRecord,
+    NoiseRecord,
+    ObserverDriveRecord,
+    ObserverResults,
+    PlantRecord,
+    RecommendationRecord,
+)
 from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -117,27 +130,24 @@ def run_observer_theory_command(out: Path, config: Path | None, flags: Mapping) 
     cycles = parse_cycles(params.cycles)
     grid = observer_map(direction, (f0, q), cycles, settings, points=params.grid_points, margin=params.grid_margin)
     lines = directional_lines(direction, _observers(params, direction), cycles, settings, points=params.line_points)
-    results = {
-        "plant": {"f0_hz": f0, "q": q, "gain": gain, "numerator_c1_c0": list(settings.numerator)},
-        "direction": direction._asdict(),
-        "drive": {
-            "frequency_hz": drive_hz,
-            "amplitude": settings.drive_amplitude,
-            "free_amplitude": params.free_amplitude_nm,
-        },
-        "noise": {
-            "eta_psd_per_hz": settings.eta_psd,
-            "nu_psd_per_hz": settings.nu_psd,
-            "convention": "one-sided PSDs; variance = (S/2pi) * integral_0^inf |H(jw)|^2 dw (eq. 5.20 with its 1/pi)",
-        },
-        "cycles": list(cycles),
-        "maps": _map_summary(grid),
-        "lines": _line_summary(lines),
-    }
+    recommendation = _recommendation(grid, params, f0, q, gain, drive_hz) if params.recommend else None
+    results = ObserverResults(
+        plant=PlantRecord(f0_hz=f0, q=q, gain=gain, numerator_c1_c0=settings.numerator),
+        direction=DirectionRecord(**direction._asdict()),
+        drive=ObserverDriveRecord(frequency_hz=drive_hz, amplitude=settings.drive_amplitude,
+                                  free_amplitude=params.free_amplitude_nm),
+        noise=NoiseRecord(
+            eta_psd_per_hz=settings.eta_psd, nu_psd_per_hz=settings.nu_psd,
+            convention="one-sided PSDs; variance = (S/2pi) * integral_0^inf |H(jw)|^2 dw (eq. 5.20 with its 1/pi)",
+        ),
+        cycles=cycles,
+        maps=_map_summary(grid),
+        lines=_line_summary(lines),
+        recommendation=recommendation,
+    )
     warnings = []
-    if params.recommend:
-        results["recommendation"] = _recommendation(grid, params, f0, q, gain, drive_hz)
-        if results["recommendation"]["at_grid_edge"]:
+    if recommendation is not None:
+        if recommendation.at_grid_edge:
             warnings.append(
                 "the recommended observer model lies on the edge of the map: the sensitivity may keep growing beyond "
                 "it (raise grid_margin, or give slower gains in --cycles to meet the settling limit)"
@@ -153,7 +163,7 @@ def run_observer_theory_command(out: Path, config: Path | None, flags: Mapping) 
 
 def _recommendation(
     grid: ObserverMap, params: ObserverTheoryParams, f0: float, q: float, gain: float, drive_hz: float
-) -> dict:
+) -> RecommendationRecord:
     from afmtool.estimators.observer import ObserverDesign
     from afmtool.models.discretisation import discrete_denominator
     from afmtool.models.free_air import FreeAirModel
@@ -166,56 +176,48 @@ def _recommendation(
     design = ObserverDesign.from_decay(
         (float(denominator.b1), float(denominator.b0)), numerator, pick.cycles, fs / drive_hz, residual=params.residual
     )
-    return {
+    return RecommendationRecord(
         **pick._asdict(),
-        "max_cycles": params.max_cycles,
-        "criterion": "largest |dA_e^2/ds| along the force-curve direction (eq. 5.16) among observer models and gains "
+        max_cycles=params.max_cycles,
+        criterion="largest |dA_e^2/ds| along the force-curve direction (eq. 5.16) among observer models and gains "
         f"whose error after a unit plant-state step stays below {params.residual:.3g} after max_cycles drive periods",
-        "discrete": {
-            "sample_rate_hz": fs,
-            "drive_hold": params.drive_hold,
-            "numerator": list(design.numerator),
-            "denominator": list(design.denominator),
-            "gain": list(design.gain),
-        },
-    }
+        discrete=DiscreteObserverRecord(sample_rate_hz=fs, drive_hold=DriveHold(params.drive_hold),
+                                        numerator=design.numerator, denominator=design.denominator, gain=design.gain),
+    )
 
 
-def _finite_range(values: np.ndarray) -> list[float | None]:
+def _finite_range(values: np.ndarray) -> tuple[float | None, float | None]:
     finite = values[np.isfinite(values)]
-    return [float(finite.min()), float(finite.max())] if finite.size else [None, None]
+    return (float(finite.min()), float(finite.max())) if finite.size else (None, None)
 
 
-def _map_summary(grid: ObserverMap) -> dict:
-    out = {
-        "nominal": list(grid.nominal),
-        "f_k_hz_range": _finite_range(grid.f_k_hz),
-        "q_k_range": _finite_range(grid.q_k),
-    }
+def _map_summary(grid: ObserverMap) -> MapsRecord:
+    per_gain = {}
     for c, m in zip(grid.cycles, grid.metrics, strict=True):
         iq, jf = np.unravel_index(int(np.argmin(m.ae2)), m.ae2.shape)
-        out[f"{c:g}_cycles"] = {
-            "ae2_min_at": [float(grid.f_k_hz[jf]), float(grid.q_k[iq])],
+        per_gain[f"{c:g}_cycles"] = GainMapRecord(
+            ae2_min_at=(float(grid.f_k_hz[jf]), float(grid.q_k[iq])),
             **{name: _finite_range(getattr(m, name)) for name in _MAP_PANELS},
-        }
-    return out
+        )
+    return MapsRecord(nominal=tuple(grid.nominal), f_k_hz_range=_finite_range(grid.f_k_hz),
+                      q_k_range=_finite_range(grid.q_k), per_gain=per_gain)
 
 
-def _line_summary(lines: DirectionalLines) -> list:
+def _line_summary(lines: DirectionalLines) -> tuple[LineRecord, ...]:
     rows = []
     for (fk, qk), per_gain in zip(lines.observers, lines.metrics, strict=True):
         for c, m in zip(lines.cycles, per_gain, strict=True):
             k = int(np.argmin(m.ae2))
-            rows.append({
-                "observer": [fk, qk],
-                "cycles": c,
-                "ae2_min_at_s": float(lines.s[k]),
-                "ae2_range": _finite_range(m.ae2),
-                "dae2_ds_range": _finite_range(m.dae2_ds),
-                "snr_nu_range": _finite_range(m.snr_nu),
-                "peak_transient_range": _finite_range(m.peak_transient),
-            })
-    return rows
+            rows.append(LineRecord(
+                observer=(fk, qk),
+                cycles=c,
+                ae2_min_at_s=float(lines.s[k]),
+                ae2_range=_finite_range(m.ae2),
+                dae2_ds_range=_finite_range(m.dae2_ds),
+                snr_nu_range=_finite_range(m.snr_nu),
+                peak_transient_range=_finite_range(m.peak_transient),
+            ))
+    return tuple(rows)
 
 
 def _write_h5(writer: ResultWriter, grid: ObserverMap, lines: DirectionalLines) -> None:

@@ -296,7 +296,8 @@ _THEORY_CONTROLLERS = _theory(
     Lazy("afmtool.records.theory_controllers", "ControllersResults"))
 _THEORY_OBSERVER = _theory(
     "observer", P.ObserverTheoryParams, _analysis("observer_theory_outputs", "run_observer_theory_command"),
-    ("afmtool theory observer --recommend --cycles 2,4,8,16,50 --out results/observer",), H.OBSERVER)
+    ("afmtool theory observer --recommend --cycles 2,4,8,16,50 --out results/observer",),
+    Lazy("afmtool.records.theory_observer", "ObserverResults"))
 _THEORY_FIT = _theory(
     "fit", P.TheoryFitParams, _analysis("theory_fit", "run_theory_fit_command"),
     ("afmtool theory fit results/force_curve --out results/fit",

@@ -15,7 +15,7 @@ from afmtool.records.base import Item
 
 __all__ = [
     "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
-    "COMPARE", "FIT", "AVERAGING", "OBSERVER", "OVERLAY",
+    "COMPARE", "FIT", "AVERAGING", "OVERLAY",
 ]
 
 
@@ -119,16 +119,6 @@ AVERAGING = (
     Item("bistable from separation", "approach.bistable_separation_nm.0", "nm"),
     Item("bistable up to separation", "approach.bistable_separation_nm.1", "nm"),
     Item("drive amplitude", "drive_amplitude_nm", "nm"),
-)
-
-OBSERVER = (
-    Item("recommended observer f_k", "recommendation.f_k_hz", "Hz"),
-    Item("recommended observer Q_k", "recommendation.q_k", ""),
-    Item("recommended window", "recommendation.cycles", "drive periods"),
-    Item("observer f_k range mapped, lowest", "maps.f_k_hz_range.0", "Hz"),
-    Item("observer f_k range mapped, highest", "maps.f_k_hz_range.1", "Hz"),
-    Item("plant f0 (free air)", "plant.f0_hz", "Hz"),
-    Item("plant Q (free air)", "plant.q", ""),
 )
 
 OVERLAY = (
