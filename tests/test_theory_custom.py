@@ -54,6 +54,12 @@ def test_force_spec_round_trip_and_refusals():
             parse_force_spec(bad)
 
 
+def test_the_records_force_sets_are_the_thesis_sets_and_custom():
+    from afmtool.records.theory_averaging import ForceSet
+
+    assert {s.value for s in ForceSet} == {*THESIS_FORCE_SETS, "custom"}
+
+
 def test_custom_force_equals_the_thesis_set_it_spells_out(tmp_path):
     spec = format_force_spec(THESIS_FORCE_SETS["attractive-repulsive"])
     out_set, _ = _averaging(tmp_path, "set", "--force-set", "attractive-repulsive")

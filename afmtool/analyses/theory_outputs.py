@@ -23,6 +23,7 @@ from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
+from afmtool.records.theory_averaging import AveragingForceRecord, AveragingLegRecord, AveragingResults, ForceSet
 from afmtool.report.json_report import input_record, to_jsonable
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -86,8 +87,7 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
         "approach": theoretical_force_curve(approach_path, drive, cantilever, force),
         "retract": theoretical_force_curve(approach_path[::-1], drive, cantilever, force),
     }
-    results = {"drive_amplitude_nm": drive.amplitude_nm, "drive_frequency_hz": drive.frequency_hz,
-               "force": {"name": force_name, "spec": format_force_spec(force)}}
+    leg_records = {}
     with OutputDir(out) as staged:
         with ResultWriter(staged.path("theory.h5"), {}) as writer:
             for leg, curve in legs.items():
@@ -106,12 +106,7 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
                     ("dq_e_dl", sens.dq_e_dl, "1/nm"),
                 ):
                     writer.put(f"{leg}/{name}", values, units)
-                bistable = curve.separation_nm[curve.n_stable > 1]
-                results[leg] = {
-                    "f0_e_range_hz": [float(np.nanmin(curve.f0_e_hz)), float(np.nanmax(curve.f0_e_hz))],
-                    "q_e_range": [float(np.nanmin(curve.q_e)), float(np.nanmax(curve.q_e))],
-                    "bistable_separation_nm": [float(bistable.min()), float(bistable.max())] if bistable.size else None,
-                }
+                leg_records[leg] = _leg_record(curve)
         styles = {"approach": APPROACH_STYLE, "retract": RETRACT_STYLE}
         panels = [
             {"y_label": label, "series": [(c.separation_nm, getter(c), leg, styles[leg]) for leg, c in legs.items()]}
@@ -126,9 +121,23 @@ def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dic
             staged.path("averaging.png"), panels, x_label="separation l (nm)",
             title=f"Averaging theory, {force_name} force (f0 {params.f0_hz:g} Hz, Q {params.q:g})",
         )
-        if q_values:
-            results["q_overlay"] = write_q_overlay(staged, q_values, params, force, force_name, approach_path)
+        results = AveragingResults(
+            drive_amplitude_nm=drive.amplitude_nm, drive_frequency_hz=drive.frequency_hz,
+            force=AveragingForceRecord(name=ForceSet(force_name), spec=format_force_spec(force)),
+            approach=leg_records["approach"], retract=leg_records["retract"],
+            q_overlay=write_q_overlay(staged, q_values, params, force, force_name, approach_path) if q_values else None,
+        )
         return finish_run(staged, "theory averaging", [], "theory.averaging", params, results, [])
+
+
+def _leg_record(curve) -> AveragingLegRecord:
+    """The ranges of f0,e and Qe along one leg, and where it is bistable."""
+    bistable = curve.separation_nm[curve.n_stable > 1]
+    return AveragingLegRecord(
+        f0_e_range_hz=(float(np.nanmin(curve.f0_e_hz)), float(np.nanmax(curve.f0_e_hz))),
+        q_e_range=(float(np.nanmin(curve.q_e)), float(np.nanmax(curve.q_e))),
+        bistable_separation_nm=(float(bistable.min()), float(bistable.max())) if bistable.size else None,
+    )
 
 
 def chosen_force(spec: str, force_set: str) -> tuple[PiecewiseLinearForce, str]:

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from afmtool.errors import ConfigError
+from afmtool.records.theory_averaging import QOverlayRecord
 
 __all__ = ["parse_q_values", "write_q_overlay"]
 
@@ -38,7 +39,8 @@ def parse_q_values(text: str) -> list[float]:
     return values
 
 
-def write_q_overlay(staged, q_values: Sequence[float], params, force, force_name: str, approach_path) -> dict:
+def write_q_overlay(staged, q_values: Sequence[float], params, force, force_name: str,
+                    approach_path) -> dict[str, QOverlayRecord]:
     """Approach curves for each Q into ``theory_q.h5`` and ``averaging_q.png``/``averaging_q_sensitivity.png``."""
     from afmtool.io.results import ResultWriter
     from afmtool.models.averaging import (
@@ -67,11 +69,11 @@ def write_q_overlay(staged, q_values: Sequence[float], params, force, force_name
                 ("domega_e_dl", sens.domega_e_dl, "rad/s/nm"), ("dq_e_dl", sens.dq_e_dl, "1/nm"),
             ):
                 writer.put(f"{group}/{name}", values, units)
-            summary[f"{q:g}"] = {
-                "drive_amplitude_nm": drive.amplitude_nm,
-                "f0_e_change_hz": float(np.nanmax(curve.f0_e_hz) - np.nanmin(curve.f0_e_hz)),
-                "q_e_range": [float(np.nanmin(curve.q_e)), float(np.nanmax(curve.q_e))],
-            }
+            summary[f"{q:g}"] = QOverlayRecord(
+                drive_amplitude_nm=drive.amplitude_nm,
+                f0_e_change_hz=float(np.nanmax(curve.f0_e_hz) - np.nanmin(curve.f0_e_hz)),
+                q_e_range=(float(np.nanmin(curve.q_e)), float(np.nanmax(curve.q_e))),
+            )
 
     def panels(rows):
         return [

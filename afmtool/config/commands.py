@@ -285,7 +285,8 @@ def _theory(word: str, params: type, runner: Lazy, examples: tuple[str, ...],
 
 _THEORY_AVERAGING = _theory(
     "averaging", P.AveragingParams, _analysis("theory_outputs", "run_averaging_command"),
-    ("afmtool theory averaging --force-set attractive --out results/averaging",), H.AVERAGING)
+    ("afmtool theory averaging --force-set attractive --out results/averaging",),
+    Lazy("afmtool.records.theory_averaging", "AveragingResults"))
 _THEORY_COMPARE = _theory(
     "compare", P.TheoryCompareParams, _analysis("theory_outputs", "run_compare_command"),
     ("afmtool theory compare results/force_curve --out results/theory_compare",), H.COMPARE)

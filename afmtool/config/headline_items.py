@@ -15,7 +15,7 @@ from afmtool.records.base import Item
 
 __all__ = [
     "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
-    "COMPARE", "FIT", "AVERAGING", "OVERLAY",
+    "COMPARE", "FIT", "OVERLAY",
 ]
 
 
@@ -110,15 +110,6 @@ FIT = (
     _fit_parameter("contact_z", "contact point z_c", "@parameters.contact_z.units"),
     Item("onset d + s·z_c", "onset_d_plus_s_contact_z_nm.value", "nm", "onset_d_plus_s_contact_z_nm.std"),
     Item("RMS residual of f0'", "rms_residual.f0_hz", "Hz"),
-)
-
-AVERAGING = (
-    Item("f0e on approach, lowest", "approach.f0_e_range_hz.0", "Hz"),
-    Item("f0e on approach, highest", "approach.f0_e_range_hz.1", "Hz"),
-    Item("Qe on approach, lowest", "approach.q_e_range.0", ""),
-    Item("bistable from separation", "approach.bistable_separation_nm.0", "nm"),
-    Item("bistable up to separation", "approach.bistable_separation_nm.1", "nm"),
-    Item("drive amplitude", "drive_amplitude_nm", "nm"),
 )
 
 OVERLAY = (
