@@ -26,6 +26,17 @@ import numpy as np
 
 from afmtool.errors import InputError
 from afmtool.estimators.force_fit import FIT_NAMES, FIT_UNITS, ForceFit, ForceFitData, fit_force
+from afmtool.records.theory_fit import (
+    FitModel,
+    FitParameterName,
+    FitParameterRecord,
+    FitParametersRecord,
+    FitResidualsRecord,
+    OnsetRecord,
+    ParameterStatus,
+    TheoryFitResults,
+    WallTestRecord,
+)
 
 __all__ = ["FIT_NAMES", "FIT_UNITS", "parameter_status", "run_theory_fit_command"]
 
@@ -114,67 +125,68 @@ def _linear_model_holds(reep, reep_results) -> np.ndarray | bool:
     return ~(values > _MAX_SIGMA2_RATIO * level)
 
 
-def parameter_status(fit: ForceFit, j: int, max_relative_std: float, contact_tolerance: float) -> tuple[str, str]:
+def parameter_status(fit: ForceFit, j: int, max_relative_std: float,
+                     contact_tolerance: float) -> tuple[ParameterStatus, str]:
     """(status, reason) of parameter j (module docstring); the contact point's std is held to ``contact_tolerance`` (z units)."""
     name, interval, value = FIT_NAMES[j], fit.intervals[j], float(fit.theta[j])
     if not fit.free[j]:
         if name in ("omega_b2", "c_b"):
-            return "not identifiable", (f"the curve does not probe a repulsive wall: a wall lowers the scaled chi^2 by "
+            return ParameterStatus.NOT_IDENTIFIABLE, (f"the curve does not probe a repulsive wall: a wall lowers the scaled chi^2 by "
                                         f"{fit.wall_test:.3g}, less than chi^2_3(0.99) = 11.3; held at 0")
-        return "not identifiable", "without a wall, d and the contact point enter only as the onset d + s*contact_z"
+        return ParameterStatus.NOT_IDENTIFIABLE, "without a wall, d and the contact point enter only as the onset d + s*contact_z"
     if name == "contact_z" and fit.model == "attractive":
-        return "not identifiable", "without a wall, d and the contact point enter only as the onset d + s*contact_z"
+        return ParameterStatus.NOT_IDENTIFIABLE, "without a wall, d and the contact point enter only as the onset d + s*contact_z"
     if not (math.isfinite(interval.low) and math.isfinite(interval.high)):
         side = "above" if not math.isfinite(interval.high) else "below"
-        return "not identifiable", f"the profile likelihood never rises by 4c {side} it: the curve bounds it on one side only"
+        return ParameterStatus.NOT_IDENTIFIABLE, f"the profile likelihood never rises by 4c {side} it: the curve bounds it on one side only"
     if name == "contact_z":
         ok = interval.std <= contact_tolerance
-        return ("identified" if ok else "poorly identifiable"), (
+        return (ParameterStatus.IDENTIFIED if ok else ParameterStatus.POORLY_IDENTIFIABLE), (
             f"std {interval.std:.3g} (z units), {'within' if ok else 'over'} 10 % of the free amplitude")
     relative = interval.std / abs(value) if value else math.inf
     if relative > max_relative_std:
-        return "poorly identifiable", f"relative std {relative:.3g} > {max_relative_std:g} (2-sigma interval " \
+        return ParameterStatus.POORLY_IDENTIFIABLE, f"relative std {relative:.3g} > {max_relative_std:g} (2-sigma interval " \
                                       f"{interval.low:.4g} to {interval.high:.4g})"
-    return "identified", f"relative std {relative:.3g}; 2-sigma interval {interval.low:.4g} to {interval.high:.4g}"
+    return ParameterStatus.IDENTIFIED, f"relative std {relative:.3g}; 2-sigma interval {interval.low:.4g} to {interval.high:.4g}"
 
 
 def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def _record(fit: ForceFit, data: ForceFitData, max_relative_std: float) -> dict:
+def _record(fit: ForceFit, data: ForceFitData, max_relative_std: float) -> TheoryFitResults:
     """fit.json: each parameter's value, 2σ interval, std, systematic part and status, and the fit's numbers."""
     tolerance = 0.1 * data.free_amplitude_nm / abs(data.nm_per_unit)
     parameters = {}
     for j, name in enumerate(FIT_NAMES):
         status, reason = parameter_status(fit, j, max_relative_std, tolerance)
         interval = fit.intervals[j]
-        parameters[name] = {"value": float(fit.theta[j]), "std": _finite(interval.std), "units": FIT_UNITS[name],
-                            "interval_2sigma": [_finite(interval.low), _finite(interval.high)],
-                            "systematic": _finite(interval.systematic), "fitted": fit.free[j],
-                            "status": status, "reason": reason}
-    statuses = {name: entry["status"] for name, entry in parameters.items()}
-    return {
-        "parameters": parameters,
-        "model": fit.model,
-        "wall_test": {"statistic": fit.wall_test, "threshold": 11.34,
-                      "meaning": "chi^2 drop of the wall model in units of c (chi^2_3 at 0.99)"},
-        "uncertainty": "profile likelihood, 2-sigma where chi^2 rises by 4c (c = max(1, chi^2/nu) x tau_int), "
-                       "widened by the refits with every shift scaled by 1 +- tau (systematic)",
-        "chi2_scale": fit.chi2_scale,
-        "separation_offset_nm": float(-data.nm_per_unit * fit.theta[5]),
-        "onset_d_plus_s_contact_z_nm": {"value": float(fit.theta[0] + data.nm_per_unit * fit.theta[5]),
-                                        "std": _finite(fit.onset.std),
-                                        "interval_2sigma": [_finite(fit.onset.low), _finite(fit.onset.high)]},
-        "repulsive_share": fit.repulsive_share,
-        "nm_per_unit": data.nm_per_unit,
-        "identified": [n for n in FIT_NAMES if statuses[n] == "identified"],
-        "not_identified": [n for n in FIT_NAMES if statuses[n] != "identified"],
-        "rms_residual": {"f0_hz": fit.rms[0], "q": fit.rms[1], "amplitude_nm": fit.rms[2]},
-        "fitted_samples": int(data.fit_mask.sum()),
-        "free_amplitude_nm": data.free_amplitude_nm,
-        "beat_modulation": data.beat,
-    }
+        parameters[name] = FitParameterRecord(
+            value=float(fit.theta[j]), std=_finite(interval.std), units=FIT_UNITS[name],
+            interval_2sigma=(_finite(interval.low), _finite(interval.high)), systematic=_finite(interval.systematic),
+            fitted=bool(fit.free[j]), status=status, reason=reason)
+    identified = {FitParameterName(n): parameters[n].status is ParameterStatus.IDENTIFIED for n in FIT_NAMES}
+    return TheoryFitResults(
+        parameters=FitParametersRecord(**parameters),
+        model=FitModel(fit.model),
+        wall_test=WallTestRecord(statistic=fit.wall_test, threshold=11.34,
+                                 meaning="chi^2 drop of the wall model in units of c (chi^2_3 at 0.99)"),
+        uncertainty="profile likelihood, 2-sigma where chi^2 rises by 4c (c = max(1, chi^2/nu) x tau_int), "
+                    "widened by the refits with every shift scaled by 1 +- tau (systematic)",
+        chi2_scale=fit.chi2_scale,
+        separation_offset_nm=float(-data.nm_per_unit * fit.theta[5]),
+        onset_d_plus_s_contact_z_nm=OnsetRecord(value=float(fit.theta[0] + data.nm_per_unit * fit.theta[5]),
+                                                std=_finite(fit.onset.std),
+                                                interval_2sigma=(_finite(fit.onset.low), _finite(fit.onset.high))),
+        repulsive_share=fit.repulsive_share,
+        nm_per_unit=data.nm_per_unit,
+        identified=tuple(n for n, ok in identified.items() if ok),
+        not_identified=tuple(n for n, ok in identified.items() if not ok),
+        rms_residual=FitResidualsRecord(f0_hz=fit.rms[0], q=fit.rms[1], amplitude_nm=fit.rms[2]),
+        fitted_samples=int(data.fit_mask.sum()),
+        free_amplitude_nm=data.free_amplitude_nm,
+        beat_modulation=data.beat,
+    )
 
 
 def run_theory_fit_command(reep_dir: Path, out: Path, config: Path | None, flags: Mapping) -> dict:
@@ -189,10 +201,10 @@ def run_theory_fit_command(reep_dir: Path, out: Path, config: Path | None, flags
     data = _load(Path(reep_dir), params)
     fit = fit_force(data)
     results = _record(fit, data, params.max_relative_std)
-    warnings = [f"{name} is not determined by this curve: {entry['reason']}"
-                for name, entry in results["parameters"].items() if entry["status"] != "identified"]
+    warnings = [f"{name.value} is not determined by this curve: {getattr(results.parameters, name.value).reason}"
+                for name in results.not_identified]
     with OutputDir(out) as staged:
-        staged.path("fit.json").write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+        staged.path("fit.json").write_text(json.dumps(results.to_json(), indent=2) + "\n", encoding="utf-8")
         _write_fit_files(staged, fit, data)
         inputs = [input_record(Path(reep_dir) / "report.json", "reep report"),
                   input_record(Path(reep_dir) / "reep.h5", "reep series")]

@@ -302,7 +302,8 @@ _THEORY_OBSERVER = _theory(
 _THEORY_FIT = _theory(
     "fit", P.TheoryFitParams, _analysis("theory_fit", "run_theory_fit_command"),
     ("afmtool theory fit results/force_curve --out results/fit",
-     "afmtool theory fit results/scope_curve --z-sensitivity -12.5 --out results/fit_scope"), H.FIT)
+     "afmtool theory fit results/scope_curve --z-sensitivity -12.5 --out results/fit_scope"),
+    Lazy("afmtool.records.theory_fit", "TheoryFitResults"))
 _IDENTIFY_INVOLS = CommandSpec(
     "identify invols", Kind.ANALYSIS, _own(P.InvolsParams), _analysis("invols", "run_invols_command"),
     examples=("afmtool identify invols curve_on_sapphire.ibw --out results/invols",

@@ -15,7 +15,7 @@ from afmtool.records.base import Item
 
 __all__ = [
     "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
-    "COMPARE", "FIT", "OVERLAY",
+    "COMPARE", "OVERLAY",
 ]
 
 
@@ -96,21 +96,6 @@ COMPARE = (
          at_label="separation", at_units="nm"),
 )
 
-
-def _fit_parameter(name: str, label: str, units: str) -> Item:
-    return Item(label, f"parameters.{name}.value", units, f"parameters.{name}.std", note=f"parameters.{name}.status")
-
-
-FIT = (
-    _fit_parameter("d_nm", "d", "nm"),
-    _fit_parameter("omega_a2", "ω_a²", "1/s²"),
-    _fit_parameter("omega_b2", "ω_b²", "1/s²"),
-    _fit_parameter("c_a", "c_a", "1/s"),
-    _fit_parameter("c_b", "c_b", "1/s"),
-    _fit_parameter("contact_z", "contact point z_c", "@parameters.contact_z.units"),
-    Item("onset d + s·z_c", "onset_d_plus_s_contact_z_nm.value", "nm", "onset_d_plus_s_contact_z_nm.std"),
-    Item("RMS residual of f0'", "rms_residual.f0_hz", "Hz"),
-)
 
 OVERLAY = (
     Item("runs overlaid", "n_runs", "runs"),
