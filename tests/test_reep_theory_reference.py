@@ -85,9 +85,9 @@ def _check_verdicts(fs, f0, q, name, duration_s):
     right = _compare(curve, f0, q, PiecewiseLinearForce(*REFERENCE_FORCES[name]))
     summary = right.summary()
     print(f"\n{fs / 1e6:g} MHz, f0 {f0:g} Hz, Q {q:g}, {name}: true force -> {right.verdict}; "
-          f"{summary['bins_compared']} of {summary['bins']} bins compared, largest shift {summary['f0_theory_change_hz']:.0f} Hz")
+          f"{summary.bins_compared} of {summary.bins} bins compared, largest shift {summary.f0_theory_change_hz:.0f} Hz")
     assert right.passed, right.verdict
-    assert summary["f0_theory_change_hz"] > 50.0  # the compared bins probe the interaction
+    assert summary.f0_theory_change_hz > 50.0  # the compared bins probe the interaction
     for wrong_name, wrong in _wrong_forces(name).items():
         verdict = _compare(curve, f0, q, wrong)
         print(f"   {wrong_name}: {verdict.verdict}")
@@ -122,8 +122,8 @@ def test_the_wall_and_low_q_are_marked_not_failed():
     curve = _curve(500e3, 80318.0, q, "repulsive-q38", 0.2)
     comparison = _compare(curve, 80318.0, q, PiecewiseLinearForce(*REFERENCE_FORCES["repulsive-q38"]))
     summary = comparison.summary()
-    print(f"\nQ 38, repulsive set: {comparison.verdict}; left out: {summary['ill_conditioned_reasons']}")
+    print(f"\nQ 38, repulsive set: {comparison.verdict}; left out: {summary.ill_conditioned_reasons}")
     assert not comparison.verdict.startswith("disagree")
-    assert summary["bins_ill_conditioned"] >= summary["bins"] // 2
-    reasons = " ".join(summary["ill_conditioned_reasons"])
+    assert summary.bins_ill_conditioned >= summary.bins // 2
+    reasons = " ".join(summary.ill_conditioned_reasons)
     assert "low Q" in reasons or "repulsive wall" in reasons

@@ -344,7 +344,8 @@ def test_theory_compare_result_is_the_report_section():
     import dataclasses
 
     from afmtool.analyses.theory import ComparisonBins, TheoryComparison
-    from afmtool.analyses.theory_outputs import TheoryCompareResult
+    from afmtool.analyses.theory_outputs import compare_results
+    from afmtool.records.theory_compare import BeatRecord, CompareForceRecord, SeparationRecord, SeparationSource
 
     one = np.ones(1)
     bins = ComparisonBins(np.zeros(1, dtype=int), 10.5 * one, 40 * one, -98.0 * one, -100.0 * one, 1.0 * one,
@@ -353,9 +354,12 @@ def test_theory_compare_result_is_the_report_section():
     comparison = TheoryComparison(np.array([True, False, True]), np.zeros(3), np.zeros(3), bins, 7e4, 200.0,
                                   "REEP's median", "REEP's per-row f0_std_hz, q_std", 0.03, 0.1, True, "agree",
                                   0.0, 0.025, 6.9, 1)
-    result = TheoryCompareResult("attractive", 20.0, {"source": "truth"}, comparison, True)
+    result = compare_results(CompareForceRecord(source="attractive", spec="d=4"), 20.0,
+                             SeparationRecord(source=SeparationSource.TRUTH), comparison,
+                             BeatRecord(modulation=0.03, lines=((7e4, 1.0),), lines_from="metadata"))
     section = result.to_json()
     assert section["force_set"] == "attractive" and section["separation"] == {"source": "truth"}
+    assert section["force"] == {"source": "attractive", "spec": "d=4"}
     assert section["pass"] is True and section["verdict"] == "agree" and section["compared_rows"] == 2
     assert section["bins"] == 1 and section["bins_compared"] == 1 and section["excluded_near_jumps"] == 1
     assert section["worst_bins"] == [{"leg": "approach", "separation_nm": 10.5, "f0_shift_reep_hz": -98.0,
@@ -363,7 +367,7 @@ def test_theory_compare_result_is_the_report_section():
                                       "q_shift_theory": -3.1, "q_z": 0.1}]
     json.dumps(section, allow_nan=False)
     with pytest.raises(dataclasses.FrozenInstanceError):
-        result.passed = False  # type: ignore[misc]
+        result.pass_ = False  # type: ignore[misc]
 
 
 def test_theory_compare_refuses_a_folder_that_is_not_a_reep_run(tmp_path):

@@ -69,9 +69,11 @@ import numpy as np
 
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import PiecewiseLinearForce
+from afmtool.records.theory_compare import BinLeg, FreeAirReferenceRecord, WorstBinRecord
 
 __all__ = [
     "ComparisonBins",
+    "ComparisonSummary",
     "ReepRows",
     "MAX_OUTLIER_SHARE",
     "TheoryComparison",
@@ -164,17 +166,18 @@ class TheoryComparison:
     chi2_limit_per_dof: float
     excluded_near_jumps: int
 
-    def worst_bins(self, count: int = 3) -> list[dict]:
+    def worst_bins(self, count: int = 3) -> tuple[WorstBinRecord, ...]:
         """The well-conditioned bins with the largest |z|, worst first."""
         b = self.bins
         worst = np.maximum(np.abs(b.f0_z), np.abs(b.q_z))
         order = [i for i in np.argsort(-np.nan_to_num(worst, nan=-1.0)) if b.conditioned[i]][:count]
-        return [{"leg": ("approach", "retract")[int(b.leg[i])], "separation_nm": float(b.separation_nm[i]),
-                 "f0_shift_reep_hz": float(b.f0_shift_reep_hz[i]), "f0_shift_theory_hz": float(b.f0_shift_theory_hz[i]),
-                 "f0_z": float(b.f0_z[i]), "q_shift_reep": float(b.q_shift_reep[i]),
-                 "q_shift_theory": float(b.q_shift_theory[i]), "q_z": float(b.q_z[i])} for i in order]
+        return tuple(WorstBinRecord(
+            leg=(BinLeg.APPROACH, BinLeg.RETRACT)[int(b.leg[i])], separation_nm=float(b.separation_nm[i]),
+            f0_shift_reep_hz=float(b.f0_shift_reep_hz[i]), f0_shift_theory_hz=float(b.f0_shift_theory_hz[i]),
+            f0_z=float(b.f0_z[i]), q_shift_reep=float(b.q_shift_reep[i]), q_shift_theory=float(b.q_shift_theory[i]),
+            q_z=float(b.q_z[i])) for i in order)
 
-    def summary(self) -> dict:
+    def summary(self) -> ComparisonSummary:
         """The report's numbers: verdict, bins compared and left out (with why), the worst bins."""
         b = self.bins
         reasons: dict[str, int] = {}
@@ -182,26 +185,52 @@ class TheoryComparison:
             if not ok:
                 reasons[why] = reasons.get(why, 0) + 1
         interaction = b.conditioned & (np.abs(b.f0_shift_theory_hz) > 0)
-        return {
-            "verdict": self.verdict,
-            "compared_rows": int(self.mask.sum()),
-            "bins": int(b.leg.size),
-            "bins_compared": int(b.conditioned.sum()),
-            "bins_ill_conditioned": int((~b.conditioned).sum()),
-            "ill_conditioned_reasons": reasons,
-            "excluded_near_jumps": self.excluded_near_jumps,
-            "outlier_share": self.outlier_share,
-            "max_outlier_share": MAX_OUTLIER_SHARE,
-            "chi2_per_dof": self.chi2_per_dof,
-            "chi2_limit_per_dof": self.chi2_limit_per_dof,
-            "tolerance": self.tolerance,
-            "f0_theory_change_hz": float(np.max(np.abs(b.f0_shift_theory_hz[interaction]), initial=0.0)),
-            "q_theory_change": float(np.max(np.abs(b.q_shift_theory[interaction]), initial=0.0)),
-            "free_air_reference": {"f0_hz": self.free_f0_hz, "q": self.free_q, "source": self.free_source},
-            "uncertainty_source": self.uncertainty_source,
-            "beat_modulation": self.beat_modulation,
-            "worst_bins": self.worst_bins(),
-        }
+        return ComparisonSummary(
+            verdict=self.verdict,
+            compared_rows=int(self.mask.sum()),
+            bins=int(b.leg.size),
+            bins_compared=int(b.conditioned.sum()),
+            bins_ill_conditioned=int((~b.conditioned).sum()),
+            ill_conditioned_reasons=reasons,
+            excluded_near_jumps=self.excluded_near_jumps,
+            outlier_share=self.outlier_share,
+            max_outlier_share=MAX_OUTLIER_SHARE,
+            chi2_per_dof=self.chi2_per_dof,
+            chi2_limit_per_dof=self.chi2_limit_per_dof,
+            tolerance=self.tolerance,
+            f0_theory_change_hz=float(np.max(np.abs(b.f0_shift_theory_hz[interaction]), initial=0.0)),
+            q_theory_change=float(np.max(np.abs(b.q_shift_theory[interaction]), initial=0.0)),
+            free_air_reference=FreeAirReferenceRecord(f0_hz=self.free_f0_hz, q=self.free_q, source=self.free_source),
+            uncertainty_source=self.uncertainty_source,
+            beat_modulation=self.beat_modulation,
+            worst_bins=self.worst_bins(),
+        )
+
+
+class ComparisonSummary(NamedTuple):
+    """The comparison's numbers, as :class:`~afmtool.records.theory_compare.TheoryCompareResults` holds them.
+
+    The fields are that record's of the same names (their meaning and units are documented there).
+    """
+
+    verdict: str
+    compared_rows: int
+    bins: int
+    bins_compared: int
+    bins_ill_conditioned: int
+    ill_conditioned_reasons: dict[str, int]
+    excluded_near_jumps: int
+    outlier_share: float
+    max_outlier_share: float
+    chi2_per_dof: float
+    chi2_limit_per_dof: float
+    tolerance: float
+    f0_theory_change_hz: float
+    q_theory_change: float
+    free_air_reference: FreeAirReferenceRecord
+    uncertainty_source: str
+    beat_modulation: float
+    worst_bins: tuple[WorstBinRecord, ...]
 
 
 def jump_neighbourhood(amplitude: np.ndarray, sample_rate_hz: float, *, jump_nm: float = 1.0,

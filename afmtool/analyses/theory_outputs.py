@@ -5,9 +5,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
-from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
@@ -24,50 +22,21 @@ from afmtool.models.cantilever import Cantilever
 from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
 from afmtool.records.theory_averaging import AveragingForceRecord, AveragingLegRecord, AveragingResults, ForceSet
-from afmtool.report.json_report import input_record, to_jsonable
+from afmtool.records.theory_compare import (
+    BeatRecord,
+    CompareForceRecord,
+    ContactMethod,
+    SeparationRecord,
+    SeparationSource,
+    TheoryCompareResults,
+)
+from afmtool.records.theory_fit import FitModel, TheoryFitResults
+from afmtool.report.json_report import input_record
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
 
-__all__ = ["FittedForce", "TheoryCompareResult", "capture_drive_lines", "chosen_force", "load_fitted_force",
+__all__ = ["FittedForce", "capture_drive_lines", "chosen_force", "compare_results", "load_fitted_force",
            "run_averaging_command", "run_compare_command"]
-
-
-@dataclass(frozen=True)
-class TheoryCompareResult:
-    """What ``theory compare`` found.
-
-    Attributes
-    ----------
-    force_set : str
-        The force law compared with: a thesis set's name, "custom", "metadata" or "fit".
-    free_amplitude_nm : float
-        The free-air amplitude A0 the theory is evaluated for, nm.
-    separation : Mapping
-        Where the separation axis came from (``source``: "truth", "z-piezo"
-        or "fit", and for z its units, scale and contact point).
-    comparison : TheoryComparison
-        REEP against averaging theory (eqs. 4.9-4.10) in separation bins.
-    passed : bool
-        The verdict (:mod:`afmtool.analyses.theory`).
-    force : Mapping
-        The force's parameters and where they came from.
-    beat : Mapping
-        The drive's envelope beat m and where its lines came from.
-    """
-
-    force_set: str
-    free_amplitude_nm: float
-    separation: Mapping
-    comparison: TheoryComparison
-    passed: bool
-    force: Mapping = field(default_factory=lambda: MappingProxyType({}))
-    beat: Mapping = field(default_factory=lambda: MappingProxyType({}))
-
-    def to_json(self) -> dict:
-        """The ``results`` section of report.json."""
-        return to_jsonable({"force_set": self.force_set, "force": dict(self.force),
-                            "free_amplitude_nm": self.free_amplitude_nm, "separation": dict(self.separation),
-                            "beat": dict(self.beat), **self.comparison.summary(), "pass": self.passed})
 
 
 def run_averaging_command(out: Path, config: Path | None, flags: Mapping) -> dict:
@@ -169,7 +138,7 @@ class FittedForce(NamedTuple):
     contact_z: float
     contact_z_std: float
     nm_per_unit: float
-    record: dict
+    record: CompareForceRecord
 
 
 def load_fitted_force(fit_dir: Path) -> FittedForce:
@@ -183,27 +152,23 @@ def load_fitted_force(fit_dir: Path) -> FittedForce:
     path = Path(fit_dir)
     path = path / "fit.json" if path.is_dir() else path
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-        values = {name: float(data["parameters"][name]["value"]) for name in
-                  ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b", "contact_z")}
-        nm_per_unit = float(data["nm_per_unit"])
-        contact_std = data["parameters"]["contact_z"].get("std")
-        onset_std = (data.get("onset_d_plus_s_contact_z_nm") or {}).get("std")
-        # an open contact interval (no std): the onset's, which the curve always pins, in z units
-        contact_std = float(contact_std if contact_std is not None else (onset_std or 0.0) / abs(nm_per_unit))
+        fit = TheoryFitResults.from_json(json.loads(path.read_text(encoding="utf-8")))
     except FileNotFoundError:
         raise InputError(f"--fit {fit_dir}: no fit.json there (the output folder of 'afmtool theory fit')") from None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+    except (OSError, ValueError, InputError) as exc:
         raise InputError(f"--fit {path}: not a fit.json of 'afmtool theory fit' ({type(exc).__name__}: {exc})") from None
-    record = {"source": "fit", "fit": str(path), "model": data.get("model", "")}
-    if data.get("model") == "attractive" or not values["omega_b2"] and not values["c_b"]:
+    p, nm_per_unit, onset_std = fit.parameters, fit.nm_per_unit, fit.onset_d_plus_s_contact_z_nm.std
+    # an open contact interval (no std): the onset's, which the curve always pins, in z units
+    contact_std = p.contact_z.std if p.contact_z.std is not None else (onset_std or 0.0) / abs(nm_per_unit)
+    if fit.model is FitModel.ATTRACTIVE or not p.omega_b2.value and not p.c_b.value:
         # no wall: the attraction sees only d − l = (d + s·z_c) − s·z, so the separation is as
         # certain as the onset, whatever the split between d and z_c
-        onset = data.get("onset_d_plus_s_contact_z_nm") or {}
-        contact_std = float(onset.get("std") or contact_std * abs(nm_per_unit)) / abs(nm_per_unit)
-    force = PiecewiseLinearForce(*(max(0.0, values[k]) for k in ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b")))
-    record.update({k: values[k] for k in ("d_nm", "omega_a2", "omega_b2", "c_a", "c_b")})
-    return FittedForce(force, values["contact_z"], contact_std if math.isfinite(contact_std) else 0.0, nm_per_unit,
+        contact_std = float(onset_std or contact_std * abs(nm_per_unit)) / abs(nm_per_unit)
+    values = (p.d_nm.value, p.omega_a2.value, p.omega_b2.value, p.c_a.value, p.c_b.value)
+    force = PiecewiseLinearForce(*(max(0.0, v) for v in values))
+    record = CompareForceRecord(source="fit", fit=str(path), model=fit.model, d_nm=p.d_nm.value,
+                                omega_a2=p.omega_a2.value, omega_b2=p.omega_b2.value, c_a=p.c_a.value, c_b=p.c_b.value)
+    return FittedForce(force, p.contact_z.value, contact_std if math.isfinite(contact_std) else 0.0, nm_per_unit,
                        record)
 
 
@@ -217,7 +182,7 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
         force, force_name, force_record = fitted.force, "fit", fitted.record
     else:
         force, force_name = _force_from(metadata, params.force_set, params.force)
-        force_record = {"source": force_name, "spec": format_force_spec(force)}
+        force_record = CompareForceRecord(source=force_name, spec=format_force_spec(force))
     cantilever = capture_cantilever(metadata, data.reep_results)
     series = data.series
     free_amplitude = metadata.drive.free_amplitude_nm or float(
@@ -240,10 +205,8 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
         )
     except ValueError as exc:
         raise InputError(f"{reep_dir}: {exc}") from None
-    result = TheoryCompareResult(force_name, float(free_amplitude), MappingProxyType(separation_record), comparison,
-                                 comparison.passed, MappingProxyType(force_record),
-                                 MappingProxyType({"modulation": beat, "lines": [list(x) for x in lines],
-                                                   "lines_from": lines_source}))
+    result = compare_results(force_record, float(free_amplitude), separation_record, comparison,
+                             BeatRecord(modulation=beat, lines=tuple(lines), lines_from=lines_source))
     with OutputDir(out) as staged:
         from afmtool.analyses.theory_compare_figure import write_compare_png, write_compare_table
 
@@ -251,17 +214,24 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
         write_compare_table(staged.path("compare_bins.csv"), comparison)
         inputs = [input_record(data.report_path, "reep report"), input_record(data.series_path, "reep series")]
         inputs += [input_record(data.capture)] if data.capture is not None and data.capture.is_file() else []
-        inputs += [input_record(Path(fitted.record["fit"]), "theory fit")] if fitted is not None else []
-        return finish_run(staged, "theory compare", inputs, "theory.compare", params, result.to_json(),
-                          _compare_warnings(comparison, lines_source))
+        inputs += [input_record(Path(fitted.record.fit), "theory fit")] if fitted is not None else []
+        return finish_run(staged, "theory compare", inputs, "theory.compare", params, result,
+                          _compare_warnings(result, lines_source))
 
 
-def _compare_warnings(comparison: TheoryComparison, lines_source: str) -> list[str]:
+def compare_results(force: CompareForceRecord, free_amplitude_nm: float, separation: SeparationRecord,
+                    comparison: TheoryComparison, beat: BeatRecord) -> TheoryCompareResults:
+    """What ``theory compare`` found: the force and axis it compared on, and the comparison's numbers and verdict."""
+    return TheoryCompareResults(force_set=force.source, force=force, free_amplitude_nm=free_amplitude_nm,
+                                separation=separation, beat=beat, **comparison.summary()._asdict(),
+                                pass_=comparison.passed)
+
+
+def _compare_warnings(result: TheoryCompareResults, lines_source: str) -> list[str]:
     """The verdict when it is not a pass, the bins left out and why, and an unknown drive."""
-    warnings = [] if comparison.passed else [f"REEP and averaging theory: {comparison.verdict}"]
-    summary = comparison.summary()
-    for reason, count in summary["ill_conditioned_reasons"].items():
-        warnings.append(f"{count} of {summary['bins']} separation bins left out of the verdict: {reason}")
+    warnings = [] if result.pass_ else [f"REEP and averaging theory: {result.verdict}"]
+    for reason, count in result.ill_conditioned_reasons.items():
+        warnings.append(f"{count} of {result.bins} separation bins left out of the verdict: {reason}")
     if lines_source == "unknown":
         warnings.append("the drive's lines are not known (no metadata, no dither channel): the envelope's beat is "
                         "taken as 0, so a multi-line drive's effect on the theory is not in its uncertainty")
@@ -421,15 +391,15 @@ def _separation(params, truth, z_series, series, fs, reep_results, cantilever, f
             raise InputError("--fit: reep.h5 has no z series, so the fitted contact point cannot place the rows")
         z, units = z_series
         std = abs(fitted.nm_per_unit) * fitted.contact_z_std
-        return fitted.nm_per_unit * (z - fitted.contact_z), {
-            "source": "fit", "z_units": units, "nm_per_unit": fitted.nm_per_unit, "contact_z": fitted.contact_z,
-            "contact_method": "fitted by theory fit", "separation_std_nm": std}, std
+        return fitted.nm_per_unit * (z - fitted.contact_z), SeparationRecord(
+            source=SeparationSource.FIT, z_units=units, nm_per_unit=fitted.nm_per_unit, contact_z=fitted.contact_z,
+            contact_method=ContactMethod.FITTED, separation_std_nm=std), std
     use_truth = params.separation == "truth" or (params.separation == "auto" and truth is not None)
     if use_truth:
         if truth is None:
             raise InputError("--separation truth: the REEP input has no /truth/separation_nm")
         index = np.round(series["t"] * fs).astype(int)
-        return truth[index], {"source": "truth"}, 0.0
+        return truth[index], SeparationRecord(source=SeparationSource.TRUTH), 0.0
     if z_series is None:
         raise InputError("no /truth separation and no z_piezo in reep.h5: the force curve has no separation axis")
     z, units = z_series
@@ -439,9 +409,10 @@ def _separation(params, truth, z_series, series, fs, reep_results, cantilever, f
         free_amplitude_nm=free_amplitude, contact_z=float(params.contact_z) if params.contact_z else None,
     )
     std = abs(estimate.nm_per_unit) * estimate.contact_z_std if math.isfinite(estimate.contact_z_std) else 0.0
-    return estimate.separation_nm, {
-        "source": "z-piezo", "z_units": units, "nm_per_unit": estimate.nm_per_unit,
-        "contact_z": estimate.contact_z, "contact_method": estimate.method,
-        "amplitude_rms_residual_nm": estimate.amplitude_rms_residual_nm, "contact_z_std": estimate.contact_z_std,
-        "separation_std_nm": std,
-    }, std
+    residual = estimate.amplitude_rms_residual_nm
+    return estimate.separation_nm, SeparationRecord(
+        source=SeparationSource.Z_PIEZO, z_units=units, nm_per_unit=estimate.nm_per_unit,
+        contact_z=estimate.contact_z, contact_method=ContactMethod(estimate.method),
+        amplitude_rms_residual_nm=math.nan if residual is None else residual, contact_z_std=estimate.contact_z_std,
+        separation_std_nm=std,
+    ), std

@@ -273,14 +273,10 @@ _IDENTIFY = (
 )
 
 
-def _theory(word: str, params: type, runner: Lazy, examples: tuple[str, ...],
-            result: Lazy | tuple[Item, ...]) -> CommandSpec:
+def _theory(word: str, params: type, runner: Lazy, examples: tuple[str, ...], result: Lazy) -> CommandSpec:
     """A ``theory`` subcommand: its figures read in name order (none put first)."""
-    if isinstance(result, Lazy):
-        return CommandSpec(f"theory {word}", Kind.ANALYSIS, _own(params), runner, examples=examples, main_figures=(),
-                           result=result)
     return CommandSpec(f"theory {word}", Kind.ANALYSIS, _own(params), runner, examples=examples, main_figures=(),
-                       headline=result)
+                       result=result)
 
 
 _THEORY_AVERAGING = _theory(
@@ -289,7 +285,8 @@ _THEORY_AVERAGING = _theory(
     Lazy("afmtool.records.theory_averaging", "AveragingResults"))
 _THEORY_COMPARE = _theory(
     "compare", P.TheoryCompareParams, _analysis("theory_outputs", "run_compare_command"),
-    ("afmtool theory compare results/force_curve --out results/theory_compare",), H.COMPARE)
+    ("afmtool theory compare results/force_curve --out results/theory_compare",),
+    Lazy("afmtool.records.theory_compare", "TheoryCompareResults"))
 _THEORY_CONTROLLERS = _theory(
     "controllers", P.TheoryControllersParams, _analysis("controllers", "run_controllers_command"),
     ("afmtool theory controllers --out results/controllers",

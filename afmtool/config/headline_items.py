@@ -15,7 +15,7 @@ from afmtool.records.base import Item
 
 __all__ = [
     "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
-    "COMPARE", "OVERLAY",
+    "OVERLAY",
 ]
 
 
