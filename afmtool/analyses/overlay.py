@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from afmtool.errors import ConfigError, InputError
+from afmtool.records.overlay import CurveLeg, OverlayAxis, OverlayResults, OverlayRunRecord
 from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["FORCE_CURVE_QUANTITIES", "OverlayRun", "TIME_QUANTITIES", "read_runs", "run_overlay_command"]
@@ -263,14 +264,14 @@ def _figure_specs(runs: Sequence[OverlayRun], vs: str, x_units: str, legs: Seque
     return specs
 
 
-def _run_summary(run: OverlayRun, contact: Mapping) -> dict:
+def _run_summary(run: OverlayRun, contact: Mapping) -> OverlayRunRecord:
     approach = (run.results.get("force_curve") or {}).get("approach") or {}
-    return {
-        "label": run.label, "folder": str(run.folder), "free_air_f0_hz": run.free_f0_hz, "free_air_q": run.free_q,
-        "largest_df0_hz": approach.get("largest_df0_hz"), "largest_df0_z": approach.get("largest_df0_z"),
-        "smallest_q": approach.get("smallest_q"), "contact_z": contact.get(run.label),
-        "force_curve_legs": sorted(run.curves), "time_rows": int(len(run.time.get("t", ()))),
-    }
+    return OverlayRunRecord(
+        label=run.label, folder=str(run.folder), free_air_f0_hz=run.free_f0_hz, free_air_q=run.free_q,
+        largest_df0_hz=approach.get("largest_df0_hz"), largest_df0_z=approach.get("largest_df0_z"),
+        smallest_q=approach.get("smallest_q"), contact_z=contact.get(run.label),
+        force_curve_legs=tuple(CurveLeg(leg) for leg in sorted(run.curves)), time_rows=int(len(run.time.get("t", ()))),
+    )
 
 
 def _spread(values: Sequence[float | None]) -> float | None:
@@ -278,21 +279,21 @@ def _spread(values: Sequence[float | None]) -> float | None:
     return float(max(finite) - min(finite)) if len(finite) > 1 else None
 
 
-def _results(runs: Sequence[OverlayRun], vs: str, x_units: str, contact: Mapping) -> dict:
-    summaries = [_run_summary(run, contact) for run in runs]
-    return {
-        "runs": summaries,
-        "n_runs": len(runs),
-        "vs": vs,
-        "x_units": x_units,
-        "contact_rule": "separation = |z - z_c|, z_c where the approach amplitude first falls below 0.95 of free air"
+def _results(runs: Sequence[OverlayRun], vs: str, x_units: str, contact: Mapping) -> OverlayResults:
+    summaries = tuple(_run_summary(run, contact) for run in runs)
+    return OverlayResults(
+        runs=summaries,
+        n_runs=len(runs),
+        vs=OverlayAxis(vs),
+        x_units=x_units,
+        contact_rule="separation = |z - z_c|, z_c where the approach amplitude first falls below 0.95 of free air"
         if vs == "separation" else None,
-        "free_air_f0_hz_spread": _spread([s["free_air_f0_hz"] for s in summaries]),
-        "free_air_q_spread": _spread([s["free_air_q"] for s in summaries]),
-        "largest_df0_hz_spread": _spread([s["largest_df0_hz"] for s in summaries]),
-        "first": summaries[0],
-        "last": summaries[-1],
-    }
+        free_air_f0_hz_spread=_spread([s.free_air_f0_hz for s in summaries]),
+        free_air_q_spread=_spread([s.free_air_q for s in summaries]),
+        largest_df0_hz_spread=_spread([s.largest_df0_hz for s in summaries]),
+        first=summaries[0],
+        last=summaries[-1],
+    )
 
 
 def run_overlay_command(folders: Sequence[Path], out: Path, *, labels: Sequence[str] | None = None,

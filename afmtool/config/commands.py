@@ -321,7 +321,7 @@ _OVERLAY = CommandSpec(
     examples=("afmtool overlay mica_0 mica_45min mica_2h mica_16h --labels '0,45 min,2 h,16 h' --out results/ageing",
               "afmtool overlay results/q50 results/q200 --label-key q --vs separation --out results/multi_q"),
     main_figures=("overlay_f0_hz.png", "overlay_q.png", "overlay_amplitude.png", "overlay_phase_deg.png"),
-    headline=H.OVERLAY,
+    result=Lazy("afmtool.records.overlay", "OverlayResults"),
 )
 
 #: The utilities: they write no report.json; their work is in their CLI module.

@@ -15,7 +15,6 @@ from afmtool.records.base import Item
 
 __all__ = [
     "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
-    "OVERLAY",
 ]
 
 
