@@ -160,7 +160,7 @@ def test_ch2_table_switching_gain(table_runs, tmp_path):
               f"{row.switching.lift_off_area:.4f} | {row.low.peak_force_n * 1e9:.1f} / {row.high.peak_force_n * 1e9:.1f}"
               f" / {row.switching.peak_force_n * 1e9:.1f} | loss S/H {row.loss_ratio_to_high:.4f}, "
               f"force S/L {row.force_ratio_to_low:.3f}")
-    (tmp_path / "ch2_table.json").write_text(json.dumps([r.as_dict() for r in rows], indent=2))
+    (tmp_path / "ch2_table.json").write_text(json.dumps([r.record().to_json() for r in rows], indent=2))
     for row in rows:
         assert row.high.loss_area < row.low.loss_area, row  # the high gain loses contact less (issue 14, item 8)
         assert row.switching.loss_area <= 1.2 * row.high.loss_area, row

@@ -61,7 +61,7 @@ def test_reep_agrees_with_averaging_theory(force_set):
         )
 
     comparison = compare(THESIS_FORCE_SETS[force_set])
-    print(force_set, comparison.verdict, comparison.summary()["ill_conditioned_reasons"])
+    print(force_set, comparison.verdict, comparison.summary().ill_conditioned_reasons)
     assert comparison.passed, comparison.verdict
     assert comparison.excluded_near_jumps < 0.02 * comparison.mask.sum()
     other = "attractive-repulsive" if force_set == "attractive" else "attractive"
