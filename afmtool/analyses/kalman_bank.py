@@ -445,7 +445,8 @@ class BankStage:
         if self.estimator is not None:
             return self.estimator.row_every
         if self.params.rows == "resolution" and not self.params.decimate and self.reep_results is not None:
-            return (self.reep_results.report.get("estimator") or {}).get("row_every_samples")
+            reep = self.reep_results.results
+            return reep.estimator.row_every_samples if reep is not None else None
         return None
 
     def step(self, chunk: Chunk) -> dict[str, np.ndarray]:
@@ -574,10 +575,10 @@ def _pass_progress(progress, n_passes: int, total: int | None):
 
 def _check_reep_file(reep_results, fs: float) -> ReepTiming:
     """The file's window and rate; its sample rate must be the capture's."""
-    rate = reep_results.report.get("sample_rate_hz", fs)
-    if rate != fs:
-        raise InputError(f"--reep {reep_results.path}: REEP ran at {rate:g} Hz, the capture is {fs:g} Hz")
-    return ReepTiming.from_report(reep_results.report)
+    reep = reep_results.results  # its report.json, if there is one beside reep.h5
+    if reep is not None and reep.sample_rate_hz != fs:
+        raise InputError(f"--reep {reep_results.path}: REEP ran at {reep.sample_rate_hz:g} Hz, the capture is {fs:g} Hz")
+    return ReepTiming.from_report(reep)
 
 
 def _scratch_file(stack: contextlib.ExitStack, folder: Path | None) -> Path:

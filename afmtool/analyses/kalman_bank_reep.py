@@ -29,7 +29,7 @@ every design point by about one 0.5 nm bin.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -39,6 +39,9 @@ from afmtool.errors import InputError
 from afmtool.estimators.kalman_bank_verdict import ModelTable
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
+
+if TYPE_CHECKING:
+    from afmtool.records.reep import ReepResults
 
 __all__ = [
     "CoefficientBlock",
@@ -71,12 +74,11 @@ class ReepTiming(NamedTuple):
         return cls(estimator.lam, estimator.factor)
 
     @classmethod
-    def from_report(cls, results: dict) -> ReepTiming:
-        """A finished run's: ``estimator`` (since issue 27) or the older per-sample ``forgetting_factor``."""
-        estimator = results.get("estimator") or {}
-        if "reep_forgetting_factor" in estimator:
-            return cls(float(estimator["reep_forgetting_factor"]), int(estimator.get("rate_reduction", 1)))
-        return cls(float(results.get("forgetting_factor", 0.995)), 1)
+    def from_report(cls, results: ReepResults | None) -> ReepTiming:
+        """A finished run's (its report.json's ``estimator``); λ = 0.995 at REEP's rate without a report."""
+        if results is None:
+            return cls(0.995, 1)
+        return cls(float(results.estimator.reep_forgetting_factor), int(results.estimator.rate_reduction))
 
     @property
     def window_samples(self) -> float:
@@ -303,10 +305,8 @@ def reep_pass_one(reader: CaptureReader, params: KalmanBankParams, model: FreeAi
     if not tables:
         raise InputError(f"{reader.info.source}: REEP found no force curve (z_piezo never moves)")
     # the model REEP ran beside: a given one as the route refined it (gain and phase fitted at the drive)
-    used = FreeAirModel.from_dict(result.results["free_air_model"], "identified free-air model")
-    segment = result.results["free_air_segment_s"]
-    return PassOne(tables, used, tuple(segment) if segment else None, reep.estimator,
-                   result.results.get("free_air_route"))
+    used = FreeAirModel.from_record(result.results.free_air_model, "identified free-air model")
+    return PassOne(tables, used, result.results.free_air_segment_s, reep.estimator, reep.route)
 
 
 def bank_reep_params(params: KalmanBankParams) -> ReepParams:

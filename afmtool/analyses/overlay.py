@@ -34,6 +34,7 @@ import numpy as np
 
 from afmtool.errors import ConfigError, InputError
 from afmtool.records.overlay import CurveLeg, OverlayAxis, OverlayResults, OverlayRunRecord
+from afmtool.records.reep import ReepResults
 from afmtool.runtime.outputs import OutputDir
 
 __all__ = ["FORCE_CURVE_QUANTITIES", "OverlayRun", "TIME_QUANTITIES", "read_runs", "run_overlay_command"]
@@ -58,7 +59,7 @@ class OverlayRun:
 
     folder: Path
     label: str
-    results: Mapping
+    results: ReepResults | None  #: its report.json's (None without one)
     z_units: str
     amplitude_units: str
     curves: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # leg -> {"z": ..., quantity: ...}
@@ -68,18 +69,26 @@ class OverlayRun:
 
     @property
     def free_f0_hz(self) -> float | None:
-        return _free(self.results, "f0_hz", "f0_hz")
+        segment, model = self._free()
+        return _finite(segment.f0_hz.mean if segment is not None else None, model.f0_hz if model is not None else None)
 
     @property
     def free_q(self) -> float | None:
-        return _free(self.results, "q", "q")
+        segment, model = self._free()
+        return _finite(segment.q.mean if segment is not None else None, model.q if model is not None else None)
+
+    def _free(self):
+        """(REEP's free-air segment, the free-air model), each None where the run has none."""
+        if self.results is None:
+            return None, None
+        return self.results.segments.free_air, self.results.free_air_model
 
 
-def _free(results: Mapping, series: str, model_key: str) -> float | None:
-    value = (((results.get("segments") or {}).get("free_air") or {}).get(series) or {}).get("mean")
-    if value is None:
-        value = (results.get("free_air_model") or {}).get(model_key)
-    return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
+def _finite(value: float | None, fallback: float | None) -> float | None:
+    """``value`` (REEP's free-air mean) where the run has it, else ``fallback`` (the model's); None unless finite."""
+    if value is None or math.isnan(value):  # a mean over no row is NaN (written as null)
+        value = fallback
+    return float(value) if value is not None and math.isfinite(value) else None
 
 
 # --------------------------------------------------------------------------- reading
@@ -90,7 +99,7 @@ def _read_one(folder: Path) -> OverlayRun:
 
     with open_reep_results(folder, where="RUN_DIR") as reep:
         handle = reep.file
-        run = OverlayRun(Path(folder), Path(folder).resolve().name, dict(reep.report), reep.z_units,
+        run = OverlayRun(Path(folder), Path(folder).resolve().name, reep.results, reep.z_units,
                          handle.units("amplitude") if "amplitude" in handle.names() else "", inputs=reep.inputs)
         for leg in ("approach", "retract"):
             names = handle.names(f"force_curve/{leg}")
@@ -265,11 +274,13 @@ def _figure_specs(runs: Sequence[OverlayRun], vs: str, x_units: str, legs: Seque
 
 
 def _run_summary(run: OverlayRun, contact: Mapping) -> OverlayRunRecord:
-    approach = (run.results.get("force_curve") or {}).get("approach") or {}
+    curve = run.results.force_curve if run.results is not None else None
+    approach = curve.approach if curve is not None else None
     return OverlayRunRecord(
         label=run.label, folder=str(run.folder), free_air_f0_hz=run.free_f0_hz, free_air_q=run.free_q,
-        largest_df0_hz=approach.get("largest_df0_hz"), largest_df0_z=approach.get("largest_df0_z"),
-        smallest_q=approach.get("smallest_q"), contact_z=contact.get(run.label),
+        largest_df0_hz=approach.largest_df0_hz if approach is not None else None,
+        largest_df0_z=approach.largest_df0_z if approach is not None else None,
+        smallest_q=approach.smallest_q if approach is not None else None, contact_z=contact.get(run.label),
         force_curve_legs=tuple(CurveLeg(leg) for leg in sorted(run.curves)), time_rows=int(len(run.time.get("t", ()))),
     )
 

@@ -13,6 +13,7 @@ everything but ``reep.h5``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
@@ -38,7 +39,21 @@ from afmtool.io.capture import CaptureInfo, CaptureReader, Chunk
 from afmtool.io.results import ResultWriter
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Split, Warmup, run_stream
-from afmtool.report.results import JsonResults
+from afmtool.records.common import FreeAirRouteRecord, SeriesMoments
+from afmtool.records.reep import (
+    CheckReference,
+    FlagCounts,
+    FreeAirCheck,
+    FreeAirLevelsRecord,
+    LevelsSource,
+    LockInRecord,
+    ReepResults,
+    ReepSegments,
+    ReepSummary,
+    Segment,
+    Settling,
+    Validity,
+)
 
 __all__ = ["SERIES_UNITS", "ReepKernels", "ReepResult", "ReepStage", "build_reep_estimator", "run_reep"]
 
@@ -64,18 +79,19 @@ _CURVE_QUANTITIES = ("f0_hz", "q", "amplitude", "phase_deg")
 _READ_AHEAD = 1
 
 
-def _summary_dict(moments: RunningMoments) -> dict:
-    """Count, mean, (population) std, min and max of the trusted rows after the warm-up."""
+def _series_moments(moments: RunningMoments) -> SeriesMoments:
+    """Count, mean, (population) std, min and max of the trusted rows after the warm-up (NaN without one)."""
     if not moments.count:
-        return {"count": 0, "mean": None, "std": None, "min": None, "max": None}
-    return {"count": moments.count, "mean": moments.mean, "std": moments.std(), "min": moments.low, "max": moments.high}
+        return SeriesMoments(count=0, mean=math.nan, std=None, min=math.nan, max=math.nan)
+    return SeriesMoments(count=moments.count, mean=moments.mean, std=moments.std(), min=moments.low,
+                         max=moments.high)
 
 
 @dataclass(frozen=True)
-class ReepResult(JsonResults):
+class ReepResult:
     """What ``run_reep`` found; the command turns it into files and a report."""
 
-    results: dict
+    results: ReepResults
     warnings: tuple[str, ...]
     images: dict[str, np.ndarray] = field(default_factory=dict)
     geometry: ScanGeometry | None = None
@@ -83,6 +99,10 @@ class ReepResult(JsonResults):
     z_units: str = ""
     #: The rows of reep_time_series.png, gathered in the stream.
     plot_rows: Thinned | None = None
+
+    def to_json(self) -> dict:
+        """``results`` as report.json holds them."""
+        return self.results.to_json()
 
 
 def _spectral_peak_hz(x: np.ndarray, sample_rate_hz: float) -> float:
@@ -220,6 +240,7 @@ class ReepStage:
         self.warnings: list[str] = []
         self.segment_s = None
         self.route = None
+        self._route_name: str | None = None
         self._segment = None
         self._resolved = False
         self.n_total = 0
@@ -228,6 +249,7 @@ class ReepStage:
         """The free-air route, its segment read ahead (:func:`_resolve_model`); the stream handed on."""
         self.model, chunks, self.segment_s, resolved = _resolve_model(self.reader, self.params, self.model, chunks)
         self.route = resolved.report if resolved is not None else None
+        self._route_name = resolved.route if resolved is not None else None
         self.warnings.extend(resolved.warnings if resolved is not None else ())
         self._segment = resolved.segment if resolved is not None else None
         self._resolved = True
@@ -288,7 +310,7 @@ class ReepStage:
                     f"the dither has {len(lines)} spectral line(s) near resonance; REEP's free-air model needs "
                     "three to be persistently exciting for five parameters (thesis §3.3.2)"
                 )
-        if model is not None and params.use_input and model.delay_s > 1.5 / fs and (self.route or {}).get("route") != "f0-q":
+        if model is not None and params.use_input and model.delay_s > 1.5 / fs and self._route_name != "f0-q":
             self.warnings.append(
                 f"the free-air model has a drive delay of {model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
                 "fixed numerator does not model; f0' and Q' may be biased"
@@ -388,75 +410,93 @@ class ReepStage:
         force_curves = self.curve_acc.tables() if self.curve_acc is not None else {}
         images = self.image_acc.images() if self.image_acc is not None else {}
         z_units = self.reader.info.units("z_piezo") if self.z_mode else ""
-        results = self._results()
-        check = _free_air_check(results["segments"].get("free_air"), self.model,
-                                self.reader.info.capture_metadata.cantilever.f0_hz)
-        if check is not None:
-            results["free_air_check"] = check.as_dict()
-            if not check.consistent:  # the run's premise is broken: first among the warnings
-                self.warnings.insert(0, check.message())
+        segments = self.segment_moments.record()
+        check = _free_air_check(segments.free_air, self.model, self.reader.info.capture_metadata.cantilever.f0_hz)
+        if check is not None and not check.consistent:  # the run's premise is broken: first among the warnings
+            self.warnings.insert(0, check.message())
+        results = self._results(segments, _check_record(check) if check is not None else None)
         return ReepResult(results, tuple(self.warnings), images, self.geometry, force_curves, z_units,
                           self.plot_rows.result())
 
-    def _results(self) -> dict:
+    def _results(self, segments: ReepSegments, check: FreeAirCheck | None) -> ReepResults:
         params, fs, model, n_total = self.params, self.fs, self.model, self.n_total
-        estimator, limits = self.estimator, self.limits
-        described = estimator.describe()
-        return {
-            "free_air_model": model.to_dict() if model is not None else None,
-            "free_air_segment_s": list(self.segment_s) if self.segment_s else None,
-            "free_air_route": self.route,
-            "forgetting_factor": described["forgetting_factor"],
-            "window_samples": described["window_samples"],
-            "window_us": described["window_us"],
-            "estimator": described,
-            "settling": self.settling,
-            "bias_compensation": params.bias_compensation,
-            "use_input": params.use_input,
+        estimator = self.estimator.describe()
+        return ReepResults(
+            free_air_model=model.record() if model is not None else None,
+            free_air_segment_s=tuple(self.segment_s) if self.segment_s else None,
+            # the route's report, as freeair_route writes it for report.json
+            free_air_route=FreeAirRouteRecord.from_json(self.route) if self.route is not None else None,
+            forgetting_factor=estimator.forgetting_factor,
+            window_samples=estimator.window_samples,
+            window_us=estimator.window_us,
+            estimator=estimator,
+            settling=self.settling,
+            bias_compensation=params.bias_compensation,
+            use_input=params.use_input,
             # without the dither the AR(2) fit sees no input: its damping is the loop's, not the cantilever's
-            "q_identifiable": params.use_input,
-            "n_samples": n_total,
-            "duration_s": n_total / fs,
-            "sample_rate_hz": fs,
-            "decimate": self.decimation.every,
-            "row_rate_hz": estimator.row_rate_hz,
+            q_identifiable=params.use_input,
+            n_samples=n_total,
+            duration_s=n_total / fs,
+            sample_rate_hz=fs,
+            decimate=self.decimation.every,
+            row_rate_hz=estimator.row_rate_hz,
             # what set the rows' density: --decimate N, else --rows (issue 33)
-            "rows": f"decimate {params.decimate}" if params.decimate else params.rows,
-            "row_every_samples": estimator.row_every,
-            "drive_frequency_hz": self.drive_hz,
-            "lockin": {"lowpass_hz": self.lowpass_hz, "order": self.lockin.order,
-                       "type": "Butterworth, complex demodulation"},
-            "excitation_lines_hz": self.lines,
-            "static_offset": params.static_offset,
-            "flagged_samples": self.flag_counter.flagged,  # among the decimated output samples after the warm-up
-            "validity": {
-                "min_amplitude_fraction": limits.min_amplitude_fraction,
-                "max_offset_drift": limits.max_offset_drift,
-                "free_air_levels": self.levels.as_dict(),
-                "flags": self.flag_counter.as_dict(),
-                "mostly_flagged": self.flag_counter.mostly_flagged(limits),
-            },
-            "summary_after_warmup_samples": self.warmup.samples,
-            "summary": {name: _summary_dict(s) for name, s in self.summaries.items()},
-            "segments": self.segment_moments.as_dict(),
-        }
+            rows=f"decimate {params.decimate}" if params.decimate else params.rows,
+            row_every_samples=estimator.row_every_samples,
+            drive_frequency_hz=self.drive_hz,
+            lockin=LockInRecord(lowpass_hz=self.lowpass_hz, order=self.lockin.order,
+                                type="Butterworth, complex demodulation"),
+            excitation_lines_hz=tuple(self.lines),
+            static_offset=params.static_offset,
+            flagged_samples=self.flag_counter.flagged,  # among the decimated output samples after the warm-up
+            validity=self._validity(),
+            summary_after_warmup_samples=self.warmup.samples,
+            summary=ReepSummary(**{name: _series_moments(s) for name, s in self.summaries.items()}),
+            segments=segments,
+            free_air_check=check,
+        )
+
+    def _validity(self) -> Validity:
+        """The validity checks' limits, the free-air levels, the flags counted and, if most rows are flagged, why."""
+        limits, levels, counter = self.limits, self.levels, self.flag_counter
+        mostly = counter.mostly_flagged(limits)
+        return Validity(
+            min_amplitude_fraction=limits.min_amplitude_fraction,
+            max_offset_drift=limits.max_offset_drift,
+            free_air_levels=FreeAirLevelsRecord(amplitude=levels.amplitude, sigma2=levels.sigma2,
+                                                source=LevelsSource(levels.source)),
+            flags=FlagCounts(**counter.as_dict()),
+            mostly_flagged=str(mostly) if mostly is not None else None,
+        )
 
 
-def _free_air_check(segment: dict | None, model: FreeAirModel | None, metadata_f0_hz: float | None):
+def _free_air_check(segment: Segment | None, model: FreeAirModel | None, metadata_f0_hz: float | None):
     """REEP's free-air f0′ against the model's f0 and the metadata's (:mod:`afmtool.estimators.free_air_consistency`)."""
     from afmtool.estimators.free_air_consistency import F0Reference, free_air_f0_check
 
-    if segment is None or (segment["f0_hz"].get("count") or 0) < 10:  # too few rows for a scatter
+    if segment is None or segment.f0_hz.count < 10:  # too few rows for a scatter
         return None
     references = []
     if model is not None:
         references.append(F0Reference("model", float(model.f0_hz), float(model.f0_std_hz or 0.0)))
     if metadata_f0_hz and (model is None or metadata_f0_hz != model.f0_hz):
         references.append(F0Reference("metadata", float(metadata_f0_hz)))
-    stats = segment["f0_hz"]
+    stats = segment.f0_hz
     # REEP's own per-row standard deviation of f0' where it has one, else the rows' spread over the segment
-    std = segment.get("f0_row_std_hz") or stats.get("std") or 0.0
-    return free_air_f0_check(float(stats["mean"]), float(std), references)
+    std = segment.f0_row_std_hz or stats.std or 0.0
+    return free_air_f0_check(float(stats.mean), float(std), references)
+
+
+def _check_record(check) -> FreeAirCheck:
+    """The report's copy of a :class:`~afmtool.estimators.free_air_consistency.FreeAirF0Check`."""
+    from afmtool.estimators.free_air_consistency import MAX_DEVIATION_STD
+
+    return FreeAirCheck(
+        f0_hz=check.f0_hz, f0_std_hz=check.f0_std_hz, reference=CheckReference(check.reference.name),
+        reference_f0_hz=check.reference.f0_hz, reference_std_hz=check.reference.std_hz,
+        deviation_hz=check.deviation_hz, deviation_std=check.deviation_std, max_deviation_std=MAX_DEVIATION_STD,
+        consistent=check.consistent,
+    )
 
 
 def build_reep_estimator(params: ReepParams, model: FreeAirModel | None, sample_rate_hz: float, drive_hz: float,
@@ -590,28 +630,29 @@ def run_reep(
 _MOST_SETTLING_SAMPLES = 1 << 24
 
 
-def _settling(estimator: ReepEstimator, model: FreeAirModel | None, head: Head, geometry: ScanGeometry | None) -> dict:
+def _settling(estimator: ReepEstimator, model: FreeAirModel | None, head: Head,
+              geometry: ScanGeometry | None) -> Settling:
     """The window, the measured 10–90 % settling of f0′ and Q′, and for a scan the distance the tip covers meanwhile."""
     from afmtool.estimators.reep_estimator import settling_samples, step_settling
 
-    out: dict = {"window_us": estimator.window_s * 1e6, "f0_settling_10_90_s": None, "q_settling_10_90_s": None}
+    window_us = estimator.window_s * 1e6
     dither = head.first.data.get("dither")
     if model is None or not estimator.use_input or dither is None:
-        out["note"] = "no step response without the recorded dither and a free-air model"
-        return out
+        return Settling(window_us=window_us, f0_settling_10_90_s=None, q_settling_10_90_s=None,
+                        note="no step response without the recorded dither and a free-air model")
     fs = estimator.sample_rate_hz
     simulated = settling_samples(estimator)
     if simulated > _MOST_SETTLING_SAMPLES:
-        out["note"] = (f"no step response: REEP's window of {estimator.window_s:.3g} s needs {simulated:.3g} samples "
-                       f"simulated (at most {_MOST_SETTLING_SAMPLES:.3g})")
-        return out
+        return Settling(window_us=window_us, f0_settling_10_90_s=None, q_settling_10_90_s=None,
+                        note=f"no step response: REEP's window of {estimator.window_s:.3g} s needs {simulated:.3g} "
+                        f"samples simulated (at most {_MOST_SETTLING_SAMPLES:.3g})")
     step = step_settling(estimator, model.numerator_at(fs), model.denominator_at(fs), dither)
-    out.update(f0_settling_10_90_s=step.f0_s, q_settling_10_90_s=step.q_s, f0_step_hz=step.f0_step_hz, q_step=step.q_step,
-               method="noise-free free-air model, f0 stepped down by half a linewidth and Q by 10 %")
+    out = Settling(window_us=window_us, f0_settling_10_90_s=step.f0_s, q_settling_10_90_s=step.q_s,
+                   f0_step_hz=step.f0_step_hz, q_step=step.q_step,
+                   method="noise-free free-air model, f0 stepped down by half a linewidth and Q by 10 %")
     if geometry is not None and step.f0_s is not None:
         # the tip crosses the scan once per line period, twice with trace and retrace
         speed = geometry.scan_size_m * geometry.line_rate_hz * (2.0 if geometry.trace_retrace else 1.0)
-        out["scan_speed_m_per_s"] = speed
-        out["spatial_resolution_m"] = speed * step.f0_s
-        out["spatial_resolution_pixels"] = speed * step.f0_s / (geometry.scan_size_m / geometry.pixels_per_line)
+        out = out.replace(scan_speed_m_per_s=speed, spatial_resolution_m=speed * step.f0_s,
+                          spatial_resolution_pixels=speed * step.f0_s / (geometry.scan_size_m / geometry.pixels_per_line))
     return out

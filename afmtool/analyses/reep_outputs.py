@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -14,6 +15,14 @@ from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter
 from afmtool.io.units import calibration_record
+from afmtool.records.reep import (
+    ForceCurve,
+    ForceCurveLeg,
+    ImageMean,
+    ReepResults,
+    SyntheticDriveUncertainty,
+    TruthTracking,
+)
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.run import finish_run
 from afmtool.runtime.outputs import OutputDir
@@ -45,46 +54,55 @@ def run_reep_command(run: CommandRun) -> dict:
             _write_force_curves(staged, writer, result, deflection_units, run.figures)
             _write_images(staged, writer, result, deflection_units, run.figures)
         staged.flush_early("reep.h5")  # to disk while the figures are drawn
-        results = dict(result.results)
-        drive_fit = getattr(reader, "drive_fit", None)
-        if drive_fit is not None:
-            # the synthesised drive's phase uncertainty is REEP's too (eq. D.3)
-            results["synthetic_drive_uncertainty"] = _widen_reep_std(staged.path("reep.h5"), drive_fit,
-                                                                    float(result.results["drive_frequency_hz"]))
-        results.update(_time_series(staged, reader, result, deflection_units, run.figures))
-        from afmtool.analyses.interaction_outputs import add_interaction_series
-
-        results["interaction"] = add_interaction_series(staged.path("reep.h5"), results, reader.info.capture_metadata,
-                                                        deflection_units, *_given_spring_constant(params, model))
-        interaction_extremes = {}
-        if results["interaction"].get("written"):
-            interaction_extremes = _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz,
-                                                           run.figures)
-        if result.force_curves:
-            results["force_curve"] = _curve_summary(result, _free_f0_hz(results), interaction_extremes)
-        if result.geometry is not None:
-            results["images"] = {
-                name: {"mean": _finite_mean(image)} for name, image in sorted(result.images.items())
-            }
-        if result.results["free_air_model"]:
+        results = _read_back(staged, run, result, params, deflection_units, _given_spring_constant(params, model))
+        if results.free_air_model is not None:
             from afmtool.models.free_air import FreeAirModel
 
-            FreeAirModel(**result.results["free_air_model"]).save(staged.path("free_air.json"))
+            FreeAirModel.from_record(results.free_air_model).save(staged.path("free_air.json"))
         inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_records]
         run.figures.wait()
         return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
 
 
-def _row_attrs(results: Mapping) -> dict:
+def _read_back(staged: OutputDir, run: CommandRun, result: ReepResult, params: ReepParams, deflection_units: str,
+               spring_constant: tuple[float, str]) -> ReepResults:
+    """The stage's results with what the command reads back from the finished reep.h5.
+
+    A synthesised drive's share of the uncertainty, the tracking error against
+    ``/truth``, the interaction series, the force curve's extremes and the images' means.
+    """
+    from afmtool.analyses.interaction_outputs import add_interaction_series
+
+    reader, results = run.reader, result.results
+    drive_fit = getattr(reader, "drive_fit", None)
+    if drive_fit is not None:
+        # the synthesised drive's phase uncertainty is REEP's too (eq. D.3)
+        results = results.replace(synthetic_drive_uncertainty=_widen_reep_std(
+            staged.path("reep.h5"), drive_fit, float(results.drive_frequency_hz)))
+    results = results.replace(truth_tracking=_time_series(staged, reader, result, deflection_units, run.figures))
+    interaction = add_interaction_series(staged.path("reep.h5"), results, reader.info.capture_metadata,
+                                         deflection_units, *spring_constant)
+    results = results.replace(interaction=interaction)
+    interaction_extremes = {}
+    if interaction.written:
+        interaction_extremes = _write_interaction_bins(staged, result, params, reader.info.sample_rate_hz,
+                                                       run.figures)
+    if result.force_curves:
+        results = results.replace(force_curve=_curve_summary(result, _free_f0_hz(results), interaction_extremes))
+    if result.geometry is not None:
+        results = results.replace(images={name: ImageMean(mean=_finite_mean(image))
+                                          for name, image in sorted(result.images.items())})
+    return results
+
+
+def _row_attrs(results: ReepResults) -> dict:
     """reep.h5's root attributes: the rows' spacing and rate, what set them, and REEP's own rate (issue 33)."""
-    from afmtool.io.results import row_attrs
-
-    estimator = results["estimator"]
-    return {**row_attrs(results, results["sample_rate_hz"]), "reep_rate_hz": estimator["reep_rate_hz"],
-            "rate_reduction": estimator["rate_reduction"]}
+    return {"sample_rate_hz": float(results.sample_rate_hz), "rows": results.rows,
+            "row_every_samples": results.row_every_samples, "row_rate_hz": results.row_rate_hz,
+            "reep_rate_hz": results.estimator.reep_rate_hz, "rate_reduction": results.estimator.rate_reduction}
 
 
-def _widen_reep_std(path, fit, drive_hz: float, block: int = 1 << 20) -> dict:
+def _widen_reep_std(path, fit, drive_hz: float, block: int = 1 << 20) -> SyntheticDriveUncertainty:
     """Add a synthesised drive's share to reep.h5's ``f0_std_hz`` and ``q_std`` in quadrature.
 
     ``fit`` is the drive's :class:`~afmtool.estimators.drive_lines.DrivePhaseFit`; the share per row is
@@ -92,16 +110,15 @@ def _widen_reep_std(path, fit, drive_hz: float, block: int = 1 << 20) -> dict:
 
     Returns what the report records: σ_φ and the largest shares added.
     """
-    import math
-
     from afmtool.estimators.drive_lines import drive_phase_std, drive_std_rows
     from afmtool.io.result_files import open_result_file
 
     phase_std = drive_phase_std(fit, drive_hz)
-    record = {"main_line_phase_std_deg": math.degrees(phase_std), "added_to": ["f0_std_hz", "q_std"],
-              "formula": "df0' = f0' dphi/(2Q'), dQ'/Q' = 2Q'|f0' - f_d|/f_d dphi + dphi^2/2"}
+    record = SyntheticDriveUncertainty(
+        main_line_phase_std_deg=math.degrees(phase_std), added_to=("f0_std_hz", "q_std"),
+        formula="df0' = f0' dphi/(2Q'), dQ'/Q' = 2Q'|f0' - f_d|/f_d dphi + dphi^2/2")
     if phase_std <= 0:
-        return {**record, "added_to": []}
+        return record.replace(added_to=())
     largest = [0.0, 0.0]
     with open_result_file(path, mode="r+", required=("f0_hz", "q", "f0_std_hz", "q_std"), what="reep output") as f:
         n = f["f0_hz"].shape[0]
@@ -112,7 +129,7 @@ def _widen_reep_std(path, fit, drive_hz: float, block: int = 1 << 20) -> dict:
                 f[name][start:stop] = np.hypot(f[name][start:stop], add)
                 if np.isfinite(add).any():
                     largest[k] = max(largest[k], float(np.nanmax(add)))
-    return {**record, "largest_f0_std_added_hz": largest[0], "largest_q_std_added": largest[1]}
+    return record.replace(largest_f0_std_added_hz=largest[0], largest_q_std_added=largest[1])
 
 
 def _given_spring_constant(params: ReepParams, model) -> tuple[float, str]:
@@ -136,7 +153,7 @@ def run_reep_stream(reader: CaptureReader, config: Path | None, flags: Mapping, 
 
 
 def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, deflection_units: str,
-                 figures: FigureProcess) -> dict:
+                 figures: FigureProcess) -> TruthTracking | None:
     """``reep_time_series.png`` (rows from the stream) and the tracking error read back from reep.h5.
 
     With ``/truth`` f0_hz and q, ``truth_tracking``: the error against them
@@ -146,23 +163,20 @@ def _time_series(staged: OutputDir, reader: CaptureReader, result: ReepResult, d
     from afmtool.analyses.reep_timeseries import tracking_error, truth_at_rows, write_reep_time_series_png
 
     fs = reader.info.sample_rate_hz
-    warmup_s = result.results["summary_after_warmup_samples"] / fs
-    segment = result.results.get("free_air_segment_s")
+    warmup_s = result.results.summary_after_warmup_samples / fs
+    segment = result.results.free_air_segment_s
     reep_h5 = staged.path("reep.h5")
     wanted = ("f0_hz", "q", "amplitude", "phase_deg")
     truth = {}
     if any(name in reader.info.truth_names for name in wanted):
         truth = {name: values for name, values in reader.truth().items() if name in wanted}
-    out: dict = {}
     tracking = tracking_error(reep_h5, truth, fs, warmup_s)
-    if tracking is not None:
-        out["truth_tracking"] = tracking
     figures.draw(
         write_reep_time_series_png, staged.path("reep_time_series.png"), result.plot_rows,
         amplitude_units=deflection_units, truth=truth_at_rows(result.plot_rows.t, truth, fs) if truth else None,
         free_air_segment_s=segment, warmup_s=warmup_s,
     )
-    return out
+    return tracking
 
 
 def _finite_mean(values: np.ndarray) -> float | None:
@@ -170,53 +184,51 @@ def _finite_mean(values: np.ndarray) -> float | None:
     return float(finite.mean()) if finite.size else None
 
 
-def _free_f0_hz(results: Mapping) -> float | None:
+def _free_f0_hz(results: ReepResults) -> float | None:
     """The free-air f0' a force curve's shift is taken from: REEP's own in the free-air segment, else the model's."""
-    segment = (results.get("segments") or {}).get("free_air") or {}
-    mean = (segment.get("f0_hz") or {}).get("mean")
-    if mean is not None and np.isfinite(mean):
-        return float(mean)
-    model = results.get("free_air_model") or {}
-    return model.get("f0_hz")
+    segment = results.segments.free_air
+    if segment is not None and np.isfinite(segment.f0_hz.mean):
+        return float(segment.f0_hz.mean)
+    return results.free_air_model.f0_hz if results.free_air_model is not None else None
 
 
-def _extreme(z: np.ndarray, values: np.ndarray, how: str) -> tuple[float | None, float | None]:
-    """(value, z) of the largest (``max``), smallest (``min``) or largest-magnitude (``abs``) finite bin."""
+def _extreme(z: np.ndarray, values: np.ndarray, how: str) -> tuple[float, float]:
+    """(value, z) of the largest (``max``), smallest (``min``) or largest-magnitude (``abs``) finite bin; NaN without one."""
     finite = np.isfinite(values) & np.isfinite(z)
     if not finite.any():
-        return None, None
+        return math.nan, math.nan
     index = np.flatnonzero(finite)
     pick = {"max": np.argmax, "min": np.argmin, "abs": lambda v: np.argmax(np.abs(v))}[how](values[index])
     return float(values[index[pick]]), float(z[index[pick]])
 
 
-def _curve_summary(result: ReepResult, free_f0_hz: float | None, interaction: Mapping) -> dict:
+def _curve_summary(result: ReepResult, free_f0_hz: float | None, interaction: Mapping[str, dict]) -> ForceCurve:
     """Per leg: ranges, sensitivities and the extremes a reader looks for, with the z where they occur.
 
     ``largest_df0_hz`` is the bin mean of f0' farthest from the free-air f0'
     (signed), ``smallest_q`` the lowest bin mean of Q'; ``interaction``
     adds the largest dissipated energy per cycle and force gradient.
     """
-    summary = {}
+    legs = {}
     for leg, table in result.force_curves.items():
         extremes: dict = {}
         if free_f0_hz is not None:
-            shift, where = _extreme(table.z, table.means["f0_hz"] - free_f0_hz, "abs")
-            extremes.update(largest_df0_hz=shift, largest_df0_z=where)
+            extremes["largest_df0_hz"], extremes["largest_df0_z"] = _extreme(
+                table.z, table.means["f0_hz"] - free_f0_hz, "abs")
         low_q, where = _extreme(table.z, table.means["q"], "min")
-        extremes.update(smallest_q=low_q, smallest_q_z=where, **interaction.get(leg, {}))
-        summary[leg] = {
-            "bins": int(len(table.z)),
-            "z_range": [float(table.z.min()), float(table.z.max())],
-            "z_units": result.z_units,
-            "f0_hz_range": [float(np.nanmin(table.means["f0_hz"])), float(np.nanmax(table.means["f0_hz"]))],
-            "q_range": [float(np.nanmin(table.means["q"])), float(np.nanmax(table.means["q"]))],
-            "max_abs_df0_dz": float(np.nanmax(np.abs(table.sensitivities["f0_hz"]))) if len(table.z) > 1 else None,
-            "max_abs_dq_dz": float(np.nanmax(np.abs(table.sensitivities["q"]))) if len(table.z) > 1 else None,
-            "max_abs_da_dz": float(np.nanmax(np.abs(table.sensitivities["amplitude"]))) if len(table.z) > 1 else None,
-            **extremes,
-        }
-    return summary
+        slopes = {name: float(np.nanmax(np.abs(table.sensitivities[name]))) if len(table.z) > 1 else None
+                  for name in ("f0_hz", "q", "amplitude")}
+        legs[leg] = ForceCurveLeg(
+            bins=int(len(table.z)),
+            z_range=(float(table.z.min()), float(table.z.max())),
+            z_units=result.z_units,
+            f0_hz_range=(float(np.nanmin(table.means["f0_hz"])), float(np.nanmax(table.means["f0_hz"]))),
+            q_range=(float(np.nanmin(table.means["q"])), float(np.nanmax(table.means["q"]))),
+            max_abs_df0_dz=slopes["f0_hz"], max_abs_dq_dz=slopes["q"], max_abs_da_dz=slopes["amplitude"],
+            smallest_q=low_q, smallest_q_z=where,
+            **extremes, **interaction.get(leg, {}),
+        )
+    return ForceCurve(**legs)
 
 
 def _write_force_curves(staged: OutputDir, writer: ResultWriter, result: ReepResult, deflection_units: str,
@@ -294,7 +306,7 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
 
     path = staged.path("reep.h5")
     binned = bin_interaction_series(
-        path, sample_rate_hz=sample_rate_hz, warmup_samples=int(result.results["summary_after_warmup_samples"]),
+        path, sample_rate_hz=sample_rate_hz, warmup_samples=int(result.results.summary_after_warmup_samples),
         z_bin=params.z_bin if result.force_curves else None, geometry=result.geometry,
     )
     if binned is None:
@@ -316,8 +328,11 @@ def _write_interaction_bins(staged: OutputDir, result: ReepResult, params: ReepP
     return {leg: _interaction_extremes(table) for leg, table in binned.force_curves.items()}
 
 
-def _interaction_extremes(table) -> dict:
-    """The largest energy per cycle and the force gradient of largest magnitude of one leg, with their z."""
+def _interaction_extremes(table) -> dict[str, float]:
+    """The largest energy per cycle and the force gradient of largest magnitude of one leg, with their z.
+
+    Keyed by :class:`~afmtool.records.reep.ForceCurveLeg`'s fields (NaN where no bin is finite).
+    """
     out: dict = {}
     for name, how, key in (("energy_per_cycle_ev", "max", "largest_energy_per_cycle"),
                            ("force_gradient_n_per_m", "abs", "largest_force_gradient")):

@@ -24,6 +24,8 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from afmtool.io.result_files import FLAG_COLUMN, MAX_PLOT_POINTS, open_result_file
+from afmtool.records.common import Moments
+from afmtool.records.reep import ReepSegments, Segment, TrackingError, TruthTracking
 from afmtool.report.timeseries import EveryKth
 
 if TYPE_CHECKING:
@@ -57,11 +59,9 @@ def _open(reep_h5: Path):
     return open_result_file(reep_h5, required=("t", "f0_hz", "q"), what="reep output")
 
 
-def _moments_dict(moments: RunningMoments) -> dict:
-    """Mean and sample standard deviation (a spread, not the error of the mean)."""
-    if moments.count == 0:
-        return {"mean": None, "std": None, "count": 0}
-    return {"mean": moments.mean, "std": moments.std(ddof=1), "count": moments.count}
+def _moments(moments: RunningMoments) -> Moments:
+    """Mean and sample standard deviation (a spread, not the error of the mean); NaN mean without a value."""
+    return Moments(count=moments.count, mean=moments.mean, std=moments.std(ddof=1))
 
 
 class SegmentMoments:
@@ -102,22 +102,22 @@ class SegmentMoments:
         if len(t):
             self.last_t = float(t[-1])
 
-    def as_dict(self) -> dict:
-        """``{segment: {"t_s": [start, end], "f0_hz": {...}, "q": {...}}}`` (:func:`segment_statistics`)."""
+    def record(self) -> ReepSegments:
+        """Each segment with a trusted f0' row: its span, f0' and Q' (:func:`segment_statistics`)."""
         out = {}
         for seg, (t0, t1) in self.bounds.items():
-            if self.moments[seg]["f0_hz"].count == 0:
+            moments = self.moments[seg]
+            if moments["f0_hz"].count == 0:
                 continue
-            end = self.last_t if math.isinf(t1) else t1
-            out[seg] = {"t_s": [t0, end], **{name: _moments_dict(m) for name, m in self.moments[seg].items()}}
-            if self.row_std[seg].count:
-                out[seg]["f0_row_std_hz"] = self.row_std[seg].mean
-        return out
+            row_std = self.row_std[seg]
+            out[seg] = Segment(t_s=(t0, self.last_t if math.isinf(t1) else t1), f0_hz=_moments(moments["f0_hz"]),
+                               q=_moments(moments["q"]), f0_row_std_hz=row_std.mean if row_std.count else None)
+        return ReepSegments(**out)
 
 
 def segment_statistics(
     reep_h5: Path, warmup_s: float, free_air_segment_s: tuple[float, float] | None
-) -> dict:
+) -> ReepSegments:
     """Mean and standard deviation of f0' (Hz) and Q' per time segment, after the warm-up.
 
     Parameters
@@ -136,9 +136,9 @@ def segment_statistics(
 
     Returns
     -------
-    dict
-        ``{segment: {"t_s": [start, end], "f0_hz": {"mean", "std", "count"},
-        "q": {...}}}``; std is the sample standard deviation of the rows (a
+    ReepSegments
+        Per segment its span ``t_s`` (start, end) and the moments of ``f0_hz``
+        and ``q``; std is the sample standard deviation of the rows (a
         spread, not the error of the mean).  Rows flagged in reep.h5's
         ``flag`` column (0 = valid) are left out, as the summary leaves them.
     """
@@ -148,17 +148,18 @@ def segment_statistics(
             rows = slice(start_row, start_row + len(t))
             row_std = reep.trusted("f0_std_hz", rows) if "f0_std_hz" in reep else None
             moments.add(t, reep.trusted("f0_hz", rows), reep.trusted("q", rows), f0_std_hz=row_std)
-    return moments.as_dict()
+    return moments.record()
 
 
-def _percentiles(values: np.ndarray) -> dict:
+def _percentiles(values: np.ndarray, units: str) -> TrackingError:
     finite = values[np.isfinite(values)]
     if finite.size == 0:
-        return {"median_abs": None, "p95_abs": None}
-    return {"median_abs": float(np.median(finite)), "p95_abs": float(np.percentile(finite, 95.0))}
+        return TrackingError(median_abs=None, p95_abs=None, units=units)
+    return TrackingError(median_abs=float(np.median(finite)), p95_abs=float(np.percentile(finite, 95.0)), units=units)
 
 
-def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_hz: float, warmup_s: float) -> dict | None:
+def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_hz: float,
+                   warmup_s: float) -> TruthTracking | None:
     """Median and 95th percentile of |f0' − f0| (Hz) and |Q' − Q| after the warm-up.
 
     Parameters
@@ -175,9 +176,9 @@ def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_h
 
     Returns
     -------
-    dict or None
-        ``{"f0_hz": {"median_abs", "p95_abs", "units": "Hz"}, "q": {...,
-        "units": ""}, "after_s", "rows_compared"}``.  Flagged rows (NaN f0')
+    TruthTracking or None
+        The median and 95th percentile of |f0' − f0| (Hz) and |Q' − Q|, from
+        ``after_s``, over ``rows_compared`` rows.  Flagged rows (NaN f0')
         and rows with a non-zero ``flag`` are left out.  Percentiles over more than
         :data:`MAX_PERCENTILE_POINTS` rows use that many evenly spaced ones.
     """
@@ -197,13 +198,8 @@ def tracking_error(reep_h5: Path, truth: Mapping[str, np.ndarray], sample_rate_h
         return None
     err_f0 = np.abs(f0[keep] - truth_f0[index[keep]])
     err_q = np.abs(q[keep] - truth_q[index[keep]])
-    return {
-        "f0_hz": {**_percentiles(err_f0), "units": "Hz"},
-        "q": {**_percentiles(err_q), "units": ""},
-        "after_s": float(warmup_s),
-        "rows_compared": int(np.count_nonzero(np.isfinite(err_f0))),
-        "row_step": step,
-    }
+    return TruthTracking(f0_hz=_percentiles(err_f0, "Hz"), q=_percentiles(err_q, ""), after_s=float(warmup_s),
+                         rows_compared=int(np.count_nonzero(np.isfinite(err_f0))), row_step=step)
 
 
 class Thinned(NamedTuple):

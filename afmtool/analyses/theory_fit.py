@@ -26,6 +26,7 @@ import numpy as np
 
 from afmtool.errors import InputError
 from afmtool.estimators.force_fit import FIT_NAMES, FIT_UNITS, ForceFit, ForceFitData, fit_force
+from afmtool.records.reep import ReepResults
 from afmtool.records.theory_fit import (
     FitModel,
     FitParameterName,
@@ -53,7 +54,7 @@ def _approach(reep_dir: Path, params):
         for name in ("f0_std_hz", "q_std", "flag"):
             if name in reep.series:
                 series[name] = reep.series[name][()]
-        units, reep_results, capture = reep.z_units, reep.report, reep_capture_path(reep)
+        units, reep_results, capture = reep.z_units, reep.results, reep_capture_path(reep)
         series["linear"] = np.broadcast_to(_linear_model_holds(reep, reep_results), series["t"].shape)
     nm_per_unit = z_sensitivity_nm(units, params.z_sensitivity)
     turn = int(np.argmin(series["z"] * np.sign(nm_per_unit)))
@@ -98,10 +99,10 @@ def _load(reep_dir: Path, params) -> ForceFitData:
         row = _row_sigma(s, key, std_key, early, floor)
         shift = s[key] - free[("f0_hz", "q", "amplitude").index(key)]
         sigma.append(np.sqrt(row * row + (MODEL_FLOOR * shift) ** 2))  # eq. F.3
-    drive_hz = float(reep_results["drive_frequency_hz"])
+    drive_hz = float(reep_results.drive_frequency_hz)
     lines, _ = capture_drive_lines(capture, metadata, drive_hz, cantilever.f0_hz)
     return ForceFitData(s["z"], s["f0_hz"], s["q"], s["amplitude"], thinned, nm_per_unit, drive_hz, cantilever,
-                        free_amplitude, reep_results["forgetting_factor"] ** reep_results["decimate"], *sigma, free,
+                        free_amplitude, reep_results.forgetting_factor ** reep_results.decimate, *sigma, free,
                         beat_modulation(lines, drive_hz, cantilever))
 
 
@@ -109,7 +110,7 @@ def _load(reep_dir: Path, params) -> ForceFitData:
 _MAX_SIGMA2_RATIO = 4.0
 
 
-def _linear_model_holds(reep, reep_results) -> np.ndarray | bool:
+def _linear_model_holds(reep, reep_results: ReepResults) -> np.ndarray | bool:
     """Rows whose σ̂² is within ``_MAX_SIGMA2_RATIO`` of its free-air level (True where it is unknown).
 
     REEP's flags mark only invalid rows; a σ̂² far above the free-air level
@@ -117,7 +118,7 @@ def _linear_model_holds(reep, reep_results) -> np.ndarray | bool:
     window) is a valid row for REEP but not one averaging theory can be
     fitted to: the fit leaves those out, as REEP's flags did before issue 27.
     """
-    level = ((reep_results.get("validity") or {}).get("free_air_levels") or {}).get("sigma2")
+    level = reep_results.validity.free_air_levels.sigma2
     sigma2 = reep.series.get("sigma2")
     if not level or sigma2 is None:
         return True

@@ -21,6 +21,7 @@ from afmtool.io.results import ResultWriter
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.force_spec import format_force_spec, parse_force_spec
 from afmtool.models.forces import THESIS_FORCE_SETS, PiecewiseLinearForce
+from afmtool.records.reep import ReepResults as ReepRecord
 from afmtool.records.theory_averaging import AveragingForceRecord, AveragingLegRecord, AveragingResults, ForceSet
 from afmtool.records.theory_compare import (
     BeatRecord,
@@ -191,14 +192,14 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
     separation, separation_record, separation_std = _separation(
         params, truth_separation, data.z_series, series, fs, data.reep_results, cantilever, force, free_amplitude,
         fitted)
-    drive_hz = float(data.reep_results["drive_frequency_hz"])
+    drive_hz = float(data.reep_results.drive_frequency_hz)
     lines, lines_source = capture_drive_lines(data.capture, metadata, drive_hz, cantilever.f0_hz)
     beat = beat_modulation(lines, drive_hz, cantilever)
     try:
         comparison = compare_binned(
             series["t"], ReepRows(series["f0_hz"], series["q"], series.get("f0_std_hz"), series.get("q_std")),
             series["amplitude"], separation, drive_frequency_hz=drive_hz, cantilever=cantilever, force=force,
-            row_lambda=data.reep_results["forgetting_factor"] ** data.reep_results["decimate"],
+            row_lambda=data.reep_results.forgetting_factor ** data.reep_results.decimate,
             free_amplitude_nm=free_amplitude, beat=beat, separation_std_nm=separation_std,
             amplitude_fraction=params.amplitude_fraction, bin_nm=params.bin_nm, tolerance=params.tolerance,
             flag=series.get("flag"),
@@ -243,7 +244,7 @@ class _CompareInputs(NamedTuple):
 
     series: dict
     z_series: tuple | None
-    reep_results: Mapping
+    reep_results: ReepRecord
     report_path: Path
     series_path: Path
     capture: Path | None
@@ -256,7 +257,7 @@ def _load_compare_inputs(reep_dir: Path) -> _CompareInputs:
             if name in reep.series:
                 series[name] = reep.series[name][()]
         z_series = (reep.series["z"][()], reep.z_units) if "z" in reep.series else None
-        return _CompareInputs(series, z_series, reep.report, reep_dir / "report.json", reep.path,
+        return _CompareInputs(series, z_series, reep.results, reep_dir / "report.json", reep.path,
                               reep_capture_path(reep))
 
 
@@ -331,11 +332,12 @@ def open_reep_run(reep_dir: Path) -> ReepResults:
     if not (reep_dir / "report.json").is_file() or not (reep_dir / "reep.h5").is_file():
         raise InputError(f"{reep_dir}: not a reep output folder (needs report.json and reep.h5)")
     reep = open_reep_results(reep_dir, where="reep output")
-    missing = [key for key in ("drive_frequency_hz", "decimate", "forgetting_factor")
-               if not isinstance(reep.report.get(key), (int, float))]
-    if missing:
+    try:
+        if reep.results is None:  # read now: a report of another command is refused before any work
+            raise InputError(f"{reep_dir / 'report.json'}: not the report of a reep run (no results)")
+    except InputError:
         reep.close()
-        raise InputError(f"{reep_dir / 'report.json'}: not the report of a reep run (no results.{missing[0]})")
+        raise
     return reep
 
 
@@ -353,7 +355,7 @@ def reep_capture_path(reep: ReepResults) -> Path | None:
     return Path(path) if isinstance(path, str) and path != "-" else None
 
 
-def capture_side(capture: Path | None, reep_results: Mapping) -> tuple[CaptureMetadata, float, np.ndarray | None]:
+def capture_side(capture: Path | None, reep_results: ReepRecord) -> tuple[CaptureMetadata, float, np.ndarray | None]:
     """(metadata, sample rate, /truth/separation_nm or None) of REEP's input capture.
 
     The capture is opened through the reader registry, so any format REEP
@@ -369,17 +371,17 @@ def capture_side(capture: Path | None, reep_results: Mapping) -> tuple[CaptureMe
         finally:
             reader.close()
     # the capture moved: what the REEP report recorded is enough for z-piezo separations
-    return CaptureMetadata(), float(reep_results.get("sample_rate_hz") or 0.0), None
+    return CaptureMetadata(), float(reep_results.sample_rate_hz), None
 
 
-def capture_cantilever(metadata: CaptureMetadata, reep_results: Mapping) -> Cantilever:
+def capture_cantilever(metadata: CaptureMetadata, reep_results: ReepRecord) -> Cantilever:
     """The capture's cantilever f0, Q; without them in its metadata, the free-air model REEP used."""
     if metadata.cantilever.f0_hz is not None and metadata.cantilever.q is not None:
         return Cantilever(metadata.cantilever.f0_hz, metadata.cantilever.q)
-    model = reep_results.get("free_air_model")
-    if not isinstance(model, Mapping) or not all(isinstance(model.get(k), (int, float)) for k in ("f0_hz", "q")):
+    model = reep_results.free_air_model
+    if model is None or not all(math.isfinite(v) for v in (model.f0_hz, model.q)):
         raise InputError("neither the capture's metadata nor the REEP report give the cantilever's f0 and Q")
-    return Cantilever(float(model["f0_hz"]), float(model["q"]))
+    return Cantilever(float(model.f0_hz), float(model.q))
 
 
 def _separation(params, truth, z_series, series, fs, reep_results, cantilever, force, free_amplitude, fitted=None):
@@ -405,7 +407,7 @@ def _separation(params, truth, z_series, series, fs, reep_results, cantilever, f
     z, units = z_series
     estimate = separation_from_z(
         z, series["amplitude"], nm_per_unit=z_sensitivity_nm(units, params.z_sensitivity),
-        drive_frequency_hz=reep_results["drive_frequency_hz"], cantilever=cantilever, force=force,
+        drive_frequency_hz=reep_results.drive_frequency_hz, cantilever=cantilever, force=force,
         free_amplitude_nm=free_amplitude, contact_z=float(params.contact_z) if params.contact_z else None,
     )
     std = abs(estimate.nm_per_unit) * estimate.contact_z_std if math.isfinite(estimate.contact_z_std) else 0.0

@@ -219,7 +219,8 @@ _REEP = CommandSpec(
               "afmtool reep sample_data/tapping_force_curve.h5 --lambda 0.99 --out results/force_curve",
               "afmtool reep sample_data/ltv_step.h5 --stream --stream-format jsonl | head -3"),
     main_figures=("reep_time_series.png", "force_curve.png", "force_curve_sensitivity.png"),
-    headline=H.REEP, batch="reep", channels=("deflection", "dither"), synthesised_drive=True,
+    result=Lazy("afmtool.records.reep", "ReepResults"), batch="reep", channels=("deflection", "dither"),
+    synthesised_drive=True,
 )
 _PROBELOSS = CommandSpec(
     "probeloss", Kind.CAPTURE, _own(P.ProbeLossParams), _analysis("probeloss_outputs", "run_probeloss_command"),

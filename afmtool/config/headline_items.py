@@ -14,7 +14,7 @@ from __future__ import annotations
 from afmtool.records.base import Item
 
 __all__ = [
-    "Item", "REEP", "PROBELOSS", "KALMAN_BANK",
+    "Item", "PROBELOSS", "KALMAN_BANK",
 ]
 
 
@@ -24,42 +24,6 @@ def _free_air_model(prefix: str = "free_air_model") -> tuple[Item, ...]:
         Item("Q (free air)", f"{prefix}.q", "", f"{prefix}.q_std"),
     )
 
-
-def _reep_segments() -> tuple[Item, ...]:
-    labels = {"free_air": "in the free-air segment", "after_free_air": "after the free-air segment",
-              "settled": "after the warm-up"}
-    items = []
-    for segment, label in labels.items():
-        items.append(Item(f"f0' {label}", f"segments.{segment}.f0_hz.mean", "Hz", f"segments.{segment}.f0_hz.std"))
-        items.append(Item(f"Q' {label}", f"segments.{segment}.q.mean", "", f"segments.{segment}.q.std",
-                          needs="q_identifiable"))
-    return tuple(items)
-
-
-def _reep_force_curve() -> tuple[Item, ...]:
-    """On a force curve: the approach's extremes and where they occur (z in the capture's z units)."""
-    leg = "force_curve.approach"
-    z_units = f"@{leg}.z_units"
-    return (
-        Item("largest Δf0' on approach", f"{leg}.largest_df0_hz", "Hz", at=f"{leg}.largest_df0_z", at_units=z_units),
-        Item("smallest Q' on approach", f"{leg}.smallest_q", "", at=f"{leg}.smallest_q_z", at_units=z_units,
-             needs="q_identifiable"),
-        Item("largest energy dissipated per cycle", f"{leg}.largest_energy_per_cycle_ev", "eV",
-             at=f"{leg}.largest_energy_per_cycle_z", at_units=z_units, needs="q_identifiable"),
-        Item("largest force gradient", f"{leg}.largest_force_gradient_n_per_m", "N/m",
-             at=f"{leg}.largest_force_gradient_z", at_units=z_units),
-    )
-
-
-REEP = (
-    *_reep_segments(),
-    *_reep_force_curve(),
-    Item("|f0' − f0| median vs truth", "truth_tracking.f0_hz.median_abs", "Hz"),
-    Item("|f0' − f0| 95th percentile vs truth", "truth_tracking.f0_hz.p95_abs", "Hz"),
-    Item("|Q' − Q| median vs truth", "truth_tracking.q.median_abs", "", needs="q_identifiable"),
-    Item("|Q' − Q| 95th percentile vs truth", "truth_tracking.q.p95_abs", "", needs="q_identifiable"),
-    Item("flagged output samples", "flagged_samples", "samples"),
-)
 
 PROBELOSS = (
     Item("probe-loss fraction (index)", "loss_fraction", "of time"),

@@ -35,6 +35,7 @@ from afmtool.config.samples import check_count, sample_count
 from afmtool.errors import ConfigError
 from afmtool.estimators.rate_reduction import ANTI_ALIAS_ROLLOFF, anti_alias_taps, decimate_block, reduction_factor
 from afmtool.estimators.rls import ReepBlock, ReepState, reep_update
+from afmtool.records.reep import AntiAlias, InputFilter, ReepEstimatorRecord
 
 __all__ = [
     "ReepEstimator",
@@ -331,27 +332,25 @@ class ReepEstimator:
                                         inputs)
         return ReepRun(block, next_state)
 
-    def describe(self) -> dict:
+    def describe(self) -> ReepEstimatorRecord:
         """The estimator's settings for report.json."""
-        return {
-            "window_us": self.window_s * 1e6,
-            "window_samples": self.window_s * self.sample_rate_hz,
-            "forgetting_factor": self.capture_lam,
-            "reep_forgetting_factor": self.lam,
-            "rate_reduction": self.factor,
-            "reep_rate_hz": self.rate_hz,
-            "samples_per_period": self.rate_hz / self.drive_hz if self.drive_hz else None,
-            "anti_alias": None if self.factor == 1 else {
-                "type": "root-raised-cosine", "rolloff": ANTI_ALIAS_ROLLOFF, "taps": len(self.taps),
-            },
-            "row_every_samples": self.row_every,
-            "row_rate_hz": self.row_rate_hz,
-            "row_every_s": self.row_every / self.sample_rate_hz,
-            "rows_per_window": self.window_s * self.sample_rate_hz / self.row_every,
-            "input_filter": None if self.input_taps is None else {
-                "type": "FIR exact for a continuous drive across drive·(1 ± 0.2)", "taps": len(self.input_taps),
-            },
-        }
+        return ReepEstimatorRecord(
+            window_us=self.window_s * 1e6,
+            window_samples=self.window_s * self.sample_rate_hz,
+            forgetting_factor=self.capture_lam,
+            reep_forgetting_factor=self.lam,
+            rate_reduction=self.factor,
+            reep_rate_hz=self.rate_hz,
+            samples_per_period=self.rate_hz / self.drive_hz if self.drive_hz else None,
+            anti_alias=None if self.factor == 1 else AntiAlias(
+                type="root-raised-cosine", rolloff=ANTI_ALIAS_ROLLOFF, taps=len(self.taps)),
+            row_every_samples=self.row_every,
+            row_rate_hz=self.row_rate_hz,
+            row_every_s=self.row_every / self.sample_rate_hz,
+            rows_per_window=self.window_s * self.sample_rate_hz / self.row_every,
+            input_filter=None if self.input_taps is None else InputFilter(
+                type="FIR exact for a continuous drive across drive·(1 ± 0.2)", taps=len(self.input_taps)),
+        )
 
 
 

@@ -9,6 +9,7 @@ and images) to the staged reep.h5.
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -19,6 +20,7 @@ import h5py
 from afmtool.errors import InputError
 from afmtool.io.result_files import FLAG_COLUMN, ResultFile, open_result_file
 from afmtool.models.free_air import FreeAirModel, load_free_air_model
+from afmtool.records.reep import ReepResults as ReepRecord
 
 __all__ = ["ReepResults", "open_reep_results"]
 
@@ -39,7 +41,8 @@ class ReepResults:
         ``amplitude``, ``phase_deg``, ``flag`` (0 = valid): the decimated
         per-sample series.
     report : Mapping
-        ``results`` of its ``report.json`` (empty if there is none beside it).
+        ``results`` of its ``report.json`` as JSON (empty if there is none beside it); read
+        as reep's record by :attr:`results`.
     free_air_model : FreeAirModel or None
         ``free_air.json`` beside it, if any.
     z_units : str
@@ -59,6 +62,24 @@ class ReepResults:
     z_units: str = ""
     file: ResultFile | None = field(default=None, repr=False)
     inputs: tuple[Mapping, ...] = ()
+
+    @functools.cached_property
+    def results(self) -> ReepRecord | None:
+        """``results`` of its ``report.json`` as reep's record (:class:`afmtool.records.reep.ReepResults`).
+
+        None when there is no report.json beside it.
+
+        Raises
+        ------
+        InputError
+            A report.json that is not a reep run's (of another command, or another afmtool version).
+        """
+        if not self.report:
+            return None
+        try:
+            return ReepRecord.from_json(self.report)
+        except InputError as exc:
+            raise InputError(f"{self.path.parent / 'report.json'}: not the report of a reep run ({exc})") from None
 
     def close(self) -> None:
         if self.file is not None:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from afmtool.errors import InputError
+from afmtool.records.common import FreeAirModelRecord
 
 __all__ = ["FreeAirModel", "load_free_air_model"]
 
@@ -106,6 +107,15 @@ class FreeAirModel:
             for name in _SPRING_FIELDS:
                 data.pop(name)
         return data
+
+    def record(self) -> FreeAirModelRecord:
+        """The report's copy of the model (:class:`afmtool.records.common.FreeAirModelRecord`)."""
+        return FreeAirModelRecord(**self.to_dict())
+
+    @classmethod
+    def from_record(cls, record: FreeAirModelRecord, where: str = "model") -> FreeAirModel:
+        """The model of a report's :class:`~afmtool.records.common.FreeAirModelRecord` (checked as :meth:`from_dict`)."""
+        return cls.from_dict({f.name: getattr(record, f.name) for f in dataclasses.fields(record)}, where)
 
     def save(self, path: Path) -> None:
         from afmtool.runtime.atomic import write_text_atomic

@@ -22,7 +22,8 @@ results first.  Numbers are written by :mod:`afmtool.report.numbers`.
 A headline never contradicts the run (issue 28).  Where the results say
 that the run's premise failed, the headline opens with that state, a text
 entry named ``"warning"`` whose ``source`` is the number that says so
-(:data:`STATES`), and the items declared as ``scores`` are left out:
+(:data:`STATES`, or the ``STATES`` of the command's result record), and the items
+declared as ``scores`` are left out:
 
 * a free-air phase misfit above 30° (``free_air_route.phase_misfit_deg``):
   the model the observer runs on does not fit the capture; probeloss shows
@@ -31,11 +32,12 @@ entry named ``"warning"`` whose ``source`` is the number that says so
   predicted beyond the detection limit (``detectability``); event precision
   and recall against ``/truth`` that disagree with the time-weighted
   precision (more than 0.1 apart) are left out, with the reason;
-* reep: a free-air f0′ more than 5 of its standard deviations from the
-  lever's f0 (``free_air_check``) comes first; then, when more than half of
-  REEP's rows are flagged, why (``validity.mostly_flagged``); and an
-  output-only run (no dither: FM-KPFM, self-oscillation) says that Q′ is not
-  identifiable, and shows no Q′ item (``q_identifiable``).
+* reep (:class:`afmtool.records.reep.ReepResults`): a free-air f0′ more than
+  5 of its standard deviations from the lever's f0 (``free_air_check``) comes
+  first; then, when more than half of REEP's rows are flagged, why
+  (``validity.mostly_flagged``); and an output-only run (no dither: FM-KPFM,
+  self-oscillation) says that Q′ is not identifiable, and shows no Q′ item
+  (``q_identifiable``).
 """
 
 from __future__ import annotations
@@ -107,34 +109,6 @@ def _phase_state(results: Mapping, held: bool) -> State | None:
                  "scores against it are not shown", "free_air_route.phase_misfit_deg")
 
 
-def _free_air_check_state(results: Mapping, held: bool) -> State | None:
-    """reep: a free-air f0' far (in its std) from the lever's or the model's f0."""
-    check = results.get("free_air_check") or {}
-    if check.get("consistent") is not False:
-        return None
-    reference = "the lever" if check.get("reference") == "metadata" else "the model"
-    return State(f"REEP's free-air f0' {check['f0_hz']:.1f} Hz is {check['deviation_std']:.0f} std from "
-                 f"{reference}'s f0 {check['reference_f0_hz']:.1f} Hz: the drive may be far off resonance or the model "
-                 "wrong", "free_air_check.deviation_std", hides_scores=False)
-
-
-def _mostly_flagged_state(results: Mapping, held: bool) -> State | None:
-    """reep: more than half of the rows flagged, with the commonest reason (the run's first warning)."""
-    text = lookup(results, "validity.mostly_flagged")
-    if not isinstance(text, str) or not text:
-        return None
-    return State(f"{text}: the numbers below are from the remaining rows", "validity.flags.fraction",
-                 hides_scores=False)
-
-
-def _q_identifiable_state(results: Mapping, held: bool) -> State | None:
-    """reep without the dither: the damping is the loop's, Q′ is not identifiable (no Q′ item is shown)."""
-    if results.get("q_identifiable") is not False:
-        return None
-    return State("Q' is not identifiable without the dither (output-only: the damping is the loop's, not the "
-                 "cantilever's); f0' is the frequency the motion oscillates at", "q_identifiable", hides_scores=False)
-
-
 def _detectability_state(results: Mapping, held: bool) -> State | None:
     detectability = results.get("detectability") or {}
     if not detectability.get("beyond_limit"):
@@ -162,7 +136,6 @@ def _scores_disagree_state(results: Mapping, held: bool) -> State | None:
 
 #: Each command's states, checked in order before its numbers (issue 28).
 STATES: Mapping[str, tuple[Callable[[Mapping, bool], State | None], ...]] = {
-    "reep": (_phase_state, _free_air_check_state, _mostly_flagged_state, _q_identifiable_state),
     "probeloss": (_phase_state, _detectability_state, _mostly_loss_state, _scores_disagree_state),
     "kalman-bank": (_phase_state,),
 }
