@@ -179,7 +179,7 @@ def _free_cell(cell: Cell) -> dict:
     f0, q = columns["f0_hz"][rows], columns["q"][rows]
     good = columns["flag"][rows] == 0
     return {
-        "cell": cell.name, "rate_reduction": result.results["estimator"]["rate_reduction"],
+        "cell": cell.name, "rate_reduction": result.results.estimator.rate_reduction,
         "f0_bias_hz": float(np.mean(f0[good]) - cell.f0), "q_bias": float(np.mean(q[good]) / cell.q - 1.0),
         "f0_scatter_hz": float(np.std(f0[good])), "q_scatter": float(np.std(q[good]) / cell.q),
         "f0_std_hz": float(np.median(columns["f0_std_hz"][rows][good])),
@@ -198,14 +198,14 @@ def _tapping_cell(cell: Cell) -> dict:
     fs = cell.fs
     t = columns["t"]
     index = np.round(t * fs).astype(int)
-    free_amplitude = result.results["validity"]["free_air_levels"]["amplitude"]
+    free_amplitude = result.results.validity.free_air_levels.amplitude
     separation = cap.truth["separation_nm"][index]
     # a row taps when the tip reached the force's range in the period before it
     period = int(round(fs / cell.f0)) + 1
     recent = _touched(cap, index, period)
     steady = (t >= hold_from) & (columns["amplitude"] >= 0.45 * free_amplitude) & recent
     clean_min = _min_separation(cap, index[steady], period)
-    drive_hz = result.results["drive_frequency_hz"]
+    drive_hz = result.results.drive_frequency_hz
     f0_e, q_e = first_harmonic(columns["amplitude"][steady], separation[steady], cell.f0, cell.q,
                                scaled_force(cell.regime, cell.f0), drive_hz)
     # the attraction's and the wall's shares of the theory's shift: its first-harmonic error scales with
@@ -217,7 +217,7 @@ def _tapping_cell(cell: Cell) -> dict:
     f0_std, q_std = columns["f0_std_hz"][steady][good], columns["q_std"][steady][good]
     f0_clean, q_clean = clean["f0_hz"][steady][good], clean["q"][steady][good]
     return {
-        "cell": cell.name, "rate_reduction": result.results["estimator"]["rate_reduction"],
+        "cell": cell.name, "rate_reduction": result.results.estimator.rate_reduction,
         "steady_rows": int(np.count_nonzero(steady)),
         "amplitude_share": float(np.mean(columns["amplitude"][steady]) / free_amplitude),
         "min_separation_nm": float(np.median(clean_min)),

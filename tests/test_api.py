@@ -180,7 +180,13 @@ def test_reep_on_arrays_equals_the_cli_on_the_same_samples_in_hdf5(tmp_path):
 
     cap = afmtool.Capture.from_arrays(fs, deflection=deflection, dither=dither, metadata=metadata)
     assert cap.channels == ("deflection", "dither") and cap.units == {"deflection": "nm", "dither": "V"}
-    api = afmtool.reep(cap).save(tmp_path / "api")
+    run = afmtool.reep(cap)
+    api = run.save(tmp_path / "api")
+    from afmtool.records.reep import ReepResults
+
+    typed = run.results  # reep's typed record, read back from report.json
+    assert isinstance(typed, ReepResults) and typed.to_json() == run.report["results"]
+    assert run.summary["f0' in the free-air segment"].value == typed.segments.free_air.f0_hz.mean
 
     path = tmp_path / "same.h5"
     writer = create_writer(path, "hdf5", fs, [ChannelSpec("deflection", "nm"), ChannelSpec("dither", "V")], metadata)

@@ -70,37 +70,55 @@ def test_a_headline_reads_its_declaration_and_skips_what_a_run_lacks():
     assert headline("no such command", results) == []
 
 
+def _reep(**changes):
+    """reep's results on the bundled LTV capture, with ``changes`` and no optional sections besides them."""
+    import json
+
+    from afmtool.records.reep import ReepResults
+    from tests.golden import GOLDEN_DIR
+
+    golden = ReepResults.from_json(json.loads((GOLDEN_DIR / "reep_ltv_step.json").read_text())["results"])
+    bare = dict(free_air_check=None, truth_tracking=None, interaction=None, force_curve=None, flagged_samples=0)
+    return golden.replace(**{**bare, **changes})
+
+
 def test_reep_without_the_dither_shows_no_q_and_says_why():
     """Issue 27 item 3: an output-only run says Q' is not identifiable and shows no Q' item (with it, it does)."""
-    results = {
-        "segments": {"settled": {"f0_hz": {"mean": 60627.8, "std": 0.7}, "q": {"mean": 1e5, "std": 1.5e7}}},
-        "force_curve": {"approach": {"z_units": "nm", "smallest_q": 21.5, "smallest_q_z": -26.75,
-                                     "largest_energy_per_cycle_ev": 3.0, "largest_energy_per_cycle_z": -20.0}},
-        "q_identifiable": False,
-    }
+    from afmtool.records.common import Moments
+    from afmtool.records.reep import ForceCurve, ForceCurveLeg, ReepSegments, Segment
+
+    settled = Segment(t_s=(0.002, 0.05), f0_hz=Moments(count=900, mean=60627.8, std=0.7),
+                      q=Moments(count=900, mean=1e5, std=1.5e7))
+    approach = ForceCurveLeg(bins=3, z_range=(-27.0, 0.0), z_units="nm", f0_hz_range=(6e4, 6.1e4),
+                             q_range=(21.5, 1e5), max_abs_df0_dz=None, max_abs_dq_dz=None, max_abs_da_dz=None,
+                             smallest_q=21.5, smallest_q_z=-26.75, largest_energy_per_cycle_ev=3.0,
+                             largest_energy_per_cycle_z=-20.0)
+    results = _reep(segments=ReepSegments(settled=settled), force_curve=ForceCurve(approach=approach),
+                    q_identifiable=False)
     entries = headline("reep", results)
     assert entries[0]["name"] == "warning" and "Q' is not identifiable" in entries[0]["text"]
     assert entries[0]["source"] == "q_identifiable"
     names = [e["name"] for e in entries[1:]]
-    assert names == ["f0' after the warm-up"]
+    assert names == ["f0' after the warm-up", "flagged output samples"]
     assert not any("Q'" in n or "energy" in n for n in names)
-    shown = [e["name"] for e in headline("reep", dict(results, q_identifiable=True))]
+    shown = [e["name"] for e in headline("reep", results.replace(q_identifiable=True))]
     assert shown == ["f0' after the warm-up", "Q' after the warm-up", "smallest Q' on approach",
-                     "largest energy dissipated per cycle"]
+                     "largest energy dissipated per cycle", "flagged output samples"]
 
 
 def test_reep_mostly_flagged_says_why_first():
     """Issue 27 item 3: a run with most rows flagged opens its headline with why; at half or less it does not."""
     why = ("most of REEP's rows are invalid: 80% flagged after the warm-up, mostly (80% of the rows) because "
            "the amplitude is below 1 % of the free amplitude")
-    results = {"segments": {"settled": {"f0_hz": {"mean": 70000.0, "std": 2.0}}},
-               "validity": {"mostly_flagged": why, "flags": {"fraction": 0.8}}}
+    golden = _reep()
+    flags = golden.validity.flags.replace(flagged=800, samples=1000, fraction=0.8)
+    results = golden.replace(validity=golden.validity.replace(mostly_flagged=why, flags=flags))
     entries = headline("reep", results)
     assert entries[0]["name"] == "warning" and entries[0]["text"].startswith(why)
     assert entries[0]["source"] == "validity.flags.fraction"
-    assert [e["name"] for e in entries[1:]] == ["f0' after the warm-up"]
-    results["validity"] = {"mostly_flagged": None, "flags": {"fraction": 0.3}}
-    assert [e["name"] for e in headline("reep", results)] == ["f0' after the warm-up"]
+    assert [e["name"] for e in entries[1:3]] == ["f0' in the free-air segment", "Q' in the free-air segment"]
+    results = golden.replace(validity=golden.validity.replace(mostly_flagged=None))
+    assert headline("reep", results)[0]["name"] == "f0' in the free-air segment"
 
 
 def test_a_fit_parameter_carries_its_standing():

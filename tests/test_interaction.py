@@ -103,7 +103,7 @@ def test_quantities_from_reep_match_the_simulated_force(force_name, l_nm):
     out = interaction_quantities(
         np.mean(columns["f0_hz"][on]), np.mean(columns["q"][on]), np.mean(columns["amplitude"][on]),
         free_f0_hz=float(np.mean(columns["f0_hz"][free])), free_q=float(np.mean(columns["q"][free])),
-        spring_constant_n_per_m=K, drive_frequency_hz=result.results["drive_frequency_hz"],
+        spring_constant_n_per_m=K, drive_frequency_hz=result.results.drive_frequency_hz,
     )
     clean = cap.truth["deflection_clean"]
     p = clean[np.arange(clean.size) / fs > 0.009]

@@ -93,7 +93,7 @@ def test_bank_reep_equals_reep_bit_for_bit_in_the_trap(fs, duration_s):
     cap = _trap_curve(fs, duration_s)
     reep, result, bank = _both(_Open(lambda: reference_reader(cap)))
     t_reep, t_bank = reep["t"], bank["t"]
-    factor = result.results["estimator"]["rate_reduction"]
+    factor = result.results.estimator.rate_reduction
     np.testing.assert_array_equal(t_bank, t_reep)  # one row grid: REEP's
     # bit for bit: the same estimator, the same state, the same rows (NaN where not under-damped)
     np.testing.assert_array_equal(bank["reep_f0_hz"], reep["f0_hz"])
@@ -101,13 +101,13 @@ def test_bank_reep_equals_reep_bit_for_bit_in_the_trap(fs, duration_s):
     # in the trap, the adaptive observer's f0' against averaging theory at the row's amplitude and separation
     index = np.round(t_reep * fs).astype(int)
     theory = first_harmonic_f0_hz(reep["amplitude"], cap.truth["separation_nm"][index], F0, THESIS_ATTRACTIVE)
-    settled = (t_reep > 5 * result.results["window_us"] * 1e-6) & (reep["flag"] == 0)
+    settled = (t_reep > 5 * result.results.window_us * 1e-6) & (reep["flag"] == 0)
     trap = settled & (theory < 0.85 * F0)
     error = np.abs(bank["reep_f0_hz"][trap] / theory[trap] - 1.0)
     print(f"fs {fs:g} (D = {factor}): {trap.sum()} rows in the trap, worst |f0'/f0_e - 1| = {error.max():.4f}, "
           f"least f0' there {np.nanmin(bank['reep_f0_hz'][trap]):.0f} Hz (theory {theory[trap].min():.0f})")
     # over 2.4 ms in the trap (200 rows of one drive period before issue 33's rows at REEP's resolution)
-    assert trap.sum() * result.results["row_every_samples"] / fs > 2.4e-3
+    assert trap.sum() * result.results.row_every_samples / fs > 2.4e-3
     assert error.max() <= TRAP_TOLERANCE
 
 
@@ -117,7 +117,7 @@ def test_bundled_force_curve_trap_is_not_read_at_16_khz():
     path = SAMPLE_DATA / "force_curve_thesis.h5"
     reep, result, bank = _both(_Open(lambda: open_capture(path)))
     np.testing.assert_array_equal(bank["reep_f0_hz"], reep["f0_hz"])
-    settled = (reep["t"] > 5 * result.results["window_us"] * 1e-6) & (reep["flag"] == 0)
+    settled = (reep["t"] > 5 * result.results.window_us * 1e-6) & (reep["flag"] == 0)
     least = float(np.nanmin(bank["reep_f0_hz"][settled]))
     print(f"bundled force curve: least unflagged f0' in pass 2 {least:.0f} Hz")
     assert least > 60e3

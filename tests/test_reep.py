@@ -43,7 +43,7 @@ def ltv_constant():
 def test_off_sample_accuracy(ltv_constant):
     result, columns = _run(ltv_constant, decimate=1)
     t, f0, q = columns["t"], columns["f0_hz"], columns["q"]
-    amplitude = result.results["summary"]["amplitude"]["mean"]
+    amplitude = result.results.summary.amplitude.mean
     assert 20 < amplitude < 30  # "about 25 nm"
     settled = t > 0.04
     f0_error = np.mean(f0[settled]) - 70_000.0
@@ -126,7 +126,7 @@ def test_reep_command_writes_outputs(tmp_path, ltv_constant):
 
     results = report["results"]
     read_back = segment_statistics(out / "reep.h5", results["summary_after_warmup_samples"] / FS,
-                                   results["free_air_segment_s"])
+                                   results["free_air_segment_s"]).to_json()
     assert set(results["segments"]) == {"free_air", "after_free_air"} == set(read_back)
     # reep.h5 stores f0' and Q' as float32 (issue 33): 70 kHz to 0.004 Hz, so the file's mean agrees to
     # float32 rounding (1e-7) and its scatter of ~1 Hz to that rounding's share of it (1e-4)
@@ -148,14 +148,14 @@ def test_single_sine_warns_not_persistently_exciting():
                  resolve(ReepParams, {}), MemorySink())
     # with metadata f0/Q it takes the f0/Q route (issue 14 item 3) and still warns
     routed = run_reep(_reader(captured), resolve(ReepParams, {}), MemorySink())
-    assert routed.results["free_air_route"]["route"] == "f0-q"
+    assert routed.results.free_air_route.route.value == "f0-q"
     assert any("persistently exciting" in w for w in routed.warnings)
     # given a model, REEP runs and warns in its report
     model = FreeAirModel(f0_hz=70_000.0, q=200.0, gain=1.0)
     params = resolve(ReepParams, {})
     result = run_reep(_reader(captured), params, MemorySink(), model=model)
     assert any("persistently exciting" in w for w in result.warnings)
-    assert len(result.results["excitation_lines_hz"]) == 1
+    assert len(result.results.excitation_lines_hz) == 1
 
 
 def test_needs_free_air_model(tmp_path):

@@ -79,18 +79,18 @@ def test_the_same_statistics_at_every_rate(runs):
     window_s = 400e-6
     stats = {}
     for fs, (results, c) in runs.items():
-        assert results["estimator"]["window_us"] == pytest.approx(400.0)
+        assert results.estimator.window_us == pytest.approx(400.0)
         for name, (lo, hi), truth in (("before", (0.008, STEP_S), (F0, Q)),
                                       ("after", (STEP_S + 0.008, DURATION_S), (STEP_F0, STEP_Q))):
             rows = (c["t"] >= lo) & (c["t"] < hi)
             assert not c["flag"][rows].any()
             for quantity, std_name, true in (("f0_hz", "f0_std_hz", truth[0]), ("q", "q_std", truth[1])):
                 mean, mean_std = _mean_and_std(c[quantity][rows], c["t"][rows], 4 * window_s)
-                mean_std = float(np.hypot(mean_std, results["free_air_model"][std_name]))
+                mean_std = float(np.hypot(mean_std, getattr(results.free_air_model, std_name)))
                 scatter, stated = np.std(c[quantity][rows]), np.median(c[std_name][rows])
                 stats[fs, name, quantity] = (mean, mean_std)
                 print(f"{fs / 1e6:g} MHz {name:6s} {quantity}: mean {mean:.3f} ± {mean_std:.3f} (truth {true:g}), "
-                      f"row scatter {scatter:.4g}, stated row std {stated:.4g}, D = {results['estimator']['rate_reduction']}")
+                      f"row scatter {scatter:.4g}, stated row std {stated:.4g}, D = {results.estimator.rate_reduction}")
                 assert abs(mean - true) <= 3.0 * mean_std
                 assert abs(mean - true) <= 0.25 * stated  # and well inside the stated per-row std
                 assert 0.8 <= scatter / stated <= 1.25
@@ -104,21 +104,21 @@ def test_the_same_statistics_at_every_rate(runs):
 
 def test_the_report_gives_the_window_and_the_settling_it_shows(runs):
     """Item 1: the same window and 10–90 % settling at every rate; the rows settle on the step as reported."""
-    reported = {fs: results["settling"] for fs, (results, _) in runs.items()}
+    reported = {fs: results.settling for fs, (results, _) in runs.items()}
     base = reported[RATES[0]]
     for fs, (_, c) in runs.items():
         settling = reported[fs]
-        assert settling["window_us"] == pytest.approx(400.0)
-        assert settling["f0_settling_10_90_s"] == pytest.approx(base["f0_settling_10_90_s"], rel=0.1)
-        assert settling["q_settling_10_90_s"] == pytest.approx(base["q_settling_10_90_s"], rel=0.1)
+        assert settling.window_us == pytest.approx(400.0)
+        assert settling.f0_settling_10_90_s == pytest.approx(base.f0_settling_10_90_s, rel=0.1)
+        assert settling.q_settling_10_90_s == pytest.approx(base.q_settling_10_90_s, rel=0.1)
         around = (c["t"] > STEP_S - 0.003) & (c["t"] < STEP_S + 0.006)
         measured_f0 = _crossing_10_90(c["t"][around], c["f0_hz"][around], F0, STEP_F0)
         measured_q = _crossing_10_90(c["t"][around], c["q"][around], Q, STEP_Q)
-        print(f"{fs / 1e6:g} MHz: settling 10-90 % reported f0' {settling['f0_settling_10_90_s'] * 1e6:.0f} us, "
-              f"Q' {settling['q_settling_10_90_s'] * 1e6:.0f} us; on the step f0' {measured_f0 * 1e6:.0f} us, "
+        print(f"{fs / 1e6:g} MHz: settling 10-90 % reported f0' {settling.f0_settling_10_90_s * 1e6:.0f} us, "
+              f"Q' {settling.q_settling_10_90_s * 1e6:.0f} us; on the step f0' {measured_f0 * 1e6:.0f} us, "
               f"Q' {measured_q * 1e6:.0f} us")
-        assert measured_f0 == pytest.approx(settling["f0_settling_10_90_s"], rel=0.25)
-        assert measured_q == pytest.approx(settling["q_settling_10_90_s"], rel=0.25)
+        assert measured_f0 == pytest.approx(settling.f0_settling_10_90_s, rel=0.25)
+        assert measured_q == pytest.approx(settling.q_settling_10_90_s, rel=0.25)
 
 
 def _free_scatter(fs: float, f0: float, q: float, noise_nm: float) -> tuple[float, float, int]:
@@ -128,7 +128,7 @@ def _free_scatter(fs: float, f0: float, q: float, noise_nm: float) -> tuple[floa
     result, c = run(cap)
     rows = (c["t"] > 0.01) & (c["flag"] == 0)
     return float(np.mean(c["f0_hz"][rows]) - f0), float(np.std(c["f0_hz"][rows])), \
-        result.results["estimator"]["rate_reduction"]
+        result.results.estimator.rate_reduction
 
 
 @pytest.mark.parametrize(("f0", "q"), [(75e3, 250.0), (50e3, 200.0)], ids=["issue-lever", "fs-over-f0-40"])

@@ -61,8 +61,8 @@ KINDS = ["afmtool-ltv", "reference-continuous", "reference-zoh"]
 def test_off_sample_accuracy_on_every_simulator(kind):
     reader, hold = _source(kind, 0.1, seed=3, free_air_s=0.1)
     result, columns = _run(reader, decimate=1)
-    route = result.results["free_air_route"]
-    assert route["route"] == "segment" and route["drive_hold"] == hold, route["drive_hold_reason"]
+    route = result.results.free_air_route
+    assert route.route.value == "segment" and route.drive_hold.value == hold, route.drive_hold_reason
     t, f0, q = columns["t"], columns["f0_hz"], columns["q"]
     settled = t > 0.04
     f0_error = np.mean(f0[settled]) - F0

@@ -46,7 +46,7 @@ def test_reep_agrees_with_averaging_theory(force_set):
     t = columns["t"]
     index = np.round(t * captured.sample_rate_hz).astype(int)
     cantilever = Cantilever(80318.0, 168.0)
-    drive_hz = result.results["drive_frequency_hz"]
+    drive_hz = result.results.drive_frequency_hz
     offset = captured.metadata["drive"]["sideband_offset_hz"]
     beat = beat_modulation([(drive_hz, 1.0), (drive_hz - offset, SIDEBAND_SCALE), (drive_hz + offset, SIDEBAND_SCALE)],
                            drive_hz, cantilever)
@@ -55,7 +55,7 @@ def test_reep_agrees_with_averaging_theory(force_set):
         return compare_binned(
             t, ReepRows(columns["f0_hz"], columns["q"], columns["f0_std_hz"], columns["q_std"]), columns["amplitude"],
             np.asarray(captured.truth["separation_nm"])[index], drive_frequency_hz=drive_hz, cantilever=cantilever,
-            force=force, row_lambda=result.results["forgetting_factor"] ** result.results["decimate"],
+            force=force, row_lambda=result.results.forgetting_factor ** result.results.decimate,
             free_amplitude_nm=FREE_AMPLITUDE_NM,
             beat=beat, flag=columns["flag"],
         )

@@ -65,8 +65,8 @@ def _curve(fs: float, f0: float, q: float, name: str, duration_s: float, seed: i
     t = columns["t"]
     separation = cap.truth["separation_nm"][np.round(t * fs).astype(int)]
     rows = ReepRows(columns["f0_hz"], columns["q"], columns["f0_std_hz"], columns["q_std"])
-    row_lambda = result.results["forgetting_factor"] ** result.results["decimate"]
-    return t, rows, columns["amplitude"], separation, columns["flag"], row_lambda, result.results["drive_frequency_hz"]
+    row_lambda = result.results.forgetting_factor ** result.results.decimate
+    return t, rows, columns["amplitude"], separation, columns["flag"], row_lambda, result.results.drive_frequency_hz
 
 
 def _compare(curve, f0: float, q: float, force: PiecewiseLinearForce):

@@ -559,11 +559,11 @@ def test_reep_rows_flagged_in_reep_h5_are_left_out_and_marked(tmp_path):
         for name, values in {"t": t, "f0_hz": f0, "q": q, "amplitude": np.ones(n), "phase_deg": np.zeros(n),
                              "flag": flag}.items():
             h5[name] = values
-    stats = segment_statistics(path, 0.0, None)["settled"]
-    assert stats["f0_hz"]["mean"] == 70_000.0 and stats["f0_hz"]["count"] == n - 100
+    stats = segment_statistics(path, 0.0, None).settled
+    assert stats.f0_hz.mean == 70_000.0 and stats.f0_hz.count == n - 100
     truth = {"f0_hz": np.full(n * 7 + 7, 70_000.0), "q": np.full(n * 7 + 7, 200.0)}
     error = tracking_error(path, truth, fs, 0.0)
-    assert error["f0_hz"]["p95_abs"] == 0.0 and error["rows_compared"] == n - 100
+    assert error.f0_hz.p95_abs == 0.0 and error.rows_compared == n - 100
     marked = read_thinned(path, ("f0_hz",))
     np.testing.assert_array_equal(marked.flagged_t, t[1000:1100])
 

@@ -70,16 +70,16 @@ def _three_sine(**kwargs) -> rs.Capture:
 def test_default_rows_are_eight_per_window_and_recorded():
     cap = _three_sine(duration_s=0.01, seed=1, free_air_s=0.01)
     results, columns = _run(reference_reader(cap))
-    estimator = results["estimator"]
-    assert results["rows"] == "resolution"
+    estimator = results.estimator
+    assert results.rows == "resolution"
     # 23 samples (46 us): 8.7 rows per window, 3.22 drive periods apart so the rows walk through its phase
-    assert estimator["row_every_samples"] == 23 and results["row_rate_hz"] == pytest.approx(FS / 23)
-    assert 8 <= estimator["rows_per_window"] < 11
+    assert estimator.row_every_samples == 23 and results.row_rate_hz == pytest.approx(FS / 23)
+    assert 8 <= estimator.rows_per_window < 11
     assert np.allclose(np.diff(columns["t"]), 23 / FS)
     per_period, _ = _run(reference_reader(cap), rows="per-period")
-    assert per_period["estimator"]["row_every_samples"] == 7 and per_period["rows"] == "per-period"
+    assert per_period.estimator.row_every_samples == 7 and per_period.rows == "per-period"
     # --decimate N still sets the spacing itself
-    assert _run(reference_reader(cap), decimate=3)[0]["estimator"]["row_every_samples"] == 3
+    assert _run(reference_reader(cap), decimate=3)[0].estimator.row_every_samples == 3
 
 
 def test_step_response_survives_the_default_rows():
@@ -89,7 +89,7 @@ def test_step_response_survives_the_default_rows():
                       f0_of_t=lambda t: np.where(t < STEP_S, F0, step_f0),
                       q_of_t=lambda t: np.where(t < STEP_S, Q, step_q))
     (results, dense), (_, default) = _dense_and_default(cap, free_air="0.005:0.025")
-    row_s = results["window_us"] * 1e-6 / 8
+    row_s = results.window_us * 1e-6 / 8
     for name, before, after in (("f0_hz", F0, step_f0), ("q", Q, step_q)):
         t = dense["t"]
         settle_dense = _settling_10_90(t, _resolved(dense[name]), STEP_S, before, after)

@@ -57,7 +57,7 @@ def _runs(fs: float, f0: float, q: float, noise: float, seed: int, with_metadata
                                               cap.truth, "synthetic"), lines)
     synthetic = MemorySink()
     result = run_reep(reader, resolve(ReepParams, {}), synthetic)
-    return recorded, synthetic, reader.fit, float(result.results["drive_frequency_hz"])
+    return recorded, synthetic, reader.fit, float(result.results.drive_frequency_hz)
 
 
 def _compare(fs, f0, q, noise, with_metadata, seed=1):

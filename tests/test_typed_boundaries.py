@@ -330,7 +330,7 @@ def test_result_records_are_frozen_and_write_their_report_section():
     raw = {"f0_hz": np.float64(7e4), "series": np.arange(3), "bad": float("nan"), "pair": (1, np.int64(2)),
            "nested": {"q": np.float32(0.5)}}
     expected = {"f0_hz": 7e4, "series": [0, 1, 2], "bad": None, "pair": [1, 2], "nested": {"q": 0.5}}
-    records = [ReepResult(raw, ()), ProbeLossResult(raw, ())]
+    records = [ProbeLossResult(raw, ())]
     fields = {f.name for f in dataclasses.fields(KalmanBankResult)} - {"results", "warnings"}
     records.append(KalmanBankResult(raw, (), **dict.fromkeys(fields)))
     for record in records:
@@ -338,6 +338,15 @@ def test_result_records_are_frozen_and_write_their_report_section():
         json.dumps(record.to_json(), allow_nan=False)
         with pytest.raises(dataclasses.FrozenInstanceError):
             record.results = {}  # type: ignore[misc]
+    # reep's results are a typed record (afmtool.records.reep): its report section is the record's
+    from afmtool.records.reep import ReepResults
+    from tests.golden import GOLDEN_DIR
+
+    section = json.loads((GOLDEN_DIR / "reep_ltv_step.json").read_text())["results"]
+    reep = ReepResult(ReepResults.from_json(section), ())
+    assert reep.to_json() == section
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        reep.results = {}  # type: ignore[misc]
 
 
 def test_theory_compare_result_is_the_report_section():
@@ -379,5 +388,5 @@ def test_theory_compare_refuses_a_folder_that_is_not_a_reep_run(tmp_path):
     with ResultWriter(tmp_path / "reep.h5", {}) as writer:
         writer.append({name: np.zeros(4) for name in ("t", "b1", "b0")})
     (tmp_path / "report.json").write_text(json.dumps({"results": {"drive_frequency_hz": 7e4, "decimate": 7}}))
-    with pytest.raises(InputError, match="no results.forgetting_factor"):
+    with pytest.raises(InputError, match="not the report of a reep run .*results: no '"):
         open_reep_run(tmp_path)
