@@ -193,20 +193,27 @@ def test_reep_headlines_a_free_air_f0_far_from_the_lever(captures, tmp_path):
 
 def test_probeloss_in_loss_most_of_the_time_shows_the_state_not_scores():
     """The headline rule alone, on results whose event scores look perfect while the switch reads loss 100 %."""
+    from afmtool.records.probeloss import ProbeLossResults
     from afmtool.report.headline import headline
+    from tests.golden import GOLDEN_DIR
 
-    results = {"loss_fraction": 1.0, "events_total": 1,
-               "truth": {"loss_fraction": 0.14, "index": {"precision": 1.0, "recall": 1.0, "time_precision": 0.012,
-                                                          "median_latency_periods": 0.0}}}
+    golden = ProbeLossResults.from_json(json.loads((GOLDEN_DIR / "probeloss_raster_grating.json").read_text())["results"])
+
+    def scored(loss_fraction: float, time_precision: float) -> ProbeLossResults:
+        index = golden.truth.index.replace(precision=1.0, recall=1.0, time_precision=time_precision,
+                                           median_latency_periods=0.0)
+        return golden.replace(loss_fraction=loss_fraction, events_total=1,
+                              truth=golden.truth.replace(loss_fraction=0.14, index=index))
+
+    results = scored(1.0, 0.012)
     entries = headline("probeloss", results)
     assert entries[0]["name"] == "warning" and "100 %" in entries[0]["value"]
-    _assert_consistent("probeloss", {"results": results, "headline": entries, "warnings": []})
+    _assert_consistent("probeloss", {"results": results.to_json(), "headline": entries, "warnings": []})
     # the same scores with an honest switch are shown
-    honest = {**results, "loss_fraction": 0.14,
-              "truth": {**results["truth"], "index": {**results["truth"]["index"], "time_precision": 0.95}}}
+    honest = scored(0.14, 0.95)
     assert {e["source"] for e in headline("probeloss", honest)} >= {"truth.index.precision", "truth.index.recall"}
     # event precision that the time-weighted one contradicts is withheld, with the reason
-    split = {**honest, "truth": {**honest["truth"], "index": {**honest["truth"]["index"], "time_precision": 0.5}}}
+    split = scored(0.14, 0.5)
     entries = headline("probeloss", split)
     assert entries[0]["source"] == "truth.index.time_precision"
     assert not {e["source"] for e in entries} & {"truth.index.precision", "truth.index.recall"}

@@ -304,6 +304,6 @@ def test_two_analyses_in_one_pass_equal_their_own_runs() -> None:
         np.testing.assert_array_equal(actual[name], values, err_msg=name)
     assert reep_together.results == reep_result.results
     index_events, _ = loss_events
-    assert len(index_events) == loss_result.results["events_total"] > 0
-    n = loss_result.results["n_samples"]
-    assert float(np.sum(index_events.duration)) / n == loss_result.results["loss_fraction"]
+    assert len(index_events) == loss_result.results.events_total > 0
+    n = loss_result.results.n_samples
+    assert float(np.sum(index_events.duration)) / n == loss_result.results.loss_fraction

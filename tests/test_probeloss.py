@@ -40,6 +40,7 @@ from afmtool.estimators.reliability import (
 )
 from afmtool.io.memory import ArrayReader
 from afmtool.models.discretisation import discrete_denominator, zoh_numerator
+from afmtool.records.probeloss import GainDesign
 from afmtool.sim.raster import CONTROLLERS, RasterParams, capture_from_run, run_raster
 from tests.conftest import SAMPLE_DATA, run_cli, validate_report
 from tests.memory_sink import MemorySink
@@ -301,8 +302,8 @@ def test_chunk_size_independence(one_line_capture):
     for columns, results in outputs[1:]:
         for name in ("t", "index", "switch", "amplitude", "amplitude_switch"):
             np.testing.assert_array_equal(columns[name], outputs[0][0][name], err_msg=name)
-        assert results["events"] == outputs[0][1]["events"]
-        assert results["truth"] == outputs[0][1]["truth"]
+        assert results.events == outputs[0][1].events
+        assert results.truth == outputs[0][1].truth
 
 
 def test_offline_index_reproduces_the_in_loop_switch(one_line_capture):
@@ -315,7 +316,7 @@ def test_offline_index_reproduces_the_in_loop_switch(one_line_capture):
     columns = MemorySink()
     result = run_probeloss(_reader(one_line_capture), resolve(ProbeLossParams, flags), columns,
                            model=params.free_air_model())
-    assert result.results["index"]["level"] == meta["index_level_nm"]
+    assert result.results.index.level == meta["index_level_nm"]
     # the controller's switch is held at 0 until its index is normalised, at the end of the free-air hold
     n_free = round(params.free_air_s * params.sample_rate_hz)
     offline, in_loop = columns["switch"], one_line_capture.truth["switch"]
@@ -377,8 +378,8 @@ def test_probeloss_stream_rows(tmp_path, one_line_capture):
 def test_kalman_gain_design(one_line_capture):
     params = resolve(ProbeLossParams, {"gain": "kalman", "process_noise": 0.002, "measurement_noise": 0.02})
     result = run_probeloss(_reader(one_line_capture), params, MemorySink())
-    assert result.results["observer"]["gain_design"] == "kalman"
-    assert result.results["truth"]["index"]["recall"] is not None
+    assert result.results.observer.gain_design is GainDesign.KALMAN
+    assert result.results.truth.index.recall is not None
 
 
 def test_missing_model_and_amplitude_threshold(tmp_path, one_line_capture):
@@ -391,12 +392,12 @@ def test_missing_model_and_amplitude_threshold(tmp_path, one_line_capture):
     reader = ArrayReader(FS, one_line_capture.channels, one_line_capture.data, no_setpoint, {}, "x")
     # without A_upper or a set point the baseline (only a comparison) is skipped, with a warning
     skipped = run_probeloss(reader, resolve(ProbeLossParams, {}), MemorySink())
-    assert skipped.results["amplitude_baseline"]["skipped"] is True
-    assert skipped.results["amplitude_baseline"]["loss_fraction"] is None
+    assert skipped.results.amplitude_baseline.skipped is True
+    assert skipped.results.amplitude_baseline.loss_fraction is None
     assert any("amplitude baseline skipped" in w for w in skipped.warnings)
-    assert skipped.results["loss_fraction"] > 0
+    assert skipped.results.loss_fraction > 0
     result = run_probeloss(reader, resolve(ProbeLossParams, {"setpoint": 21.0}), MemorySink())
-    assert result.results["amplitude_baseline"]["setpoint"] == 21.0
+    assert result.results.amplitude_baseline.setpoint == 21.0
     out = tmp_path / "out"
     capture = tmp_path / "plain.csv"
     capture.write_text("# sample_rate_hz: 500000\ndither,deflection\n" + "0.1,0.2\n" * 2000)
@@ -418,17 +419,17 @@ def scored():
         for controller in CONTROLLERS:
             captured = capture_from_run(runs[controller])
             result = run_probeloss(_reader(captured), resolve(ProbeLossParams, {}), MemorySink())
-            out[(rate, controller)] = result.results["truth"]
+            out[(rate, controller)] = result.results.truth
     return out
 
 
 def _events(scored, key):
-    return sum(t[key]["truth_events"] for t in scored.values())
+    return sum(getattr(t, key).truth_events for t in scored.values())
 
 
 def test_index_start_latency_at_most_3_drive_periods(scored):
-    medians = {k: t["index"]["median_latency_periods"] for k, t in scored.items()}
-    carried = sum(t["index"]["carried_over"] for t in scored.values())
+    medians = {k: t.index.median_latency_periods for k, t in scored.items()}
+    carried = sum(t.index.carried_over for t in scored.values())
     print("\nmedian detection latency (drive periods):", {f"{r:g} Hz {c}": round(v, 2) for (r, c), v in medians.items()})
     print(f"over {_events(scored, 'index')} loss events >= 5 drive periods ({carried} carried over, no latency)")
     for key, median in medians.items():
@@ -436,27 +437,27 @@ def test_index_start_latency_at_most_3_drive_periods(scored):
 
 
 def test_per_event_precision_and_recall_at_least_0p95(scored):
-    recall_hits = sum(t["index"]["recall"] * t["index"]["truth_events"] for t in scored.values())
-    precision_hits = sum(t["index"]["precision"] * t["index"]["detected_events"] for t in scored.values())
+    recall_hits = sum(t.index.recall * t.index.truth_events for t in scored.values())
+    precision_hits = sum(t.index.precision * t.index.detected_events for t in scored.values())
     n_truth = _events(scored, "index")
-    n_detected = sum(t["index"]["detected_events"] for t in scored.values())
+    n_detected = sum(t.index.detected_events for t in scored.values())
     recall, precision = recall_hits / n_truth, precision_hits / n_detected
     print(f"\nindex: recall {recall:.3f} of {n_truth} loss events, precision {precision:.3f} of {n_detected} "
           "detected events (>= 5 drive periods, pooled over 12 captures)")
     for key, t in scored.items():
-        print(f"  {key}: recall {t['index']['recall']:.3f}, precision {t['index']['precision']:.3f} "
-              f"({t['index']['detected_events']} detected)")
+        print(f"  {key}: recall {t.index.recall:.3f}, precision {t.index.precision:.3f} "
+              f"({t.index.detected_events} detected)")
     assert n_truth >= 100
     assert recall >= 0.95 and precision >= 0.95
 
 
 def test_index_detects_before_the_amplitude_threshold(scored):
-    both = sum(t["index_first"]["both_detected"] for t in scored.values())
-    first = sum(t["index_first"]["index_first"] for t in scored.values())
-    index_only = sum(t["index_first"]["index_only"] for t in scored.values())
-    amplitude_only = sum(t["index_first"]["amplitude_only"] for t in scored.values())
-    events = sum(t["index_first"]["events"] for t in scored.values())
-    leads = [t["index_first"]["median_lead_periods"] for t in scored.values()]
+    both = sum(t.index_first.both_detected for t in scored.values())
+    first = sum(t.index_first.index_first for t in scored.values())
+    index_only = sum(t.index_first.index_only for t in scored.values())
+    amplitude_only = sum(t.index_first.amplitude_only for t in scored.values())
+    events = sum(t.index_first.events for t in scored.values())
+    leads = [t.index_first.median_lead_periods for t in scored.values()]
     print(f"\nindex first in {first} of {both} events both detect ({first / both:.3f}); "
           f"{index_only} more events only the index detects, {amplitude_only} only the amplitude; "
           f"{events} events in all; median lead per capture {np.round(leads, 1).tolist()} drive periods")
@@ -466,7 +467,7 @@ def test_index_detects_before_the_amplitude_threshold(scored):
 
 def test_acceptance_scores_can_fail(scored):
     """The amplitude baseline scored the same way misses the latency criterion several times over."""
-    latencies = [t["amplitude"]["median_latency_periods"] for t in scored.values()]
+    latencies = [t.amplitude.median_latency_periods for t in scored.values()]
     assert min(latencies) > 5 * 3.0
 
 

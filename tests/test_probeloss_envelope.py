@@ -39,7 +39,6 @@ from afmtool.config import resolve
 from afmtool.config.params import ProbeLossParams
 from afmtool.io.registry import open_capture
 from afmtool.report.headline import headline
-from afmtool.report.json_report import to_jsonable
 from tests import reference_sim as rs
 
 F0 = 70e3
@@ -105,43 +104,43 @@ class Cell:
         self.key = (fs, q, noise_nm, ratio)
         self.results = results
         self.warnings = result.warnings
-        self.index = results["truth"]["index"]
-        self.detectability = results["detectability"]
-        self.predicted = self.detectability["predicted"]
+        self.index = results.truth.index
+        self.detectability = results.detectability
+        self.predicted = self.detectability.predicted
         self.true_amplitude = true_amplitude
-        self.estimated_amplitude = self.detectability["on_sample"]["amplitude"]
+        self.estimated_amplitude = self.detectability.on_sample.amplitude
 
     def row(self) -> str:
         fs, q, noise, ratio = self.key
         p, m = self.predicted, self.index
-        state = "beyond" if self.detectability["beyond_limit"] else "within"
+        state = "beyond" if self.detectability.beyond_limit else "within"
         return (f"| {fs / 1e6:g} | {q:g} | {noise:g} | {ratio:g} ({self.true_amplitude / FREE_AMPLITUDE_NM:.2f}) | "
-                f"{self.results['index']['kind']} | {state} | {self.detectability['information_limit_periods']:.2f} | "
-                f"{p['latency_periods']:.2f} | {p['precision']:.3f} | {m['recall']:.3f} | "
-                f"{m['median_latency_periods']:.2f} | {m['time_precision']:.3f} | "
-                f"{100 * m['on_sample_flagged_fraction']:.2f} % | "
+                f"{self.results.index.kind.value} | {state} | {self.detectability.information_limit_periods:.2f} | "
+                f"{p.latency_periods:.2f} | {p.precision:.3f} | {m.recall:.3f} | "
+                f"{m.median_latency_periods:.2f} | {m.time_precision:.3f} | "
+                f"{100 * m.on_sample_flagged_fraction:.2f} % | "
                 f"{self.estimated_amplitude:.2f}/{self.true_amplitude:.2f} |")
 
     def check(self) -> None:
         """Item 3's targets where predicted within reach, else item 2's: latency within 30 % (module docstring)."""
         assert abs(self.estimated_amplitude / self.true_amplitude - 1.0) <= 0.10, self.row()
-        assert self.detectability["on_sample"]["amplitude_source"].startswith("estimated from the capture")
+        assert self.detectability.on_sample.amplitude_source.startswith("estimated from the capture")
         m = self.index
-        if not self.detectability["beyond_limit"]:
-            assert m["recall"] >= 0.95, self.row()
-            assert m["median_latency_periods"] <= 3.0, self.row()
-            assert m["time_precision"] >= 0.9, self.row()
-            assert m["on_sample_flagged_fraction"] <= 0.02, self.row()
+        if not self.detectability.beyond_limit:
+            assert m.recall >= 0.95, self.row()
+            assert m.median_latency_periods <= 3.0, self.row()
+            assert m.time_precision >= 0.9, self.row()
+            assert m.on_sample_flagged_fraction <= 0.02, self.row()
             return
-        predicted = self.predicted["latency_periods"]
-        assert abs(m["median_latency_periods"] / predicted - 1.0) <= LATENCY_TOLERANCE, self.row()
-        if self.predicted["precision"] >= 0.9:
-            assert m["time_precision"] >= 0.9, self.row()
+        predicted = self.predicted.latency_periods
+        assert abs(m.median_latency_periods / predicted - 1.0) <= LATENCY_TOLERANCE, self.row()
+        if self.predicted.precision >= 0.9:
+            assert m.time_precision >= 0.9, self.row()
         else:
-            assert m["time_precision"] >= self.predicted["precision"] - 0.05, self.row()
+            assert m.time_precision >= self.predicted.precision - 0.05, self.row()
         # the report and the headline say so up front
         assert self.warnings[0].startswith("beyond the detection limit"), self.warnings
-        entries = headline("probeloss", to_jsonable(self.results))
+        entries = headline("probeloss", self.results)
         assert entries[0]["name"] == "warning" and entries[0]["source"] == "detectability.beyond_limit"
         assert entries[0]["value"].startswith("beyond the detection limit") and "predicted latency" in entries[0]["value"]
 
@@ -205,14 +204,14 @@ def test_auto_and_explicit_agree_and_the_set_point_is_estimated(tmp_path, fs, q,
     two cells are ones where auto chooses the forcing detector and the thesis's index (the grid's table)."""
     path = envelope_capture(tmp_path, fs, q, noise_nm, ratio)
     auto = run_probeloss_on(path)
-    assert auto.results["index"]["kind"] == kind
+    assert auto.results.index.kind.value == kind
     explicit = run_probeloss_on(path, index=kind)
+    a, e = auto.results.to_json(), explicit.results.to_json()
     for key in ("index", "truth", "events", "loss_fraction"):
-        a, e = auto.results[key], explicit.results[key]
         if key == "index":
-            a, e = {k: v for k, v in a.items() if k != "reason"}, {k: v for k, v in e.items() if k != "reason"}
-        assert json.dumps(to_jsonable(a), sort_keys=True) == json.dumps(to_jsonable(e), sort_keys=True), key
-    estimated = auto.results["detectability"]["on_sample"]["amplitude"]
+            a[key].pop("reason"), e[key].pop("reason")
+        assert json.dumps(a[key], sort_keys=True) == json.dumps(e[key], sort_keys=True), key
+    estimated = auto.results.detectability.on_sample.amplitude
     true = true_on_sample_amplitude(path)
     print(f"on-sample amplitude estimated {estimated:.3f} nm, true {true:.3f} nm")
     assert abs(estimated / true - 1.0) <= 0.10
@@ -222,15 +221,15 @@ def test_latency_periods_trades_latency_for_precision(tmp_path):
     """Item 2: ``--latency-periods N`` gives the most precise design predicted within N periods; the default is
     the fastest predicted at precision >= 0.9."""
     path = envelope_capture(tmp_path, 5e5, 400.0, 0.1, 0.5)
-    default = run_probeloss_on(path).results["detectability"]["predicted"]
-    slower = run_probeloss_on(path, latency_periods=6.0).results["detectability"]["predicted"]
-    faster = run_probeloss_on(path, latency_periods=2.0).results["detectability"]["predicted"]
+    default = run_probeloss_on(path).results.detectability.predicted
+    slower = run_probeloss_on(path, latency_periods=6.0).results.detectability.predicted
+    faster = run_probeloss_on(path, latency_periods=2.0).results.detectability.predicted
     for name, p in (("default", default), ("N = 6", slower), ("N = 2", faster)):
-        print(f"{name}: {p['latency_periods']:.2f} periods at precision {p['precision']:.3f}")
-    assert default["precision"] >= 0.9
-    assert slower["latency_periods"] <= 6.0 and slower["precision"] >= default["precision"]
+        print(f"{name}: {p.latency_periods:.2f} periods at precision {p.precision:.3f}")
+    assert default.precision >= 0.9
+    assert slower.latency_periods <= 6.0 and slower.precision >= default.precision
     # no design reaches 2 periods here: the fastest one is taken, with the precision that costs
-    assert faster["latency_periods"] < default["latency_periods"] and faster["precision"] < default["precision"]
+    assert faster.latency_periods < default.latency_periods and faster.precision < default.precision
 
 
 def test_false_alarm_rate_by_rice_formula_matches_the_filter():

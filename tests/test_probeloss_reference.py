@@ -25,6 +25,8 @@ import pytest
 from afmtool.config import resolve
 from afmtool.config.params import ProbeLossParams
 from afmtool.io.registry import open_capture
+from afmtool.records.common import DriveHold, Route
+from afmtool.records.probeloss import IndexKind, IndexScoreRecord
 from tests import reference_sim as rs
 
 FS = 500e3
@@ -59,17 +61,17 @@ def _run(path, **flags):
         return run_probeloss(reader, resolve(ProbeLossParams, flags), _Discard())
 
 
-def _scores(index: dict) -> str:
-    return (f"recall {index['recall']:.3f}, median latency {index['median_latency_periods']:.2f} periods, "
-            f"time precision {index['time_precision']:.3f}, on-sample flagged {index['on_sample_flagged_fraction']:.4f}")
+def _scores(index: IndexScoreRecord) -> str:
+    return (f"recall {index.recall:.3f}, median latency {index.median_latency_periods:.2f} periods, "
+            f"time precision {index.time_precision:.3f}, on-sample flagged {index.on_sample_flagged_fraction:.4f}")
 
 
-def _assert_item_4(index: dict) -> None:
+def _assert_item_4(index: IndexScoreRecord) -> None:
     """Item 4's four numbers."""
-    assert index["recall"] >= 0.95
-    assert index["median_latency_periods"] <= 3.0
-    assert index["time_precision"] >= 0.9
-    assert index["on_sample_flagged_fraction"] <= 0.02
+    assert index.recall >= 0.95
+    assert index.median_latency_periods <= 3.0
+    assert index.time_precision >= 0.9
+    assert index.on_sample_flagged_fraction <= 0.02
 
 
 CASES = [
@@ -86,16 +88,16 @@ def test_probeloss_single_tone_reference(tmp_path, f0_hz, q, noise_nm, hold):
     path = _capture(tmp_path, f0_hz, q, noise_nm, hold)
     result = _run(path)
     results = result.results
-    route = results["free_air_route"]
-    assert route["route"] == "f0-q" and route["f0_q_from"] == "metadata"
-    assert route["drive_hold"] == hold, route["drive_hold_reason"]
-    assert results["free_air_model"]["f0_hz"] == f0_hz and results["free_air_model"]["q"] == q
+    route = results.free_air_route
+    assert route.route is Route.F0_Q and route.f0_q_from == "metadata"
+    assert route.drive_hold is DriveHold(hold), route.drive_hold_reason
+    assert results.free_air_model.f0_hz == f0_hz and results.free_air_model.q == q
     # no set point or A_upper: the baseline is skipped with a warning, not an error
-    assert results["amplitude_baseline"]["skipped"]
+    assert results.amplitude_baseline.skipped
     assert any("amplitude baseline skipped" in w for w in result.warnings)
-    index = results["truth"]["index"]
+    index = results.truth.index
     print(f"{f0_hz:g} Hz Q {q:g} noise {noise_nm} {hold}: {_scores(index)}")
-    assert index["truth_events"] >= len(LOSS_PERIODS)
+    assert index.truth_events >= len(LOSS_PERIODS)
     _assert_item_4(index)
 
 
@@ -113,13 +115,13 @@ def test_coherent_index_meets_item_4_where_the_rms_index_does_not(tmp_path, f0_h
     """``--index coherent --window-periods 1.5`` meets item 4's four numbers at the corners; the RMS
     index, run alongside as the control, fails at least one of them there."""
     path = _capture(tmp_path, f0_hz, q, noise_nm, hold)
-    rms = _run(path, index="rms").results["truth"]["index"]
+    rms = _run(path, index="rms").results.truth.index
     result = _run(path, index="coherent", window_periods=1.5)
-    coherent = result.results["truth"]["index"]
+    coherent = result.results.truth.index
     print(f"\n{f0_hz:g} Hz Q {q:g} noise {noise_nm} {hold}\n  rms:      {_scores(rms)}\n  coherent: {_scores(coherent)}")
-    assert result.results["index"]["kind"] == "coherent"
+    assert result.results.index.kind is IndexKind.COHERENT
     _assert_item_4(coherent)
-    assert rms["time_precision"] < 0.9 or rms["on_sample_flagged_fraction"] > 0.02
+    assert rms.time_precision < 0.9 or rms.on_sample_flagged_fraction > 0.02
 
 
 @pytest.mark.parametrize(("f0_hz", "q", "noise_nm", "hold"), [
@@ -137,12 +139,12 @@ def test_auto_index_with_the_set_point_meets_item_4(tmp_path, f0_hz, q, noise_nm
 
     path = _capture(tmp_path, f0_hz, q, noise_nm, hold)
     result = _run(path, setpoint=true_on_sample_amplitude(path, f0_hz))
-    index, detectability = result.results["index"], result.results["detectability"]
-    print(f"\n{f0_hz:g} Hz Q {q:g} noise {noise_nm} {hold}: {index['kind']} ({index['reason']}), predicted "
-          f"{detectability['predicted']['latency_periods']:.2f} periods\n  {_scores(result.results['truth']['index'])}")
-    assert detectability["on_sample"]["amplitude_source"] == "set point"
-    assert not detectability["beyond_limit"]
-    _assert_item_4(result.results["truth"]["index"])
+    index, detectability = result.results.index, result.results.detectability
+    print(f"\n{f0_hz:g} Hz Q {q:g} noise {noise_nm} {hold}: {index.kind.value} ({index.reason}), predicted "
+          f"{detectability.predicted.latency_periods:.2f} periods\n  {_scores(result.results.truth.index)}")
+    assert detectability.on_sample.amplitude_source == "set point"
+    assert not detectability.beyond_limit
+    _assert_item_4(result.results.truth.index)
 
 
 @pytest.mark.parametrize(("f0_hz", "q", "hold"), [(70e3, 400.0, "continuous"), (50e3, 300.0, "zoh")])
@@ -152,30 +154,30 @@ def test_coherent_index_at_the_far_corner_is_short_of_item_4(tmp_path, f0_hz, q,
     the deflection by ΔA·π/Q ≈ 0.14-0.19 nm per drive period against 0.1 nm of noise per sample.
     Recorded so that a change that moves it shows."""
     path = _capture(tmp_path, f0_hz, q, 0.1, hold)
-    coherent = _run(path, index="coherent", window_periods=1.5).results["truth"]["index"]
+    coherent = _run(path, index="coherent", window_periods=1.5).results.truth.index
     print(f"{f0_hz:g} Hz Q {q:g}, 0.1 nm, {hold}, coherent: {_scores(coherent)}")
-    assert coherent["recall"] >= 0.95 and coherent["median_latency_periods"] <= 3.0
-    assert 0.02 < coherent["on_sample_flagged_fraction"] < 0.1 and coherent["time_precision"] > 0.75
+    assert coherent.recall >= 0.95 and coherent.median_latency_periods <= 3.0
+    assert 0.02 < coherent.on_sample_flagged_fraction < 0.1 and coherent.time_precision > 0.75
 
 
 def test_wrong_hold_is_the_issue_14_failure(tmp_path):
     """Negative control: a continuous capture run through a zero-order-hold model makes the thesis's index flag
     most on-sample time."""
     path = _capture(tmp_path, 70e3, 200.0, 0.05, "continuous")
-    index = _run(path, drive_hold="zoh", index="rms").results["truth"]["index"]
-    print(f"forced zoh on a continuous capture: on-sample flagged {index['on_sample_flagged_fraction']:.3f}")
-    assert index["on_sample_flagged_fraction"] > 0.3
-    assert index["time_precision"] < 0.5
+    index = _run(path, drive_hold="zoh", index="rms").results.truth.index
+    print(f"forced zoh on a continuous capture: on-sample flagged {index.on_sample_flagged_fraction:.3f}")
+    assert index.on_sample_flagged_fraction > 0.3
+    assert index.time_precision < 0.5
 
 
 def test_baseline_finding_nothing_is_no_internal_error(tmp_path):
     """An A_upper the amplitude never exceeds: zero baseline events, scored without an IndexError."""
     path = _capture(tmp_path, 70e3, 200.0, 0.05, "continuous")
     results = _run(path, amplitude_upper=1e3).results
-    assert results["amplitude_baseline"]["events_total"] == 0
-    assert results["truth"]["amplitude"]["recall"] == 0.0
-    assert results["truth"]["index_first"]["amplitude_only"] == 0
-    assert np.isfinite(results["truth"]["index"]["recall"])
+    assert results.amplitude_baseline.events_total == 0
+    assert results.truth.amplitude.recall == 0.0
+    assert results.truth.index_first.amplitude_only == 0
+    assert np.isfinite(results.truth.index.recall)
 
 
 def test_an_index_without_contrast_is_warned_about(tmp_path):
@@ -185,15 +187,13 @@ def test_an_index_without_contrast_is_warned_about(tmp_path):
 
     path = _capture(tmp_path, 70e3, 400.0, 0.1, "continuous")
     result = _run(path, index="rms")
-    index = result.results["truth"]["index"]
-    print(f"Q 400, 0.1 nm: loss fraction {result.results['loss_fraction']:.2f}, "
-          f"on-sample flagged {index['on_sample_flagged_fraction']:.2f}")
-    assert result.results["loss_fraction"] > 0.5
+    index = result.results.truth.index
+    print(f"Q 400, 0.1 nm: loss fraction {result.results.loss_fraction:.2f}, "
+          f"on-sample flagged {index.on_sample_flagged_fraction:.2f}")
+    assert result.results.loss_fraction > 0.5
     assert any("reads probe loss" in w and "--index forcing" in w for w in result.warnings)
     assert any("flags" in w and "on-sample time" in w for w in result.warnings)
-    from afmtool.report.json_report import to_jsonable
-
-    entries = headline("probeloss", to_jsonable(result.results))
+    entries = headline("probeloss", result.results)
     assert entries[0]["name"] == "warning" and "truth.index.precision" not in {e["source"] for e in entries}
 
 

@@ -45,7 +45,7 @@ drive continuous.  What the chosen hold leaves unexplained,
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import NamedTuple
 
 import numpy as np
@@ -61,9 +61,10 @@ from afmtool.errors import ConfigError, InputError
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.io.metadata import CaptureMetadata
 from afmtool.models.free_air import FreeAirModel
+from afmtool.records.common import FreeAirRouteRecord
 
 __all__ = ["DRIVE_HOLD_CHOICES", "HEADLINE_PHASE_MISFIT_DEG", "PHASE_TOLERANCE_DEG", "FreeAirRoute", "drive_lines",
-           "line_response", "resolve_free_air"]
+           "line_response", "resolve_free_air", "route_record"]
 
 #: ``--drive-hold`` values.
 DRIVE_HOLD_CHOICES = ("auto", "zoh", "continuous")
@@ -104,6 +105,11 @@ class FreeAirRoute(NamedTuple):
     drive_hz: float
     report: dict
     warnings: tuple[str, ...]
+
+
+def route_record(report: Mapping) -> FreeAirRouteRecord:
+    """A route's ``report`` as report.json's ``free_air_route`` (:class:`~afmtool.records.common.FreeAirRouteRecord`)."""
+    return FreeAirRouteRecord.from_json(report)
 
 
 def line_response(deflection: np.ndarray, dither: np.ndarray, sample_rate_hz: float, lines_hz) -> complex:

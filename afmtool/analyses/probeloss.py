@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from afmtool.analyses.accumulators import ImageAccumulator, ScanGeometry
-from afmtool.analyses.freeair_route import drive_lines, resolve_free_air
+from afmtool.analyses.freeair_route import drive_lines, resolve_free_air, route_record
 from afmtool.analyses.freeair_source import FreeAirSegment
 from afmtool.config.params import ProbeLossParams
 from afmtool.estimators.probeloss_events import (
@@ -41,7 +41,19 @@ from afmtool.estimators.probeloss_events import (
 from afmtool.io.capture import CaptureReader, Chunk
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Split, run_stream
-from afmtool.report.results import JsonResults
+from afmtool.records.common import Route
+from afmtool.records.probeloss import (
+    MOSTLY_LOSS_FRACTION,
+    AmplitudeBaselineRecord,
+    IndexFirstRecord,
+    IndexScoreRecord,
+    LossEventRecord,
+    LossPerLineRecord,
+    ProbeLossResults,
+    ScanRecord,
+    ScoreRecord,
+    TruthRecord,
+)
 
 if TYPE_CHECKING:  # numba-backed modules load when the command runs
     from afmtool.estimators.reliability import DetectorDesign, DetectorOptions
@@ -117,10 +129,21 @@ class ProbeLossSetup:
 
 
 @dataclass(frozen=True)
-class ProbeLossResult(JsonResults):
-    """What :func:`run_probeloss` found; the command turns it into files and a report."""
+class ProbeLossResult:
+    """What :func:`run_probeloss` found; the command turns it into files and a report.
 
-    results: dict
+    Attributes
+    ----------
+    results : ProbeLossResults
+        The ``results`` of report.json.
+    warnings : tuple of str
+    images : dict of str to ndarray
+        The probe-loss mask and index images (``"loss/trace"`` ...), with scan geometry.
+    geometry : ScanGeometry or None
+    setup : ProbeLossSetup or None
+    """
+
+    results: ProbeLossResults
     warnings: tuple[str, ...]
     images: dict[str, np.ndarray] = field(default_factory=dict)
     geometry: ScanGeometry | None = None
@@ -427,17 +450,17 @@ class ProbeLossStage:
 # --------------------------------------------------------------------------- report
 
 
-def _event_list(index_events: Events, lead: np.ndarray, fs: float, limit: int) -> list[dict]:
+def _event_list(index_events: Events, lead: np.ndarray, fs: float, limit: int) -> tuple[LossEventRecord, ...]:
     out = []
     for k in range(min(len(index_events), limit)):
         start, end = int(index_events.start[k]), int(index_events.end[k])
-        out.append({
-            "start_s": start / fs,
-            "end_s": end / fs,
-            "duration_s": (end - start) / fs,
-            "amplitude_lead_s": None if math.isnan(lead[k]) else float(lead[k]) / fs,
-        })
-    return out
+        out.append(LossEventRecord(
+            start_s=start / fs,
+            end_s=end / fs,
+            duration_s=(end - start) / fs,
+            amplitude_lead_s=None if math.isnan(lead[k]) else float(lead[k]) / fs,
+        ))
+    return tuple(out)
 
 
 def _median(values: np.ndarray) -> float | None:
@@ -445,17 +468,18 @@ def _median(values: np.ndarray) -> float | None:
     return float(np.median(values)) if values.size else None
 
 
-def _score_dict(score, period: float) -> dict:
+def _score_record(score, period: float, kind: type[ScoreRecord] = ScoreRecord, **more) -> ScoreRecord:
     latency = score.latency_samples / period
-    return {
-        "truth_events": score.truth_events,
-        "detected_events": score.detected_events,
-        "recall": score.recall,
-        "precision": score.precision,
-        "median_latency_periods": _median(latency),
-        "p90_latency_periods": float(np.percentile(latency, 90)) if latency.size else None,
-        "carried_over": score.carried_over,
-    }
+    return kind(
+        truth_events=score.truth_events,
+        detected_events=score.detected_events,
+        recall=score.recall,
+        precision=score.precision,
+        median_latency_periods=_median(latency),
+        p90_latency_periods=float(np.percentile(latency, 90)) if latency.size else None,
+        carried_over=score.carried_over,
+        **more,
+    )
 
 
 def _event_mask(events: Events, n: int) -> np.ndarray:
@@ -466,8 +490,8 @@ def _event_mask(events: Events, n: int) -> np.ndarray:
     return np.cumsum(edges[:-1]) > 0
 
 
-def _truth_results(reader: CaptureReader, params: ProbeLossParams, setup: ProbeLossSetup,
-                   index_events: Events, amp_events: Events) -> dict | None:
+def _truth_record(reader: CaptureReader, params: ProbeLossParams, setup: ProbeLossSetup,
+                  index_events: Events, amp_events: Events) -> TruthRecord | None:
     if "contact" not in reader.info.truth_names:
         return None
     contact = reader.truth()["contact"]
@@ -485,78 +509,64 @@ def _truth_results(reader: CaptureReader, params: ProbeLossParams, setup: ProbeL
     first = both & (t_index < t_amp)
     lead = (t_amp - t_index)[both] / period
     stretch_samples = int(np.sum(truth.stretches.duration))
-    return {
-        "loss_fraction": stretch_samples / len(contact) if len(contact) else None,
-        "gap_periods": params.truth_gap_periods,
-        "min_event_periods": params.min_event_periods,
-        "index": {
-            **_score_dict(index_score, period),
+    return TruthRecord(
+        loss_fraction=stretch_samples / len(contact) if len(contact) else None,
+        gap_periods=params.truth_gap_periods,
+        min_event_periods=params.min_event_periods,
+        index=_score_record(
+            index_score, period, IndexScoreRecord,
             # share of flagged time that is truly off the sample, and of on-sample time flagged
-            "time_precision": float(np.mean(off_sample[flagged])) if flagged.any() else None,
-            "on_sample_flagged_fraction": float(np.mean(flagged[~off_sample])) if (~off_sample).any() else None,
-        },
-        "amplitude": _score_dict(amp_score, period) if setup.amplitude_upper is not None else None,
-        "index_first": {
-            "events": int(index_score.truth_events),
-            "both_detected": int(both.sum()),
-            "index_first": int(first.sum()),
-            "index_only": int(index_only.sum()),
-            "amplitude_only": int(amplitude_only.sum()),
-            "fraction_of_both": float(first.sum() / both.sum()) if both.any() else None,
-            "median_lead_periods": _median(lead),
-        },
-    }
+            time_precision=float(np.mean(off_sample[flagged])) if flagged.any() else None,
+            on_sample_flagged_fraction=float(np.mean(flagged[~off_sample])) if (~off_sample).any() else None,
+        ),
+        amplitude=_score_record(amp_score, period) if setup.amplitude_upper is not None else None,
+        index_first=IndexFirstRecord(
+            events=int(index_score.truth_events),
+            both_detected=int(both.sum()),
+            index_first=int(first.sum()),
+            index_only=int(index_only.sum()),
+            amplitude_only=int(amplitude_only.sum()),
+            fraction_of_both=float(first.sum() / both.sum()) if both.any() else None,
+            median_lead_periods=_median(lead),
+        ),
+    )
 
 
-def _image_results(result_images: dict, geometry: ScanGeometry) -> dict:
+def _scan_record(result_images: dict, geometry: ScanGeometry, median_lead_s: float | None) -> ScanRecord:
     per_line = {}
     for key, image in result_images.items():
         quantity, direction = key.split("/")
         if quantity == "loss":
             with np.errstate(invalid="ignore"):
                 rows = [float(np.nanmean(row)) if np.isfinite(row).any() else None for row in image]
-            per_line[direction] = rows
+            per_line[direction] = tuple(rows)
     loss_images = [img for key, img in result_images.items() if key.startswith("loss/")]
     stacked = np.concatenate([img.ravel() for img in loss_images])
     finite = stacked[np.isfinite(stacked)]
-    return {
-        "loss_fraction_scan": float(finite.mean()) if finite.size else None,
-        "loss_fraction_per_line": per_line,
-        "tip_velocity_m_per_s": geometry.scan_size_m * geometry.line_rate_hz * (2.0 if geometry.trace_retrace else 1.0),
-    }
+    velocity = geometry.scan_size_m * geometry.line_rate_hz * (2.0 if geometry.trace_retrace else 1.0)
+    return ScanRecord(
+        loss_fraction_scan=float(finite.mean()) if finite.size else None,
+        loss_fraction_per_line=LossPerLineRecord(trace=per_line["trace"], retrace=per_line.get("retrace")),
+        tip_velocity_m_per_s=velocity,
+        median_amplitude_lead_m=None if median_lead_s is None else median_lead_s * velocity,
+    )
 
 
-def _setup_results(setup: ProbeLossSetup, params: ProbeLossParams) -> dict:
-    """The model, detector (observer, index, prediction) and baseline threshold, for report.json."""
-    detector = setup.detector
-    return {
-        "free_air_model": setup.model.to_dict(),
-        "free_air_model_source": setup.model_source,
-        "free_air_route": setup.route,
-        "free_air_segment_s": list(setup.segment_s) if setup.segment_s else None,
-        "drive_frequency_hz": setup.drive_hz,
-        "decimate": setup.decimate,
-        # the series' density and what set it (issue 33)
-        "rows": f"decimate {params.decimate}" if params.decimate else params.rows,
-        "row_every_samples": setup.decimate,
-        "row_rate_hz": setup.drive_hz * setup.period_samples / setup.decimate,
-        "observer": detector.observer_dict(params.gain),
-        "index": detector.index_dict(),
-        "detectability": detector.detectability_dict(),
-        "amplitude_baseline": {
-            "upper": setup.amplitude_upper,
-            "free_amplitude": setup.free_amplitude,
-            "setpoint": setup.setpoint,
-            "lockin_lowpass_hz": setup.lowpass_hz,
-        },
-    }
+def _amplitude_baseline(setup: ProbeLossSetup, amp_events: Events, n_samples: int) -> AmplitudeBaselineRecord:
+    """The baseline's threshold and what it found (nothing when it was skipped: no A_upper)."""
+    skipped = setup.amplitude_upper is None
+    return AmplitudeBaselineRecord(
+        upper=setup.amplitude_upper,
+        free_amplitude=setup.free_amplitude,
+        setpoint=setup.setpoint,
+        lockin_lowpass_hz=setup.lowpass_hz,
+        skipped=skipped,
+        loss_fraction=None if skipped else float(np.sum(amp_events.duration)) / n_samples,
+        events_total=None if skipped else len(amp_events),
+    )
 
 
-#: A loss fraction above this gets :func:`_mostly_loss_warning`.
-MOSTLY_LOSS_FRACTION = 0.5
-
-
-def _mostly_loss_warning(loss_fraction: float, truth: dict | None) -> list[str]:
+def _mostly_loss_warning(loss_fraction: float, truth: TruthRecord | None) -> list[str]:
     """A warning when the switch read loss most of the time, or flagged most of the on-sample time (truth).
 
     A run never flags most of the on-sample time silently (issue 28): either
@@ -570,22 +580,44 @@ def _mostly_loss_warning(loss_fraction: float, truth: dict | None) -> list[str]:
             "that long, or the index has no contrast on the sample; see results.detectability (the predicted "
             "latency and precision) and the index figure, and try --index forcing or a longer --latency-periods"
         )
-    flagged = ((truth or {}).get("index") or {}).get("on_sample_flagged_fraction")
+    flagged = truth.index.on_sample_flagged_fraction if truth is not None else None
     if flagged is not None and flagged > MOSTLY_LOSS_FRACTION:
         warnings.append(f"the switch flags {100 * flagged:.0f} % of the on-sample time (against /truth)")
     return warnings
 
 
-def _event_results(index_events: Events, amp_events: Events, lead: np.ndarray, n_samples: int, fs: float,
-                   limit: int) -> dict:
-    """Loss fraction, the index events and their lead over the amplitude baseline."""
-    return {
-        "loss_fraction": float(np.sum(index_events.duration)) / n_samples,
-        "events_total": len(index_events),
-        "events_listed": min(len(index_events), limit),
-        "median_amplitude_lead_s": _median(lead / fs),
-        "events": _event_list(index_events, lead, fs, limit),
-    }
+def _results(params: ProbeLossParams, stage: ProbeLossStage, index_events: Events, amp_events: Events,
+             images: dict, truth: TruthRecord | None) -> ProbeLossResults:
+    """The model, the detector (observer, index, prediction), the baseline and the events, for report.json."""
+    setup, detector, n, fs = stage.setup, stage.setup.detector, stage.n_samples, stage.fs
+    lead = overlapping_lead(index_events, amp_events)
+    median_lead = _median(lead / fs)
+    return ProbeLossResults(
+        free_air_model=setup.model.record(),
+        free_air_model_source=Route(setup.model_source),
+        free_air_route=route_record(setup.route),
+        free_air_segment_s=setup.segment_s or None,
+        drive_frequency_hz=setup.drive_hz,
+        decimate=setup.decimate,
+        # the series' density and what set it (issue 33)
+        rows=f"decimate {params.decimate}" if params.decimate else params.rows,
+        row_every_samples=setup.decimate,
+        row_rate_hz=setup.drive_hz * setup.period_samples / setup.decimate,
+        observer=detector.observer_record(params.gain),
+        index=detector.index_record(),
+        detectability=detector.detectability_record(),
+        amplitude_baseline=_amplitude_baseline(setup, amp_events, n),
+        n_samples=n,
+        duration_s=n / fs,
+        sample_rate_hz=fs,
+        loss_fraction=float(np.sum(index_events.duration)) / n,
+        events_total=len(index_events),
+        events_listed=min(len(index_events), params.max_events),
+        median_amplitude_lead_s=median_lead,
+        events=_event_list(index_events, lead, fs, params.max_events),
+        scan=_scan_record(images, stage.geometry, median_lead) if stage.geometry is not None else None,
+        truth=truth,
+    )
 
 
 def run_probeloss(
@@ -620,42 +652,22 @@ def run_probeloss(
     -------
     ProbeLossResult
     """
-    info = reader.info
-    fs = info.sample_rate_hz
+    fs = reader.info.sample_rate_hz
     state = ProbeLossStage(reader, params, model)
     ((index_events, amp_events),) = run_stream(
         reader, [state], writer, channels=("deflection", "dither"), chunk_samples=params.chunk_samples,
         progress=progress, prologue=state.free_air_prologue, read_ahead=_READ_AHEAD, split=split,
         on_start=on_stream_start,
     )
-    setup, geometry = state.setup, state.geometry
-    lead = overlapping_lead(index_events, amp_events)
+    setup = state.setup
     warnings: list[str] = list(setup.warnings)
     if setup.model_source != "f0-q" and setup.model.delay_s > 1.5 / fs:
         warnings.append(
             f"the free-air model has a drive delay of {setup.model.delay_s * 1e6:.2f} us (> 1.5 samples) that the "
             "observer does not model; the free-air index level absorbs it, the contrast on the sample drops"
         )
-    results = {
-        **_setup_results(setup, params),
-        "n_samples": state.n_samples,
-        "duration_s": state.n_samples / fs,
-        "sample_rate_hz": fs,
-        **_event_results(index_events, amp_events, lead, state.n_samples, fs, params.max_events),
-    }
-    skipped = setup.amplitude_upper is None
-    results["amplitude_baseline"]["skipped"] = skipped
-    results["amplitude_baseline"]["loss_fraction"] = None if skipped else float(np.sum(amp_events.duration)) / state.n_samples
-    results["amplitude_baseline"]["events_total"] = None if skipped else len(amp_events)
     images = state.images.images() if state.images is not None else {}
-    if geometry is not None:
-        results["scan"] = _image_results(images, geometry)
-        median_lead = results["median_amplitude_lead_s"]
-        results["scan"]["median_amplitude_lead_m"] = (
-            None if median_lead is None else median_lead * results["scan"]["tip_velocity_m_per_s"]
-        )
-    truth = _truth_results(reader, params, setup, index_events, amp_events)
-    if truth is not None:
-        results["truth"] = truth
-    warnings.extend(_mostly_loss_warning(results["loss_fraction"], truth))
-    return ProbeLossResult(results, tuple(warnings), images, geometry, setup)
+    truth = _truth_record(reader, params, setup, index_events, amp_events)
+    results = _results(params, state, index_events, amp_events, images, truth)
+    warnings.extend(_mostly_loss_warning(results.loss_fraction, truth))
+    return ProbeLossResult(results, tuple(warnings), images, state.geometry, setup)

@@ -13,6 +13,7 @@ from afmtool.config.params import ProbeLossParams
 from afmtool.io.capture import CaptureReader
 from afmtool.io.results import ResultWriter, row_attrs
 from afmtool.io.units import calibration_record
+from afmtool.records.probeloss import ProbeLossResults
 from afmtool.report.figure_process import FigureProcess
 from afmtool.report.images import ImageStyle
 from afmtool.report.run import finish_run
@@ -45,10 +46,11 @@ def run_probeloss_command(run: CommandRun) -> dict:
             # matplotlib, for the figures at the end, loads while the observer streams
             result = run_probeloss(reader, params, sink, model=model, progress=run.progress, split=run.split,
                                    on_stream_start=run.figures.on_stream_start)
-            writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))
+            results = result.results
+            writer.set_attrs(row_attrs({"rows": results.rows, "row_every_samples": results.row_every_samples,
+                                        "row_rate_hz": results.row_rate_hz}, reader.info.sample_rate_hz))
             _write_images(staged, writer, result, run.figures)
         staged.flush_early("probeloss.h5")  # to disk while the figures are drawn
-        results = dict(result.results)
         _write_time_series(run.figures, staged, reader, results, sink.rows())
         if result.setup is not None and result.setup.model_source == "segment":
             result.setup.model.save(staged.path("free_air.json"))
@@ -63,7 +65,7 @@ def run_probeloss_stream(reader: CaptureReader, config: Path | None, flags: Mapp
     run_stream_with_model(run_probeloss, ProbeLossParams, "probeloss", reader, config, flags, fmt)
 
 
-def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: CaptureReader, results: Mapping,
+def _write_time_series(figures: FigureProcess, staged: OutputDir, reader: CaptureReader, results: ProbeLossResults,
                        overview: Mapping) -> None:
     """The index, switches, amplitude and truth contact against time: ``overview`` rows, zooms from probeloss.h5."""
     from afmtool.analyses.probeloss_timeseries import write_probeloss_time_series

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afmtool.records.probeloss import IndexKind, ProbeLossResults
 from afmtool.report.figure_process import FigureProcess
 
 __all__ = ["PLOTTED", "ZOOM_PERIODS", "write_probeloss_time_series"]
@@ -26,16 +27,16 @@ PLOTTED = ("t", "index", "switch", "amplitude", "amplitude_switch")
 ZOOM_PERIODS = 300
 
 
-def _panels(rows: Mapping[str, np.ndarray], results: Mapping, amplitude_units: str, contact: np.ndarray | None) -> list[dict]:
+def _panels(rows: Mapping[str, np.ndarray], results: ProbeLossResults, amplitude_units: str,
+            contact: np.ndarray | None) -> list[dict]:
     t = rows["t"]
     span = np.array([t[0], t[-1]]) if len(t) else np.zeros(2)
-    index = results.get("index") or {}
-    baseline = results.get("amplitude_baseline") or {}
+    index, baseline = results.index, results.amplitude_baseline
     threshold = {"color": "0.3", "linestyle": ":", "linewidth": 1.0}
     index_series = [(t, rows["index"], "index", {"color": "C0", "linewidth": 0.9})]
-    for key, label, style in (("on", "switch-on threshold", threshold), ("off", "switch-off threshold", {**threshold, "linestyle": "--"})):
-        if isinstance(index.get(key), (int, float)):
-            index_series.append((span, np.full(2, float(index[key])), label, style))
+    for value, label, style in ((index.on, "switch-on threshold", threshold),
+                                (index.off, "switch-off threshold", {**threshold, "linestyle": "--"})):
+        index_series.append((span, np.full(2, float(value)), label, style))
     switches = [(t, rows["switch"], "index switch (1 = loss)", {"color": "C0", "drawstyle": "steps-post", "linewidth": 1.2})]
     if "amplitude_switch" in rows:
         # drawn at 0.9 so that the two switches stay apart where they agree
@@ -43,16 +44,16 @@ def _panels(rows: Mapping[str, np.ndarray], results: Mapping, amplitude_units: s
                          {"color": "C1", "drawstyle": "steps-post", "linestyle": "--", "linewidth": 1.0}))
     units = amplitude_units or "input units"
     amplitude = [(t, rows["amplitude"], "lock-in amplitude", {"color": "C2", "linewidth": 0.9})]
-    if isinstance(baseline.get("upper"), (int, float)):
-        amplitude.append((span, np.full(2, float(baseline["upper"])), "loss threshold A_upper", threshold))
-    if isinstance(baseline.get("free_amplitude"), (int, float)):
-        amplitude.append((span, np.full(2, float(baseline["free_amplitude"])), "free amplitude A0",
+    if baseline.upper is not None:
+        amplitude.append((span, np.full(2, float(baseline.upper)), "loss threshold A_upper", threshold))
+    if baseline.free_amplitude is not None:
+        amplitude.append((span, np.full(2, float(baseline.free_amplitude)), "free amplitude A0",
                           {**threshold, "linestyle": "--"}))
     panels = [
         # log axis: the thresholds sit near 1-4 where the index on the sample reaches hundreds
         # the forcing index is a signed projection, about N(0, 1) off the sample: a linear axis
         {"y_label": "index (dimensionless)", "series": index_series,
-         "y_scale": "linear" if index.get("kind") == "forcing" else "log"},
+         "y_scale": "linear" if index.kind is IndexKind.FORCING else "log"},
         {"y_label": "switch (0/1)", "series": switches},
         {"y_label": f"amplitude ({units})", "series": amplitude},
     ]
@@ -65,7 +66,7 @@ def _panels(rows: Mapping[str, np.ndarray], results: Mapping, amplitude_units: s
 def write_probeloss_time_series(
     directory_path,
     probeloss_h5: Path,
-    results: Mapping,
+    results: ProbeLossResults,
     *,
     amplitude_units: str,
     truth_contact: np.ndarray | None,
@@ -81,7 +82,7 @@ def write_probeloss_time_series(
         ``name -> Path`` where to write each file (``OutputDir.path``).
     probeloss_h5 : Path
         The finished result file (``t``, ``index``, ``switch``, ``amplitude``, ``amplitude_switch``).
-    results : mapping
+    results : ProbeLossResults
         The run's results: the thresholds (``index.on``, ``index.off``,
         ``amplitude_baseline.upper``), the drive frequency and the events.
     amplitude_units : str
@@ -125,10 +126,9 @@ def write_probeloss_time_series(
         written.append(name)
 
     draw("probeloss_time_series.png", None, "Probe loss against time (thesis ch. 2)")
-    drive_hz = results.get("drive_frequency_hz")
-    duration = results.get("duration_s")
-    if isinstance(drive_hz, (int, float)) and isinstance(duration, (int, float)) and drive_hz > 0:
-        centres = [e["start_s"] for e in results.get("events") or [] if isinstance(e.get("start_s"), (int, float))]
+    drive_hz, duration = results.drive_frequency_hz, results.duration_s
+    if drive_hz > 0:
+        centres = [event.start_s for event in results.events]
         for k, window in enumerate(zoom_windows(float(duration), ZOOM_PERIODS / float(drive_hz), centres), start=1):
             draw(f"probeloss_zoom_{k}.png", window, f"Probe loss, zoom {k}: {window[0] * 1e3:.2f}–{window[1] * 1e3:.2f} ms")
     return written

@@ -226,7 +226,8 @@ _PROBELOSS = CommandSpec(
     "probeloss", Kind.CAPTURE, _own(P.ProbeLossParams), _analysis("probeloss_outputs", "run_probeloss_command"),
     stream=_analysis("probeloss_outputs", "run_probeloss_stream"), stream_units=_analysis("probeloss", "SERIES_UNITS"),
     examples=("afmtool probeloss sample_data/raster_grating.h5 --out results/probeloss",),
-    main_figures=("probeloss_time_series.png",), headline=H.PROBELOSS, batch="probeloss",
+    main_figures=("probeloss_time_series.png",), result=Lazy("afmtool.records.probeloss", "ProbeLossResults"),
+    batch="probeloss",
     channels=("deflection", "dither"), synthesised_drive=True,
 )
 _DECODE = CommandSpec(

@@ -14,7 +14,7 @@ from __future__ import annotations
 from afmtool.records.base import Item
 
 __all__ = [
-    "Item", "PROBELOSS", "KALMAN_BANK",
+    "Item", "KALMAN_BANK",
 ]
 
 
@@ -24,18 +24,6 @@ def _free_air_model(prefix: str = "free_air_model") -> tuple[Item, ...]:
         Item("Q (free air)", f"{prefix}.q", "", f"{prefix}.q_std"),
     )
 
-
-PROBELOSS = (
-    Item("probe-loss fraction (index)", "loss_fraction", "of time"),
-    Item("probe-loss fraction (truth)", "truth.loss_fraction", "of time"),
-    Item("precision (index)", "truth.index.precision", "", scores=True),
-    Item("recall (index)", "truth.index.recall", "", scores=True),
-    Item("median latency (index)", "truth.index.median_latency_periods", "drive periods", scores=True),
-    Item("probe-loss fraction (amplitude baseline)", "amplitude_baseline.loss_fraction", "of time"),
-    Item("precision (amplitude baseline)", "truth.amplitude.precision", ""),
-    Item("recall (amplitude baseline)", "truth.amplitude.recall", ""),
-    Item("loss events (index)", "events_total", "events"),
-)
 
 KALMAN_BANK = (
     Item("verdict: pass", "verdict.pass", "", text=True),

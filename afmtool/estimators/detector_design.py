@@ -33,7 +33,6 @@ sample is scored.
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -53,6 +52,19 @@ from afmtool.estimators.detectability import (
     score_switch,
     survey_events,
     synthetic_record,
+)
+from afmtool.records.probeloss import (
+    AlternativeRecord,
+    DetectabilityRecord,
+    ForcingSource,
+    GainDesign,
+    IndexKind,
+    IndexRecord,
+    ObserverRecord,
+    OnSampleRecord,
+    PredictedOn,
+    PredictionRecord,
+    TargetsRecord,
 )
 
 __all__ = [
@@ -81,14 +93,6 @@ _AMPLITUDE_SOURCES = {
 }
 #: Memory of the filter that surveys the capture (on-sample forcing, survey events), drive periods.
 SURVEY_MEMORY_PERIODS = 2.0
-
-
-class IndexKind(enum.Enum):
-    """The reliability index a detector thresholds."""
-
-    RMS = "rms"
-    COHERENT = "coherent"
-    FORCING = "forcing"
 
 
 class DetectorOptions(NamedTuple):
@@ -196,12 +200,14 @@ class Prediction(NamedTuple):
 
         return self.precision >= TARGET_PRECISION and self.recall_5 >= TARGET_RECALL
 
-    def as_dict(self) -> dict:
-        return {"latency_periods": self.latency_periods, "return_periods": self.return_periods,
-                "precision": self.precision, "recall_5_periods": self.recall_5,
-                "false_alarm_fraction": self.false_fraction, "precision_for": self.events,
-                "false_alarms_per_1000_periods": self.false_alarms_per_kperiod,
-                "false_returns_per_1000_periods": self.false_returns_per_kperiod}
+    def record(self, kind: IndexKind | None = None) -> PredictionRecord:
+        """The prediction for report.json; with ``kind``, as one of the alternatives considered."""
+        values = {"latency_periods": self.latency_periods, "return_periods": self.return_periods,
+                  "precision": self.precision, "recall_5_periods": self.recall_5,
+                  "false_alarm_fraction": self.false_fraction, "precision_for": PredictedOn(self.events),
+                  "false_alarms_per_1000_periods": self.false_alarms_per_kperiod,
+                  "false_returns_per_1000_periods": self.false_returns_per_kperiod}
+        return PredictionRecord(**values) if kind is None else AlternativeRecord(kind=kind, **values)
 
 
 @dataclass(frozen=True, eq=False)
@@ -298,53 +304,52 @@ class DetectorDesign:
             return self.forcing.on / self.forcing.scale, self.forcing.off / self.forcing.scale
         return tuple(self.calibration.thresholds)
 
-    def observer_dict(self, gain_design: str) -> dict | None:
+    def observer_record(self, gain_design: str) -> ObserverRecord | None:
         """The rms/coherent index's observer, for report.json (None for the forcing index)."""
         if self.observer is None:
             return None
-        return {"gain_design": gain_design, "decay_cycles": self.decay_cycles if gain_design == "decay" else None,
-                "gain": list(self.observer.gain),
-                "error_pole_radius": float(np.max(np.abs(self.observer.error_poles))),
-                "window_samples": self.window_samples}
+        design = GainDesign(gain_design)
+        return ObserverRecord(gain_design=design,
+                              decay_cycles=self.decay_cycles if design is GainDesign.DECAY else None,
+                              gain=tuple(self.observer.gain),
+                              error_pole_radius=float(np.max(np.abs(self.observer.error_poles))),
+                              window_samples=self.window_samples)
 
-    def index_dict(self) -> dict:
+    def index_record(self) -> IndexRecord:
         """Which index, why, its normalisation and thresholds (index units), for report.json."""
         on, off = self.index_thresholds()
-        out = {"kind": self.kind.value, "reason": self.reason, "on": on, "off": off}
         if self.kind is IndexKind.FORCING:
             forcing = self.forcing
-            return {**out, "level": forcing.scale, "big": forcing.big / forcing.scale,
-                    "memory_periods": self.memory_periods,
-                    "on_sample_forcing": abs(self.on_sample.forcing) / forcing.scale if self.on_sample else None,
-                    "units": "the free-air standard deviation of the projected forcing (dither units: level)"}
+            return IndexRecord(
+                kind=self.kind, reason=self.reason, on=on, off=off, level=forcing.scale,
+                big=forcing.big / forcing.scale, memory_periods=self.memory_periods,
+                on_sample_forcing=abs(self.on_sample.forcing) / forcing.scale if self.on_sample else None,
+                units="the free-air standard deviation of the projected forcing (dither units: level)")
         calibration = self.calibration
+        # NaN without a free-air segment: written as null
+        return IndexRecord(kind=self.kind, reason=self.reason, on=on, off=off, level=calibration.level,
+                           free_air_samples=calibration.samples, free_air_median=float(calibration.index_median),
+                           free_air_quantile=float(calibration.index_quantile),
+                           free_air_max=float(calibration.index_max))
 
-        def finite(value):
-            return None if math.isnan(value) else float(value)
-
-        return {**out, "level": calibration.level, "free_air_samples": calibration.samples,
-                "free_air_median": finite(calibration.index_median),
-                "free_air_quantile": finite(calibration.index_quantile), "free_air_max": finite(calibration.index_max)}
-
-    def detectability_dict(self) -> dict:
+    def detectability_record(self) -> DetectabilityRecord:
         """The prediction made before the run, for report.json (issue 28, item 2)."""
         from afmtool.estimators.forcing_design import TARGET_LATENCY, TARGET_PRECISION, TARGET_RECALL
 
         on = self.on_sample
-        return {
-            "predicted": self.prediction.as_dict() if self.prediction is not None else None,
-            "information_limit_periods": self.information_limit_periods,
-            "beyond_limit": self.beyond_limit,
-            "statement": self.statement() or None,
-            "targets": {"latency_periods": TARGET_LATENCY, "precision": TARGET_PRECISION,
-                        "recall": TARGET_RECALL},
-            "on_sample": None if on is None else {
-                "free_amplitude": on.free_amplitude, "amplitude": on.amplitude,
-                "amplitude_source": _AMPLITUDE_SOURCES.get(on.amplitude_source, on.amplitude_source),
-                "forcing_source": on.forcing_source, "periods_on_sample": on.periods_on_sample,
-            },
-            "alternatives": [{"kind": kind, **prediction.as_dict()} for kind, prediction in self.alternatives],
-        }
+        return DetectabilityRecord(
+            predicted=self.prediction.record() if self.prediction is not None else None,
+            information_limit_periods=self.information_limit_periods,
+            beyond_limit=self.beyond_limit,
+            statement=self.statement() or None,
+            targets=TargetsRecord(latency_periods=TARGET_LATENCY, precision=TARGET_PRECISION, recall=TARGET_RECALL),
+            on_sample=None if on is None else OnSampleRecord(
+                free_amplitude=on.free_amplitude, amplitude=on.amplitude,
+                amplitude_source=_AMPLITUDE_SOURCES.get(on.amplitude_source, on.amplitude_source),
+                forcing_source=ForcingSource(on.forcing_source), periods_on_sample=on.periods_on_sample,
+            ),
+            alternatives=tuple(prediction.record(IndexKind(kind)) for kind, prediction in self.alternatives),
+        )
 
     def statement(self) -> str:
         """The headline sentence when the capture is beyond the limit, else ''."""

@@ -28,10 +28,11 @@ declared as ``scores`` are left out:
 * a free-air phase misfit above 30° (``free_air_route.phase_misfit_deg``):
   the model the observer runs on does not fit the capture; probeloss shows
   no precision, recall or latency;
-* probeloss: the switch reading loss more than half the time; a capture
-  predicted beyond the detection limit (``detectability``); event precision
-  and recall against ``/truth`` that disagree with the time-weighted
-  precision (more than 0.1 apart) are left out, with the reason;
+* probeloss (:class:`afmtool.records.probeloss.ProbeLossResults`): the switch
+  reading loss more than half the time; a capture predicted beyond the
+  detection limit (``detectability``); event precision and recall against
+  ``/truth`` that disagree with the time-weighted precision (more than 0.1
+  apart) are left out, with the reason;
 * reep (:class:`afmtool.records.reep.ReepResults`): a free-air f0′ more than
   5 of its standard deviations from the lever's f0 (``free_air_check``) comes
   first; then, when more than half of REEP's rows are flagged, why
@@ -59,10 +60,6 @@ __all__ = [
 STATE_NAME = "warning"
 #: Above this free-air phase misfit (degrees) the headline shows the misfit, not scores.
 _PHASE_MISFIT_DEG = 30.0
-#: Above this loss fraction probeloss's headline shows the state, not scores.
-_MOSTLY_LOSS = 0.5
-#: Event and time-weighted precision farther apart than this disagree.
-_SCORE_AGREEMENT = 0.1
 
 #: Keys of one headline entry (``schemas/report.schema.json``, ``headline.items``).
 HEADLINE_FIELDS = ("name", "value", "std", "units", "source", "std_source", "at", "note", "text")
@@ -109,34 +106,8 @@ def _phase_state(results: Mapping, held: bool) -> State | None:
                  "scores against it are not shown", "free_air_route.phase_misfit_deg")
 
 
-def _detectability_state(results: Mapping, held: bool) -> State | None:
-    detectability = results.get("detectability") or {}
-    if not detectability.get("beyond_limit"):
-        return None
-    return State(detectability.get("statement") or "beyond the detection limit", "detectability.beyond_limit",
-                 hides_scores=False)
-
-
-def _mostly_loss_state(results: Mapping, held: bool) -> State | None:
-    loss = _number_at(results, "loss_fraction")
-    if loss is None or loss <= _MOSTLY_LOSS:
-        return None
-    return State(f"the switch reads probe loss {100 * loss:.0f} % of the time: off the sample that long, or the "
-                 "index has no contrast on the sample; scores are not shown", "loss_fraction")
-
-
-def _scores_disagree_state(results: Mapping, held: bool) -> State | None:
-    """Event precision vs /truth against the time-weighted one (asked only while the scores still stand)."""
-    event, timed = _number_at(results, "truth.index.precision"), _number_at(results, "truth.index.time_precision")
-    if held or event is None or timed is None or abs(event - timed) <= _SCORE_AGREEMENT:
-        return None
-    return State(f"event precision {event:.2f} disagrees with the time-weighted precision {timed:.2f}: event "
-                 "precision and recall are not shown", "truth.index.time_precision")
-
-
 #: Each command's states, checked in order before its numbers (issue 28).
 STATES: Mapping[str, tuple[Callable[[Mapping, bool], State | None], ...]] = {
-    "probeloss": (_phase_state, _detectability_state, _mostly_loss_state, _scores_disagree_state),
     "kalman-bank": (_phase_state,),
 }
 
