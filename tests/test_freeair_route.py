@@ -17,6 +17,7 @@ from afmtool.analyses.freeair_route import resolve_free_air
 from afmtool.errors import ConfigError
 from afmtool.io.chunks import iter_chunks
 from afmtool.models.free_air import FreeAirModel
+from afmtool.records.common import Route
 from tests import reference_sim as rs
 from tests.conftest import run_cli
 from tests.test_reep_reference import reference_reader
@@ -123,10 +124,10 @@ def test_kalman_bank_accepts_the_f0_q_route():
     )
     params = resolve(KalmanBankParams, {"f0_hz": F0_BANK, "q": Q_BANK, "n_filters": 3})
     res = run_kalman_bank(reference_reader(cap), params, Columns()).results
-    assert res["free_air_route"]["route"] == "f0-q" and res["free_air_route"]["f0_q_from"] == "flags"
-    assert res["free_air_model"]["source"] == "f0-q:flags"
-    assert res["free_air_model"]["gain"] == pytest.approx(1.0, rel=2e-3)
-    assert len(res["filters"]) == 3
+    assert res.free_air_route.route is Route.F0_Q and res.free_air_route.f0_q_from == "flags"
+    assert res.free_air_model.source == "f0-q:flags"
+    assert res.free_air_model.gain == pytest.approx(1.0, rel=2e-3)
+    assert len(res.filters) == 3
 
 
 def test_a_phase_matching_neither_hold_is_reported():

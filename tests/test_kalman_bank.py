@@ -32,6 +32,7 @@ from afmtool.estimators.kalman_bank_verdict import (
 )
 from afmtool.io.capture import Chunk
 from afmtool.io.memory import ArrayReader
+from afmtool.records.kalman_bank import DesignMethod
 
 FORCE_SETS = ("attractive", "attractive-repulsive", "repulsive")
 #: The acceptance criterion of issue 5: the adaptive observer has the least RMS at least 90 % of the time.
@@ -97,34 +98,34 @@ def default_runs(captures) -> dict:
 def test_every_filter_has_its_minimum_in_its_design_bin_and_the_adaptive_observer_wins(default_runs, force_set):
     result, _ = default_runs[force_set]
     res = result.results
-    adaptive = res["adaptive"]
+    adaptive = res.adaptive
     print(
-        f"{force_set}: design z {[f['design_z'] for f in res['filters']]}, least-RMS z "
-        f"{[f['min_z'][res['design']['leg']] for f in res['filters']]}, adaptive least "
-        f"{adaptive['fraction_lowest']:.1%} of the time (by leg {adaptive['fraction_lowest_by_leg']}, "
-        f"within the bank's span {adaptive['fraction_lowest_within_bank_span']:.1%})"
+        f"{force_set}: design z {[f.design_z for f in res.filters]}, least-RMS z "
+        f"{[getattr(f.min_z, res.design.leg.value) for f in res.filters]}, adaptive least "
+        f"{adaptive.fraction_lowest:.1%} of the time (by leg {adaptive.fraction_lowest_by_leg}, "
+        f"within the bank's span {adaptive.fraction_lowest_within_bank_span:.1%})"
     )
-    assert len(res["filters"]) == 5
-    for f in res["filters"]:
-        assert f["min_bin_offset"] == 0, f  # strictly in the design bin, not by the flat-minimum clause
-        assert f["pass"]
+    assert len(res.filters) == 5
+    for f in res.filters:
+        assert f.min_bin_offset == 0, f  # strictly in the design bin, not by the flat-minimum clause
+        assert f.pass_
     # the filters span the interaction: f0' falls by > 300 Hz between the first and the last design point
-    assert abs(res["filters"][0]["f0_hz"] - res["filters"][-1]["f0_hz"]) > 300.0
-    assert adaptive["fraction_lowest"] >= ADAPTIVE_FRACTION
-    assert res["verdict"]["pass"] and not res["verdict"]["reasons"]
-    assert "tolerance" in res["verdict"] and "design bin" in res["verdict"]["tolerance"]
+    assert abs(res.filters[0].f0_hz - res.filters[-1].f0_hz) > 300.0
+    assert adaptive.fraction_lowest >= ADAPTIVE_FRACTION
+    assert res.verdict.pass_ and not res.verdict.reasons
+    assert "design bin" in res.verdict.tolerance
 
 
 @pytest.mark.parametrize("force_set", FORCE_SETS)
 def test_a_bank_with_f0_two_percent_high_fails_and_says_why(captures, force_set):
     result, _ = _run(captures[force_set], f0_scale=1.02)
-    verdict = result.results["verdict"]
-    offsets = [f["min_bin_offset"] for f in result.results["filters"]]
-    print(f"{force_set}, f0 + 2 %: least-RMS bins off by {offsets}; first reason: {verdict['reasons'][0]}")
-    assert not verdict["pass"]
-    assert all(not f["pass"] for f in result.results["filters"])
-    assert len(verdict["reasons"]) >= 5
-    for k, reason in enumerate(verdict["reasons"][:5]):
+    verdict = result.results.verdict
+    offsets = [f.min_bin_offset for f in result.results.filters]
+    print(f"{force_set}, f0 + 2 %: least-RMS bins off by {offsets}; first reason: {verdict.reasons[0]}")
+    assert not verdict.pass_
+    assert all(not f.pass_ for f in result.results.filters)
+    assert len(verdict.reasons) >= 5
+    for k, reason in enumerate(verdict.reasons[:5]):
         assert reason.startswith(f"filter {k + 1} ")
         assert "from its design bin" in reason and "does not match the cantilever" in reason
 
@@ -133,7 +134,7 @@ def test_small_f0_errors_are_caught_too(captures):
     """The check's power: ±0.2 % of f0 (160 Hz, two-thirds of a half-width) already fails."""
     for scale in (0.998, 1.002):
         result, _ = _run(captures["attractive"], f0_scale=scale)
-        assert not result.results["verdict"]["pass"]
+        assert not result.results.verdict.pass_
 
 
 # --------------------------------------------------------------------------- streaming and routes
@@ -154,25 +155,25 @@ def test_chunked_run_equals_one_chunk(captures):
     for columns, result in outputs[1:]:
         for name in ("t", "z", "rms", "adaptive_rms", "reep_f0_hz"):
             np.testing.assert_allclose(columns[name], reference[name], rtol=0, atol=1e-12)
-        assert result.results["adaptive"]["fraction_lowest"] == ref_result.results["adaptive"]["fraction_lowest"]
+        assert result.results.adaptive.fraction_lowest == ref_result.results.adaptive.fraction_lowest
 
 
 def test_models_route_recovers_the_design_points(captures, default_runs):
     """Naming the automatic design's models with --models finds the same design points by nearest REEP model."""
     auto, _ = default_runs["attractive"]
-    models = ",".join(f"{f['f0_hz']}:{f['q']}" for f in auto.results["filters"])
+    models = ",".join(f"{f.f0_hz}:{f.q}" for f in auto.results.filters)
     result, _ = _run(captures["attractive"], models=models)
-    found = [f["design_z"] for f in result.results["filters"]]
-    wanted = [f["design_z"] for f in auto.results["filters"]]
+    found = [f.design_z for f in result.results.filters]
+    wanted = [f.design_z for f in auto.results.filters]
     assert np.allclose(found, wanted, atol=0.5)
-    assert result.results["verdict"]["pass"]
-    assert result.results["design"]["method"] == "models"
+    assert result.results.verdict.pass_
+    assert result.results.design.method is DesignMethod.MODELS
 
 
 def test_at_z_route(captures):
     result, _ = _run(captures["attractive"], at_z="-10.25,-16.75,-20.25")
-    assert [f["design_z"] for f in result.results["filters"]] == [-10.25, -16.75, -20.25]
-    assert result.results["verdict"]["pass"]
+    assert [f.design_z for f in result.results.filters] == [-10.25, -16.75, -20.25]
+    assert result.results.verdict.pass_
     with pytest.raises(InputError, match="outside the force curve"):
         _run(captures["attractive"], at_z="-60")
 

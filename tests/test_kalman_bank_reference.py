@@ -16,6 +16,7 @@ import pytest
 from afmtool.analyses.kalman_bank import run_kalman_bank
 from afmtool.config import resolve
 from afmtool.config.params import KalmanBankParams
+from afmtool.records.common import DriveHold
 from tests import reference_sim as rs
 from tests.test_kalman_bank import ADAPTIVE_FRACTION, Columns
 from tests.test_reep_reference import reference_reader
@@ -54,22 +55,22 @@ def _run(cap, **overrides):
 
 def test_bank_verdict_on_a_reference_force_curve(reference_curve):
     res = _run(reference_curve).results
-    adaptive = res["adaptive"]
+    adaptive = res.adaptive
     print(
-        f"reference attractive: design z {[f['design_z'] for f in res['filters']]}, least-RMS offsets "
-        f"{[f['min_bin_offset'] for f in res['filters']]}, adaptive least {adaptive['fraction_lowest']:.1%}; "
-        f"hold {res['free_air_route']['drive_hold']}"
+        f"reference attractive: design z {[f.design_z for f in res.filters]}, least-RMS offsets "
+        f"{[f.min_bin_offset for f in res.filters]}, adaptive least {adaptive.fraction_lowest:.1%}; "
+        f"hold {res.free_air_route.drive_hold.value}"
     )
-    assert res["free_air_route"]["drive_hold"] == "continuous"
-    assert len(res["filters"]) == 5
-    for f in res["filters"]:
-        assert f["min_bin_offset"] == 0, f
-    assert abs(res["filters"][0]["f0_hz"] - res["filters"][-1]["f0_hz"]) > 300.0
-    assert adaptive["fraction_lowest"] >= ADAPTIVE_FRACTION
-    assert res["verdict"]["pass"], res["verdict"]["reasons"]
+    assert res.free_air_route.drive_hold is DriveHold.CONTINUOUS
+    assert len(res.filters) == 5
+    for f in res.filters:
+        assert f.min_bin_offset == 0, f
+    assert abs(res.filters[0].f0_hz - res.filters[-1].f0_hz) > 300.0
+    assert adaptive.fraction_lowest >= ADAPTIVE_FRACTION
+    assert res.verdict.pass_, res.verdict.reasons
 
 
 def test_bank_two_percent_high_fails_on_the_reference(reference_curve):
-    verdict = _run(reference_curve, f0_scale=1.02).results["verdict"]
-    assert not verdict["pass"]
-    assert len(verdict["reasons"]) >= 5
+    verdict = _run(reference_curve, f0_scale=1.02).results.verdict
+    assert not verdict.pass_
+    assert len(verdict.reasons) >= 5

@@ -208,12 +208,8 @@ def test_every_command_that_writes_a_report_has_a_record_or_is_listed_as_still_t
 
 
 #: The commands whose results are still a dict, and the modules that read them by string (issue 29, item 2).
-_NOT_YET_RECORDS = {
-    "kalman-bank",
-}
-_STILL_READ_BY_STRING = {
-    "analyses/kalman_bank.py", "analyses/kalman_bank_outputs.py",
-}
+_NOT_YET_RECORDS: set[str] = set()
+_STILL_READ_BY_STRING: set[str] = set()
 
 
 def test_no_module_reads_results_by_string() -> None:

@@ -146,9 +146,9 @@ def test_split_on_two_threads_equals_sequential(case, long_ltv, tmp_path, monkey
             sequential.results.ekf.bit_stream_innovation_rms_nm, rel=RTOL)
     if command == "kalman-bank":
         for key in ("held_samples", "samples_compared"):
-            assert split.results["adaptive"][key] == sequential.results["adaptive"][key]
-        assert split.results["adaptive"]["fraction_lowest"] == pytest.approx(
-            sequential.results["adaptive"]["fraction_lowest"], rel=RTOL)
+            assert getattr(split.results.adaptive, key) == getattr(sequential.results.adaptive, key)
+        assert split.results.adaptive.fraction_lowest == pytest.approx(
+            sequential.results.adaptive.fraction_lowest, rel=RTOL)
         assert split.verdict.passed == sequential.verdict.passed
 
 

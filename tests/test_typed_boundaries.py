@@ -321,30 +321,30 @@ def test_bank_gamma_probeloss_decode_readers_round_trip(tmp_path):
 
 
 def test_result_records_are_frozen_and_write_their_report_section():
+    """reep's, probeloss's and kalman-bank's results are typed records: each result's report section is its record's."""
     import dataclasses
 
     from afmtool.analyses.kalman_bank import KalmanBankResult
+    from afmtool.analyses.probeloss import ProbeLossResult
     from afmtool.analyses.reep import ReepResult
-
-    raw = {"f0_hz": np.float64(7e4), "series": np.arange(3), "bad": float("nan"), "pair": (1, np.int64(2)),
-           "nested": {"q": np.float32(0.5)}}
-    expected = {"f0_hz": 7e4, "series": [0, 1, 2], "bad": None, "pair": [1, 2], "nested": {"q": 0.5}}
-    fields = {f.name for f in dataclasses.fields(KalmanBankResult)} - {"results", "warnings"}
-    records = [KalmanBankResult(raw, (), **dict.fromkeys(fields))]
-    for record in records:
-        assert record.to_json() == expected
-        json.dumps(record.to_json(), allow_nan=False)
-        with pytest.raises(dataclasses.FrozenInstanceError):
-            record.results = {}  # type: ignore[misc]
-    # reep's results are a typed record (afmtool.records.reep): its report section is the record's
+    from afmtool.records.kalman_bank import KalmanBankResults
+    from afmtool.records.probeloss import ProbeLossResults
     from afmtool.records.reep import ReepResults
     from tests.golden import GOLDEN_DIR
 
-    section = json.loads((GOLDEN_DIR / "reep_ltv_step.json").read_text())["results"]
-    reep = ReepResult(ReepResults.from_json(section), ())
-    assert reep.to_json() == section
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        reep.results = {}  # type: ignore[misc]
+    bank_fields = {f.name for f in dataclasses.fields(KalmanBankResult)} - {"results", "warnings"}
+    for golden, record, result in (
+        ("reep_ltv_step", ReepResults, lambda r: ReepResult(r, ())),
+        ("probeloss_raster_grating", ProbeLossResults, lambda r: ProbeLossResult(r, ())),
+        ("kalman_bank_force_curve_thesis", KalmanBankResults,
+         lambda r: KalmanBankResult(r, (), **dict.fromkeys(bank_fields))),
+    ):
+        section = json.loads((GOLDEN_DIR / f"{golden}.json").read_text())["results"]
+        made = result(record.from_json(section))
+        assert made.to_json() == section, golden
+        json.dumps(made.to_json(), allow_nan=False)
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            made.results = {}  # type: ignore[misc]
 
 
 def test_theory_compare_result_is_the_report_section():

@@ -107,8 +107,14 @@ class FreeAirRoute(NamedTuple):
     warnings: tuple[str, ...]
 
 
-def route_record(report: Mapping) -> FreeAirRouteRecord:
-    """A route's ``report`` as report.json's ``free_air_route`` (:class:`~afmtool.records.common.FreeAirRouteRecord`)."""
+def route_record(report: Mapping | FreeAirRouteRecord | None) -> FreeAirRouteRecord | None:
+    """A route's ``report`` as report.json's ``free_air_route`` (:class:`~afmtool.records.common.FreeAirRouteRecord`).
+
+    A record (an earlier run's, read back) is returned as it is; None (no route: a model that came with
+    ``--reep``) stays None.
+    """
+    if report is None or isinstance(report, FreeAirRouteRecord):
+        return report
     return FreeAirRouteRecord.from_json(report)
 
 

@@ -69,6 +69,7 @@ from pathlib import Path
 import numpy as np
 
 from afmtool.analyses.accumulators import DelayLine, ForceCurveAccumulator, ForceCurveTable, ReepBinner
+from afmtool.analyses.freeair_route import route_record
 from afmtool.analyses.freeair_source import drive_frequency
 from afmtool.analyses.kalman_bank_reep import (
     HeldReepCoefficients,
@@ -103,7 +104,18 @@ from afmtool.io.chunks import require_channels
 from afmtool.io.spill import SpillingReader
 from afmtool.models.free_air import FreeAirModel
 from afmtool.pipeline import Decimation, Head, Split, Warmup, run_stream
-from afmtool.report.results import JsonResults
+from afmtool.records.kalman_bank import (
+    AdaptiveRecord,
+    BankDesignRecord,
+    BankFilterRecord,
+    BankReepRecord,
+    BankVerdictRecord,
+    DesignMethod,
+    KalmanBankResults,
+    Leg,
+    PerLeg,
+    ReepCoefficients,
+)
 
 __all__ = ["SERIES_UNITS", "KalmanBankResult", "BankSetup", "BankStage", "BankOutcome", "build_bank", "run_kalman_bank"]
 
@@ -123,12 +135,12 @@ _PASS_TWO_READ_AHEAD = 0
 
 
 @dataclass(frozen=True)
-class KalmanBankResult(JsonResults):
+class KalmanBankResult:
     """What :func:`run_kalman_bank` found; the command turns it into files and a report.
 
     Attributes
     ----------
-    results : dict
+    results : KalmanBankResults
         The ``results`` of report.json.
     warnings : tuple of str
     points : tuple of DesignPoint
@@ -143,7 +155,7 @@ class KalmanBankResult(JsonResults):
         The bank's f0 (after ``f0_scale``), Hz.
     """
 
-    results: dict
+    results: KalmanBankResults
     warnings: tuple[str, ...]
     points: tuple[DesignPoint, ...]
     rms_tables: dict[str, RmsTable]
@@ -151,6 +163,10 @@ class KalmanBankResult(JsonResults):
     verdict: BankVerdict
     z_units: str = ""
     model_f0_hz: tuple[float, ...] = field(default_factory=tuple)
+
+    def to_json(self) -> dict:
+        """``results`` as report.json holds them."""
+        return self.results.to_json()
 
 
 def build_bank(
@@ -664,7 +680,6 @@ def run_kalman_bank(
     if reep_results is not None and outcome.coefficients.last_sample >= outcome.n_total:
         raise InputError(f"--reep {reep_results.path}: REEP's series runs past the capture's {outcome.n_total} samples")
     result = _judge(params, outcome, tables, info.units("z_piezo"), reep_results)
-    result.results["free_air_route"] = outcome.route  # how the model was chosen, and the drive's hold
     return dataclasses.replace(result, warnings=outcome.route_warnings + result.warnings)
 
 
@@ -720,89 +735,103 @@ def leg_minima(tables: dict[str, RmsTable]) -> dict[str, list[float]]:
     return out
 
 
-def _filter_rows(params, setup: BankSetup, points, verdict: BankVerdict, minima) -> list[dict]:
+def _per_leg(values: dict[str, float]) -> PerLeg:
+    """``{leg: value}`` as a :class:`PerLeg` (a leg the capture lacks is absent)."""
+    return PerLeg(**{leg.value: float(values[leg.value]) for leg in Leg if leg.value in values})
+
+
+def _filter_rows(params, setup: BankSetup, points, verdict: BankVerdict, minima) -> tuple[BankFilterRecord, ...]:
     rows = []
     for k, (point, design, fv) in enumerate(zip(points, setup.designs, verdict.filters, strict=True)):
-        rows.append({
-            "index": k + 1,
-            "f0_hz": point.f0_hz * params.f0_scale,
-            "q": point.q,
-            "reep_f0_hz": point.f0_hz if point.source != "models" else None,
-            "source": point.source,
-            "design_z": point.z,
-            "design_bin": list(fv.design_bin),
-            "model_distance_to_reep": point.distance,
-            "denominator": list(design.denominator),
-            "gain": list(design.gain),
-            "error_pole_radius": float(np.abs(design.error_poles).mean()),
-            "min_z": {leg: values[k] for leg, values in minima.items()},
-            "min_bin_offset": fv.min_bin_offset,
-            "design_rms": fv.design_rms,
-            "min_rms": fv.min_rms,
-            "design_rms_excess": fv.excess,
-            "design_rms_over_adaptive": fv.over_adaptive,
-            "pass": fv.passed,
-        })
-    return rows
+        rows.append(BankFilterRecord(
+            index=k + 1,
+            f0_hz=point.f0_hz * params.f0_scale,
+            q=point.q,
+            reep_f0_hz=point.f0_hz if point.source != "models" else None,
+            source=DesignMethod(point.source),
+            design_z=point.z,
+            design_bin=fv.design_bin,
+            model_distance_to_reep=point.distance,
+            denominator=tuple(design.denominator),
+            gain=tuple(design.gain),
+            error_pole_radius=float(np.abs(design.error_poles).mean()),
+            min_z=_per_leg({leg: values[k] for leg, values in minima.items()}),
+            min_bin_offset=fv.min_bin_offset,
+            design_rms=fv.design_rms,
+            min_rms=fv.min_rms,
+            design_rms_excess=fv.excess,
+            design_rms_over_adaptive=fv.over_adaptive,
+            pass_=fv.passed,
+        ))
+    return tuple(rows)
+
+
+def _reep_record(setup: BankSetup, reep_results) -> BankReepRecord:
+    """The REEP the bank checks: internal, or the run given with ``--reep``."""
+    return BankReepRecord(
+        source=str(reep_results.path) if reep_results is not None else "internal",
+        forgetting_factor=setup.timing.capture_lam,
+        reep_forgetting_factor=setup.timing.lam,
+        rate_reduction=setup.timing.factor,
+        window_samples=setup.timing.window_samples,
+        coefficients=ReepCoefficients.HELD if reep_results is not None else ReepCoefficients.INTERNAL,
+    )
+
+
+def _adaptive_record(setup: BankSetup, stream: BankOutcome, adaptive) -> AdaptiveRecord:
+    fs = stream.fs
+    return AdaptiveRecord(
+        pole_radius=setup.radius,
+        error_time_constant_periods=-1.0 / math.log(setup.radius) * setup.drive_hz / fs,
+        held_samples=stream.held_samples,
+        fraction_lowest=adaptive.fraction,
+        fraction_lowest_by_leg=_per_leg(adaptive.fraction_by_leg),
+        fraction_lowest_within_bank_span=adaptive.fraction_within_span,
+        samples_compared=stream.counted,
+        pass_=adaptive.passed,
+    )
 
 
 def _results(params, setup: BankSetup, stream: BankOutcome, points, verdict, tol, z_units, reep_results, rms_tables):
     fs = stream.fs
-    adaptive = verdict.adaptive
-    return {
-        "free_air_model": setup.model.to_dict(),
-        "free_air_segment_s": list(setup.segment_s) if setup.segment_s else None,
-        "reep": {
-            "source": str(reep_results.path) if reep_results is not None else "internal",
-            "forgetting_factor": setup.timing.capture_lam,
-            "reep_forgetting_factor": setup.timing.lam,
-            "rate_reduction": setup.timing.factor,
-            "window_samples": setup.timing.window_samples,
-            "coefficients": ("held per sample from the decimated series" if reep_results is not None
-                             else "every REEP sample, held between them"),
-        },
-        "n_samples": stream.n_total,
-        "duration_s": stream.n_total / fs,
-        "sample_rate_hz": fs,
-        "drive_frequency_hz": setup.drive_hz,
-        "decimate": setup.decimate,
+    return KalmanBankResults(
+        free_air_model=setup.model.record(),
+        free_air_segment_s=setup.segment_s or None,
+        reep=_reep_record(setup, reep_results),
+        n_samples=stream.n_total,
+        duration_s=stream.n_total / fs,
+        sample_rate_hz=fs,
+        drive_frequency_hz=setup.drive_hz,
+        decimate=setup.decimate,
         # the series' density and what set it (issue 33)
-        "rows": f"decimate {params.decimate}" if params.decimate else params.rows,
-        "row_every_samples": setup.decimate,
-        "row_rate_hz": fs / setup.decimate,
-        "rms_window_samples": setup.window,
-        "rms_window_periods": setup.window * setup.drive_hz / fs,
-        "rms_binned_delay_samples": setup.rms_delay,
-        "warmup_samples": setup.warmup,
-        "ramp_z_per_sample": stream.z_per_sample,
-        "reep_window_z": stream.z_per_sample * setup.timing.window_samples,
-        "z_units": z_units,
-        "design": {
-            "method": points[0].source,
-            "leg": params.design_leg,
-            "n_filters": len(points),
-            "gain": "steady-state Kalman predictor (DARE)",
-            "noise_ratio": params.noise_ratio,
-            "f0_scale": params.f0_scale,
-        },
-        "filters": _filter_rows(params, setup, points, verdict, leg_minima(rms_tables)),
-        "adaptive": {
-            "pole_radius": setup.radius,
-            "error_time_constant_periods": -1.0 / math.log(setup.radius) * setup.drive_hz / fs,
-            "held_samples": stream.held_samples,
-            "fraction_lowest": adaptive.fraction,
-            "fraction_lowest_by_leg": dict(adaptive.fraction_by_leg),
-            "fraction_lowest_within_bank_span": adaptive.fraction_within_span,
-            "samples_compared": stream.counted,
-            "pass": adaptive.passed,
-        },
-        "verdict": {
-            "pass": verdict.passed,
-            "tolerance": tol.describe(z_units),
-            "z_bin": tol.z_bin,
-            "z_tolerance_bins": tol.z_tolerance_bins,
-            "rms_tolerance": tol.rms_tolerance,
-            "adaptive_fraction_required": tol.adaptive_fraction,
-            "reasons": list(verdict.reasons),
-        },
-    }
+        rows=f"decimate {params.decimate}" if params.decimate else params.rows,
+        row_every_samples=setup.decimate,
+        row_rate_hz=fs / setup.decimate,
+        rms_window_samples=setup.window,
+        rms_window_periods=setup.window * setup.drive_hz / fs,
+        rms_binned_delay_samples=setup.rms_delay,
+        warmup_samples=setup.warmup,
+        ramp_z_per_sample=stream.z_per_sample,
+        reep_window_z=stream.z_per_sample * setup.timing.window_samples,
+        z_units=z_units,
+        design=BankDesignRecord(
+            method=DesignMethod(points[0].source),
+            leg=Leg(params.design_leg),
+            n_filters=len(points),
+            gain="steady-state Kalman predictor (DARE)",
+            noise_ratio=params.noise_ratio,
+            f0_scale=params.f0_scale,
+        ),
+        filters=_filter_rows(params, setup, points, verdict, leg_minima(rms_tables)),
+        adaptive=_adaptive_record(setup, stream, verdict.adaptive),
+        verdict=BankVerdictRecord(
+            pass_=verdict.passed,
+            tolerance=tol.describe(z_units),
+            z_bin=tol.z_bin,
+            z_tolerance_bins=tol.z_tolerance_bins,
+            rms_tolerance=tol.rms_tolerance,
+            adaptive_fraction_required=tol.adaptive_fraction,
+            reasons=verdict.reasons,
+        ),
+        free_air_route=route_record(stream.route),  # how the model was chosen, and the drive's hold
+    )

@@ -56,7 +56,9 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
                     reader, params, sink, model=model, reep_results=reep_results, scratch=staged.scratch_folder(),
                     progress=run.progress, split=run.split, on_stream_start=run.figures.on_stream_start,
                 )
-                writer.set_attrs(row_attrs(result.results, reader.info.sample_rate_hz))
+                results = result.results
+                writer.set_attrs(row_attrs({"rows": results.rows, "row_every_samples": results.row_every_samples,
+                                            "row_rate_hz": results.row_rate_hz}, reader.info.sample_rate_hz))
                 _write_tables(writer, result, deflection_units)
             staged.flush_early("bank.h5")  # to disk while the figures are drawn
             _plot_rms_vs_z(run.figures, staged.path("bank_rms_vs_z.png"), result, deflection_units)
@@ -67,22 +69,22 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
             # after the run: the samples are hashed and the drive phases fitted
             inputs.insert(0, {**capture_record.result(), **calibration_record(reader)})
             run.figures.wait()
-            return finish_run(staged, "kalman-bank", inputs, "kalman-bank", params, result.results, warnings)
+            return finish_run(staged, "kalman-bank", inputs, "kalman-bank", params, results, warnings)
     finally:
         if reep_results is not None:
             reep_results.close()
 
 
 def _write_tables(writer: MatrixResultWriter, result: KalmanBankResult, deflection_units: str) -> None:
-    filters = result.results["filters"]
-    writer.put("models/f0_hz", [f["f0_hz"] for f in filters], "Hz")
-    writer.put("models/q", [f["q"] for f in filters])
-    writer.put("models/design_z", [f["design_z"] for f in filters], result.z_units)
-    writer.put("models/denominator", [f["denominator"] for f in filters], "", {"columns": "b1, b0 (eq. 3.40)"})
-    writer.put("models/gain", [f["gain"] for f in filters], "", {"columns": "L1, L2 (predictor gain)"})
-    free_air = result.results["free_air_model"]
-    writer.put("models/free_air_f0_hz", free_air["f0_hz"], "Hz")
-    writer.put("models/free_air_q", free_air["q"])
+    filters = result.results.filters
+    writer.put("models/f0_hz", [f.f0_hz for f in filters], "Hz")
+    writer.put("models/q", [f.q for f in filters])
+    writer.put("models/design_z", [f.design_z for f in filters], result.z_units)
+    writer.put("models/denominator", [f.denominator for f in filters], "", {"columns": "b1, b0 (eq. 3.40)"})
+    writer.put("models/gain", [f.gain for f in filters], "", {"columns": "L1, L2 (predictor gain)"})
+    free_air = result.results.free_air_model
+    writer.put("models/free_air_f0_hz", free_air.f0_hz, "Hz")
+    writer.put("models/free_air_q", free_air.q)
     for leg, table in result.rms_tables.items():
         writer.put(f"force_curve/{leg}/z", table.z, result.z_units)
         writer.put(f"force_curve/{leg}/count", table.count)

@@ -149,6 +149,10 @@ class ProbeLossResult:
     geometry: ScanGeometry | None = None
     setup: ProbeLossSetup | None = None
 
+    def to_json(self) -> dict:
+        """``results`` as report.json holds them."""
+        return self.results.to_json()
+
 
 # --------------------------------------------------------------------------- set-up
 

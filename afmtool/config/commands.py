@@ -36,7 +36,6 @@ import enum
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
-from afmtool.config import headline_items as H
 from afmtool.config import params as P
 from afmtool.config.headline_items import Item
 
@@ -241,7 +240,8 @@ _KALMAN_BANK = CommandSpec(
     "kalman-bank", Kind.CAPTURE, _own(P.KalmanBankParams), _analysis("kalman_bank_outputs", "run_kalman_bank_command"),
     examples=("afmtool kalman-bank sample_data/force_curve_thesis.h5 --out results/bank_thesis",
               "afmtool kalman-bank sample_data/tapping_force_curve.h5 --reep results/force_curve --out results/bank"),
-    main_figures=("bank_rms_vs_time.png", "bank_rms_vs_z.png"), headline=H.KALMAN_BANK, batch="kalman-bank",
+    main_figures=("bank_rms_vs_time.png", "bank_rms_vs_z.png"),
+    result=Lazy("afmtool.records.kalman_bank", "KalmanBankResults"), batch="kalman-bank",
     channels=("deflection", "dither", "z_piezo"), synthesised_drive=True,
 )
 

@@ -25,9 +25,9 @@ entry named ``"warning"`` whose ``source`` is the number that says so
 (:data:`STATES`, or the ``STATES`` of the command's result record), and the items
 declared as ``scores`` are left out:
 
-* a free-air phase misfit above 30° (``free_air_route.phase_misfit_deg``):
-  the model the observer runs on does not fit the capture; probeloss shows
-  no precision, recall or latency;
+* a free-air phase misfit above 30° (``free_air_route.phase_misfit_deg``,
+  :func:`afmtool.records.common.phase_state`): the model the observer runs on
+  does not fit the capture; probeloss shows no precision, recall or latency;
 * probeloss (:class:`afmtool.records.probeloss.ProbeLossResults`): the switch
   reading loss more than half the time; a capture predicted beyond the
   detection limit (``detectability``); event precision and recall against
@@ -58,8 +58,6 @@ __all__ = [
 
 #: ``name`` of a headline entry that states the run's state instead of a number.
 STATE_NAME = "warning"
-#: Above this free-air phase misfit (degrees) the headline shows the misfit, not scores.
-_PHASE_MISFIT_DEG = 30.0
 
 #: Keys of one headline entry (``schemas/report.schema.json``, ``headline.items``).
 HEADLINE_FIELDS = ("name", "value", "std", "units", "source", "std_source", "at", "note", "text")
@@ -92,24 +90,9 @@ def _units(results: Mapping, units: str) -> str:
 # --------------------------------------------------------------------------- states before numbers
 
 
-def _number_at(results: Mapping, path: str) -> float | None:
-    value = lookup(results, path)
-    return float(value) if _number(value) else None
-
-
-def _phase_state(results: Mapping, held: bool) -> State | None:
-    """The free-air phase misfit, when it exceeds 30°."""
-    misfit = _number_at(results, "free_air_route.phase_misfit_deg")
-    if misfit is None or abs(misfit) <= _PHASE_MISFIT_DEG:
-        return None
-    return State(f"the free-air model misses the capture's phase at the drive by {misfit:+.0f} deg (> 30): "
-                 "scores against it are not shown", "free_air_route.phase_misfit_deg")
-
-
-#: Each command's states, checked in order before its numbers (issue 28).
-STATES: Mapping[str, tuple[Callable[[Mapping, bool], State | None], ...]] = {
-    "kalman-bank": (_phase_state,),
-}
+#: The states of a command whose results are a mapping, checked in order before its numbers (issue 28).
+#: Every command's results are a record now, which declares its own (``STATES``): none is left here.
+STATES: Mapping[str, tuple[Callable[[Mapping, bool], State | None], ...]] = {}
 
 
 # --------------------------------------------------------------------------- the declarations
