@@ -59,15 +59,7 @@ class _Identified(NamedTuple):
 
 def free_air_model_record(model: FreeAirModel) -> FreeAirModelRecord:
     """The report's copy of ``model`` (``free_air.json``'s fields; those of k only where k is known)."""
-    known = model.spring_constant_n_per_m is not None
-    return FreeAirModelRecord(
-        f0_hz=model.f0_hz, q=model.q, gain=model.gain, f0_std_hz=model.f0_std_hz, q_std=model.q_std,
-        gain_std=model.gain_std, source=model.source, sample_rate_hz=model.sample_rate_hz,
-        numerator=model.numerator, denominator=model.denominator, delay_s=model.delay_s,
-        spring_constant_n_per_m=model.spring_constant_n_per_m if known else None,
-        spring_constant_std_n_per_m=model.spring_constant_std_n_per_m if known else None,
-        spring_constant_source=model.spring_constant_source if known else None,
-    )
+    return model.record()
 
 
 def _segment_route(reader: CaptureReader, params: FreeAirParams, progress) -> _Identified:
