@@ -25,7 +25,6 @@ from afmtool.config.commands import (
     check_specs,
     missing_parts,
 )
-from afmtool.config.headline_items import Item
 
 
 def _cli_commands() -> list[str]:
@@ -61,8 +60,7 @@ def test_each_derived_table_holds_the_commands_whose_spec_has_that_part():
 
     specs = SPECS.values()
     assert EXAMPLES == {s.name: s.examples for s in specs} and set(EXAMPLES) == set(SPECS)
-    assert HEADLINES == {s.name: s.result.load().HEADLINE if s.result else s.headline for s in specs
-                         if s.kind is not Kind.TOOL}
+    assert HEADLINES == {s.name: s.result.load().HEADLINE for s in specs if s.kind is not Kind.TOOL}
     assert set(HEADLINES) == set(SPECS) - _with(Kind.TOOL)
     assert MAIN_FIGURES == {s.name: s.main_figures for s in specs if s.main_figures is not None}
     assert SECTIONS == {name: model for s in specs for name, model in s.sections()}
@@ -125,9 +123,7 @@ def test_a_spec_lacking_a_required_part_is_refused_as_it_is_built(kind):
     [
         (Kind.ANALYSIS, {"channels": ("deflection",)}, "channels"),
         (Kind.ANALYSIS, {"synthesised_drive": True}, "synthesised_drive"),
-        (Kind.TOOL, {"headline": ()}, "headline"),
         (Kind.TOOL, {"result": Lazy("afmtool.records.invols", "InvolsResults")}, "result"),
-        (Kind.CAPTURE, {"headline": (Item("n", "n"),)}, "no headline beside a result"),
         (Kind.CAPTURE, {"stream": Lazy("m", "f")}, "stream_units"),
         (Kind.CAPTURE, {"examples": ()}, "examples"),
     ],

@@ -33,9 +33,8 @@ def run_decode_command(run: CommandRun) -> dict:
             result = run_decode(reader, params, writer, progress=run.progress, on_stream_start=run.figures.on_stream_start,
                                 split=run.split)
             found = result.results
-            rows = {"rows": found.rows.value, "row_every_samples": found.row_every_samples,
-                    "row_rate_hz": found.row_rate_hz}
-            writer.set_attrs(row_attrs(rows, reader.info.sample_rate_hz))
+            writer.set_attrs(row_attrs(found.rows.value, found.row_every_samples, found.row_rate_hz,
+                                       reader.info.sample_rate_hz))
             if result.psd:
                 for name in ("frequency_hz", "deflection", "innovation"):
                     units = "Hz" if name == "frequency_hz" else "nm^2/Hz"

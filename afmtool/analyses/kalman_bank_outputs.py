@@ -57,8 +57,8 @@ def run_kalman_bank_command(run: CommandRun) -> dict:
                     progress=run.progress, split=run.split, on_stream_start=run.figures.on_stream_start,
                 )
                 results = result.results
-                writer.set_attrs(row_attrs({"rows": results.rows, "row_every_samples": results.row_every_samples,
-                                            "row_rate_hz": results.row_rate_hz}, reader.info.sample_rate_hz))
+                writer.set_attrs(row_attrs(results.rows, results.row_every_samples, results.row_rate_hz,
+                                           reader.info.sample_rate_hz))
                 _write_tables(writer, result, deflection_units)
             staged.flush_early("bank.h5")  # to disk while the figures are drawn
             _plot_rms_vs_z(run.figures, staged.path("bank_rms_vs_z.png"), result, deflection_units)

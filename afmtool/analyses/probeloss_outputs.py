@@ -47,8 +47,8 @@ def run_probeloss_command(run: CommandRun) -> dict:
             result = run_probeloss(reader, params, sink, model=model, progress=run.progress, split=run.split,
                                    on_stream_start=run.figures.on_stream_start)
             results = result.results
-            writer.set_attrs(row_attrs({"rows": results.rows, "row_every_samples": results.row_every_samples,
-                                        "row_rate_hz": results.row_rate_hz}, reader.info.sample_rate_hz))
+            writer.set_attrs(row_attrs(results.rows, results.row_every_samples, results.row_rate_hz,
+                                       reader.info.sample_rate_hz))
             _write_images(staged, writer, result, run.figures)
         staged.flush_early("probeloss.h5")  # to disk while the figures are drawn
         _write_time_series(run.figures, staged, reader, results, sink.rows())

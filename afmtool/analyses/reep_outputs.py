@@ -13,7 +13,7 @@ from afmtool.analyses.reep import SERIES_UNITS, ReepResult, run_reep
 from afmtool.analyses.stream import run_stream_with_model
 from afmtool.config.params import ReepParams
 from afmtool.io.capture import CaptureReader
-from afmtool.io.results import ResultWriter
+from afmtool.io.results import ResultWriter, row_attrs
 from afmtool.io.units import calibration_record
 from afmtool.records.reep import (
     ForceCurve,
@@ -97,8 +97,7 @@ def _read_back(staged: OutputDir, run: CommandRun, result: ReepResult, params: R
 
 def _row_attrs(results: ReepResults) -> dict:
     """reep.h5's root attributes: the rows' spacing and rate, what set them, and REEP's own rate (issue 33)."""
-    return {"sample_rate_hz": float(results.sample_rate_hz), "rows": results.rows,
-            "row_every_samples": results.row_every_samples, "row_rate_hz": results.row_rate_hz,
+    return {**row_attrs(results.rows, results.row_every_samples, results.row_rate_hz, results.sample_rate_hz),
             "reep_rate_hz": results.estimator.reep_rate_hz, "rate_reduction": results.estimator.rate_reduction}
 
 

@@ -99,13 +99,11 @@ class Result:
     def results(self) -> Any:
         """``report.json``'s ``results``: the command's typed result record (``afmtool.records``).
 
-        ``inv.results.invols_nm_per_v``; a command whose results are not yet a record gives the dict.
+        ``inv.results.invols_nm_per_v``, ``run.results.segments.free_air.f0_hz.mean``.
         """
         from afmtool.config.commands import SPECS
 
-        record = SPECS[self.command].result
-        results = self.report["results"]
-        return record.load().from_json(results) if record is not None else results
+        return SPECS[self.command].result.load().from_json(self.report["results"])
 
     @property
     def parameters(self) -> dict:
@@ -123,7 +121,7 @@ class Result:
 
     @property
     def summary(self) -> Summary:
-        """The headline numbers with their units and uncertainties (``report/headline.HEADLINES``)."""
+        """The headline numbers with their units and uncertainties (the ``HEADLINE`` of the command's record)."""
         return Summary(Headline(e["name"], e["value"], e.get("std"), e.get("units") or "", e.get("text") or "",
                                 e.get("source")) for e in self.report.get("headline") or ())
 

@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 from afmtool.config import params as P
-from afmtool.config.headline_items import Item
+from afmtool.records.base import Item
 
 __all__ = [
     "Kind", "Lazy", "Section", "CommandSpec", "SPECS", "REQUIRED", "missing_parts", "check_specs", "spec",
@@ -119,10 +119,7 @@ class CommandSpec:
         (the page shows the figures by name).
     result : Lazy
         Its root result record (:mod:`afmtool.records`): the ``results`` of its report.json, whose
-        ``HEADLINE`` is its headline.
-    headline : tuple of Item
-        Its headline numbers (:mod:`afmtool.report.headline`), for a command whose results are not yet a
-        record.
+        ``HEADLINE`` is its headline and ``STATES`` the states said before it.
     batch : str or None
         Its name under ``afmtool batch`` (``"freeair"``); None when batch does not run it.
     channels : tuple of str
@@ -140,7 +137,6 @@ class CommandSpec:
     examples: tuple[str, ...] | None = None
     main_figures: tuple[str, ...] | None = None
     result: Lazy | None = None
-    headline: tuple[Item, ...] | None = None
     batch: str | None = None
     channels: tuple[str, ...] | None = None
     synthesised_drive: bool = False
@@ -172,17 +168,13 @@ _CAPTURE_ONLY = ("stream", "stream_units", "channels")
 
 def missing_parts(spec: CommandSpec) -> list[str]:
     """The parts ``spec`` lacks for its kind, and those it has but must not; empty when it is whole."""
-    # a command whose results are not yet a record declares its headline instead (issue 29, item 2)
-    problems = [part for part in REQUIRED[spec.kind]
-                if getattr(spec, part) is None and not (part == "result" and spec.headline is not None)]
+    problems = [part for part in REQUIRED[spec.kind] if getattr(spec, part) is None]
     if spec.kind is not Kind.CAPTURE:
         problems += [f"no {part} (capture commands only)" for part in _CAPTURE_ONLY if getattr(spec, part) is not None]
         if spec.synthesised_drive:
             problems.append("no synthesised_drive (capture commands only)")
-    if spec.kind is Kind.TOOL and (spec.headline is not None or spec.result is not None):
-        problems.append("no result or headline (a tool writes no report.json)")
-    if spec.headline is not None and spec.result is not None:
-        problems.append("no headline beside a result (the record declares it)")
+    if spec.kind is Kind.TOOL and spec.result is not None:
+        problems.append("no result (a tool writes no report.json)")
     if (spec.stream is None) != (spec.stream_units is None):
         problems.append("stream and stream_units (both or neither)")
     if spec.examples == ():
@@ -372,8 +364,7 @@ def headlines() -> dict[str, tuple[Item, ...]]:
     A command with a result record declares them on it (its ``HEADLINE``); the records are light
     (standard library only).
     """
-    return {s.name: s.result.load().HEADLINE if s.result is not None else s.headline
-            for s in SPECS.values() if s.kind is not Kind.TOOL}
+    return {s.name: s.result.load().HEADLINE for s in SPECS.values() if s.result is not None}
 
 
 def results() -> dict[str, type]:

@@ -152,13 +152,15 @@ class ResultWriter:
         self.close(failed=exc_type is not None)
 
 
-def row_attrs(results: Mapping, sample_rate_hz: float) -> dict:
-    """A series file's root attributes: the rows' spacing, their rate and what set them (issue 33)."""
-    attrs = {"sample_rate_hz": float(sample_rate_hz)}
-    for key in ("rows", "row_every_samples", "row_rate_hz"):
-        if results.get(key) is not None:
-            attrs[key] = results[key]
-    return attrs
+def row_attrs(rows: str, row_every_samples: int | None, row_rate_hz: float | None, sample_rate_hz: float) -> dict:
+    """A series file's root attributes: the rows' spacing, their rate and what set them (issue 33).
+
+    ``rows`` is what set them (``"resolution"``, ``"per-period"``, ``"decimate 24"``); a spacing or
+    rate that is None is left out.
+    """
+    attrs = {"sample_rate_hz": float(sample_rate_hz), "rows": rows,
+             "row_every_samples": row_every_samples, "row_rate_hz": row_rate_hz}
+    return {key: value for key, value in attrs.items() if value is not None}
 
 
 def _write_at_end(ds: h5py.Dataset, block: np.ndarray) -> None:

@@ -8,9 +8,11 @@ tracking error against the truth, the probe-loss fraction with precision
 and recall, the BER with its 95 % bound, the spring constant by each
 method, the verdict of a comparison with its worst bins.
 
-:data:`HEADLINES` holds them, declared once per command in its
-:class:`~afmtool.config.commands.CommandSpec`: a tuple of :class:`Item` (label, path in ``results``, units, the path of its standard
-deviation, the path of where it occurs).  :func:`headline` reads that
+:data:`HEADLINES` holds them, declared once per command on its result
+record (``HEADLINE``, :mod:`afmtool.records`; the record is the ``result`` of the
+command's :class:`~afmtool.config.commands.CommandSpec`): a tuple of :class:`Item`
+(label, path in ``results``, units, the path of its standard deviation, the path
+of where it occurs).  :func:`headline` reads that
 declaration into ``report.json``'s ``headline``; every other reader takes
 the report's block and nothing else: the end-of-run lines on the terminal
 (:func:`terminal_lines`), ``afmtool batch``'s ``summary.csv``
@@ -22,7 +24,7 @@ results first.  Numbers are written by :mod:`afmtool.report.numbers`.
 A headline never contradicts the run (issue 28).  Where the results say
 that the run's premise failed, the headline opens with that state, a text
 entry named ``"warning"`` whose ``source`` is the number that says so
-(:data:`STATES`, or the ``STATES`` of the command's result record), and the items
+(the ``STATES`` of the command's result record), and the items
 declared as ``scores`` are left out:
 
 * a free-air phase misfit above 30° (``free_air_route.phase_misfit_deg``,
@@ -43,16 +45,15 @@ declared as ``scores`` are left out:
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from afmtool.config.commands import headlines
-from afmtool.config.headline_items import Item
-from afmtool.records import Record, State
+from afmtool.records import Item, Record, State
 from afmtool.report.numbers import format_measurement, format_with_units
 
 __all__ = [
-    "HEADLINES", "HEADLINE_FIELDS", "STATES", "STATE_NAME", "Item", "State", "headline", "lookup", "run_subject",
+    "HEADLINES", "HEADLINE_FIELDS", "STATE_NAME", "Item", "State", "headline", "lookup", "run_subject",
     "summary_columns", "terminal_lines",
 ]
 
@@ -87,18 +88,9 @@ def _units(results: Mapping, units: str) -> str:
     return units
 
 
-# --------------------------------------------------------------------------- states before numbers
-
-
-#: The states of a command whose results are a mapping, checked in order before its numbers (issue 28).
-#: Every command's results are a record now, which declares its own (``STATES``): none is left here.
-STATES: Mapping[str, tuple[Callable[[Mapping, bool], State | None], ...]] = {}
-
-
 # --------------------------------------------------------------------------- the declarations
 
-#: Each command's headline, in reading order: the ``headline`` part of its
-#: :class:`~afmtool.config.commands.CommandSpec` (the items in :mod:`afmtool.config.headline_items`).
+#: Each command's headline, in reading order: the ``HEADLINE`` of its result record.
 HEADLINES: Mapping[str, tuple[Item, ...]] = headlines()
 
 
@@ -142,8 +134,9 @@ def headline(command: str, results: Record | Mapping) -> list[dict]:
     """The headline entries of ``command``'s ``results`` (JSON-ready), in reading order.
 
     ``results`` is the command's root :class:`~afmtool.records.Record`: its
-    ``HEADLINE`` items and ``STATES`` rules are the declaration read here
-    (a mapping is read by the command's declaration in :data:`HEADLINES`).
+    ``HEADLINE`` items and ``STATES`` rules are the declaration read here.  The
+    JSON form of the results (report.json's ``results``, or part of it) is read by
+    the same items (:data:`HEADLINES`), without the states, which read the record.
     Each entry is ``{"name", "value", "std", "units", "source", "std_source", "at", "note", "text"}``:
     ``value`` is ``results`` at the dotted path ``source`` and ``std`` (its
     standard deviation, or None) at ``std_source``; ``units`` is ``""`` for a
@@ -159,7 +152,7 @@ def headline(command: str, results: Record | Mapping) -> list[dict]:
         rules, declared, subject = type(results).STATES, type(results).HEADLINE, results
         results = results.to_json()
     else:
-        rules, declared, subject = STATES.get(command, ()), HEADLINES.get(command, ()), results
+        rules, declared, subject = (), HEADLINES.get(command, ()), results
     states: list[State] = []
     for rule in rules:
         state = rule(subject, any(s.hides_scores for s in states))
