@@ -125,6 +125,25 @@ def test_the_generated_schema_accepts_to_json_and_refuses_unknown_keys_and_wrong
             jsonschema.validate(bad, schema)
 
 
+@record
+class _Extended(_Moments):
+    """Moments with a spread (the fields of _Moments, and:).
+
+    Attributes
+    ----------
+    spread : float
+        Largest less smallest (Hz).
+    """
+
+    spread: float
+
+
+def test_a_record_that_extends_another_inherits_its_field_descriptions() -> None:
+    properties = _Extended.json_schema()["properties"]
+    assert properties["mean"]["description"] == "The mean (Hz)."
+    assert properties["spread"]["description"] == "Largest less smallest (Hz)."
+
+
 def test_resolve_follows_a_dotted_path_through_records_and_tuples() -> None:
     assert resolve(_Root, "f0_hz.mean") is float
     assert resolve(_Root, "truth.count") is int

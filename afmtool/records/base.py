@@ -398,12 +398,20 @@ _NUMPYDOC_ATTRIBUTE = re.compile(r"^(\w+) : [^\n]*\n((?:[ \t]+\S[^\n]*\n?)+)", r
 
 @functools.cache
 def _descriptions(cls: type) -> dict[str, str]:
-    """Each field's description from the class's numpydoc ``Attributes`` section."""
-    doc = inspect.getdoc(cls) or ""
-    section = doc.split("Attributes\n----------\n", 1)
+    """Each field's description from the numpydoc ``Attributes`` sections of the class and its bases.
+
+    A record that extends another documents only the fields it adds; its own word wins.
+    """
+    inherited: dict[str, str] = {}
+    for base in reversed(cls.__mro__[1:]):
+        if base is not Record and isinstance(base, type) and issubclass(base, Record):
+            inherited.update(_descriptions(base))
+    doc = inspect.getdoc(cls) if "__doc__" in vars(cls) else ""
+    section = (doc or "").split("Attributes\n----------\n", 1)
     if len(section) < 2:
-        return {}
-    return {m.group(1): " ".join(m.group(2).split()) for m in _NUMPYDOC_ATTRIBUTE.finditer(section[1] + "\n")}
+        return inherited
+    own = {m.group(1): " ".join(m.group(2).split()) for m in _NUMPYDOC_ATTRIBUTE.finditer(section[1] + "\n")}
+    return {**inherited, **own}
 
 
 def _record_schema(cls: type[Record], definitions: dict[type, dict]) -> dict:

@@ -388,22 +388,10 @@ class BitScores(Record):
 
 @record
 class BaselineBitScores(BitScores):
-    """The baseline's bits against ``/truth``; its polarity is free.
+    """The baseline's bits against ``/truth``; its polarity is free (the fields of :class:`BitScores`, and:).
 
     Attributes
     ----------
-    ber : float
-        Bit error rate (null when no bit was compared).
-    ber_upper_95 : float or None
-        Its one-sided 95 % upper bound; None when no bit was compared.
-    errors : int
-        Bit errors.
-    compared : int
-        Bits compared.
-    latency_s : float
-        The latency chosen (s).
-    confusion : Confusion
-        The counts by truth and decision.
     inverted : bool
         The baseline's bits were compared inverted.
     """

@@ -396,24 +396,10 @@ class ScoreRecord(Record):
 
 @record
 class IndexScoreRecord(ScoreRecord):
-    """The index's per-event scores, and its time-weighted ones.
+    """The index's per-event scores (the fields of :class:`ScoreRecord`), and its time-weighted ones.
 
     Attributes
     ----------
-    truth_events : int
-        Truth loss onsets at least the minimum length.
-    detected_events : int
-        Detected events at least the minimum length.
-    recall : float or None
-        Share of truth events detected.
-    precision : float or None
-        Share of detected events that are true.
-    median_latency_periods : float or None
-        Median detection latency (drive periods).
-    p90_latency_periods : float or None
-        Its 90th percentile (drive periods).
-    carried_over : int
-        Onsets recalled by a detection begun before the tip was back on the sample.
     time_precision : float or None
         Share of the flagged time truly off the sample.
     on_sample_flagged_fraction : float or None
