@@ -264,3 +264,18 @@ def test_report_schema_ties_results_to_the_commands_record_and_is_current(tmp_pa
     invols["command"] = "identify invols"
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({**invols, "headline": []}, schema)
+
+
+@record
+class _WithOptionalNumber(Record):
+    """A record with an optional number."""
+
+    bandwidth_hz: float | None = optional()
+
+
+def test_an_optional_number_is_left_out_when_absent_and_written_null_when_not_finite() -> None:
+    assert _WithOptionalNumber().to_json() == {}
+    assert _WithOptionalNumber(bandwidth_hz=math.inf).to_json() == {"bandwidth_hz": None}
+    again = _WithOptionalNumber.from_json({"bandwidth_hz": None})
+    assert math.isnan(again.bandwidth_hz) and again.to_json() == {"bandwidth_hz": None}
+    assert _WithOptionalNumber.from_json({}).bandwidth_hz is None

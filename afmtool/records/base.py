@@ -134,8 +134,9 @@ def optional(default: Any = None) -> Any:
     """A field that may be absent: left out of ``results`` (and not required by the schema) while None.
 
     For a section a run writes only in some modes (``truth`` with a ``/truth`` group, ``step`` in
-    decode's step mode).  A number that may be unknown is typed ``float | None`` instead and
-    written as null.
+    decode's step mode).  Declare it ``X | None``.  A number that may be unknown is typed
+    ``float | None`` and written as null; an optional number written as null (present, but not
+    finite) reads back as NaN, so it is written as null again rather than left out.
     """
     return dataclasses.field(default=default, metadata={"omit_none": True})
 
@@ -385,7 +386,12 @@ def _decode_record(kind: type[Record], data: Any, where: str) -> Record:
         if _inline(f):
             values[f.name] = _decode(hints[f.name], {k: v for k, v in data.items() if k not in own}, where)
         elif json_key(f) in data:
-            values[f.name] = _decode(hints[f.name], data[json_key(f)], f"{where}.{json_key(f)}")
+            raw = data[json_key(f)]
+            if raw is None and f.metadata.get("omit_none") and (_optional_of(hints[f.name]) or hints[f.name]) is float:
+                # present and null: a number the run could not give (non-finite), not an absent one (None)
+                values[f.name] = math.nan
+            else:
+                values[f.name] = _decode(hints[f.name], raw, f"{where}.{json_key(f)}")
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise _bad(where, f"no {json_key(f)!r}")
     return kind(**values)

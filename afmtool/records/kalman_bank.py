@@ -54,8 +54,8 @@ class PerLeg(Record):
     """
 
     # a plain float (NaN written as null) where the leg exists, None (absent) where it does not
-    approach: float = optional()
-    retract: float = optional()
+    approach: float | None = optional()
+    retract: float | None = optional()
 
 
 @record

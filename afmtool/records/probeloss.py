@@ -129,9 +129,9 @@ class IndexRecord(Record):
     units: str | None = optional()
     free_air_samples: int | None = optional()
     # present (maybe null: not finite) for the rms and coherent indices, absent (None) for forcing
-    free_air_median: float = optional()
-    free_air_quantile: float = optional()
-    free_air_max: float = optional()
+    free_air_median: float | None = optional()
+    free_air_quantile: float | None = optional()
+    free_air_max: float | None = optional()
 
 
 @record

@@ -304,7 +304,7 @@ class Segment(Record):
     t_s: tuple[float, float]
     f0_hz: Moments
     q: Moments
-    f0_row_std_hz: float = optional()
+    f0_row_std_hz: float | None = optional()
 
 
 @record
@@ -570,14 +570,14 @@ class ForceCurveLeg(Record):
     max_abs_df0_dz: float | None
     max_abs_dq_dz: float | None
     max_abs_da_dz: float | None
-    largest_df0_hz: float = optional()
-    largest_df0_z: float = optional()
+    largest_df0_hz: float | None = optional()
+    largest_df0_z: float | None = optional()
     smallest_q: float | None
     smallest_q_z: float | None
-    largest_energy_per_cycle_ev: float = optional()
-    largest_energy_per_cycle_z: float = optional()
-    largest_force_gradient_n_per_m: float = optional()
-    largest_force_gradient_z: float = optional()
+    largest_energy_per_cycle_ev: float | None = optional()
+    largest_energy_per_cycle_z: float | None = optional()
+    largest_force_gradient_n_per_m: float | None = optional()
+    largest_force_gradient_z: float | None = optional()
 
 
 @record

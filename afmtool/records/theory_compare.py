@@ -69,11 +69,11 @@ class CompareForceRecord(Record):
     spec: str | None = optional()
     fit: str | None = optional()
     model: FitModel | None = optional()
-    d_nm: float = optional()
-    omega_a2: float = optional()
-    omega_b2: float = optional()
-    c_a: float = optional()
-    c_b: float = optional()
+    d_nm: float | None = optional()
+    omega_a2: float | None = optional()
+    omega_b2: float | None = optional()
+    c_a: float | None = optional()
+    c_b: float | None = optional()
 
 
 @record
@@ -102,12 +102,12 @@ class SeparationRecord(Record):
 
     source: SeparationSource
     z_units: str | None = optional()
-    nm_per_unit: float = optional()
-    contact_z: float = optional()
+    nm_per_unit: float | None = optional()
+    contact_z: float | None = optional()
     contact_method: ContactMethod | None = optional()
-    amplitude_rms_residual_nm: float = optional()
-    contact_z_std: float = optional()
-    separation_std_nm: float = optional()
+    amplitude_rms_residual_nm: float | None = optional()
+    contact_z_std: float | None = optional()
+    separation_std_nm: float | None = optional()
 
 
 @record

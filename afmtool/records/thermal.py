@@ -203,10 +203,10 @@ class CSummaryRecord(Record):
     """
 
     # optional(): a response with no summary (too few coherent bins) is written {}
-    dc_gain_k_per_mw: float = optional()
-    bandwidth_hz: float = optional()
-    roll_off_db_per_decade: float = optional()
-    roll_off_band_hz: tuple[float, float] = optional()
+    dc_gain_k_per_mw: float | None = optional()
+    bandwidth_hz: float | None = optional()
+    roll_off_db_per_decade: float | None = optional()
+    roll_off_band_hz: tuple[float, float] | None = optional()
 
 
 @record
@@ -226,10 +226,10 @@ class HSummaryRecord(Record):
     """
 
     # optional(): a response with no summary (too few coherent bins) is written {}
-    dc_gain_k_per_nm: float = optional()
-    bandwidth_hz: float = optional()
-    roll_off_db_per_decade: float = optional()
-    roll_off_band_hz: tuple[float, float] = optional()
+    dc_gain_k_per_nm: float | None = optional()
+    bandwidth_hz: float | None = optional()
+    roll_off_db_per_decade: float | None = optional()
+    roll_off_band_hz: tuple[float, float] | None = optional()
 
 
 @record
