@@ -170,28 +170,12 @@ class PredictionRecord(Record):
 
 @record
 class AlternativeRecord(PredictionRecord):
-    """A kind of index considered, with its prediction.
+    """A kind of index considered, with its prediction (the fields of :class:`PredictionRecord`, and:).
 
     Attributes
     ----------
     kind : IndexKind
         The index.
-    latency_periods : float
-        Median latency after the last contact (drive periods).
-    return_periods : float
-        Median delay from the first contact back to the switch's release (drive periods).
-    precision : float
-        Time-weighted precision on the events ``precision_for``.
-    recall_5_periods : float
-        Share of 5-period losses detected within them.
-    false_alarm_fraction : float
-        Share of on-sample time flagged away from the returns.
-    precision_for : PredictedOn
-        The loss events the precision is for.
-    false_alarms_per_1000_periods : float or None
-        Forcing: expected false losses per 1000 drive periods on the sample.
-    false_returns_per_1000_periods : float or None
-        Forcing: expected false returns per 1000 drive periods off it.
     """
 
     kind: IndexKind
