@@ -61,7 +61,10 @@ def run_reep_command(run: CommandRun) -> dict:
             FreeAirModel.from_record(results.free_air_model).save(staged.path("free_air.json"))
         inputs = [{**capture_record.result(), **calibration_record(reader)}, *model_records]
         run.figures.wait()
-        return finish_run(staged, "reep", inputs, "reep", params, results, result.warnings)
+        from afmtool.estimators.drive_lines import drive_fit_warnings
+
+        warnings = [*result.warnings, *drive_fit_warnings(getattr(reader, "drive_fit", None))]
+        return finish_run(staged, "reep", inputs, "reep", params, results, warnings)
 
 
 def _read_back(staged: OutputDir, run: CommandRun, result: ReepResult, params: ReepParams, deflection_units: str,

@@ -218,6 +218,7 @@ def open(
     invols: float | None = None,
     z_sensitivity: float | None = None,
     drive: str | Sequence[tuple[float, float]] | None = None,
+    drive_phases: str = "common",
 ) -> Capture:
     """Open a capture in any format the CLI reads, with the CLI's capture options.
 
@@ -242,6 +243,9 @@ def open(
     drive : str or sequence of (Hz, V), optional
         ``--drive``: the lines of a dither that was not recorded (``"70000:0.1"`` or ``[(70e3, 0.1)]``);
         their phases are fitted on the free-air segment.
+    drive_phases : {"common", "independent"}
+        ``--drive-phases``: the lines started together (default; their closure phase helps pin the
+        resonance, docs/conventions.md eq. D.4) or were phased apart.
 
     Returns
     -------
@@ -271,7 +275,7 @@ def open(
     options = CaptureOptions(
         **fmt_keywords, units=dict(units or {}), sample_rate_hz=sample_rate_hz,
         segment=None if segment is None else str(segment), invols_nm_per_v=invols,
-        z_sensitivity_nm_per_v=z_sensitivity, drive=drive or None,
+        z_sensitivity_nm_per_v=z_sensitivity, drive=drive or None, drive_phases=drive_phases,
     )
     capture = Capture(source, options)
     capture.info  # noqa: B018 - opened once now, so that a bad path or option raises here, not in an analysis

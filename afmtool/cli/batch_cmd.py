@@ -137,7 +137,7 @@ def capture_options_of(command: Sequence[str], source: str, extra_args: Sequence
                                             resilient_parsing=True).params
         accepts_drive = capture_commands().get(" ".join(command), ((), False))[1]
         calibration = CaptureCalibration(values.get("units"), values.get("invols"), values.get("z_sensitivity"),
-                                         values.get("drive"), values.get("free_air") or None,
+                                         values.get("drive"), values.get("drive_phases"), values.get("free_air") or None,
                                          accepts_drive=accepts_drive)
         selection = Selection(values.get("segment"), values.get("curve"), values.get("group"))
         return capture_options(values.get("channel"), values.get("topic"), values.get("sample_rate"), calibration,

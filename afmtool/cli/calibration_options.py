@@ -14,7 +14,7 @@ from typing import Annotated, NamedTuple, Optional
 
 import typer
 
-__all__ = ["UnitsOpt", "InvolsOpt", "ZSensitivityOpt", "DriveOpt", "CaptureCalibration", "capture_options"]
+__all__ = ["UnitsOpt", "InvolsOpt", "ZSensitivityOpt", "DriveOpt", "DrivePhasesOpt", "CaptureCalibration", "capture_options"]
 
 UnitsOpt = Annotated[
     Optional[list[str]],
@@ -36,6 +36,16 @@ DriveOpt = Annotated[
     ),
 ]
 
+DrivePhasesOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--drive-phases",
+        help="How --drive's lines were phased: 'common' (started together, as the thesis's three sines: f0 and Q "
+        "from the lines' magnitudes and their closure phase) or 'independent' (phases set apart: from the "
+        "magnitudes alone, with a wider stated uncertainty). Default common.",
+    ),
+]
+
 
 class CaptureCalibration(NamedTuple):
     """The calibration options of one command line (None: not given)."""
@@ -44,6 +54,8 @@ class CaptureCalibration(NamedTuple):
     invols_nm_per_v: float | None = None
     z_sensitivity_nm_per_v: float | None = None
     drive: str | None = None
+    #: ``--drive-phases``: "common" or "independent" (None: common).
+    drive_phases: str | None = None
     #: ``--free-air``: where the drive's phases are fitted (else metadata ``free_air``, else the first
     #: 65,536 samples); a ``free_air`` set only in a --config file is not seen here, the flag or metadata is.
     free_air: str | None = None
@@ -74,7 +86,7 @@ def capture_options(channel, topic, sample_rate, calibration: CaptureCalibration
         sample_rate_hz=sample_rate, segment=selection.segment, curve=selection.curve, group=selection.group,
         units=parse_mapping(calibration.units, "--units"),
         invols_nm_per_v=calibration.invols_nm_per_v, z_sensitivity_nm_per_v=calibration.z_sensitivity_nm_per_v,
-        drive=calibration.drive, free_air=calibration.free_air, accepts_drive=calibration.accepts_drive,
+        drive=calibration.drive, drive_phases=calibration.drive_phases or "common", free_air=calibration.free_air, accepts_drive=calibration.accepts_drive,
         raw_deflection=calibration.raw_deflection, convert_units=convert_units, needs=calibration.needs,
         hash_samples=hash_samples,
     )

@@ -23,7 +23,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from afmtool.cli.calibration_options import CaptureCalibration, DriveOpt, InvolsOpt, UnitsOpt, ZSensitivityOpt
+from afmtool.cli.calibration_options import (
+    CaptureCalibration,
+    DriveOpt,
+    DrivePhasesOpt,
+    InvolsOpt,
+    UnitsOpt,
+    ZSensitivityOpt,
+)
 from afmtool.cli.options import (
     ChannelOpt,
     ConfigOpt,
@@ -121,6 +128,7 @@ class CaptureSource(NamedTuple):
     invols: float | None = None
     z_sensitivity: float | None = None
     drive: str | None = None
+    drive_phases: str | None = None
     segment: str | None = None
     stdin_timeout: float | None = None
     curve: str | None = None
@@ -142,7 +150,7 @@ class CaptureSource(NamedTuple):
         ``needs`` (:class:`afmtool.analyses.capture_check.CaptureNeeds`) is checked as the capture opens.
         """
         return CaptureCalibration(
-            self.units, self.invols, self.z_sensitivity, self.drive, free_air,
+            self.units, self.invols, self.z_sensitivity, self.drive, self.drive_phases, free_air,
             accepts_drive=accepts_drive, raw_deflection=raw_deflection, needs=needs,
         )
 
@@ -166,6 +174,7 @@ _CAPTURE_OPTIONS = (
     ("invols", InvolsOpt),
     ("z_sensitivity", ZSensitivityOpt),
     ("drive", DriveOpt),
+    ("drive_phases", DrivePhasesOpt),
     ("segment", SegmentOpt),
     ("stdin_timeout", StdinTimeoutOpt),
     ("curve", CurveOpt),
@@ -186,7 +195,8 @@ def capture_options(
     ``segment=False`` leaves out the selections (``--segment``, ``--curve``, ``--group``) together.
     """
     left_out = {name for name, wanted in
-                (("invols", invols), ("z_sensitivity", z_sensitivity), ("drive", drive), ("segment", segment),
+                (("invols", invols), ("z_sensitivity", z_sensitivity), ("drive", drive), ("drive_phases", drive),
+                 ("segment", segment),
                  ("curve", segment), ("group", segment))
                 if not wanted}
     parameters = tuple(option(name, annotation) for name, annotation in _CAPTURE_OPTIONS if name not in left_out)

@@ -32,8 +32,16 @@ __all__ = [
     "excitation_lines",
     "DriveResponse",
     "drive_phase_std",
+    "drive_fit_warnings",
     "drive_std_rows",
 ]
+
+
+#: ``response_source`` of the fit that uses the lines' common phase origin as well as their magnitudes.
+COMMON_ORIGIN = "line magnitudes and common phase origin"
+
+#: ``response_source`` of the fit from the magnitudes alone.
+MAGNITUDES = "line magnitudes"
 
 
 class DriveLine(NamedTuple):
@@ -56,6 +64,7 @@ class DrivePhaseFit(NamedTuple):
         hold, from the lines' magnitudes (``gain`` in deflection units per V);
         from the metadata when fewer than three lines.
     response_source : str
+        ``"line magnitudes and common phase origin"`` (eq. D.4),
         ``"line magnitudes"``, or where the given f0 and Q came from.
     deflection_amplitudes : tuple of float
         |D_i|, deflection units.
@@ -65,6 +74,11 @@ class DrivePhaseFit(NamedTuple):
         when the metadata gives none).
     phase_std_rad : tuple of float
         Each fitted phase's standard deviation (eq. D.2), rad.
+    closure_chi2 : float
+        χ² of the common-phase-origin fit (eq. D.4, 2K − 5 degrees of
+        freedom), NaN when it was not tried (f0 and Q given, or the lines
+        not a comb).  Above the 99.9 % point the lines were not in phase at
+        one instant and the magnitudes alone gave f0 and Q.
     """
 
     lines: tuple[DriveLine, ...]
@@ -76,6 +90,7 @@ class DrivePhaseFit(NamedTuple):
     f0_std_hz: float = 0.0
     q_std: float = 0.0
     phase_std_rad: tuple[float, ...] = ()
+    closure_chi2: float = math.nan
 
 
 class DriveResponse(NamedTuple):
@@ -252,6 +267,7 @@ def fit_drive_phases(
     f0_hz: float | None = None,
     q: float | None = None,
     hold: str = "none",
+    common_origin: bool = True,
     f0_std_hz: float | None = None,
     q_std: float | None = None,
     given_from: str = "metadata cantilever f0_hz, q",
@@ -271,6 +287,11 @@ def fit_drive_phases(
         Free-air resonance (metadata or ``--model``): when given, the phases
         are fitted against it; without them the lines' magnitudes (three or
         more) give f0 and Q.
+    common_origin : bool
+        The lines started together (a synthesiser's sum of sines, the
+        thesis's g(t) of §3.3.2): without f0 and Q given, fit the lines'
+        complex amplitudes with one phase origin (eq. D.4), not the
+        magnitudes alone.  Kept only if its χ² passes.
     f0_std_hz, q_std, given_from : float, float, str, optional
         Their uncertainties (0 when not given) and where they came from.
     hold : {"none", "zero-order"}
@@ -316,12 +337,133 @@ def fit_drive_phases(
         raise InputError("a drive line has no response in the deflection on the free-air segment")
     f0, qf, gain, source = _free_air_of_lines(frequencies, magnitude, fs, hold, f0_hz, q, given_from)
     phases = np.angle(d) - np.angle(response(frequencies, f0, qf, fs))
+    line_noise = _line_noise(deflection, fs, start_sample, frequencies, d)
+    given = (f0_std_hz or 0.0, q_std or 0.0) if source != MAGNITUDES else None
+    f0_std, q_std_fit, phase_std = _phase_uncertainty(frequencies, line_noise / np.abs(d), f0, qf, fs, hold, given)
+    closure_chi2 = math.nan
+    if given is None and common_origin:
+        common = _common_origin_fit(frequencies, amplitudes, d, line_noise[0], fs, hold, (f0, qf, gain), phases)
+        if common is not None:
+            closure_chi2 = common.chi2
+            if common.chi2 <= _chi2_upper(common.dof):
+                f0, qf, gain, phases = common.f0_hz, common.q, common.gain, common.phases
+                f0_std, q_std_fit, phase_std = common.f0_std_hz, common.q_std, common.phase_std
+                source = COMMON_ORIGIN
     fitted = tuple(DriveLine(float(f), float(a), float(p)) for f, a, p in zip(frequencies, amplitudes, phases))
-    given = (f0_std_hz or 0.0, q_std or 0.0) if source != "line magnitudes" else None
-    f0_std, q_std_fit, phase_std = _phase_uncertainty(
-        frequencies, _line_noise(deflection, fs, start_sample, frequencies, d) / np.abs(d), f0, qf, fs, hold, given)
     return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)),
-                         f0_std, q_std_fit, tuple(float(v) for v in phase_std))
+                         f0_std, q_std_fit, tuple(float(v) for v in phase_std), closure_chi2)
+
+
+
+class _CommonOriginFit(NamedTuple):
+    f0_hz: float
+    q: float
+    gain: float
+    phases: np.ndarray
+    f0_std_hz: float
+    q_std: float
+    phase_std: np.ndarray
+    chi2: float
+    dof: int
+
+
+def _comb_steps(frequencies: np.ndarray, amplitudes: np.ndarray) -> np.ndarray | None:
+    """s_i with f_i = f_main + s_i·Δf, s_i integer and Δf the smallest spacing from the main line; None if not a comb."""
+    main = int(np.argmax(amplitudes))
+    offsets = frequencies - frequencies[main]
+    spacing = np.min(np.abs(offsets[offsets != 0])) if np.any(offsets != 0) else 0.0
+    if not spacing > 0:
+        return None
+    steps = offsets / spacing
+    if np.any(np.abs(steps - np.round(steps)) > 1e-6):
+        return None
+    return np.round(steps)
+
+
+def _chi2_upper(dof: int) -> float:
+    """The 99.9 % point of χ² with ``dof`` degrees of freedom (Wilson–Hilferty; numpy only, 11.1 for dof 1 vs 10.8)."""
+    z = 3.090232  # the standard normal's 99.9 % point
+    k = float(dof)
+    return k * (1.0 - 2.0 / (9.0 * k) + z * math.sqrt(2.0 / (9.0 * k))) ** 3
+
+
+def _common_origin_fit(frequencies, amplitudes, d, line_sigma, fs, hold, start, start_phases) -> _CommonOriginFit | None:
+    """f0, Q, g and the phases of lines that were in phase at one instant (eq. D.4); None when it does not apply.
+
+    A synthesiser that starts its lines together (the thesis's
+    g(t) = A sin ω0t + B sin(ω0 + Δω)t + B sin(ω0 − Δω)t, §3.3.2) gives them
+    phases φ_i = φ_c + ω_i·τ at any later first sample, and a constant
+    phase or a pure delay between drive and deflection keeps that form.
+    On a comb f_i = f_main + s_i·Δf that is φ_i = c + s_i·m, so
+
+        D_i = g·A_i·H(f_i; f0, Q)·exp(j(c + s_i·m)) + noise             (D.4)
+
+    has five real unknowns (f0, ln Q, ln g, c, m) for 2K measured numbers.
+    For three lines the sixth number is the closure phase ∠D₊ + ∠D₋ − 2∠D₀
+    = ∠H₊ + ∠H₋ − 2∠H₀, which pins the main line's phase at resonance to
+    the side lines' phase noise: the magnitudes alone, whose side lines
+    hardly depend on Q, leave it 0.05 rad uncertain at Q 400
+    (tests/test_synthetic_drive_information.py).  Weighted least squares
+    (white noise: every line's real and imaginary part has std
+    ``line_sigma``), Gauss–Newton with Levenberg damping from the magnitude
+    fit; the covariance is (JᵀJ)⁻¹ and χ² = |r|² tests the common origin
+    with 2K − 5 degrees of freedom (the caller keeps the magnitude fit
+    when it fails).
+    """
+    steps = _comb_steps(frequencies, amplitudes)
+    if steps is None or frequencies.size < 3 or not line_sigma > 0:
+        return None
+    response = _response(hold)
+    main = int(np.argmax(amplitudes))
+    relative = np.angle(np.exp(1j * (start_phases - start_phases[main])))
+    trial_m = np.linspace(-np.pi, np.pi, 721)
+    agreement = np.abs(np.exp(1j * (relative[None, :] - steps[None, :] * trial_m[:, None])).sum(axis=1))
+    m0 = float(trial_m[int(np.argmax(agreement))])
+    c0 = float(np.angle(np.sum(np.exp(1j * (start_phases - steps * m0)))))
+    x = np.array([start[0], math.log(start[1]), math.log(start[2]), c0, m0])
+
+    def residual(params: np.ndarray) -> np.ndarray:
+        if not params[1] < _MAX_LOG_Q:
+            return np.full(2 * frequencies.size, np.inf)
+        f0, q = params[0], math.exp(params[1])
+        if not (0 < f0 < fs / 2 and q > 0.5):
+            return np.full(2 * frequencies.size, np.inf)
+        model = math.exp(params[2]) * amplitudes * response(frequencies, f0, q, fs) * np.exp(1j * (params[3] + steps * params[4]))
+        r = (d - model) / line_sigma
+        return np.concatenate([r.real, r.imag])
+
+    r = residual(x)
+    if not np.all(np.isfinite(r)):
+        return None
+    damping = 1e-3
+    scale = np.array([max(1e-7 * x[0], 1e-6), 1e-7, 1e-7, 1e-7, 1e-7])
+    jac = np.zeros((r.size, 5))
+    for _ in range(100):
+        jac = np.column_stack([(residual(x + np.eye(5)[k] * scale[k]) - r) / scale[k] for k in range(5)])
+        if not np.all(np.isfinite(jac)):
+            return None
+        normal = jac.T @ jac
+        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-30), -jac.T @ r)
+        trial = residual(x + step)
+        if np.all(np.isfinite(trial)) and trial @ trial < r @ r:
+            x, r, damping = x + step, trial, damping / 3
+            if np.all(np.abs(step) <= np.array([1e-10 * x[0], 1e-10, 1e-10, 1e-10, 1e-10])):
+                break
+        else:
+            damping *= 10
+            if damping > 1e12:
+                break
+    f0, q = float(x[0]), math.exp(x[1])
+    if not (0 < f0 < fs / 2 and 0.5 < q < _MAX_Q):
+        return None
+    covariance = np.linalg.pinv(jac.T @ jac)
+    # φ_i = c + s_i·m: the line phases' covariance from (c, m)
+    mapping = np.column_stack([np.ones_like(steps), steps])
+    phase_var = np.einsum("ij,jk,ik->i", mapping, covariance[3:, 3:], mapping)
+    return _CommonOriginFit(
+        f0, q, math.exp(x[2]), x[3] + steps * x[4], float(math.sqrt(max(covariance[0, 0], 0.0))),
+        float(q * math.sqrt(max(covariance[1, 1], 0.0))), np.sqrt(np.maximum(phase_var, 0.0)),
+        float(r @ r), 2 * frequencies.size - 5)
 
 
 def _line_noise(x: np.ndarray, fs: float, start_sample: int, frequencies: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -375,7 +517,7 @@ def _free_air_of_lines(frequencies, magnitude, fs: float, hold: str, f0_hz, q,
     """(f0, Q, g, source) of H: the given f0 and Q (metadata or --model), else from |D_i|/A_i of three or more lines."""
     if not (f0_hz and q) and len(frequencies) >= 3:
         f0, qf, gain = _response_from_magnitudes(frequencies, magnitude, fs, hold)
-        return f0, qf, gain, "line magnitudes"
+        return f0, qf, gain, MAGNITUDES
     if f0_hz and q:
         f0, qf = float(f0_hz), float(q)
         gain = float(np.mean(magnitude / np.abs(_response(hold)(frequencies, f0, qf, fs))))
@@ -428,6 +570,16 @@ def excitation_lines(dither: np.ndarray, sample_rate_hz: float, f0_hz: float) ->
         if all(abs(index - other) >= min_bins for other in kept):
             kept.append(index)
     return [float(freqs[i]) for i in sorted(kept)]
+
+
+def drive_fit_warnings(fit: DrivePhaseFit | None) -> list[str]:
+    """The report's warning when the lines did not fit one phase origin (eq. D.4's χ² test failed)."""
+    if fit is None or fit.response_source != MAGNITUDES or not math.isfinite(fit.closure_chi2):
+        return []
+    dof = 2 * len(fit.lines) - 5
+    return [f"the drive lines do not share one phase origin (closure chi2 {fit.closure_chi2:.3g} for {dof} "
+            f"degree(s) of freedom, above {_chi2_upper(dof):.3g}): f0 and Q of the synthesised drive come from the "
+            "lines' magnitudes alone, with their wider uncertainty; --drive-phases independent skips the test"]
 
 
 def drive_phase_std(fit: DrivePhaseFit, drive_hz: float) -> float:

@@ -72,6 +72,9 @@ class CaptureOptions:
         ``--z-sensitivity`` (nm/V): converts a z_piezo recorded in V.
     drive : str or None
         ``--drive F1:A1,F2:A2`` (Hz:V): a dither that was not recorded, synthesised.
+    drive_phases : {"common", "independent"}
+        ``--drive-phases``: the lines started together (the thesis's design; their closure phase
+        then pins f0 and Q) or were phased apart (the magnitudes alone).
     free_air : str or None
         ``START:END`` (s) where a synthesised drive's phases are fitted (else metadata ``free_air``).
     drive_response : DriveResponse or None
@@ -100,6 +103,7 @@ class CaptureOptions:
     invols_nm_per_v: float | None = None
     z_sensitivity_nm_per_v: float | None = None
     drive: str | None = None
+    drive_phases: str = "common"
     free_air: str | None = None
     drive_response: DriveResponse | None = None
     accepts_drive: bool = False
@@ -194,7 +198,7 @@ def stack_reader(reader: CaptureReader, options: CaptureOptions | None = None) -
         from afmtool.io.synthetic_drive import SyntheticDriveReader
 
         reader = SyntheticDriveReader(reader, lines, parse_interval(options.free_air or "", "--free-air"),
-                                      response=options.drive_response)
+                                      response=options.drive_response, phases=options.drive_phases)
     if options.hash_samples:
         from afmtool.io.provenance import HashedReader
 

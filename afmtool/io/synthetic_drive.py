@@ -26,7 +26,7 @@ from dataclasses import replace
 import numpy as np
 
 from afmtool.config.samples import interval_samples
-from afmtool.errors import InputError
+from afmtool.errors import ConfigError, InputError
 from afmtool.estimators.drive_lines import DriveLine, DrivePhaseFit, DriveResponse, fit_drive_phases, synthesize_drive
 from afmtool.io.capture import CaptureReader, ChannelSpec, Chunk, ReaderBase
 from afmtool.io.metadata import DriveMetadata
@@ -80,14 +80,20 @@ class SyntheticDriveReader(ReaderBase):
         else the first :data:`DEFAULT_FIT_SAMPLES` samples.
     response : DriveResponse or None
         The free-air f0 and Q (``--model``, ``--f0/--q``) the phases are fitted
-        against; None: metadata ``cantilever``, else the lines' magnitudes.
+        against; None: metadata ``cantilever``, else the lines themselves.
+    phases : {"common", "independent"}
+        ``--drive-phases``: the lines started together (their closure phase
+        then helps pin f0 and Q, eq. D.4) or were phased apart.
     """
 
     def __init__(self, reader: CaptureReader, lines: tuple[DriveLine, ...], free_air_s=None,
-                 response: DriveResponse | None = None) -> None:
+                 response: DriveResponse | None = None, phases: str = "common") -> None:
+        if phases not in ("common", "independent"):
+            raise ConfigError(f"--drive-phases {phases!r} must be 'common' or 'independent'")
         self._reader = reader
         self._lines = lines
         self._response = response
+        self._phases = phases
         info = reader.info
         if "deflection" not in info.channel_names:
             raise InputError(f"{info.source}: --drive needs a deflection channel to fit the drive phases against")
@@ -121,7 +127,10 @@ class SyntheticDriveReader(ReaderBase):
             record["response"] = {
                 "f0_hz": self.fit.f0_hz, "f0_std_hz": self.fit.f0_std_hz, "q": self.fit.q, "q_std": self.fit.q_std,
                 "from": self.fit.response_source, "hold": drive_hold(self.info.capture_metadata.drive),
+                "line_phases": self._phases,
             }
+            if math.isfinite(self.fit.closure_chi2):
+                record["response"]["closure_chi2"] = self.fit.closure_chi2
             record["lines_phase_std_deg"] = [float(np.degrees(v)) for v in self.fit.phase_std_rad]
         record["replaced_recorded_dither"] = self.replaced_recorded
         return record
@@ -180,7 +189,8 @@ class SyntheticDriveReader(ReaderBase):
                 "for the drive phases runs past the end of the capture"
             )
         self.fit = fit_drive_phases(segment, self.info.sample_rate_hz, start, self._lines,
-                                    hold=drive_hold(self.info.capture_metadata.drive), **self._given_response())
+                                    hold=drive_hold(self.info.capture_metadata.drive),
+                                    common_origin=self._phases == "common", **self._given_response())
         self._fitted_on = (start / self.info.sample_rate_hz, end / self.info.sample_rate_hz)
 
         def with_dither(chunk: Chunk) -> Chunk:
