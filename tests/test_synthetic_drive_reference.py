@@ -7,7 +7,8 @@ dropped and synthesised from the lines' frequencies and amplitudes:
 
 * with f0 and Q in the metadata, the phases are fitted against them: f0′ within 0.01 % and Q′
   within 1 % of the recorded-dither run (or within three of the carried uncertainty where the
-  side lines stand too little above the noise: Q 400 with 0.1 nm, 1.2 %);
+  side lines stand too little above the noise: Q 400 with 0.1 nm, 1.6 % on 50 ms of free air;
+  on 0.2 s it is 0.8 % and 1 % holds, test below);
 * from the lines alone, f0, Q and the phases come from the lines' complex amplitudes with one
   phase origin (the thesis's lines start together; eq. D.4), with a stated uncertainty that REEP's
   per-row std carries (eq. D.3): f0′ within 0.05 % and Q′ within 3 %, in every cell.  The
@@ -37,12 +38,13 @@ from tests.memory_sink import MemorySink
 FREE_S, STEP_S, DURATION_S = 0.05, 0.06, 0.12
 
 
-def _runs(fs: float, f0: float, q: float, noise: float, seed: int, with_metadata: bool):
-    """(recorded columns, synthetic columns, the phase fit) on one capture."""
+def _runs(fs: float, f0: float, q: float, noise: float, seed: int, with_metadata: bool, free_s: float = FREE_S):
+    """(recorded columns, synthetic columns, the phase fit) on one capture with ``free_s`` of free air."""
+    step_s = free_s + STEP_S - FREE_S
     cap = rs.simulate(
-        f0_hz=f0, q=q, gain_nm_per_v=1.0, sample_rate_hz=fs, duration_s=DURATION_S,
-        drive=rs.three_sine(f0, 6000.0, 20.0 / q, 0.5), noise_nm=noise, seed=seed, free_air_s=FREE_S,
-        f0_of_t=lambda t: np.where(t < STEP_S, f0, 0.996 * f0), q_of_t=lambda t: np.where(t < STEP_S, q, 0.8 * q),
+        f0_hz=f0, q=q, gain_nm_per_v=1.0, sample_rate_hz=fs, duration_s=free_s + DURATION_S - FREE_S,
+        drive=rs.three_sine(f0, 6000.0, 20.0 / q, 0.5), noise_nm=noise, seed=seed, free_air_s=free_s,
+        f0_of_t=lambda t: np.where(t < step_s, f0, 0.996 * f0), q_of_t=lambda t: np.where(t < step_s, q, 0.8 * q),
     )
     specs = tuple(ChannelSpec(k, cap.units[k]) for k in cap.channels)
     recorded = MemorySink()
@@ -61,11 +63,12 @@ def _runs(fs: float, f0: float, q: float, noise: float, seed: int, with_metadata
     return recorded, synthetic, reader.fit, float(result.results.drive_frequency_hz)
 
 
-def _compare(fs, f0, q, noise, with_metadata, seed=1):
-    recorded, synthetic, fit, drive_hz = _runs(fs, f0, q, noise, seed, with_metadata)
+def _compare(fs, f0, q, noise, with_metadata, seed=1, free_s=FREE_S):
+    recorded, synthetic, fit, drive_hz = _runs(fs, f0, q, noise, seed, with_metadata, free_s)
     phase_std = drive_phase_std(fit, drive_hz)
     rows = []
-    for segment, (lo, hi) in (("free air", (0.01, FREE_S)), ("on sample", (STEP_S + 0.01, DURATION_S))):
+    later = free_s - FREE_S
+    for segment, (lo, hi) in (("free air", (0.01, free_s)), ("on sample", (STEP_S + later + 0.01, DURATION_S + later))):
         a = (recorded["t"] > lo) & (recorded["t"] < hi)
         b = (synthetic["t"] > lo) & (synthetic["t"] < hi)
         f_rec, f_syn = np.nanmean(recorded["f0_hz"][a]), np.nanmean(synthetic["f0_hz"][b])
@@ -115,6 +118,17 @@ def test_synthetic_drive_grid(fs, f0, q, noise, with_metadata):
 @pytest.mark.parametrize("with_metadata", [True, False], ids=["metadata", "lines-alone"])
 def test_synthetic_drive_matches_the_recorded_dither(with_metadata):
     _check(_compare(500e3, 70e3, 200.0, 0.05, with_metadata), with_metadata)
+
+
+def test_with_metadata_at_q_400_and_0_1_nm_a_longer_free_air_segment_meets_1_percent():
+    """The one cell where the metadata route's Q′ may miss 1 % (three carried std allowed: 1.6 % each) is short
+    of information, not method: the side lines stand 0.15 nm above 0.1 nm of noise for 50 ms, and their phase
+    difference (the envelope's timing, which Q′ on a detuned tip reads) is uncertain by that much.  Four times the
+    free air halves it, and the same route then lands within 1 % on every seed."""
+    for seed in (1, 2, 3):
+        rows = _compare(500e3, 70e3, 400.0, 0.1, True, seed=seed, free_s=0.2)
+        for segment, df, dq, _sf, sq in rows:
+            assert abs(df) <= 1e-4 and abs(dq) <= 0.01 and sq < 0.01, segment
 
 
 def test_synthetic_drive_at_2_mhz_and_q_400():

@@ -341,6 +341,8 @@ def fit_drive_phases(
     given = (f0_std_hz or 0.0, q_std or 0.0) if source != MAGNITUDES else None
     f0_std, q_std_fit, phase_std = _phase_uncertainty(frequencies, line_noise / np.abs(d), f0, qf, fs, hold, given)
     closure_chi2 = math.nan
+    # with f0 and Q given the common origin adds nothing REEP feels: it fixes the side lines' mean phase, to
+    # which Q′ is insensitive, and leaves their difference (the envelope's timing) as noisy as before
     if given is None and common_origin:
         common = _common_origin_fit(frequencies, amplitudes, d, line_noise[0], fs, hold, (f0, qf, gain), phases)
         if common is not None:
