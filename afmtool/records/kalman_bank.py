@@ -290,6 +290,9 @@ class KalmanBankResults(Record):
         REEP's window measured in z along the ramp (z_piezo units).
     z_units : str
         The z_piezo units.
+    envelope_beat : float
+        How far the dither's side lines beat the free-air envelope, m = Σ_side A_i|G(f_i)| / (A_d|G(f_d)|)
+        (dimensionless); above 0.03 the report warns that the verdict may fail on a right answer.
     design : BankDesignRecord
         How the bank was built.
     filters : tuple of BankFilterRecord
@@ -320,6 +323,7 @@ class KalmanBankResults(Record):
     ramp_z_per_sample: float
     reep_window_z: float
     z_units: str
+    envelope_beat: float
     design: BankDesignRecord
     filters: tuple[BankFilterRecord, ...]
     adaptive: AdaptiveRecord
