@@ -32,7 +32,8 @@ DriveOpt = Annotated[
     Optional[str],
     typer.Option(
         "--drive",
-        help="Dither not recorded: its lines 'F1:A1,F2:A2,...' (Hz:V); phases are fitted on the free-air segment.",
+        help="Dither not recorded: its lines 'F1:A1,F2:A2,...' (Hz:V), or the lines.json of 'afmtool design "
+        "excitation' (its phases kept between the lines); phases are fitted on the free-air segment.",
     ),
 ]
 

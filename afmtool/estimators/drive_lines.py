@@ -46,11 +46,17 @@ MAGNITUDES = "line magnitudes"
 
 
 class DriveLine(NamedTuple):
-    """One line of the dither: frequency (Hz), amplitude (V) and cosine phase (rad) at t = 0 (NaN: to be fitted)."""
+    """One line of the dither: frequency (Hz), amplitude (V) and cosine phase (rad) at t = 0 (NaN: to be fitted).
+
+    ``design_phase_rad`` is the line's phase at the synthesiser's own origin (a designed loop's start,
+    ``lines.json``), which is not the capture's first sample: the common-origin fit (eq. D.4) keeps
+    these offsets between the lines and fits the origin.  0 for lines started together.
+    """
 
     frequency_hz: float
     amplitude_v: float
     phase_rad: float = math.nan
+    design_phase_rad: float = 0.0
 
 
 class DrivePhaseFit(NamedTuple):
@@ -345,14 +351,17 @@ def fit_drive_phases(
     # with f0 and Q given the common origin adds nothing REEP feels: it fixes the side lines' mean phase, to
     # which Q′ is insensitive, and leaves their difference (the envelope's timing) as noisy as before
     if given is None and common_origin:
-        common = _common_origin_fit(frequencies, amplitudes, d, line_noise[0], fs, hold, (f0, qf, gain), phases)
+        design = np.array([line.design_phase_rad for line in lines])
+        common = _common_origin_fit(frequencies, amplitudes, d, line_noise[0], fs, hold, (f0, qf, gain), phases,
+                                    design)
         if common is not None:
             closure_chi2 = common.chi2
             if common.chi2 <= _chi2_upper(common.dof):
                 f0, qf, gain, phases = common.f0_hz, common.q, common.gain, common.phases
                 f0_std, q_std_fit, phase_std = common.f0_std_hz, common.q_std, common.phase_std
                 source = COMMON_ORIGIN
-    fitted = tuple(DriveLine(float(f), float(a), float(p)) for f, a, p in zip(frequencies, amplitudes, phases))
+    fitted = tuple(DriveLine(float(f), float(a), float(p), line.design_phase_rad)
+                   for f, a, p, line in zip(frequencies, amplitudes, phases, lines))
     return DrivePhaseFit(fitted, float(f0), float(qf), float(gain), source, tuple(float(v) for v in np.abs(d)),
                          f0_std, q_std_fit, tuple(float(v) for v in phase_std), closure_chi2)
 
@@ -390,16 +399,19 @@ def _chi2_upper(dof: int) -> float:
     return k * (1.0 - 2.0 / (9.0 * k) + z * math.sqrt(2.0 / (9.0 * k))) ** 3
 
 
-def _common_origin_fit(frequencies, amplitudes, d, line_sigma, fs, hold, start, start_phases) -> _CommonOriginFit | None:
+def _common_origin_fit(frequencies, amplitudes, d, line_sigma, fs, hold, start, start_phases,
+                       design_phases) -> _CommonOriginFit | None:
     """f0, Q, g and the phases of lines that were in phase at one instant (eq. D.4); None when it does not apply.
 
     A synthesiser that starts its lines together (the thesis's
     g(t) = A sin ω0t + B sin(ω0 + Δω)t + B sin(ω0 − Δω)t, §3.3.2) gives them
     phases φ_i = φ_c + ω_i·τ at any later first sample, and a constant
     phase or a pure delay between drive and deflection keeps that form.
-    On a comb f_i = f_main + s_i·Δf that is φ_i = c + s_i·m, so
+    On a comb f_i = f_main + s_i·Δf that is φ_i = ψ_i + c + s_i·m, with ψ_i
+    the lines' phases at the synthesiser's origin (``design_phases``: 0 for
+    lines started together; a designed loop's ``lines.json``), so
 
-        D_i = g·A_i·H(f_i; f0, Q)·exp(j(c + s_i·m)) + noise             (D.4)
+        D_i = g·A_i·H(f_i; f0, Q)·exp(j(ψ_i + c + s_i·m)) + noise       (D.4)
 
     has five real unknowns (f0, ln Q, ln g, c, m) for 2K measured numbers.
     For three lines the sixth number is the closure phase ∠D₊ + ∠D₋ − 2∠D₀
@@ -418,6 +430,7 @@ def _common_origin_fit(frequencies, amplitudes, d, line_sigma, fs, hold, start, 
         return None
     response = _response(hold)
     main = int(np.argmax(amplitudes))
+    start_phases = start_phases - design_phases
     relative = np.angle(np.exp(1j * (start_phases - start_phases[main])))
     trial_m = np.linspace(-np.pi, np.pi, 721)
     agreement = np.abs(np.exp(1j * (relative[None, :] - steps[None, :] * trial_m[:, None])).sum(axis=1))
@@ -431,7 +444,8 @@ def _common_origin_fit(frequencies, amplitudes, d, line_sigma, fs, hold, start, 
         f0, q = params[0], math.exp(params[1])
         if not (0 < f0 < fs / 2 and q > 0.5):
             return np.full(2 * frequencies.size, np.inf)
-        model = math.exp(params[2]) * amplitudes * response(frequencies, f0, q, fs) * np.exp(1j * (params[3] + steps * params[4]))
+        origin = np.exp(1j * (design_phases + params[3] + steps * params[4]))
+        model = math.exp(params[2]) * amplitudes * response(frequencies, f0, q, fs) * origin
         r = (d - model) / line_sigma
         return np.concatenate([r.real, r.imag])
 
@@ -464,7 +478,7 @@ def _common_origin_fit(frequencies, amplitudes, d, line_sigma, fs, hold, start, 
     mapping = np.column_stack([np.ones_like(steps), steps])
     phase_var = np.einsum("ij,jk,ik->i", mapping, covariance[3:, 3:], mapping)
     return _CommonOriginFit(
-        f0, q, math.exp(x[2]), x[3] + steps * x[4], float(math.sqrt(max(covariance[0, 0], 0.0))),
+        f0, q, math.exp(x[2]), design_phases + x[3] + steps * x[4], float(math.sqrt(max(covariance[0, 0], 0.0))),
         float(q * math.sqrt(max(covariance[1, 1], 0.0))), np.sqrt(np.maximum(phase_var, 0.0)),
         float(r @ r), 2 * frequencies.size - 5)
 

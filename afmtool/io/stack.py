@@ -168,9 +168,9 @@ def open_capture(path: Path | str, options: CaptureOptions | None = None) -> Cap
 
 def _drive_lines(info: CaptureInfo, options: CaptureOptions) -> tuple:
     if options.drive:
-        from afmtool.estimators.drive_lines import parse_drive_lines
+        from afmtool.io.synthetic_drive import drive_lines_of
 
-        return tuple(parse_drive_lines(options.drive))
+        return drive_lines_of(options.drive)
     if options.accepts_drive and "dither" not in info.channel_names:
         from afmtool.io.synthetic_drive import drive_lines_from_metadata
 

@@ -19,6 +19,7 @@ fitted with.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import replace
@@ -27,11 +28,18 @@ import numpy as np
 
 from afmtool.config.samples import interval_samples
 from afmtool.errors import ConfigError, InputError
-from afmtool.estimators.drive_lines import DriveLine, DrivePhaseFit, DriveResponse, fit_drive_phases, synthesize_drive
+from afmtool.estimators.drive_lines import (
+    DriveLine,
+    DrivePhaseFit,
+    DriveResponse,
+    fit_drive_phases,
+    parse_drive_lines,
+    synthesize_drive,
+)
 from afmtool.io.capture import CaptureReader, ChannelSpec, Chunk, ReaderBase
 from afmtool.io.metadata import DriveMetadata
 
-__all__ = ["DEFAULT_FIT_SAMPLES", "SyntheticDriveReader", "drive_hold", "drive_lines_from_metadata"]
+__all__ = ["DEFAULT_FIT_SAMPLES", "SyntheticDriveReader", "drive_hold", "drive_lines_from_metadata", "drive_lines_of"]
 
 #: Without a free-air segment, the phases are fitted on the capture's first samples.
 DEFAULT_FIT_SAMPLES = 1 << 16
@@ -44,6 +52,34 @@ def drive_hold(drive: DriveMetadata) -> str:
     (:attr:`afmtool.io.metadata.DriveMetadata.held`).
     """
     return "zero-order" if drive.held else "none"
+
+
+def drive_lines_of(text: str) -> tuple[DriveLine, ...]:
+    """``--drive``'s lines: ``"F1:A1,F2:A2,..."`` (:func:`~afmtool.estimators.drive_lines.parse_drive_lines`), or
+    the ``lines.json`` (or its folder) that ``afmtool design excitation`` wrote.
+
+    A designed loop's phases hold at the loop's start, not at the capture's first sample: they
+    become the lines' ``design_phase_rad`` (their offsets at one origin, eq. D.4), and the origin
+    is fitted on the free-air segment.
+    """
+    from pathlib import Path
+
+    path = Path(text)
+    if not (path.suffix.lower() == ".json" or path.is_dir()):
+        return parse_drive_lines(text)
+    source = path / "lines.json" if path.is_dir() else path
+    try:
+        lines = json.loads(source.read_text(encoding="utf-8"))["lines"]
+        # lines.json's phases are sine phases (u = Σ A sin(2πft + φ)); a cosine's is φ − π/2
+        parsed = tuple(DriveLine(float(x["frequency_hz"]), float(x["amplitude_v"]), math.nan,
+                                 math.radians(float(x.get("phase_deg", 0.0))) - math.pi / 2) for x in lines)
+    except OSError as exc:
+        raise ConfigError(f"--drive {text}: cannot be read ({exc.strerror or exc})") from None
+    except (ValueError, KeyError, TypeError, AttributeError):
+        raise ConfigError(f"--drive {text}: not a lines.json of 'afmtool design excitation'") from None
+    if not parsed or any(not (line.frequency_hz > 0 and line.amplitude_v > 0) for line in parsed):
+        raise ConfigError(f"--drive {text}: its lines need frequency_hz and amplitude_v > 0")
+    return parsed
 
 
 def drive_lines_from_metadata(metadata: Mapping) -> tuple[DriveLine, ...]:
