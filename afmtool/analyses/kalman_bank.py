@@ -217,6 +217,7 @@ def build_bank(
 #: failed at 6-16 % (tests/test_kalman_bank_envelope.py); the thesis's own operating point beats by 2.0 %.
 BEAT_WARNING = 0.03
 
+
 @dataclass(frozen=True)
 class BankSetup:
     """Everything fixed before pass 2.

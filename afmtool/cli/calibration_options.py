@@ -14,7 +14,9 @@ from typing import Annotated, NamedTuple, Optional
 
 import typer
 
-__all__ = ["UnitsOpt", "InvolsOpt", "ZSensitivityOpt", "DriveOpt", "DrivePhasesOpt", "CaptureCalibration", "capture_options"]
+__all__ = [
+    "UnitsOpt", "InvolsOpt", "ZSensitivityOpt", "DriveOpt", "DrivePhasesOpt", "CaptureCalibration", "capture_options",
+]
 
 UnitsOpt = Annotated[
     Optional[list[str]],
@@ -87,7 +89,8 @@ def capture_options(channel, topic, sample_rate, calibration: CaptureCalibration
         sample_rate_hz=sample_rate, segment=selection.segment, curve=selection.curve, group=selection.group,
         units=parse_mapping(calibration.units, "--units"),
         invols_nm_per_v=calibration.invols_nm_per_v, z_sensitivity_nm_per_v=calibration.z_sensitivity_nm_per_v,
-        drive=calibration.drive, drive_phases=calibration.drive_phases or "common", free_air=calibration.free_air, accepts_drive=calibration.accepts_drive,
+        drive=calibration.drive, drive_phases=calibration.drive_phases or "common", free_air=calibration.free_air,
+        accepts_drive=calibration.accepts_drive,
         raw_deflection=calibration.raw_deflection, convert_units=convert_units, needs=calibration.needs,
         hash_samples=hash_samples,
     )

@@ -83,8 +83,8 @@ class DrivePhaseFit(NamedTuple):
         Each fitted phase's standard deviation (eq. D.2), rad.
     closure_chi2 : float
         χ² of the common-phase-origin fit (eq. D.4, 2K − 5 degrees of
-        freedom), NaN when it was not tried (f0 and Q given, or the lines
-        not a comb).  Above the 99.9 % point the lines were not in phase at
+        freedom), NaN when it was not tried (f0 and Q given, the lines not a
+        comb, ``common_origin=False``) or did not converge.  Above the 99.9 % point the lines were not in phase at
         one instant and the magnitudes alone gave f0 and Q.
     """
 
@@ -213,6 +213,39 @@ def _response(hold: str):
     return zoh_response if hold == "zero-order" else continuous_response
 
 
+def _damped_gauss_newton(residual, x: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, residual, Jacobian) at the least squares of ``residual`` near ``x``: Gauss–Newton with Levenberg damping.
+
+    ``x[0]`` is a frequency (Hz; its difference step 1e-7 of it), the rest are logs and phases
+    (step 1e-7).  Stops when a step moves every parameter by less than ``tolerance`` (relative for
+    ``x[0]``), or the damping runs away; a non-finite residual rejects a step, and a non-finite
+    Jacobian ends the search (the caller checks it).
+    """
+    r = residual(x)
+    jac = np.full((r.size, x.size), np.nan)
+    if not np.all(np.isfinite(r)):
+        return x, r, jac
+    eye = np.eye(x.size)
+    damping = 1e-3
+    for _ in range(100):
+        steps = np.r_[max(1e-7 * x[0], 1e-6), np.full(x.size - 1, 1e-7)]
+        jac = np.column_stack([(residual(x + eye[k] * steps[k]) - r) / steps[k] for k in range(x.size)])
+        if not np.all(np.isfinite(jac)):
+            break
+        normal = jac.T @ jac
+        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-30), -jac.T @ r)
+        trial = residual(x + step)
+        if np.all(np.isfinite(trial)) and trial @ trial < r @ r:
+            x, r, damping = x + step, trial, damping / 3
+            if np.all(np.abs(step) <= tolerance * np.r_[x[0], np.ones(x.size - 1)]):
+                break
+        else:
+            damping *= 10
+            if damping > 1e12:
+                break
+    return x, r, jac
+
+
 def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float, hold: str) -> tuple[float, float, float]:
     """(f0, Q, gain) of the second-order response through |H(f_i)| (≥ 3 lines).
 
@@ -237,24 +270,7 @@ def _response_from_magnitudes(f: np.ndarray, magnitude: np.ndarray, fs: float, h
         r = log_m - np.log(np.abs(response(f, f0, q, fs)))
         return r - r.mean()
 
-    r = residual(x)
-    damping = 1e-3
-    for _ in range(100):
-        steps = np.array([max(1e-7 * x[0], 1e-6), 1e-7])
-        jac = np.column_stack([(residual(x + np.eye(2)[k] * steps[k]) - r) / steps[k] for k in range(2)])
-        if not np.all(np.isfinite(jac)):
-            break
-        normal = jac.T @ jac
-        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-30), -jac.T @ r)
-        trial = residual(x + step)
-        if np.all(np.isfinite(trial)) and trial @ trial < r @ r:
-            x, r, damping = x + step, trial, damping / 3
-            if np.all(np.abs(step) <= np.array([1e-9 * x[0], 1e-9])):
-                break
-        else:
-            damping *= 10
-            if damping > 1e12:
-                break
+    x, r, _ = _damped_gauss_newton(residual, x, 1e-9)
     f0, q = float(x[0]), math.exp(x[1])
     if not (np.all(np.isfinite(r)) and 0 < f0 < fs / 2 and 0.5 < q < _MAX_Q):
         raise InputError(
@@ -366,7 +382,6 @@ def fit_drive_phases(
                          f0_std, q_std_fit, tuple(float(v) for v in phase_std), closure_chi2)
 
 
-
 class _CommonOriginFit(NamedTuple):
     f0_hz: float
     q: float
@@ -449,29 +464,9 @@ def _common_origin_fit(frequencies, amplitudes, d, line_sigma, fs, hold, start, 
         r = (d - model) / line_sigma
         return np.concatenate([r.real, r.imag])
 
-    r = residual(x)
-    if not np.all(np.isfinite(r)):
-        return None
-    damping = 1e-3
-    scale = np.array([max(1e-7 * x[0], 1e-6), 1e-7, 1e-7, 1e-7, 1e-7])
-    jac = np.zeros((r.size, 5))
-    for _ in range(100):
-        jac = np.column_stack([(residual(x + np.eye(5)[k] * scale[k]) - r) / scale[k] for k in range(5)])
-        if not np.all(np.isfinite(jac)):
-            return None
-        normal = jac.T @ jac
-        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-30), -jac.T @ r)
-        trial = residual(x + step)
-        if np.all(np.isfinite(trial)) and trial @ trial < r @ r:
-            x, r, damping = x + step, trial, damping / 3
-            if np.all(np.abs(step) <= np.array([1e-10 * x[0], 1e-10, 1e-10, 1e-10, 1e-10])):
-                break
-        else:
-            damping *= 10
-            if damping > 1e12:
-                break
+    x, r, jac = _damped_gauss_newton(residual, x, 1e-10)
     f0, q = float(x[0]), math.exp(x[1])
-    if not (0 < f0 < fs / 2 and 0.5 < q < _MAX_Q):
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac)) and 0 < f0 < fs / 2 and 0.5 < q < _MAX_Q):
         return None
     covariance = np.linalg.pinv(jac.T @ jac)
     # φ_i = c + s_i·m: the line phases' covariance from (c, m)
