@@ -980,8 +980,8 @@ class DesignExcitationParams:
     )
     offset_hz: float = field(0.0, "Side-line offset; 0 = min(20 f0/Q, f0/10)", "Hz", bounds=">= 0", flag="--offset")
     beat_tolerance: float = field(
-        0.05,
-        "Largest relative excursion of the response envelope (side lines / main)",
+        0.03,
+        "Largest relative excursion of the response envelope (side lines / main); kalman-bank warns above 0.03",
         bounds="> 0",
         flag="--beat-tolerance",
     )
