@@ -244,9 +244,10 @@ def test_reep_drive_phases_independent_from_the_command_line(tmp_path):
     response = json.loads(result.stdout)["inputs"][0]["synthetic_drive"]["response"]
     assert response["from"] == "line magnitudes" and response["line_phases"] == "independent"
     assert "closure_chi2" not in response
-    bad = run_cli("reep", path, "--drive", drive, "--drive-phases", "apart", "--out", tmp_path / "bad")
-    assert bad.returncode == 2 and len(bad.stderr.decode().strip().splitlines()) == 1
-    assert "--drive-phases" in bad.stderr.decode() and not (tmp_path / "bad").exists()
+    for extra in (["--drive", drive], []):  # refused whether or not a drive is synthesised
+        bad = run_cli("reep", path, *extra, "--drive-phases", "apart", "--out", tmp_path / "bad")
+        assert bad.returncode == 2 and len(bad.stderr.decode().strip().splitlines()) == 1
+        assert "--drive-phases" in bad.stderr.decode() and not (tmp_path / "bad").exists()
 
 
 def test_reep_drive_takes_a_designed_loop_and_fits_its_origin(tmp_path):

@@ -115,6 +115,10 @@ class CaptureOptions:
     def __post_init__(self) -> None:
         for name in ("channel_map", "topic_map", "units"):
             object.__setattr__(self, name, _frozen(getattr(self, name)))
+        if self.drive_phases not in ("common", "independent"):
+            from afmtool.errors import ConfigError
+
+            raise ConfigError(f"--drive-phases {self.drive_phases!r} must be 'common' or 'independent'")
 
     def replace(self, **changes) -> CaptureOptions:
         """A copy with ``changes`` (``dataclasses.replace``)."""
