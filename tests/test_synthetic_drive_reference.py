@@ -313,3 +313,20 @@ def test_a_drive_file_that_is_not_a_design_is_one_line(tmp_path):
     result = run_cli("reep", "sample_data/ltv_step.h5", "--drive", tmp_path / "lines.json", "--out", tmp_path / "r")
     assert result.returncode == 2 and len(result.stderr.decode().strip().splitlines()) == 1
     assert "not a lines.json" in result.stderr.decode() and not (tmp_path / "r").exists()
+
+
+def test_a_common_origin_fit_that_does_not_converge_is_a_failed_test(monkeypatch):
+    """No silent fallback: where the common-origin fit does not converge, the magnitudes give f0 and Q and the
+    report says why, as when its χ² is too large."""
+    import afmtool.estimators.drive_lines as dl
+
+    cap = rs.simulate(f0_hz=70e3, q=200.0, gain_nm_per_v=1.0, sample_rate_hz=500e3, duration_s=0.02,
+                      drive=rs.three_sine(70e3, 6000.0, 0.1, 0.5), noise_nm=0.05, seed=2, free_air_s=0.02)
+    lines = tuple(DriveLine(f, a) for f, a in zip(cap.metadata["drive"]["lines_hz"], cap.metadata["drive"]["lines_v"]))
+    monkeypatch.setattr(dl, "_common_origin_fit", lambda *args, **kwargs: None)
+    fit = dl.fit_drive_phases(cap.channels["deflection"], 500e3, 0, lines)
+    assert fit.response_source == dl.MAGNITUDES and fit.closure_chi2 == np.inf
+    assert "common-origin fit does not converge" in dl.drive_fit_warnings(fit)[0]
+    # two lines: the test does not apply, and nothing is said
+    two = dl.fit_drive_phases(cap.channels["deflection"], 500e3, 0, lines[:2], f0_hz=70e3, q=200.0)
+    assert np.isnan(two.closure_chi2) and not dl.drive_fit_warnings(two)

@@ -83,8 +83,9 @@ class DrivePhaseFit(NamedTuple):
         Each fitted phase's standard deviation (eq. D.2), rad.
     closure_chi2 : float
         χ² of the common-phase-origin fit (eq. D.4, 2K − 5 degrees of
-        freedom), NaN when it was not tried (f0 and Q given, the lines not a
-        comb, ``common_origin=False``) or did not converge.  Above the 99.9 % point the lines were not in phase at
+        freedom): NaN when it was not tried (f0 and Q given, fewer than
+        three lines or not a comb, ``common_origin=False``), infinite when
+        it did not converge.  Above the 99.9 % point the lines were not in phase at
         one instant and the magnitudes alone gave f0 and Q.
     """
 
@@ -366,12 +367,13 @@ def fit_drive_phases(
     closure_chi2 = math.nan
     # with f0 and Q given the common origin adds nothing REEP feels: it fixes the side lines' mean phase, to
     # which Q′ is insensitive, and leaves their difference (the envelope's timing) as noisy as before
-    if given is None and common_origin:
+    if given is None and common_origin and frequencies.size >= 3 and _comb_steps(frequencies, amplitudes) is not None:
         design = np.array([line.design_phase_rad for line in lines])
         common = _common_origin_fit(frequencies, amplitudes, d, line_noise[0], fs, hold, (f0, qf, gain), phases,
                                     design)
+        # a fit that does not converge fails the test as surely as one whose χ² is too large
+        closure_chi2 = common.chi2 if common is not None else math.inf
         if common is not None:
-            closure_chi2 = common.chi2
             if common.chi2 <= _chi2_upper(common.dof):
                 f0, qf, gain, phases = common.f0_hz, common.q, common.gain, common.phases
                 f0_std, q_std_fit, phase_std = common.f0_std_hz, common.q_std, common.phase_std
@@ -615,12 +617,13 @@ def envelope_beat(dither: np.ndarray, sample_rate_hz: float, drive_hz: float, f0
 
 def drive_fit_warnings(fit: DrivePhaseFit | None) -> list[str]:
     """The report's warning when the lines did not fit one phase origin (eq. D.4's χ² test failed)."""
-    if fit is None or fit.response_source != MAGNITUDES or not math.isfinite(fit.closure_chi2):
+    if fit is None or fit.response_source != MAGNITUDES or math.isnan(fit.closure_chi2):
         return []
     dof = 2 * len(fit.lines) - 5
-    return [f"the drive lines do not share one phase origin (closure chi2 {fit.closure_chi2:.3g} for {dof} "
-            f"degree(s) of freedom, above {_chi2_upper(dof):.3g}): f0 and Q of the synthesised drive come from the "
-            "lines' magnitudes alone, with their wider uncertainty; --drive-phases independent skips the test"]
+    why = (f"closure chi2 {fit.closure_chi2:.3g} for {dof} degree(s) of freedom, above {_chi2_upper(dof):.3g}"
+           if math.isfinite(fit.closure_chi2) else "their common-origin fit does not converge")
+    return [f"the drive lines do not share one phase origin ({why}): f0 and Q of the synthesised drive come from "
+            "the lines' magnitudes alone, with their wider uncertainty; --drive-phases independent skips the test"]
 
 
 def drive_phase_std(fit: DrivePhaseFit, drive_hz: float) -> float:
