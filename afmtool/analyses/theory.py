@@ -69,11 +69,10 @@ import numpy as np
 
 from afmtool.models.cantilever import Cantilever
 from afmtool.models.forces import PiecewiseLinearForce
-from afmtool.records.theory_compare import BinLeg, FreeAirReferenceRecord, WorstBinRecord
+from afmtool.records.theory_compare import BinLeg, FreeAirReferenceRecord, TheoryComparisonRecord, WorstBinRecord
 
 __all__ = [
     "ComparisonBins",
-    "ComparisonSummary",
     "ReepRows",
     "MAX_OUTLIER_SHARE",
     "TheoryComparison",
@@ -177,7 +176,7 @@ class TheoryComparison:
             f0_z=float(b.f0_z[i]), q_shift_reep=float(b.q_shift_reep[i]), q_shift_theory=float(b.q_shift_theory[i]),
             q_z=float(b.q_z[i])) for i in order)
 
-    def summary(self) -> ComparisonSummary:
+    def summary(self) -> TheoryComparisonRecord:
         """The report's numbers: verdict, bins compared and left out (with why), the worst bins."""
         b = self.bins
         reasons: dict[str, int] = {}
@@ -185,7 +184,7 @@ class TheoryComparison:
             if not ok:
                 reasons[why] = reasons.get(why, 0) + 1
         interaction = b.conditioned & (np.abs(b.f0_shift_theory_hz) > 0)
-        return ComparisonSummary(
+        return TheoryComparisonRecord(
             verdict=self.verdict,
             compared_rows=int(self.mask.sum()),
             bins=int(b.leg.size),
@@ -205,32 +204,6 @@ class TheoryComparison:
             beat_modulation=self.beat_modulation,
             worst_bins=self.worst_bins(),
         )
-
-
-class ComparisonSummary(NamedTuple):
-    """The comparison's numbers, as :class:`~afmtool.records.theory_compare.TheoryCompareResults` holds them.
-
-    The fields are that record's of the same names (their meaning and units are documented there).
-    """
-
-    verdict: str
-    compared_rows: int
-    bins: int
-    bins_compared: int
-    bins_ill_conditioned: int
-    ill_conditioned_reasons: dict[str, int]
-    excluded_near_jumps: int
-    outlier_share: float
-    max_outlier_share: float
-    chi2_per_dof: float
-    chi2_limit_per_dof: float
-    tolerance: float
-    f0_theory_change_hz: float
-    q_theory_change: float
-    free_air_reference: FreeAirReferenceRecord
-    uncertainty_source: str
-    beat_modulation: float
-    worst_bins: tuple[WorstBinRecord, ...]
 
 
 def jump_neighbourhood(amplitude: np.ndarray, sample_rate_hz: float, *, jump_nm: float = 1.0,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Mapping
@@ -223,9 +224,10 @@ def run_compare_command(reep_dir: Path, out: Path, config: Path | None, flags: M
 def compare_results(force: CompareForceRecord, free_amplitude_nm: float, separation: SeparationRecord,
                     comparison: TheoryComparison, beat: BeatRecord) -> TheoryCompareResults:
     """What ``theory compare`` found: the force and axis it compared on, and the comparison's numbers and verdict."""
+    summary = comparison.summary()
+    shared = {f.name: getattr(summary, f.name) for f in dataclasses.fields(summary)}
     return TheoryCompareResults(force_set=force.source, force=force, free_amplitude_nm=free_amplitude_nm,
-                                separation=separation, beat=beat, **comparison.summary()._asdict(),
-                                pass_=comparison.passed)
+                                separation=separation, beat=beat, **shared, pass_=comparison.passed)
 
 
 def _compare_warnings(result: TheoryCompareResults, lines_source: str) -> list[str]:

@@ -13,7 +13,7 @@ from afmtool.records.base import Item, Record, optional, record
 from afmtool.records.theory_fit import FitModel
 
 __all__ = ["SeparationSource", "ContactMethod", "BinLeg", "CompareForceRecord", "SeparationRecord", "BeatRecord",
-           "FreeAirReferenceRecord", "WorstBinRecord", "TheoryCompareResults"]
+           "FreeAirReferenceRecord", "WorstBinRecord", "TheoryComparisonRecord", "TheoryCompareResults"]
 
 
 class SeparationSource(enum.Enum):
@@ -183,21 +183,11 @@ class WorstBinRecord(Record):
 
 
 @record
-class TheoryCompareResults(Record):
-    """REEP against averaging theory (eqs. 4.9-4.10) in separation bins, with a verdict (§3.4.3).
+class TheoryComparisonRecord(Record):
+    """The comparison's numbers and verdict in words, as the comparison (:mod:`afmtool.analyses.theory`) gives them.
 
     Attributes
     ----------
-    force_set : str
-        The force compared with: a thesis set's name, "custom", "metadata" (or the capture's name of it) or "fit".
-    force : CompareForceRecord
-        The force's parameters and where they came from.
-    free_amplitude_nm : float
-        The free-air amplitude A0 the theory is evaluated for (nm).
-    separation : SeparationRecord
-        Where the separation axis came from.
-    beat : BeatRecord
-        The drive's envelope beat.
     verdict : str
         The verdict in words: "agree: ...", "disagree: ..." or "inconclusive: ...".
     compared_rows : int
@@ -234,15 +224,8 @@ class TheoryCompareResults(Record):
         The envelope beat m the theory's uncertainty includes.
     worst_bins : tuple of WorstBinRecord
         Up to three bins with the largest |z|, worst first.
-    pass_ : bool
-        The verdict: REEP and the theory agree.
     """
 
-    force_set: str
-    force: CompareForceRecord
-    free_amplitude_nm: float
-    separation: SeparationRecord
-    beat: BeatRecord
     verdict: str
     compared_rows: int
     bins: int
@@ -261,6 +244,33 @@ class TheoryCompareResults(Record):
     uncertainty_source: str
     beat_modulation: float
     worst_bins: tuple[WorstBinRecord, ...]
+
+
+@record
+class TheoryCompareResults(TheoryComparisonRecord):
+    """REEP against averaging theory (eqs. 4.9-4.10) in separation bins, with a verdict (§3.4.3).
+
+    Attributes
+    ----------
+    force_set : str
+        The force compared with: a thesis set's name, "custom", "metadata" (or the capture's name of it) or "fit".
+    force : CompareForceRecord
+        The force's parameters and where they came from.
+    free_amplitude_nm : float
+        The free-air amplitude A0 the theory is evaluated for (nm).
+    separation : SeparationRecord
+        Where the separation axis came from.
+    beat : BeatRecord
+        The drive's envelope beat.
+    pass_ : bool
+        The verdict: REEP and the theory agree.
+    """
+
+    force_set: str
+    force: CompareForceRecord
+    free_amplitude_nm: float
+    separation: SeparationRecord
+    beat: BeatRecord
     pass_: bool
 
     HEADLINE = (
